@@ -1,0 +1,104 @@
+"""Extended Kalman filter, batched over leading axes (trials and/or vehicles).
+
+Predict:  x- = f(x);                 P- = F P F' + Q,   F = df/dx at x
+Update:   y = z - h(x-);  S = H P- H' + R;  K = P- H' S^-1
+          x+ = x- + K y;  P+ = (I - K H) P- (I - K H)' + K R K'     (Joseph form)
+
+x: (..., n)   P: (..., n, n)   z: (..., m)
+The models supply f, F, Q (transition) and h, H, R / R_diag (measurement); see
+filters/models.py. The covariance algebra runs in filters/kernels.py (numpy or compiled).
+Functions are pure: they return new arrays and never modify their inputs.
+"""
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import numpy as np
+
+from . import kernels
+
+
+class UpdateResult(NamedTuple):
+    x: np.ndarray  # (..., n) posterior mean
+    P: np.ndarray  # (..., n, n) posterior covariance
+    y: np.ndarray  # (..., m) innovation z - h(x-)
+    nis: np.ndarray  # (...,) normalised innovation squared y' S^-1 y
+
+
+def measure(model, x):
+    """(h(x), H(x)) from the model, sharing work when it offers ``h_and_H``."""
+    both = getattr(model, "h_and_H", None)
+    if both is not None:
+        return both(x)
+    return model.h(x), model.H(x)
+
+
+def _flatten(x, P):
+    batch = x.shape[:-1]
+    n = x.shape[-1]
+    if P.shape != batch + (n, n):
+        raise ValueError(f"P must have shape {batch + (n, n)} to match x {x.shape}, got {P.shape}")
+    return batch, x.reshape(-1, n), P.reshape(-1, n, n)
+
+
+def ekf_predict(x, P, model, dt, backend=None):
+    """x- = f(x),  P- = F P F' + Q.  Returns (x-, P-)."""
+    x = np.asarray(x, dtype=float)
+    P = np.asarray(P, dtype=float)
+    batch, xf, Pf = _flatten(x, P)
+    n = xf.shape[-1]
+    F = np.asarray(model.F(x, dt), dtype=float)
+    if F.ndim > 2:
+        F = np.broadcast_to(F, batch + (n, n)).reshape(-1, n, n)
+    x_pred = model.f(x, dt)
+    P_pred = kernels.cov_predict(F, Pf, model.Q(dt), backend=backend)
+    return x_pred, P_pred.reshape(batch + (n, n))
+
+
+def ekf_update(x, P, z, model, backend=None) -> UpdateResult:
+    """Joseph-form update with the measurement model linearised at the prior x-."""
+    x = np.asarray(x, dtype=float)
+    P = np.asarray(P, dtype=float)
+    batch, xf, Pf = _flatten(x, P)
+    n = xf.shape[-1]
+    z = np.asarray(z, dtype=float)
+    hx, H = measure(model, x)
+    y = z - hx
+    m = y.shape[-1]
+    H = np.broadcast_to(H, batch + (m, n)).reshape(-1, m, n)
+    yf = np.broadcast_to(y, batch + (m,)).reshape(-1, m)
+    r_diag = model.R_diag()
+    if r_diag is not None:
+        r = np.broadcast_to(r_diag, batch + (m,)).reshape(-1, m)
+        xo, Po, nis = kernels.joseph_update(xf, Pf, yf, H, r_diag=r, backend=backend)
+    else:
+        R = np.broadcast_to(model.R(), batch + (m, m)).reshape(-1, m, m)
+        xo, Po, nis = kernels.joseph_update(xf, Pf, yf, H, R=R, backend=backend)
+    return UpdateResult(xo.reshape(batch + (n,)), Po.reshape(batch + (n, n)), y, nis.reshape(batch))
+
+
+def ekf_step(x, P, z, transition, measurement, dt, backend=None) -> UpdateResult:
+    """One predict + update cycle; the same numbers as ekf_predict then ekf_update.
+
+    For a linear transition with a shared F and a diagonal R, the covariance
+    prediction and the sequential Joseph update run as one fused kernel (one pass
+    over P instead of two), which is what batched Monte Carlo spends its time on.
+    """
+    x = np.asarray(x, dtype=float)
+    P = np.asarray(P, dtype=float)
+    r_diag = measurement.R_diag()
+    F = transition.F(x, dt) if getattr(transition, "linear", False) else None
+    if F is None or np.ndim(F) != 2 or r_diag is None:
+        x_pred, P_pred = ekf_predict(x, P, transition, dt, backend=backend)
+        return ekf_update(x_pred, P_pred, z, measurement, backend=backend)
+    batch, xf, Pf = _flatten(x, P)
+    n = xf.shape[-1]
+    x_pred = xf @ F.T  # = transition.f(x) for a linear model, without its overhead
+    hx, H = measure(measurement, x_pred.reshape(batch + (n,)))
+    m = hx.shape[-1]
+    y = (np.asarray(z, dtype=float) - hx).reshape(-1, m)
+    H = np.broadcast_to(H, batch + (m, n)).reshape(-1, m, n)
+    r = np.broadcast_to(r_diag, batch + (m,)).reshape(-1, m)
+    xo, Po, nis = kernels.predict_joseph_update(F, transition.Q(dt), x_pred, Pf, y, H, r, backend=backend)
+    return UpdateResult(xo.reshape(batch + (n,)), Po.reshape(batch + (n, n)), y.reshape(batch + (m,)),
+                        nis.reshape(batch))
