@@ -144,36 +144,147 @@ def _predict_block(F, P, Q, out, lo, hi):
         out[t] = Pt
 
 
+LANES = 32  # trials processed side by side: every inner loop runs over them (SIMD)
+
+
 @nb.njit(**_jit)
-def _joseph_block(x, P, y, H, r, xo, Po, nis, lo, hi, F, Q, predict):
-    """Sequential Joseph update of trials [lo, hi); with predict, P- = F P F' + Q first."""
+def _joseph_block(x, P, y, H, r, xo, Po, nis, lo, hi, F, Q, predict, lanes):
+    """Sequential Joseph update of trials [lo, hi); with predict, P- = F P F' + Q first.
+
+    Trials are taken LANES at a time and transposed into "structure of arrays" scratch
+    (P[i, j, lane]) so that every scalar operation of the algorithm becomes a vector
+    operation across trials. Per channel j (R diagonal), with the linearisation point
+    fixed at the prior so that the result equals the vector EKF update exactly:
+      nu = y_j - h_j dx;  b = P h_j';  s = h_j b + r_j;  k = b / s;  dx += k nu
+      P <- (I - k h_j) P (I - k h_j)' + r_j k k'  =  P - k b' - b k' + s k k'
+    (the Joseph product multiplied out, valid for any gain; upper triangle, mirrored on
+    the way out). nis accumulates nu^2 / s, equal to y' S^-1 y by the chain rule.
+    Channels are skipped per column where H is zero for every trial of the lane group.
+    """
     n = x.shape[1]
     m = y.shape[1]
+    # B is a run-time value on purpose: with a compile-time trip count LLVM unrolls the
+    # lane loops into scalar code instead of vectorising them.
+    B = lanes
     cnt, cols, vals = sparse_rows(F)
-    A = np.empty((n, n))
-    Pin = np.empty((n, n))
-    Pt = np.empty((n, n))
-    Ht = np.empty((m, n))
-    yt = np.empty(m)
-    rt = np.empty(m)
-    dx = np.empty(n)
-    b = np.empty(n)
-    k = np.empty(n)
+    Pin = np.empty((n, n, B))
+    A = np.empty((n, n, B))
+    Pl = np.empty((n, n, B))
+    Hl = np.empty((m, n, B))
+    yl = np.empty((m, B))
+    rl = np.empty((m, B))
+    dx = np.empty((n, B))
+    b = np.empty((n, B))
+    k = np.empty((n, B))
+    nu = np.empty(B)
+    sv = np.empty(B)
+    acc = np.empty(B)
     idx = np.empty(n, np.int64)
-    for t in range(lo, hi):
-        if predict:
-            Pin[:, :] = P[t]
-            _predict_into(cnt, cols, vals, Pin, Q, Pt, A)
+    for t0 in range(lo, hi, B):
+        nl = min(B, hi - t0)
+        # load, transposed; idle lanes get a harmless problem (P = I, H = 0, r = 1)
+        for q in range(B):
+            if q < nl:
+                t = t0 + q
+                for i in range(n):
+                    for j in range(n):
+                        Pin[i, j, q] = P[t, i, j]
+                for a in range(m):
+                    yl[a, q] = y[t, a]
+                    rl[a, q] = r[t, a]
+                    for i in range(n):
+                        Hl[a, i, q] = H[t, a, i]
+            else:
+                for i in range(n):
+                    for j in range(n):
+                        Pin[i, j, q] = 1.0 if i == j else 0.0
+                for a in range(m):
+                    yl[a, q] = 0.0
+                    rl[a, q] = 1.0
+                    for i in range(n):
+                        Hl[a, i, q] = 0.0
+        if predict:  # A = F P (sparse rows of F), Pl = A F' + Q (upper triangle)
+            for i in range(n):
+                for j in range(n):
+                    for q in range(B):
+                        A[i, j, q] = 0.0
+                for c in range(cnt[i]):
+                    l = cols[i, c]
+                    f = vals[i, c]
+                    for j in range(n):
+                        for q in range(B):
+                            A[i, j, q] += f * Pin[l, j, q]
+            for i in range(n):
+                for j in range(i, n):
+                    for q in range(B):
+                        Pl[i, j, q] = Q[i, j]
+                    for c in range(cnt[j]):
+                        l = cols[j, c]
+                        f = vals[j, c]
+                        for q in range(B):
+                            Pl[i, j, q] += A[i, l, q] * f
         else:
-            Pt[:, :] = P[t]
-        Ht[:, :] = H[t]
-        yt[:] = y[t]
-        rt[:] = r[t]
-        nis[t] = _seq_update_into(Pt, dx, yt, Ht, rt, b, k, idx)
+            for i in range(n):
+                for j in range(i, n):
+                    for q in range(B):
+                        Pl[i, j, q] = Pin[i, j, q]
         for i in range(n):
-            xo[t, i] = x[t, i] + dx[i]
-            for j in range(n):  # exact symmetry against rounding drift
-                Po[t, i, j] = 0.5 * (Pt[i, j] + Pt[j, i])
+            for q in range(B):
+                dx[i, q] = 0.0
+        for q in range(B):
+            acc[q] = 0.0
+        for a in range(m):
+            nz = 0
+            for i in range(n):
+                any_ = False
+                for q in range(B):
+                    if Hl[a, i, q] != 0.0:
+                        any_ = True
+                if any_:
+                    idx[nz] = i
+                    nz += 1
+            for q in range(B):
+                nu[q] = yl[a, q]
+            for c in range(nz):
+                i = idx[c]
+                for q in range(B):
+                    nu[q] -= Hl[a, i, q] * dx[i, q]
+            # b = P h' from the upper triangle: P[i, l] for i <= l, P[l, i] otherwise
+            for i in range(n):
+                for q in range(B):
+                    b[i, q] = 0.0
+            for c in range(nz):
+                l = idx[c]
+                for i in range(l + 1):
+                    for q in range(B):
+                        b[i, q] += Pl[i, l, q] * Hl[a, l, q]
+                for i in range(l + 1, n):
+                    for q in range(B):
+                        b[i, q] += Pl[l, i, q] * Hl[a, l, q]
+            for q in range(B):
+                sv[q] = rl[a, q]
+            for c in range(nz):
+                i = idx[c]
+                for q in range(B):
+                    sv[q] += Hl[a, i, q] * b[i, q]
+            for i in range(n):
+                for q in range(B):
+                    k[i, q] = b[i, q] / sv[q]
+                    dx[i, q] += k[i, q] * nu[q]
+            for q in range(B):
+                acc[q] += nu[q] * nu[q] / sv[q]
+            for i in range(n):
+                for l in range(i, n):
+                    for q in range(B):
+                        Pl[i, l, q] += (sv[q] * k[i, q] - b[i, q]) * k[l, q] - k[i, q] * b[l, q]
+        for q in range(nl):
+            t = t0 + q
+            nis[t] = acc[q]
+            for i in range(n):
+                xo[t, i] = x[t, i] + dx[i, q]
+                for l in range(i, n):
+                    Po[t, i, l] = Pl[i, l, q]
+                    Po[t, l, i] = Pl[i, l, q]
 
 
 @nb.njit(**_jit)
@@ -220,77 +331,147 @@ def _moments_block(X, Wm, Wc, Q, mean, P, lo, hi):
 
 
 @nb.njit(**_jit)
-def _ukf_update_block(xbar, Pbar, X, Z, z, R, Wm, Wc, xo, Po, yo, nis, lo, hi):
-    """x+ = xbar + Pxz S^-1 (z - zbar),  P+ = Pbar - Pxz S^-1 Pxz'  via G = L^-1 Pxz'."""
+def _chol_lanes(S, L, ok, B):
+    """Lower Cholesky factors of S[:, :, q] for every lane q at once (vectorised).
+
+    Lanes whose matrix is not positive definite get ok[q] = False (and a harmless unit
+    pivot so that the others proceed)."""
+    m = S.shape[0]
+    for q in range(B):
+        ok[q] = True
+    for j in range(m):
+        for q in range(B):
+            d = S[j, j, q]
+            for kk in range(j):
+                d -= L[j, kk, q] * L[j, kk, q]
+            if d > 0.0:
+                L[j, j, q] = np.sqrt(d)
+            else:
+                ok[q] = False
+                L[j, j, q] = 1.0
+        for i in range(j + 1, m):
+            for q in range(B):
+                v = S[j, i, q]  # upper triangle holds S[j, i] = S[i, j]
+                for kk in range(j):
+                    v -= L[i, kk, q] * L[j, kk, q]
+                L[i, j, q] = v / L[j, j, q]
+
+
+@nb.njit(**_jit)
+def _ukf_update_block(xbar, Pbar, X, Z, z, R, Wm, Wc, xo, Po, yo, nis, lo, hi, lanes):
+    """x+ = xbar + Pxz S^-1 (z - zbar),  P+ = Pbar - Pxz S^-1 Pxz'  via G = L^-1 Pxz'.
+
+    Lanes of trials side by side as in _joseph_block (B is a run-time value so that
+    LLVM vectorises the lane loops rather than unrolling them).
+    """
     K_, N, n = X.shape
     m = Z.shape[2]
-    zb = np.empty(m)
-    S = np.empty((1, m, m))
-    Pxz = np.empty((n, m))
-    dz = np.empty(m)
-    dx = np.empty(n)
-    L = np.zeros((m, m))
-    wv = np.empty(m)
-    G = np.empty((m, n))
-    for t in range(lo, hi):
+    B = lanes
+    Dx = np.empty((K_, n, B))
+    Dz = np.empty((K_, m, B))
+    zb = np.empty((m, B))
+    S = np.empty((m, m, B))
+    Pxz = np.empty((n, m, B))
+    L = np.empty((m, m, B))
+    ok = np.empty(B, np.bool_)
+    wv = np.empty((m, B))
+    G = np.empty((m, n, B))
+    yl = np.empty((m, B))
+    for t0 in range(lo, hi, B):
+        nl = min(B, hi - t0)
+        for q in range(B):  # load, transposed; idle lanes: a harmless problem
+            if q < nl:
+                t = t0 + q
+                # measurements relative to the centre point's: pseudoranges of ~2e7 m
+                # averaged with a weight like -8/3 would otherwise lose ~1e-8 m
+                for k in range(K_):
+                    for i in range(n):
+                        Dx[k, i, q] = X[k, t, i] - xbar[t, i]
+                    for a in range(m):
+                        Dz[k, a, q] = Z[k, t, a] - Z[0, t, a]
+                for a in range(m):
+                    yl[a, q] = z[t, a] - Z[0, t, a]
+                    for b_ in range(a, m):
+                        S[a, b_, q] = R[t, a, b_]
+            else:
+                for k in range(K_):
+                    for i in range(n):
+                        Dx[k, i, q] = 0.0
+                    for a in range(m):
+                        Dz[k, a, q] = 0.0
+                for a in range(m):
+                    yl[a, q] = 0.0
+                    for b_ in range(a, m):
+                        S[a, b_, q] = 1.0 if a == b_ else 0.0
         for a in range(m):
-            zb[a] = 0.0
-        for k in range(K_):
-            for a in range(m):
-                zb[a] += Wm[k] * Z[k, t, a]
+            for q in range(B):
+                zb[a, q] = 0.0
+            for k in range(K_):
+                w = Wm[k]
+                for q in range(B):
+                    zb[a, q] += w * Dz[k, a, q]
+            for k in range(K_):
+                for q in range(B):
+                    Dz[k, a, q] -= zb[a, q]
+            for q in range(B):
+                yl[a, q] -= zb[a, q]
         for a in range(m):
-            for b_ in range(m):
-                S[0, a, b_] = R[t, a, b_]
             for i in range(n):
-                Pxz[i, a] = 0.0
+                for q in range(B):
+                    Pxz[i, a, q] = 0.0
         for k in range(K_):
             w = Wc[k]
             for a in range(m):
-                dz[a] = w * (Z[k, t, a] - zb[a])
-            for i in range(n):
-                dx[i] = X[k, t, i] - xbar[t, i]
-            for a in range(m):
-                za = Z[k, t, a] - zb[a]
-                for b_ in range(m):
-                    S[0, a, b_] += dz[b_] * za
-            for i in range(n):
-                for a in range(m):
-                    Pxz[i, a] += dx[i] * dz[a]
-        for a in range(m):
-            yo[t, a] = z[t, a] - zb[a]
-        if not _chol_lower(S, 0, L):
-            for i in range(n):
-                xo[t, i] = np.nan
-                for j in range(n):
-                    Po[t, i, j] = np.nan
-            nis[t] = np.nan
-            continue
+                for b_ in range(a, m):
+                    for q in range(B):
+                        S[a, b_, q] += w * Dz[k, a, q] * Dz[k, b_, q]
+                for i in range(n):
+                    for q in range(B):
+                        Pxz[i, a, q] += w * Dx[k, i, q] * Dz[k, a, q]
+        _chol_lanes(S, L, ok, B)
         for a in range(m):  # wv = L^-1 y
-            s = yo[t, a]
-            for b_ in range(a):
-                s -= L[a, b_] * wv[b_]
-            wv[a] = s / L[a, a]
-        for i in range(n):  # G = L^-1 Pxz'
-            for a in range(m):
-                s = Pxz[i, a]
+            for q in range(B):
+                v = yl[a, q]
                 for b_ in range(a):
-                    s -= L[a, b_] * G[b_, i]
-                G[a, i] = s / L[a, a]
-        acc = 0.0
-        for a in range(m):
-            acc += wv[a] * wv[a]
-        nis[t] = acc
-        for i in range(n):
-            s = xbar[t, i]
+                    v -= L[a, b_, q] * wv[b_, q]
+                wv[a, q] = v / L[a, a, q]
+        for a in range(m):  # G = L^-1 Pxz'
+            for i in range(n):
+                for q in range(B):
+                    v = Pxz[i, a, q]
+                    for b_ in range(a):
+                        v -= L[a, b_, q] * G[b_, i, q]
+                    G[a, i, q] = v / L[a, a, q]
+        for q in range(nl):
+            t = t0 + q
             for a in range(m):
-                s += G[a, i] * wv[a]
-            xo[t, i] = s
-            for j in range(i, n):
-                v = Pbar[t, i, j]
+                yo[t, a] = yl[a, q]
+            if not ok[q]:
+                nis[t] = np.nan
+                for i in range(n):
+                    xo[t, i] = np.nan
+                    for j in range(n):
+                        Po[t, i, j] = np.nan
+                continue
+            acc = 0.0
+            for a in range(m):
+                acc += wv[a, q] * wv[a, q]
+            nis[t] = acc
+            for i in range(n):
+                v = xbar[t, i]
                 for a in range(m):
-                    v -= G[a, i] * G[a, j]
-                Po[t, i, j] = v
-                Po[t, j, i] = v
+                    v += G[a, i, q] * wv[a, q]
+                xo[t, i] = v
+        # P+ = Pbar - G'G, lanes innermost
+        for i in range(n):
+            for j in range(i, n):
+                for q in range(nl):
+                    v = Pbar[t0 + q, i, j]
+                    for a in range(m):
+                        v -= G[a, i, q] * G[a, j, q]
+                    if ok[q]:
+                        Po[t0 + q, i, j] = v
+                        Po[t0 + q, j, i] = v
 
 
 # ----------------------------------------------------------------------------- drivers
@@ -313,23 +494,23 @@ def predict_ser(F, P, Q):
 
 
 @nb.njit(parallel=True, **_jit)
-def joseph_par(x, P, y, H, r, F, Q, predict):
+def joseph_par(x, P, y, H, r, F, Q, predict, lanes):
     N = x.shape[0]
     xo = np.empty_like(x)
     Po = np.empty_like(P)
     nis = np.empty(N)
     nb_ = min(N, N_BLOCKS)
     for blk in nb.prange(nb_):
-        _joseph_block(x, P, y, H, r, xo, Po, nis, blk * N // nb_, (blk + 1) * N // nb_, F, Q, predict)
+        _joseph_block(x, P, y, H, r, xo, Po, nis, blk * N // nb_, (blk + 1) * N // nb_, F, Q, predict, lanes)
     return xo, Po, nis
 
 
 @nb.njit(**_jit)
-def joseph_ser(x, P, y, H, r, F, Q, predict):
+def joseph_ser(x, P, y, H, r, F, Q, predict, lanes):
     xo = np.empty_like(x)
     Po = np.empty_like(P)
     nis = np.empty(x.shape[0])
-    _joseph_block(x, P, y, H, r, xo, Po, nis, 0, x.shape[0], F, Q, predict)
+    _joseph_block(x, P, y, H, r, xo, Po, nis, 0, x.shape[0], F, Q, predict, lanes)
     return xo, Po, nis
 
 
@@ -372,7 +553,7 @@ def moments_ser(X, Wm, Wc, Q):
 
 
 @nb.njit(parallel=True, **_jit)
-def ukf_update_par(xbar, Pbar, X, Z, z, R, Wm, Wc):
+def ukf_update_par(xbar, Pbar, X, Z, z, R, Wm, Wc, lanes):
     K_, N, n = X.shape
     m = Z.shape[2]
     xo = np.empty((N, n))
@@ -381,19 +562,19 @@ def ukf_update_par(xbar, Pbar, X, Z, z, R, Wm, Wc):
     nis = np.empty(N)
     nb_ = min(N, N_BLOCKS)
     for blk in nb.prange(nb_):
-        _ukf_update_block(xbar, Pbar, X, Z, z, R, Wm, Wc, xo, Po, yo, nis, blk * N // nb_, (blk + 1) * N // nb_)
+        _ukf_update_block(xbar, Pbar, X, Z, z, R, Wm, Wc, xo, Po, yo, nis, blk * N // nb_, (blk + 1) * N // nb_, lanes)
     return xo, Po, yo, nis
 
 
 @nb.njit(**_jit)
-def ukf_update_ser(xbar, Pbar, X, Z, z, R, Wm, Wc):
+def ukf_update_ser(xbar, Pbar, X, Z, z, R, Wm, Wc, lanes):
     K_, N, n = X.shape
     m = Z.shape[2]
     xo = np.empty((N, n))
     Po = np.empty((N, n, n))
     yo = np.empty((N, m))
     nis = np.empty(N)
-    _ukf_update_block(xbar, Pbar, X, Z, z, R, Wm, Wc, xo, Po, yo, nis, 0, N)
+    _ukf_update_block(xbar, Pbar, X, Z, z, R, Wm, Wc, xo, Po, yo, nis, 0, N, lanes)
     return xo, Po, yo, nis
 
 
@@ -478,3 +659,27 @@ def pr_prr_h_H(x, sp, sv, ip, iv, ib, idr):
             H[t, S + s, iv[2]] = -u2
             H[t, S + s, idr] = 1.0
     return out, H
+
+
+@nb.njit(parallel=True, **_jit)
+def mahalanobis_sq(v, C):
+    """v' C^-1 v per row for v (N, k) and SPD C (N, k, k); NaN where C is not PD."""
+    N, k = v.shape
+    out = np.empty(N)
+    nb_ = min(N, N_BLOCKS)
+    for blk in nb.prange(nb_):
+        L = np.zeros((k, k))
+        w = np.empty(k)
+        for t in range(blk * N // nb_, (blk + 1) * N // nb_):
+            if not _chol_lower(C, t, L):
+                out[t] = np.nan
+                continue
+            acc = 0.0
+            for a in range(k):
+                s = v[t, a]
+                for b_ in range(a):
+                    s -= L[a, b_] * w[b_]
+                w[a] = s / L[a, a]
+                acc += w[a] * w[a]
+            out[t] = acc
+    return out

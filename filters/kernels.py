@@ -108,15 +108,18 @@ def _np_ut_moments(X, Wm, Wc, Q):
 
 def _np_ukf_update(xbar, Pbar, X, Z, z, R, Wm, Wc):
     """Unscented update from sigma points X (K,N,n) and their images Z (K,N,m)."""
-    zbar = np.tensordot(Wm, Z, axes=(0, 0))
+    # relative to the centre point's measurement (see _nbkernels._ukf_update_block)
+    Z0 = Z[0]
+    zrel = np.tensordot(Wm, Z - Z0[None], axes=(0, 0))
+    zbar = Z0 + zrel
     DX = X - xbar[None]
-    DZ = Z - zbar[None]
+    DZ = (Z - Z0[None]) - zrel[None]
     S = np.einsum("k,kni,knj->nij", Wc, DZ, DZ, optimize=True) + R
     Pxz = np.einsum("k,kni,knj->nij", Wc, DX, DZ, optimize=True)
     L = np.linalg.cholesky(S)
     Kt = _chol_solve(L, np.swapaxes(Pxz, -1, -2))
     K = np.swapaxes(Kt, -1, -2)
-    y = z - zbar
+    y = (z - Z0) - zrel
     w = np.linalg.solve(L, y[..., None])[..., 0]
     nis = np.einsum("...i,...i->...", w, w)
     x_new = xbar + np.einsum("...ij,...j->...i", K, y)
@@ -170,7 +173,7 @@ def joseph_update(x, P, y, H, R=None, r_diag=None, backend=None):
             R = np.broadcast_to(np.asarray(r_diag, float)[..., None, :] * np.eye(m), (N, m, m))
         return _np_joseph_update(x, P, y, H, np.broadcast_to(R, (N, m, m)))
     y, H, r = _whitened(y, H, R, r_diag, N, m, n)
-    return _nbk("joseph", N)(_c(x), _c(P), y, H, r, _NO_F, _NO_F, False)
+    return _nbk("joseph", N)(_c(x), _c(P), y, H, r, _NO_F, _NO_F, False, _nbkernels.LANES)
 
 
 def _whitened(y, H, R, r_diag, N, m, n):
@@ -196,7 +199,7 @@ def predict_joseph_update(F, Q, x_pred, P, y, H, r_diag, backend=None):
     m = y.shape[-1]
     if backend == "numba" and np.ndim(F) == 2 and np.ndim(Q) == 2:
         y, H, r = _whitened(y, H, None, r_diag, N, m, n)
-        return _nbk("joseph", N)(_c(x_pred), _c(P), y, H, r, _c(F), _c(Q), True)
+        return _nbk("joseph", N)(_c(x_pred), _c(P), y, H, r, _c(F), _c(Q), True, _nbkernels.LANES)
     Pp = cov_predict(F, P, Q, backend=backend)
     return joseph_update(x_pred, Pp, y, H, r_diag=r_diag, backend=backend)
 
@@ -225,7 +228,8 @@ def ukf_update(xbar, Pbar, X, Z, z, R, Wm, Wc, backend=None):
     backend = resolve_backend(backend)
     N = xbar.shape[0]
     m = Z.shape[-1]
-    R = np.broadcast_to(np.asarray(R, float), (N, m, m))
+    R = np.broadcast_to(np.asarray(R, float), (N, m, m))  # a shared R stays a stride-0 view
     if backend == "numba":
-        return _nbk("ukf_update", N)(_c(xbar), _c(Pbar), _c(X), _c(Z), _c(z), _c(R), _c(Wm), _c(Wc))
+        return _nbk("ukf_update", N)(_c(xbar), _c(Pbar), _c(X), _c(Z), _c(z), R, _c(Wm), _c(Wc),
+                                       _nbkernels.LANES)
     return _np_ukf_update(xbar, Pbar, X, Z, z, R, Wm, Wc)

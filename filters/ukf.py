@@ -39,8 +39,13 @@ class SigmaPoints:
     kappa: float = 0.0
 
     def __post_init__(self):
-        if int(self.n) != self.n or self.n < 1:
+        if isinstance(self.n, bool) or not isinstance(self.n, (int, np.integer)) or self.n < 1:
             raise ValueError(f"n must be a positive integer, got {self.n!r}")
+        object.__setattr__(self, "n", int(self.n))
+        for name in ("alpha", "beta", "kappa"):
+            v = getattr(self, name)
+            if not np.isfinite(v):
+                raise ValueError(f"{name} must be finite, got {v!r}")
         if not self.alpha > 0:
             raise ValueError(f"alpha must be > 0, got {self.alpha!r}")
         if not self.n + self.lam > 0:
@@ -118,7 +123,9 @@ def ukf_update(x, P, z, model, points: SigmaPoints | None = None, backend=None) 
     Z = np.broadcast_to(Z, (K,) + batch + (m,)).reshape(K, -1, m)
     z = np.broadcast_to(np.asarray(z, dtype=float), batch + (m,)).reshape(-1, m)
     r_diag = model.R_diag()
-    if r_diag is not None:
+    if r_diag is not None and np.ndim(r_diag) == 1:
+        R = np.diag(r_diag)  # shared by all trials: broadcast, not copied, by the kernel
+    elif r_diag is not None:
         R = np.broadcast_to(r_diag, batch + (m,)).reshape(-1, m)[..., None, :] * np.eye(m)
     else:
         R = np.broadcast_to(model.R(), batch + (m, m)).reshape(-1, m, m)

@@ -96,8 +96,13 @@ def _add_seed001_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--steps", type=positive_int, default=600, help="update steps per trial (default 600, as in the seed)")
     p.add_argument("--seed", type=nonnegative_int, default=1, help="seed of the numpy Generator (default 1)")
     p.add_argument("--out", type=output_dir, default=Path("out/ekf-vs-ukf"), help="output directory for result.json and PNG figures")
+    p.add_argument("--noise-reading", choices=("sigma", "variance"), default="sigma",
+                   help="read the seed table's 'mean square' noise figures (100 m, 15 m/s) as standard "
+                        "deviations (default) or as variances (MODELS.md: sigma 10 m, sqrt(15) m/s)")
     p.add_argument("--sigma-prr", type=positive_float, default=None, metavar="M_S",
-                   help="pseudo-velocity noise sigma, m/s (default sqrt(15): the seed's 'mean square 15')")
+                   help="override the pseudo-velocity noise sigma, m/s")
+    p.add_argument("--sigma-a", type=positive_float, default=None, metavar="M_S2",
+                   help="Singer manoeuvre sigma, m/s^2 (default 1; the seed gives none)")
     p.add_argument("--backend", choices=("auto", "numba", "numpy"), default="auto",
                    help="covariance kernels: compiled (numba) or plain numpy (default auto)")
     p.add_argument("--quiet", action="store_true", help="no progress lines")

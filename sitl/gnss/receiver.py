@@ -195,7 +195,10 @@ class Receiver:
         range_rate_m_s = self._full("range_rate_m_s", range_rate_m_s)
         el_rad = self._full("el_rad", el_rad)
         carrier_hz = np.asarray(carrier_hz, dtype=float)
-        is_gps = np.asarray(is_gps, dtype=bool)
+        is_gps = np.asarray(is_gps)
+        if is_gps.dtype != bool:
+            # e.g. the constellation's 'G'/'R' codes would all read as True
+            raise ValueError(f"is_gps must be a boolean array, got dtype {is_gps.dtype}")
         if carrier_hz.shape != (self.n_sats,) or is_gps.shape != (self.n_sats,):
             raise ValueError(f"carrier_hz and is_gps must have shape ({self.n_sats},), "
                              f"got {carrier_hz.shape} and {is_gps.shape}")

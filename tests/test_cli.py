@@ -1,0 +1,110 @@
+"""The `skyfuse` command line: help, usage errors (exit 2, one line) and a tiny run."""
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+
+import pytest
+
+from sitl.cli import build_parser, main
+
+SUBCOMMANDS = [[], ["demo"], ["experiment"], ["experiment", "ekf-vs-ukf"], ["bench"], ["bench", "filters"]]
+
+
+@pytest.mark.parametrize("words", SUBCOMMANDS)
+def test_help_on_every_subcommand(words, capsys):
+    with pytest.raises(SystemExit) as exc:
+        build_parser().parse_args(words + ["--help"])
+    assert exc.value.code == 0
+    assert "usage:" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize(
+    "argv, needle",
+    [
+        (["experiment", "ekf-vs-ukf", "--trials", "-5"], "positive integer"),
+        (["experiment", "ekf-vs-ukf", "--trials", "ten"], "positive integer"),
+        (["experiment", "no-such-experiment"], "invalid choice"),
+        (["experiment", "ekf-vs-ukf", "--steps", "0"], "positive integer"),
+        (["experiment", "ekf-vs-ukf", "--seed", "-1"], "integer >= 0"),
+        (["experiment", "ekf-vs-ukf", "--sigma-a", "nan"], "positive finite"),
+        (["bench", "filters", "--trials", "0"], "positive integer"),
+        (["frobnicate"], "invalid choice"),
+        ([], "required"),
+    ],
+)
+def test_usage_errors_exit_2_with_one_line(argv, needle, capsys):
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert needle in err
+    assert len(err.strip().splitlines()) == 1
+    assert "Traceback" not in err
+
+
+def test_unwritable_output_directory(tmp_path, capsys):
+    ro = tmp_path / "ro"
+    ro.mkdir()
+    ro.chmod(0o500)
+    try:
+        if os.access(ro, os.W_OK):  # root ignores permission bits: use a path under a file
+            target = tmp_path / "file"
+            target.write_text("x")
+            out = str(target / "sub")
+        else:
+            out = str(ro / "sub")
+        assert main(["experiment", "ekf-vs-ukf", "--trials", "2", "--out", out]) == 2
+    finally:
+        ro.chmod(0o700)
+    err = capsys.readouterr().err
+    assert "output directory" in err and len(err.strip().splitlines()) == 1
+
+
+def test_console_script_exit_code_without_traceback():
+    # the installed entry point, as a user runs it
+    proc = subprocess.run([sys.executable, "-m", "sitl.cli", "experiment", "ekf-vs-ukf", "--trials", "-1"],
+                          capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 2
+    assert "Traceback" not in proc.stderr and proc.stderr.count("\n") == 1
+
+
+def test_small_experiment_writes_result_and_figures(tmp_path, capsys):
+    out = tmp_path / "run"
+    rc = main(["experiment", "ekf-vs-ukf", "--trials", "40", "--steps", "30", "--seed", "3",
+               "--out", str(out), "--quiet"])
+    assert rc == 0
+    res = json.loads((out / "result.json").read_text())
+    for key in ("trials", "steps", "measurements_per_step", "state_dim", "wall_s", "pcrb_position_m"):
+        assert key in res
+    assert (res["trials"], res["steps"], res["measurements_per_step"], res["state_dim"]) == (40, 30, 8, 11)
+    assert len(res["pcrb_position_m"]) == 30
+    for f in ("ekf", "ukf"):
+        for key in ("spherical_error_mean_m", "spherical_error_std_m", "rmse_position_m"):
+            assert len(res[f][key]) == 30
+        assert res[f]["anees"] > 0
+    assert (out / "spherical_error.png").stat().st_size > 10_000
+    assert (out / "nees.png").stat().st_size > 5_000
+    table = capsys.readouterr().out
+    assert "sqrt PCRB" in table and "ANEES" in table
+
+
+def test_experiment_is_deterministic_for_a_seed(tmp_path):
+    from sitl.experiments.seed001 import Seed001Scenario, run
+
+    a = run(Seed001Scenario(steps=10), 20, seed=5)
+    b = run(Seed001Scenario(steps=10), 20, seed=5)
+    c = run(Seed001Scenario(steps=10), 20, seed=6)
+    assert a["ekf"]["rmse_position_m"] == b["ekf"]["rmse_position_m"]
+    assert a["ekf"]["rmse_position_m"] != c["ekf"]["rmse_position_m"]
+
+
+def test_bad_scenario_values_are_clear():
+    from sitl.experiments.seed001 import Seed001Scenario
+
+    with pytest.raises(ValueError, match="n_sats must be >= 4"):
+        Seed001Scenario(n_sats=3)
+    with pytest.raises(ValueError, match="sigma_pr_m"):
+        Seed001Scenario(sigma_pr_m=-1.0)
+    with pytest.raises(ValueError, match="noise reading"):
+        Seed001Scenario.with_noise_reading("cubits")
