@@ -111,7 +111,6 @@ def _np_ukf_update(xbar, Pbar, X, Z, z, R, Wm, Wc):
     # relative to the centre point's measurement (see _nbkernels._ukf_update_block)
     Z0 = Z[0]
     zrel = np.tensordot(Wm, Z - Z0[None], axes=(0, 0))
-    zbar = Z0 + zrel
     DX = X - xbar[None]
     DZ = (Z - Z0[None]) - zrel[None]
     S = np.einsum("k,kni,knj->nij", Wc, DZ, DZ, optimize=True) + R
