@@ -288,18 +288,42 @@ def _joseph_block(x, P, y, H, r, xo, Po, nis, lo, hi, F, Q, predict, lanes):
 
 
 @nb.njit(**_jit)
-def _sigma_block(x, P, c, X, lo, hi):
+def _sigma_block(x, P, c, X, lo, hi, lanes):
+    """Sigma points of trials [lo, hi): lanes of trials, Cholesky factors side by side,
+    written point by point (contiguous runs of trials) into X (2n+1, N, n)."""
     n = x.shape[1]
-    L = np.zeros((n, n))
-    for t in range(lo, hi):
-        ok = _chol_lower(P, t, L)
-        for i in range(n):
-            X[0, t, i] = x[t, i]
-        for col in range(n):
+    B = lanes
+    Pl = np.empty((n, n, B))
+    L = np.empty((n, n, B))
+    ok = np.empty(B, np.bool_)
+    d = np.empty(B)
+    for t0 in range(lo, hi, B):
+        nl = min(B, hi - t0)
+        for q in range(B):
+            if q < nl:
+                for i in range(n):
+                    for j in range(i, n):
+                        Pl[i, j, q] = P[t0 + q, i, j]
+            else:
+                for i in range(n):
+                    for j in range(i, n):
+                        Pl[i, j, q] = 1.0 if i == j else 0.0
+        _chol_lanes(Pl, L, ok, d, B)
+        for q in range(nl):
+            t = t0 + q
             for i in range(n):
-                d = c * L[i, col] if ok else np.nan
-                X[1 + col, t, i] = x[t, i] + d
-                X[1 + n + col, t, i] = x[t, i] - d
+                X[0, t, i] = x[t, i]
+        for col in range(n):
+            for q in range(nl):
+                t = t0 + q
+                for i in range(n):
+                    dd = c * L[i, col, q] if ok[q] else np.nan
+                    X[1 + col, t, i] = x[t, i] + dd
+            for q in range(nl):
+                t = t0 + q
+                for i in range(n):
+                    dd = c * L[i, col, q] if ok[q] else np.nan
+                    X[1 + n + col, t, i] = x[t, i] - dd
 
 
 @nb.njit(**_jit)
@@ -331,30 +355,39 @@ def _moments_block(X, Wm, Wc, Q, mean, P, lo, hi):
 
 
 @nb.njit(**_jit)
-def _chol_lanes(S, L, ok, B):
-    """Lower Cholesky factors of S[:, :, q] for every lane q at once (vectorised).
+def _chol_lanes(S, L, ok, d, B):
+    """Lower Cholesky factors of S[:, :, q] (upper triangle read) for all lanes at once.
 
-    Lanes whose matrix is not positive definite get ok[q] = False (and a harmless unit
-    pivot so that the others proceed)."""
+    Lanes whose matrix is not positive definite get ok[q] = False and a unit pivot, so
+    that the other lanes proceed; d is (B,) scratch. Lanes are the innermost loops.
+    """
     m = S.shape[0]
     for q in range(B):
         ok[q] = True
     for j in range(m):
         for q in range(B):
-            d = S[j, j, q]
-            for kk in range(j):
-                d -= L[j, kk, q] * L[j, kk, q]
-            if d > 0.0:
-                L[j, j, q] = np.sqrt(d)
+            d[q] = S[j, j, q]
+        for kk in range(j):
+            for q in range(B):
+                d[q] -= L[j, kk, q] * L[j, kk, q]
+        for q in range(B):
+            if d[q] > 0.0:
+                L[j, j, q] = np.sqrt(d[q])
             else:
                 ok[q] = False
                 L[j, j, q] = 1.0
+            d[q] = 1.0 / L[j, j, q]
         for i in range(j + 1, m):
             for q in range(B):
-                v = S[j, i, q]  # upper triangle holds S[j, i] = S[i, j]
-                for kk in range(j):
-                    v -= L[i, kk, q] * L[j, kk, q]
-                L[i, j, q] = v / L[j, j, q]
+                L[i, j, q] = S[j, i, q]
+            for kk in range(j):
+                for q in range(B):
+                    L[i, j, q] -= L[i, kk, q] * L[j, kk, q]
+            for q in range(B):
+                L[i, j, q] *= d[q]
+        for i in range(j):
+            for q in range(B):
+                L[i, j, q] = 0.0
 
 
 @nb.njit(**_jit)
@@ -362,7 +395,9 @@ def _ukf_update_block(xbar, Pbar, X, Z, z, R, Wm, Wc, xo, Po, yo, nis, lo, hi, l
     """x+ = xbar + Pxz S^-1 (z - zbar),  P+ = Pbar - Pxz S^-1 Pxz'  via G = L^-1 Pxz'.
 
     Lanes of trials side by side as in _joseph_block (B is a run-time value so that
-    LLVM vectorises the lane loops rather than unrolling them).
+    LLVM vectorises the lane loops rather than unrolling them). Sigma points are read
+    point by point, so that each read is one contiguous run of B trials: reading all
+    2n+1 points of one trial at a time touches 2n+1 distant cache lines per trial.
     """
     K_, N, n = X.shape
     m = Z.shape[2]
@@ -374,31 +409,37 @@ def _ukf_update_block(xbar, Pbar, X, Z, z, R, Wm, Wc, xo, Po, yo, nis, lo, hi, l
     Pxz = np.empty((n, m, B))
     L = np.empty((m, m, B))
     ok = np.empty(B, np.bool_)
+    d = np.empty(B)
     wv = np.empty((m, B))
     G = np.empty((m, n, B))
+    GG = np.empty((n, n, B))
     yl = np.empty((m, B))
     for t0 in range(lo, hi, B):
         nl = min(B, hi - t0)
-        for q in range(B):  # load, transposed; idle lanes: a harmless problem
-            if q < nl:
-                t = t0 + q
-                # measurements relative to the centre point's: pseudoranges of ~2e7 m
-                # averaged with a weight like -8/3 would otherwise lose ~1e-8 m
-                for k in range(K_):
+        # load, transposed; idle lanes keep a harmless problem (zeros, R = I).
+        # Measurements are taken relative to the centre point's: pseudoranges of ~2e7 m
+        # averaged with a weight like -8/3 would otherwise lose ~1e-8 m.
+        for k in range(K_):
+            for q in range(B):
+                if q < nl:
+                    t = t0 + q
                     for i in range(n):
                         Dx[k, i, q] = X[k, t, i] - xbar[t, i]
                     for a in range(m):
                         Dz[k, a, q] = Z[k, t, a] - Z[0, t, a]
+                else:
+                    for i in range(n):
+                        Dx[k, i, q] = 0.0
+                    for a in range(m):
+                        Dz[k, a, q] = 0.0
+        for q in range(B):
+            if q < nl:
+                t = t0 + q
                 for a in range(m):
                     yl[a, q] = z[t, a] - Z[0, t, a]
                     for b_ in range(a, m):
                         S[a, b_, q] = R[t, a, b_]
             else:
-                for k in range(K_):
-                    for i in range(n):
-                        Dx[k, i, q] = 0.0
-                    for a in range(m):
-                        Dz[k, a, q] = 0.0
                 for a in range(m):
                     yl[a, q] = 0.0
                     for b_ in range(a, m):
@@ -415,7 +456,6 @@ def _ukf_update_block(xbar, Pbar, X, Z, z, R, Wm, Wc, xo, Po, yo, nis, lo, hi, l
                     Dz[k, a, q] -= zb[a, q]
             for q in range(B):
                 yl[a, q] -= zb[a, q]
-        for a in range(m):
             for i in range(n):
                 for q in range(B):
                     Pxz[i, a, q] = 0.0
@@ -428,20 +468,31 @@ def _ukf_update_block(xbar, Pbar, X, Z, z, R, Wm, Wc, xo, Po, yo, nis, lo, hi, l
                 for i in range(n):
                     for q in range(B):
                         Pxz[i, a, q] += w * Dx[k, i, q] * Dz[k, a, q]
-        _chol_lanes(S, L, ok, B)
-        for a in range(m):  # wv = L^-1 y
+        _chol_lanes(S, L, ok, d, B)
+        for a in range(m):  # wv = L^-1 y,  G = L^-1 Pxz'  (forward substitution)
             for q in range(B):
-                v = yl[a, q]
-                for b_ in range(a):
-                    v -= L[a, b_, q] * wv[b_, q]
-                wv[a, q] = v / L[a, a, q]
-        for a in range(m):  # G = L^-1 Pxz'
+                wv[a, q] = yl[a, q]
+            for b_ in range(a):
+                for q in range(B):
+                    wv[a, q] -= L[a, b_, q] * wv[b_, q]
+            for q in range(B):
+                d[q] = 1.0 / L[a, a, q]
+                wv[a, q] *= d[q]
             for i in range(n):
                 for q in range(B):
-                    v = Pxz[i, a, q]
-                    for b_ in range(a):
-                        v -= L[a, b_, q] * G[b_, i, q]
-                    G[a, i, q] = v / L[a, a, q]
+                    G[a, i, q] = Pxz[i, a, q]
+                for b_ in range(a):
+                    for q in range(B):
+                        G[a, i, q] -= L[a, b_, q] * G[b_, i, q]
+                for q in range(B):
+                    G[a, i, q] *= d[q]
+        for i in range(n):  # GG = G'G (upper triangle)
+            for j in range(i, n):
+                for q in range(B):
+                    GG[i, j, q] = 0.0
+                for a in range(m):
+                    for q in range(B):
+                        GG[i, j, q] += G[a, i, q] * G[a, j, q]
         for q in range(nl):
             t = t0 + q
             for a in range(m):
@@ -462,16 +513,10 @@ def _ukf_update_block(xbar, Pbar, X, Z, z, R, Wm, Wc, xo, Po, yo, nis, lo, hi, l
                 for a in range(m):
                     v += G[a, i, q] * wv[a, q]
                 xo[t, i] = v
-        # P+ = Pbar - G'G, lanes innermost
-        for i in range(n):
-            for j in range(i, n):
-                for q in range(nl):
-                    v = Pbar[t0 + q, i, j]
-                    for a in range(m):
-                        v -= G[a, i, q] * G[a, j, q]
-                    if ok[q]:
-                        Po[t0 + q, i, j] = v
-                        Po[t0 + q, j, i] = v
+                for j in range(i, n):
+                    v = Pbar[t, i, j] - GG[i, j, q]
+                    Po[t, i, j] = v
+                    Po[t, j, i] = v
 
 
 # ----------------------------------------------------------------------------- drivers
@@ -515,20 +560,20 @@ def joseph_ser(x, P, y, H, r, F, Q, predict, lanes):
 
 
 @nb.njit(parallel=True, **_jit)
-def sigma_par(x, P, c):
+def sigma_par(x, P, c, lanes):
     N, n = x.shape
     X = np.empty((2 * n + 1, N, n))
     nb_ = min(N, N_BLOCKS)
     for blk in nb.prange(nb_):
-        _sigma_block(x, P, c, X, blk * N // nb_, (blk + 1) * N // nb_)
+        _sigma_block(x, P, c, X, blk * N // nb_, (blk + 1) * N // nb_, lanes)
     return X
 
 
 @nb.njit(**_jit)
-def sigma_ser(x, P, c):
+def sigma_ser(x, P, c, lanes):
     N, n = x.shape
     X = np.empty((2 * n + 1, N, n))
-    _sigma_block(x, P, c, X, 0, N)
+    _sigma_block(x, P, c, X, 0, N, lanes)
     return X
 
 

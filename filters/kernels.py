@@ -207,7 +207,7 @@ def sigma_points(x, P, c, backend=None):
     """Symmetric sigma points (2n+1, N, n) at spread c = sqrt(n + lambda)."""
     backend = resolve_backend(backend)
     if backend == "numba":
-        return _nbk("sigma", x.shape[0])(_c(x), _c(P), float(c))
+        return _nbk("sigma", x.shape[0])(_c(x), _c(P), float(c), _nbkernels.LANES)
     return _np_sigma_points(x, P, c)
 
 

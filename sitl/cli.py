@@ -148,11 +148,9 @@ def build_parser() -> argparse.ArgumentParser:
 def _dispatch(args: argparse.Namespace) -> int:
     import importlib
 
-    from threadpoolctl import threadpool_limits
+    from sitl.runtime import batch_mode
 
-    # The batched kernels parallelise over trials with numba's threads; BLAS threads
-    # spinning after each small matrix product would compete with them for the cores.
-    with threadpool_limits(limits=1, user_api="blas"):
+    with batch_mode():  # BLAS on one thread (see sitl/runtime.py)
         return _run(args, importlib)
 
 
