@@ -152,6 +152,12 @@ def table(rows, backends) -> str:
 
 
 def main(args) -> int:
+    try:
+        import filterpy  # noqa: F401
+    except ImportError:
+        from sitl.cli import UsageError
+
+        raise UsageError("bench filters needs FilterPy as its peer: pip install 'skyfuse[bench]'") from None
     backends = (args.backend, "numpy") if args.backend == "numba" else ("numpy",)
     if not kernels.HAVE_NUMBA:
         backends = ("numpy",)

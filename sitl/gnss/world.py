@@ -32,7 +32,7 @@ from sitl.constants import C_M_S
 from sitl.geodesy import ecef_to_aer
 from sitl.gnss.clock import ClockModel
 from sitl.gnss.orbits import Constellation
-from sitl.gnss.ranging import Geometry, light_time_geometry, sat_state_at_reception_frame
+from sitl.gnss.ranging import Geometry, _check_constellation, light_time_geometry, sat_state_at_reception_frame
 from sitl.gnss.receiver import Observation, Receiver, ReceiverConfig
 
 __all__ = [
@@ -60,24 +60,6 @@ def _check_rng(rng) -> np.random.Generator:
     return rng
 
 
-def _check_constellation(constellation) -> Constellation:
-    if not isinstance(constellation, Constellation):
-        raise ValueError(f"constellation: expected a Constellation, got {type(constellation).__name__}")
-    return constellation
-
-
-def _vec3(name: str, value) -> np.ndarray:
-    try:
-        arr = np.asarray(value, dtype=float)
-    except (TypeError, ValueError):
-        raise ValueError(f"{name}: cannot convert to a float array") from None
-    if arr.ndim < 1 or arr.shape[-1] != 3:
-        raise ValueError(f"{name}: expected shape (..., 3), got {arr.shape}")
-    if not np.all(np.isfinite(arr)):
-        raise ValueError(f"{name}: values must be finite")
-    return arr
-
-
 def _finite(name: str, value) -> np.ndarray:
     try:
         arr = np.asarray(value, dtype=float)
@@ -85,6 +67,13 @@ def _finite(name: str, value) -> np.ndarray:
         raise ValueError(f"{name}: cannot convert to a float array") from None
     if not np.all(np.isfinite(arr)):
         raise ValueError(f"{name}: values must be finite")
+    return arr
+
+
+def _vec3(name: str, value) -> np.ndarray:
+    arr = _finite(name, value)
+    if arr.ndim < 1 or arr.shape[-1] != 3:
+        raise ValueError(f"{name}: expected shape (..., 3), got {arr.shape}")
     return arr
 
 
