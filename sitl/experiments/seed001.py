@@ -386,6 +386,7 @@ def plot(res: dict, out: Path) -> list[Path]:
     ax.plot(k, np.asarray(res["ukf"]["mean_nees"]) / res["state_dim"], "--", label="UKF")
     lo, hi = res["ekf"]["anees_bounds_99"]
     ax.axhline(1.0, color="k", lw=0.8)
+    ax.axhspan(lo, hi, color="0.85", zorder=0, label="99% chi-square band (one step)")
     ax.set_xlabel("update step k")
     ax.set_ylabel("mean NEES / n")
     ax.set_title(f"Consistency (ANEES over the last 100 steps: 99% band {lo:.3f}..{hi:.3f})")
