@@ -637,72 +637,105 @@ def _batched_predict_par(F, P, Q):
 
 # ----------------------------------------------------------------------------- models
 
+@nb.njit(**_jit)
+def _pr_prr_h_into(x, sp, sv, ip, iv, ib, idr, out, lt):
+    """Pseudoranges and rates of the flat point lt = l * M + t (see pr_prr_h_par)."""
+    L, M, n = x.shape
+    S = sp.shape[1]
+    l = lt // M
+    t = lt % M
+    X0 = x[l, t, ip[0]]
+    X1 = x[l, t, ip[1]]
+    X2 = x[l, t, ip[2]]
+    V0 = x[l, t, iv[0]]
+    V1 = x[l, t, iv[1]]
+    V2 = x[l, t, iv[2]]
+    for s in range(S):
+        d0 = sp[t, s, 0] - X0
+        d1 = sp[t, s, 1] - X1
+        d2 = sp[t, s, 2] - X2
+        rho = np.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
+        out[l, t, s] = rho + x[l, t, ib]
+        out[l, t, S + s] = (d0 * (sv[t, s, 0] - V0) + d1 * (sv[t, s, 1] - V1) + d2 * (sv[t, s, 2] - V2)) / rho \
+            + x[l, t, idr]
+
+
 @nb.njit(parallel=True, **_jit)
-def pr_prr_h(x, sp, sv, ip, iv, ib, idr):
+def pr_prr_h_par(x, sp, sv, ip, iv, ib, idr):
     """Pseudoranges and rates (seed 001 model) for x (L, M, n) against satellites (M, S, 3).
 
     out[l, t, :S] = |S - X| + x[ib];  out[l, t, S:] = u.(V_S - V) + x[idr].
     """
     L, M, n = x.shape
-    S = sp.shape[1]
-    out = np.empty((L, M, 2 * S))
+    out = np.empty((L, M, 2 * sp.shape[1]))
     for lt in nb.prange(L * M):
-        l = lt // M
-        t = lt % M
-        X0 = x[l, t, ip[0]]
-        X1 = x[l, t, ip[1]]
-        X2 = x[l, t, ip[2]]
-        V0 = x[l, t, iv[0]]
-        V1 = x[l, t, iv[1]]
-        V2 = x[l, t, iv[2]]
-        for s in range(S):
-            d0 = sp[t, s, 0] - X0
-            d1 = sp[t, s, 1] - X1
-            d2 = sp[t, s, 2] - X2
-            rho = np.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
-            out[l, t, s] = rho + x[l, t, ib]
-            out[l, t, S + s] = (d0 * (sv[t, s, 0] - V0) + d1 * (sv[t, s, 1] - V1) + d2 * (sv[t, s, 2] - V2)) / rho \
-                + x[l, t, idr]
+        _pr_prr_h_into(x, sp, sv, ip, iv, ib, idr, out, lt)
     return out
 
 
-@nb.njit(parallel=True, **_jit)
-def pr_prr_h_H(x, sp, sv, ip, iv, ib, idr):
+@nb.njit(**_jit)
+def pr_prr_h_ser(x, sp, sv, ip, iv, ib, idr):
+    L, M, n = x.shape
+    out = np.empty((L, M, 2 * sp.shape[1]))
+    for lt in range(L * M):
+        _pr_prr_h_into(x, sp, sv, ip, iv, ib, idr, out, lt)
+    return out
+
+
+@nb.njit(**_jit)
+def _pr_prr_h_H_into(x, sp, sv, ip, iv, ib, idr, out, H, t):
     """pr_prr_h and its Jacobian for x (M, n) against satellites (M, S, 3).
 
     d pr/dX = -u',  d pr/dD' = 1;  d prr/dX = (u (u.w) - w)' / rho,  d prr/dV = -u',
     d prr/dV' = 1, with u = (S - X)/rho and w = V_S - V.
     """
+    S = sp.shape[1]
+    for s in range(S):
+        d0 = sp[t, s, 0] - x[t, ip[0]]
+        d1 = sp[t, s, 1] - x[t, ip[1]]
+        d2 = sp[t, s, 2] - x[t, ip[2]]
+        rho = np.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
+        u0 = d0 / rho
+        u1 = d1 / rho
+        u2 = d2 / rho
+        w0 = sv[t, s, 0] - x[t, iv[0]]
+        w1 = sv[t, s, 1] - x[t, iv[1]]
+        w2 = sv[t, s, 2] - x[t, iv[2]]
+        uw = u0 * w0 + u1 * w1 + u2 * w2
+        out[t, s] = rho + x[t, ib]
+        out[t, S + s] = uw + x[t, idr]
+        H[t, s, ip[0]] = -u0
+        H[t, s, ip[1]] = -u1
+        H[t, s, ip[2]] = -u2
+        H[t, s, ib] = 1.0
+        H[t, S + s, ip[0]] = (u0 * uw - w0) / rho
+        H[t, S + s, ip[1]] = (u1 * uw - w1) / rho
+        H[t, S + s, ip[2]] = (u2 * uw - w2) / rho
+        H[t, S + s, iv[0]] = -u0
+        H[t, S + s, iv[1]] = -u1
+        H[t, S + s, iv[2]] = -u2
+        H[t, S + s, idr] = 1.0
+
+
+@nb.njit(parallel=True, **_jit)
+def pr_prr_h_H_par(x, sp, sv, ip, iv, ib, idr):
     M, n = x.shape
     S = sp.shape[1]
     out = np.empty((M, 2 * S))
     H = np.zeros((M, 2 * S, n))
     for t in nb.prange(M):
-        for s in range(S):
-            d0 = sp[t, s, 0] - x[t, ip[0]]
-            d1 = sp[t, s, 1] - x[t, ip[1]]
-            d2 = sp[t, s, 2] - x[t, ip[2]]
-            rho = np.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
-            u0 = d0 / rho
-            u1 = d1 / rho
-            u2 = d2 / rho
-            w0 = sv[t, s, 0] - x[t, iv[0]]
-            w1 = sv[t, s, 1] - x[t, iv[1]]
-            w2 = sv[t, s, 2] - x[t, iv[2]]
-            uw = u0 * w0 + u1 * w1 + u2 * w2
-            out[t, s] = rho + x[t, ib]
-            out[t, S + s] = uw + x[t, idr]
-            H[t, s, ip[0]] = -u0
-            H[t, s, ip[1]] = -u1
-            H[t, s, ip[2]] = -u2
-            H[t, s, ib] = 1.0
-            H[t, S + s, ip[0]] = (u0 * uw - w0) / rho
-            H[t, S + s, ip[1]] = (u1 * uw - w1) / rho
-            H[t, S + s, ip[2]] = (u2 * uw - w2) / rho
-            H[t, S + s, iv[0]] = -u0
-            H[t, S + s, iv[1]] = -u1
-            H[t, S + s, iv[2]] = -u2
-            H[t, S + s, idr] = 1.0
+        _pr_prr_h_H_into(x, sp, sv, ip, iv, ib, idr, out, H, t)
+    return out, H
+
+
+@nb.njit(**_jit)
+def pr_prr_h_H_ser(x, sp, sv, ip, iv, ib, idr):
+    M, n = x.shape
+    S = sp.shape[1]
+    out = np.empty((M, 2 * S))
+    H = np.zeros((M, 2 * S, n))
+    for t in range(M):
+        _pr_prr_h_H_into(x, sp, sv, ip, iv, ib, idr, out, H, t)
     return out, H
 
 

@@ -49,7 +49,7 @@ def ekf_predict(x, P, model, dt, backend=None):
     n = xf.shape[-1]
     F = np.asarray(model.F(x, dt), dtype=float)
     if F.ndim > 2:
-        F = np.broadcast_to(F, batch + (n, n)).reshape(-1, n, n)
+        F = kernels.batched(F, batch + (n, n)).reshape(-1, n, n)
     x_pred = model.f(x, dt)
     P_pred = kernels.cov_predict(F, Pf, model.Q(dt), backend=backend)
     return x_pred, P_pred.reshape(batch + (n, n))
@@ -65,14 +65,14 @@ def ekf_update(x, P, z, model, backend=None) -> UpdateResult:
     hx, H = measure(model, x)
     y = z - hx
     m = y.shape[-1]
-    H = np.broadcast_to(H, batch + (m, n)).reshape(-1, m, n)
-    yf = np.broadcast_to(y, batch + (m,)).reshape(-1, m)
+    H = kernels.batched(H, batch + (m, n)).reshape(-1, m, n)
+    yf = kernels.batched(y, batch + (m,)).reshape(-1, m)
     r_diag = model.R_diag()
     if r_diag is not None:
-        r = np.broadcast_to(r_diag, batch + (m,)).reshape(-1, m)
+        r = kernels.batched(r_diag, batch + (m,)).reshape(-1, m)
         xo, Po, nis = kernels.joseph_update(xf, Pf, yf, H, r_diag=r, backend=backend)
     else:
-        R = np.broadcast_to(model.R(), batch + (m, m)).reshape(-1, m, m)
+        R = kernels.batched(model.R(), batch + (m, m)).reshape(-1, m, m)
         xo, Po, nis = kernels.joseph_update(xf, Pf, yf, H, R=R, backend=backend)
     return UpdateResult(xo.reshape(batch + (n,)), Po.reshape(batch + (n, n)), y, nis.reshape(batch))
 
@@ -97,8 +97,8 @@ def ekf_step(x, P, z, transition, measurement, dt, backend=None) -> UpdateResult
     hx, H = measure(measurement, x_pred.reshape(batch + (n,)))
     m = hx.shape[-1]
     y = (np.asarray(z, dtype=float) - hx).reshape(-1, m)
-    H = np.broadcast_to(H, batch + (m, n)).reshape(-1, m, n)
-    r = np.broadcast_to(r_diag, batch + (m,)).reshape(-1, m)
+    H = kernels.batched(H, batch + (m, n)).reshape(-1, m, n)
+    r = kernels.batched(r_diag, batch + (m,)).reshape(-1, m)
     xo, Po, nis = kernels.predict_joseph_update(F, transition.Q(dt), x_pred, Pf, y, H, r, backend=backend)
     return UpdateResult(xo.reshape(batch + (n,)), Po.reshape(batch + (n, n)), y.reshape(batch + (m,)),
                         nis.reshape(batch))

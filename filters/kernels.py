@@ -142,6 +142,13 @@ def _c(a):
     return np.ascontiguousarray(a, dtype=float)
 
 
+def batched(a, shape):
+    """a broadcast to shape: a itself when it already has it (np.broadcast_to costs
+    several microseconds, which matters on single-trial steps)."""
+    a = np.asarray(a, dtype=float)
+    return a if a.shape == shape else np.broadcast_to(a, shape)
+
+
 def cov_predict(F, P, Q, backend=None):
     """P- = F P F' + Q.  F: (n, n) shared or (N, n, n); P: (N, n, n); Q: (n, n)."""
     backend = resolve_backend(backend)
@@ -172,7 +179,7 @@ def joseph_update(x, P, y, H, R=None, r_diag=None, backend=None):
             R = np.broadcast_to(np.asarray(r_diag, float)[..., None, :] * np.eye(m), (N, m, m))
         return _np_joseph_update(x, P, y, H, np.broadcast_to(R, (N, m, m)))
     y, H, r = _whitened(y, H, R, r_diag, N, m, n)
-    return _nbk("joseph", N)(_c(x), _c(P), y, H, r, _NO_F, _NO_F, False, _nbkernels.LANES)
+    return _nbk("joseph", N)(_c(x), _c(P), y, H, r, _NO_F, _NO_F, False, min(N, _nbkernels.LANES))
 
 
 def _whitened(y, H, R, r_diag, N, m, n):
@@ -183,7 +190,7 @@ def _whitened(y, H, R, r_diag, N, m, n):
         y = np.linalg.solve(L, y[..., None])[..., 0]
         H = np.linalg.solve(L, H)
         r_diag = np.ones((N, m))
-    return _c(y), _c(np.broadcast_to(H, (N, m, n))), _c(np.broadcast_to(np.asarray(r_diag, float), (N, m)))
+    return _c(y), _c(batched(H, (N, m, n))), _c(batched(r_diag, (N, m)))
 
 
 def predict_joseph_update(F, Q, x_pred, P, y, H, r_diag, backend=None):
@@ -198,7 +205,7 @@ def predict_joseph_update(F, Q, x_pred, P, y, H, r_diag, backend=None):
     m = y.shape[-1]
     if backend == "numba" and np.ndim(F) == 2 and np.ndim(Q) == 2:
         y, H, r = _whitened(y, H, None, r_diag, N, m, n)
-        return _nbk("joseph", N)(_c(x_pred), _c(P), y, H, r, _c(F), _c(Q), True, _nbkernels.LANES)
+        return _nbk("joseph", N)(_c(x_pred), _c(P), y, H, r, _c(F), _c(Q), True, min(N, _nbkernels.LANES))
     Pp = cov_predict(F, P, Q, backend=backend)
     return joseph_update(x_pred, Pp, y, H, r_diag=r_diag, backend=backend)
 
@@ -207,7 +214,7 @@ def sigma_points(x, P, c, backend=None):
     """Symmetric sigma points (2n+1, N, n) at spread c = sqrt(n + lambda)."""
     backend = resolve_backend(backend)
     if backend == "numba":
-        return _nbk("sigma", x.shape[0])(_c(x), _c(P), float(c), _nbkernels.LANES)
+        return _nbk("sigma", x.shape[0])(_c(x), _c(P), float(c), min(x.shape[0], _nbkernels.LANES))
     return _np_sigma_points(x, P, c)
 
 
@@ -227,8 +234,8 @@ def ukf_update(xbar, Pbar, X, Z, z, R, Wm, Wc, backend=None):
     backend = resolve_backend(backend)
     N = xbar.shape[0]
     m = Z.shape[-1]
-    R = np.broadcast_to(np.asarray(R, float), (N, m, m))  # a shared R stays a stride-0 view
+    R = batched(R, (N, m, m))  # a shared R stays a stride-0 view
     if backend == "numba":
         return _nbk("ukf_update", N)(_c(xbar), _c(Pbar), _c(X), _c(Z), _c(z), R, _c(Wm), _c(Wc),
-                                       _nbkernels.LANES)
+                                       min(N, _nbkernels.LANES))
     return _np_ukf_update(xbar, Pbar, X, Z, z, R, Wm, Wc)

@@ -574,10 +574,9 @@ def _compiled_pr_prr(model, x):
         return None
     M = int(np.prod(mb, dtype=np.int64))
     L = int(np.prod(xb, dtype=np.int64)) // max(M, 1)
-    if L * M < 256:  # small batches: numpy has less fixed cost
-        return None
     S = sp.shape[-2]
-    out = _nbk.pr_prr_h(np.ascontiguousarray(x, dtype=float).reshape(L, M, model.n),
+    kernel = _nbk.pr_prr_h_par if L * M >= 256 else _nbk.pr_prr_h_ser
+    out = kernel(np.ascontiguousarray(x, dtype=float).reshape(L, M, model.n),
                         np.ascontiguousarray(sp, dtype=float).reshape(M, S, 3),
                         np.ascontiguousarray(sv, dtype=float).reshape(M, S, 3),
                         np.asarray(model.idx_pos, np.int64), np.asarray(model.idx_vel, np.int64),
@@ -723,9 +722,10 @@ class PseudorangeDoppler:
         """(h(x), H(x)) sharing one geometry evaluation."""
         x = _check_state(x, self.n)
         sp = self.sat_pos_ecef_m
-        if (_nbk is not None and x.ndim == 2 and sp.ndim == 3 and sp.shape[0] == x.shape[0] >= 256
+        if (_nbk is not None and x.ndim == 2 and sp.ndim == 3 and sp.shape[0] == x.shape[0]
                 and self.sat_vel_ecef_m_s.shape == sp.shape):
-            return _nbk.pr_prr_h_H(np.ascontiguousarray(x), np.ascontiguousarray(sp),
+            kernel = _nbk.pr_prr_h_H_par if x.shape[0] >= 256 else _nbk.pr_prr_h_H_ser
+            return kernel(np.ascontiguousarray(x), np.ascontiguousarray(sp),
                                    np.ascontiguousarray(self.sat_vel_ecef_m_s),
                                    np.asarray(self.idx_pos, np.int64), np.asarray(self.idx_vel, np.int64),
                                    self.idx_bias, self.idx_drift)
@@ -733,12 +733,17 @@ class PseudorangeDoppler:
         return self._h(x, rho, uw), self._H(u, rho, w, uw)
 
     def R_diag(self):
+        cached = self.__dict__.get("_r_diag")
+        if cached is not None:  # the filters ask for it more than once per step
+            return cached
         S = self.n_sats
         pr, prr = np.square(self.sigma_pr_m), np.square(self.sigma_prr_m_s)
         batch = np.broadcast_shapes(np.shape(pr)[:-1], np.shape(prr)[:-1])
-        return np.concatenate(
+        out = _readonly(np.concatenate(
             [np.broadcast_to(pr, batch + (S,)), np.broadcast_to(prr, batch + (S,))], axis=-1
-        )
+        ))
+        object.__setattr__(self, "_r_diag", out)
+        return out
 
     def R(self):
         d = self.R_diag()

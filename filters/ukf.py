@@ -120,14 +120,14 @@ def ukf_update(x, P, z, model, points: SigmaPoints | None = None, backend=None) 
     X = kernels.sigma_points(xf, Pf, sp.c, backend=backend)
     Z = np.asarray(model.h(X.reshape((K,) + batch + (n,))), dtype=float)
     m = Z.shape[-1]
-    Z = np.broadcast_to(Z, (K,) + batch + (m,)).reshape(K, -1, m)
-    z = np.broadcast_to(np.asarray(z, dtype=float), batch + (m,)).reshape(-1, m)
+    Z = kernels.batched(Z, (K,) + batch + (m,)).reshape(K, -1, m)
+    z = kernels.batched(np.asarray(z, dtype=float), batch + (m,)).reshape(-1, m)
     r_diag = model.R_diag()
     if r_diag is not None and np.ndim(r_diag) == 1:
         R = np.diag(r_diag)  # shared by all trials: broadcast, not copied, by the kernel
     elif r_diag is not None:
-        R = np.broadcast_to(r_diag, batch + (m,)).reshape(-1, m)[..., None, :] * np.eye(m)
+        R = kernels.batched(r_diag, batch + (m,)).reshape(-1, m)[..., None, :] * np.eye(m)
     else:
-        R = np.broadcast_to(model.R(), batch + (m, m)).reshape(-1, m, m)
+        R = kernels.batched(model.R(), batch + (m, m)).reshape(-1, m, m)
     xo, Po, y, nis = kernels.ukf_update(xf, Pf, X, Z, z, R, sp.Wm, sp.Wc, backend=backend)
     return UpdateResult(xo.reshape(batch + (n,)), Po.reshape(batch + (n, n)), y.reshape(batch + (m,)), nis.reshape(batch))
