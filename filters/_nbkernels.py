@@ -1,10 +1,15 @@
 """Compiled (numba) kernels behind filters/kernels.py; imported only when numba is present.
 
-Each kernel is a ``_*_block`` function that processes trials [lo, hi) with scratch arrays
-allocated once per block, plus two drivers: ``*_par`` (blocks spread over the cores with
-prange) and ``*_ser`` (one block, no thread start-up: small batches). Hot loops index the
-batched arrays directly instead of slicing them, since slicing inside prange refcounts
-the parent array from every thread.
+Layout of a kernel: a ``_*_block`` function processes trials [lo, hi) with scratch arrays
+allocated once per block, and two drivers call it: ``*_par`` (blocks spread over the
+cores with prange) and ``*_ser`` (one block, no thread start-up: small batches).
+
+The EKF/UKF update and sigma-point blocks take LANES trials at a time and transpose them
+into "structure of arrays" scratch (P[i, j, lane]), so that the innermost loop of every
+step runs over trials and vectorises. The lane count is passed in at run time: with a
+compile-time trip count LLVM unrolls those loops into scalar code instead. Batched input
+arrays are read in the order that streams through memory (for sigma points: point by
+point, a contiguous run of trials each).
 """
 from __future__ import annotations
 
