@@ -35,6 +35,30 @@ Delta_A, I_g, U_g (constant in the truth).
 
 Only per-epoch statistics over the trials are kept (streamed); memory is flat in the
 run length.
+
+Variant 2 (run_cmc_increments = run_streamed(variant=2); same world, same draws, so the
+same seed gives the same data as variant 1): each epoch additionally, per satellite j,
+E_j = B_j(t) - B_j(t - W), B_j = pr_j - phase_j (= 2 I_j - lambda N_j + noise), W =
+cmc_window_s (90 s), modelled (eq 33) as 2 I_g k_j [m_I(eta_j(t)) - m_I(eta_j(t - W))],
+k_j = (f_ref/f_j)^2, H only in the I_g column. The m_I values are the filter's: geocentric
+elevation (eq 10) from its predicted position and the ephemeris_for_filter satellites,
+kept per satellite in a ring buffer of W epochs with B_j. Used only where the cycle-slip
+detector (filters.cycleslip, fed the receiver's phase and Doppler only -- not its
+lock_count, which the simulator resets at the slips it generates) reports the carrier arc
+slip-free over the whole window.
+Noise bookkeeping (documented choice): code and phase noise are white per epoch, so E_j(t)
+and E_j(t') are correlated only when they share an endpoint (|t - t'| = W), not because
+their windows overlap; but a chain E(t), E(t + W), ... telescopes and, treated as
+independent, overstates the information badly. So every B sample enters at most one
+increment: each satellite's epochs alternate between W-long "start" and "end" blocks
+(staggered across satellites) and at an end epoch E pairs B(t) with B(t - W) from the
+preceding start block -- half the epochs, at the full 10 Hz rate inside the end blocks.
+E_j(t) also shares eps_D,j(t) with the same epoch's pseudorange row (cov sigma_D^2, var
+2 sigma_D^2 + 2 sigma_Phi^2); that pair is whitened exactly (row E_j - pr_j, variance
+sigma_D^2 + 2 sigma_Phi^2, see _CmcIncrementModel). Ignored: the correlation of E_j(t)
+with the already-processed pr_j(t - W) (one of ~10^5 code measurements in the state),
+and the dm_I error from the filter's position/geocentric elevation (the truth maps with
+the geodetic elevation).
 """
 from __future__ import annotations
 
@@ -45,8 +69,10 @@ from dataclasses import asdict, dataclass
 import numpy as np
 
 from filters import metrics
+from filters.cycleslip import CycleSlipConfig, CycleSlipDetector
 from filters.ekf import ekf_step, ekf_update
 from filters.iono_tropo import (
+    F_REF_HZ,
     IDX_CLOCK,
     IDX_DRIFT,
     IDX_GPS_GLO,
@@ -55,6 +81,8 @@ from filters.iono_tropo import (
     N_BASE,
     IonoTropoGnss,
     IonoTropoTransition,
+    elevation_rad,
+    iono_mapping,
 )
 from sitl import geodesy
 from sitl.gnss import orbits
@@ -63,7 +91,7 @@ from sitl.gnss.ranging import light_time_geometry
 from sitl.gnss.receiver import Receiver, ReceiverConfig
 from sitl.gnss.world import ephemeris_for_filter, look_angles
 
-__all__ = ["MIN_SATS", "IonoTropoScenario", "run_code_doppler"]
+__all__ = ["MIN_SATS", "IonoTropoScenario", "run_cmc_increments", "run_code_doppler", "run_streamed"]
 
 MIN_SATS = 4  # position + clock need at least 4 satellites at every epoch
 _CHECK_EVERY_S = 10.0  # visibility pre-check grid
@@ -113,13 +141,17 @@ class IonoTropoScenario:
     q_accel_m2_s3: float = 0.01
     q_atmo_m2_s: float = 1e-10  # random-walk PSD of Delta_A, I_g, U_g in the filter
     final_window_s: float = 60.0
+    # variant 2: code-minus-carrier increments (eqs 29-33)
+    cmc_window_s: float = 90.0  # increment interval (seed: 90 s); a multiple of dt_s
+    cycle_slip_rate_hz: float = 0.0  # random cycle slips per tracked satellite (receiver), 1/s
 
     def __post_init__(self):
         for name in ("duration_s", "dt_s", "sigma_pr_m", "sigma_prr_m_s", "sigma_phase_m",
                      "sigma0_pos_m", "sigma0_vel_m_s", "sigma0_clock_bias_m", "sigma0_clock_drift_m_s",
-                     "sigma0_gps_glo_m", "sigma0_iono_m", "sigma0_tropo_m", "final_window_s"):
+                     "sigma0_gps_glo_m", "sigma0_iono_m", "sigma0_tropo_m", "final_window_s", "cmc_window_s"):
             object.__setattr__(self, name, _num(name, getattr(self, name)))
-        for name in ("iono_zenith_m", "tropo_zenith_m", "speed_m_s", "q_accel_m2_s3", "q_atmo_m2_s"):
+        for name in ("iono_zenith_m", "tropo_zenith_m", "speed_m_s", "q_accel_m2_s3", "q_atmo_m2_s",
+                     "cycle_slip_rate_hz"):
             object.__setattr__(self, name, _num(name, getattr(self, name), allow_zero=True))
         for name in ("gps_glonass_offset_m", "lat_deg", "lon_deg", "h_m", "heading_deg", "t0_gps_s",
                      "iono_prior_m", "tropo_prior_m"):
@@ -132,6 +164,10 @@ class IonoTropoScenario:
             raise ValueError(f"h_m must be in [-500, 1e5] (a receiver near the ground), got {self.h_m!r}")
         if self.dt_s > self.duration_s:
             raise ValueError(f"dt_s must be <= duration_s, got {self.dt_s!r} > {self.duration_s!r}")
+        w = self.cmc_window_s / self.dt_s
+        if abs(w - round(w)) > 1e-6 * max(1.0, w) or round(w) < 1:
+            raise ValueError(f"cmc_window_s must be a positive multiple of dt_s = {self.dt_s!r}, "
+                             f"got {self.cmc_window_s!r}")
         # the receiver's own validation (sigma, mask, atmosphere), message names the field
         self.receiver_config()
         # visibility: at least MIN_SATS satellites above the mask all along the run
@@ -141,6 +177,11 @@ class IonoTropoScenario:
                              f"epoch (>= {MIN_SATS} needed all along the run)")
 
     # ------------------------------------------------------------------ the world
+    @property
+    def cmc_window_epochs(self) -> int:
+        """The increment interval in epochs (cmc_window_s / dt_s)."""
+        return round(self.cmc_window_s / self.dt_s)
+
     @property
     def n_epochs(self) -> int:
         return round(self.duration_s / self.dt_s) + 1
@@ -156,7 +197,8 @@ class IonoTropoScenario:
         return ReceiverConfig(sigma_pr_m=self.sigma_pr_m, sigma_prr_m_s=self.sigma_prr_m_s,
                               sigma_phase_m=self.sigma_phase_m, el_mask_rad=math.radians(self.el_mask_deg),
                               iono_zenith_m=self.iono_zenith_m, tropo_zenith_m=self.tropo_zenith_m,
-                              gps_glonass_offset_m=self.gps_glonass_offset_m)
+                              gps_glonass_offset_m=self.gps_glonass_offset_m,
+                              cycle_slip_rate_hz=self.cycle_slip_rate_hz)
 
     def trajectory(self, t_rel_s):
         """True ECEF position and velocity (..., 3) at t_rel_s: a great circle at constant
@@ -212,8 +254,67 @@ def _check_trials(trials):
     return int(trials)
 
 
+class _CmcIncrementModel:
+    """Seed 000 variant 2: the variant-1 model plus one code-minus-carrier increment row per
+    satellite in ``rows`` (local indices into the base model's satellites).
+
+    Increment (eq 33): E_j = B_j(t) - B_j(t - W), B_j = pr_j - phase_j, modelled as
+    2 k_j dm_j I_g (only the I_g column; dm_j = m_I(eta_j(t)) - m_I(eta_j(t - W)) from the
+    filter's own mapping values, treated as known). E_j shares the code noise eps_D,j(t)
+    with the same epoch's pseudorange row, cov(pr_j, E_j) = sigma_D^2, var(E_j) =
+    2 sigma_D^2 + 2 sigma_Phi^2. That 2x2 block is whitened exactly (Gram-Schmidt, the
+    Cholesky factor done by hand) so R stays diagonal: the row carries
+        E'_j = E_j - pr_j,  h = 2 k_j dm_j I_g - h_pr,j(x),  H = 2 k_j dm_j e_Ig - H_pr,j,
+        var = sigma_D^2 + 2 sigma_Phi^2.
+    Where ``used`` (trials, R) is False (not slip-free over the window) the row is inert:
+    z = h = 0, H = 0 (no information, no NIS).
+    """
+
+    def __init__(self, base, rows, coef, used, var_e):
+        self.base = base
+        self.rows = rows
+        self.coef = np.where(used, coef, 0.0)
+        self.used = used
+        self.var_e = var_e
+
+    def h_and_H(self, x):
+        z, H = self.base.h_and_H(x)
+        r, used = self.rows, self.used
+        hE = np.where(used, self.coef * x[..., IDX_IONO, None] - z[..., r], 0.0)
+        HE = np.where(used[..., None], -H[..., r, :], 0.0)
+        HE[..., IDX_IONO] += self.coef
+        return np.concatenate([z, hE], axis=-1), np.concatenate([H, HE], axis=-2)
+
+    def h(self, x):
+        return self.h_and_H(x)[0]
+
+    def H(self, x):
+        return self.h_and_H(x)[1]
+
+    def R_diag(self):
+        rb = self.base.R_diag()
+        batch = self.used.shape[:-1]
+        rb = np.broadcast_to(rb, batch + rb.shape[-1:])
+        re = np.broadcast_to(self.var_e, self.used.shape)
+        return np.concatenate([rb, re], axis=-1)
+
+
 def run_code_doppler(scn: IonoTropoScenario, trials: int, seed: int, progress=None, backend=None) -> dict:
-    """Variant 1 (pseudorange + pseudorange rate) Monte Carlo, trials stepped together.
+    """Variant 1 (pseudorange + pseudorange rate): ``run_streamed(..., variant=1)``."""
+    return run_streamed(scn, trials, seed, variant=1, progress=progress, backend=backend)
+
+
+def run_cmc_increments(scn: IonoTropoScenario, trials: int, seed: int, progress=None, backend=None) -> dict:
+    """Variant 2 (plus code-minus-carrier increments): ``run_streamed(..., variant=2)``."""
+    return run_streamed(scn, trials, seed, variant=2, progress=progress, backend=backend)
+
+
+def run_streamed(scn: IonoTropoScenario, trials: int, seed: int, variant: int = 1, progress=None,
+                 backend=None) -> dict:
+    """Seed-000 Monte Carlo, trials stepped together; variant 1 (pseudorange + pseudorange
+    rate) or 2 (plus code-minus-carrier increments over scn.cmc_window_s, eqs 29-33).
+    The world (receiver draws) does not depend on the variant: the same seed gives the same
+    simulated data for both.
 
     Returns a dict (JSON-able apart from numpy arrays for the per-epoch series):
       t_s (T,), n_visible (T,), iono_err_mean_m / iono_err_rms_m / tropo_err_mean_m /
@@ -227,7 +328,12 @@ def run_code_doppler(scn: IonoTropoScenario, trials: int, seed: int, progress=No
       of the last final_window_s (the whole run if shorter); final_bias_m {iono_zenith, tropo_zenith}: mean error
       over the same window; anees: mean (I_g, U_g) NEES / 2 over that window;
       anees_bounds_99_one_epoch; wall_s.
+    Variant 2 also: increments {candidates, used, rejected_slip, spanning_true_slip,
+      used_spanning_true_slip, detector_slips} (counts over trials, satellites, epochs;
+      see the module docstring for the pairing rule) and n_increments_used (T,) per epoch.
     """
+    if variant not in (1, 2):
+        raise ValueError(f"variant must be 1 or 2, got {variant!r}")
     if not isinstance(scn, IonoTropoScenario):
         raise ValueError(f"scn must be an IonoTropoScenario, got {type(scn).__name__}")  # noqa: TRY004
     trials = _check_trials(trials)
@@ -269,6 +375,25 @@ def run_code_doppler(scn: IonoTropoScenario, trials: int, seed: int, progress=No
     acc = {"iono": 0.0, "tropo": 0.0, "pos": 0.0, "nees": 0.0, "iono_b": 0.0, "tropo_b": 0.0, "n": 0}
     report_every = max(1, T // 10)
 
+    if variant == 2:
+        W = scn.cmc_window_epochs
+        # the detector sees only the receiver's phase and Doppler (no lock_count: the
+        # simulated receiver resets it at the slips it generates, which is truth)
+        detector = CycleSlipDetector((trials, S), CycleSlipConfig(sigma_prr_m_s=scn.sigma_prr_m_s,
+                                                                  sigma_phase_m=scn.sigma_phase_m))
+        B_buf = np.full((W, trials, S), np.nan)  # ring buffers over the window (filter side)
+        m_buf = np.full((W, trials, S), np.nan)
+        slips_buf = np.zeros((W, trials, S), dtype=np.int64)  # scoring side only (truth)
+        k_iono = (F_REF_HZ / carrier) ** 2
+        # disjoint pairing: satellite j's epochs alternate between W-epoch "start" and "end"
+        # blocks (staggered by satellite); at an end epoch k, E_j pairs B(k) with B(k - W),
+        # which lies in a start block, so every B sample enters at most one increment
+        offset = (np.arange(S) * 2 * W) // S
+        var_e = scn.sigma_pr_m**2 + 2.0 * scn.sigma_phase_m**2  # after whitening against pr_j(t)
+        inc = {"candidates": 0, "used": 0, "rejected_slip": 0, "spanning_true_slip": 0,
+               "used_spanning_true_slip": 0, "detector_slips": 0}
+        n_inc = np.zeros(T, dtype=int)
+
     for k in range(T):
         t = scn.t0_gps_s + t_rel[k]
         # ---------------- world (truth)
@@ -287,12 +412,45 @@ def run_code_doppler(scn: IonoTropoScenario, trials: int, seed: int, progress=No
                              f"t = {t_rel[k]:.1f} s (>= {MIN_SATS} needed)")
         pr = obs.pseudorange_m
         prr = obs.pseudorange_rate_m_s
+        if variant == 2:
+            det = detector.update(t_rel[k], obs.carrier_phase_m, prr)
+            inc["detector_slips"] += int(np.sum(det.slip))
 
         # ---------------- filter (measurements + ephemeris + its own clock estimate only)
         clock_est = x[:, IDX_CLOCK] + (dt * x[:, IDX_DRIFT] if k > 0 else 0.0)
         sp, sv = ephemeris_for_filter(t, pr, const, pseudorange_rate_m_s=prr, clock_bias_est_m=clock_est)
         meas = IonoTropoGnss(sp[:, idx], sv[:, idx], carrier[idx], is_gps[idx], scn.sigma_pr_m, scn.sigma_prr_m_s)
         z = np.concatenate([pr[:, idx], prr[:, idx]], axis=1)
+        if variant == 2:
+            # filter's own mapping at this epoch: predicted position, filter-side satellites
+            pos_f = x[:, 0:3] + (dt * x[:, 4:7] if k > 0 else 0.0)
+            m_now = np.full((trials, S), np.nan)
+            m_now[:, idx] = iono_mapping(elevation_rad(pos_f[:, None, :], sp[:, idx]))
+            B_now = pr - obs.carrier_phase_m  # pr - phase = 2I - lambda N + noise
+            slips_now = receiver.slip_count.copy()
+            slot = k % W
+            rows = np.zeros(0, dtype=int)
+            if k >= W:
+                end = ((k + offset[idx]) // W) % 2 == 1
+                cand = end & np.all(np.isfinite(B_buf[slot][:, idx]), axis=0)
+                rows = np.flatnonzero(cand)
+            if rows.size:
+                sats = idx[rows]
+                ok = detector.slip_free(scn.cmc_window_s)[:, sats]
+                true_slip = (slips_now[:, sats] - slips_buf[slot][:, sats]) > 0
+                inc["candidates"] += ok.size
+                inc["used"] += int(ok.sum())
+                inc["rejected_slip"] += int((~ok).sum())
+                inc["spanning_true_slip"] += int(true_slip.sum())
+                inc["used_spanning_true_slip"] += int((ok & true_slip).sum())
+                n_inc[k] = int(ok.sum())
+                E = B_now[:, sats] - B_buf[slot][:, sats]
+                coef = 2.0 * k_iono[sats] * (m_now[:, sats] - m_buf[slot][:, sats])
+                meas = _CmcIncrementModel(meas, rows, coef, ok, var_e)
+                z = np.concatenate([z, np.where(ok, E - pr[:, sats], 0.0)], axis=1)
+            B_buf[slot] = B_now
+            m_buf[slot] = m_now
+            slips_buf[slot] = slips_now
         if k == 0:
             res = ekf_update(x, P, z, meas, backend=backend)  # the prior is at the first epoch
         else:
@@ -334,8 +492,12 @@ def run_code_doppler(scn: IonoTropoScenario, trials: int, seed: int, progress=No
     ttm = np.where(last_bad < 0, 0.0, ttm)
     n = acc["n"]
     lo, hi = metrics.chi2_bounds(2, trials, p=0.99)
+    extra = {}
+    if variant == 2:
+        extra = {"increments": inc, "n_increments_used": n_inc}
     return {
-        "experiment": "seed000-variant1-code-doppler",
+        "experiment": "seed000-variant1-code-doppler" if variant == 1 else "seed000-variant2-cmc-increments",
+        "variant": variant,
         "trials": trials,
         "seed": seed,
         "scenario": asdict(scn),
@@ -353,6 +515,7 @@ def run_code_doppler(scn: IonoTropoScenario, trials: int, seed: int, progress=No
         "final_bias_m": {"iono_zenith": acc["iono_b"] / n, "tropo_zenith": acc["tropo_b"] / n},
         "anees": acc["nees"] / n / 2.0,
         "anees_bounds_99_one_epoch": [lo / 2.0, hi / 2.0],
+        **extra,
         "wall_s": time.perf_counter() - t_wall,
     }
 
@@ -362,7 +525,9 @@ def summary(res: dict) -> str:
     fb = res["final_bias_m"]
     ttm = np.asarray(res["time_to_1m_s_per_trial"])
     lines = [
-        (f"seed 000 variant 1 (code + Doppler): {res['trials']} trials x {res['epochs']} epochs, "
+        (f"seed 000 variant {res.get('variant', 1)} "
+         f"({'code + Doppler' if res.get('variant', 1) == 1 else 'code + Doppler + CMC increments'}): "
+         f"{res['trials']} trials x {res['epochs']} epochs, "
          f"{res['n_visible_min']}..{res['n_visible_max']} satellites in view"),
         (f"time to 1 m (I_g and U_g): median {res['time_to_1m_s']:.1f} s; per trial min {ttm.min():.1f} "
          f"max {ttm.max():.1f} s ({int(np.sum(~np.isfinite(ttm)))} never)"),
@@ -373,4 +538,6 @@ def summary(res: dict) -> str:
          f"{res['anees_bounds_99_one_epoch'][0]:.3f}..{res['anees_bounds_99_one_epoch'][1]:.3f})"),
         f"wall {res['wall_s']:.1f} s",
     ]
+    if "increments" in res:
+        lines.insert(-1, "increments: " + ", ".join(f"{k} {v}" for k, v in res["increments"].items()))
     return "\n".join(lines)
