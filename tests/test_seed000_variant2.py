@@ -91,6 +91,6 @@ def test_detector_gets_phase_and_doppler_only(monkeypatch):
 
 def test_bad_variant_and_window_raise():
     with pytest.raises(ValueError, match="variant"):
-        run_streamed(IonoTropoScenario(duration_s=1.0), 1, seed=0, variant=3)
+        run_streamed(IonoTropoScenario(duration_s=1.0), 1, seed=0, variant=4)
     with pytest.raises(ValueError, match="cmc_window_s"):
         IonoTropoScenario(duration_s=10.0, cmc_window_s=0.05)

@@ -155,14 +155,18 @@ def flight():
 
 def truth_terms(cfg, t, pos, vel, tr):
     """Independent truth: one vectorised light-time solution over all epochs, geodetic
-    elevations, the seed's atmosphere with the FDMA carriers from constants.py."""
+    elevations (the mask), the seed's atmosphere mapped on the geocentric elevation of
+    seed 000 eq. 10 (written out here), with the FDMA carriers from constants.py."""
     geo = light_time_geometry(t[:, None], pos, vel, CONST)
     _, el, _ = ecef_to_aer(pos[..., None, :], geo.sat_pos_ecef_m)
+    X = pos[..., None, :]
+    d = geo.sat_pos_ecef_m - X
+    el_geoc = np.arcsin(np.sum(d * X, axis=-1) / (np.linalg.norm(X, axis=-1) * np.linalg.norm(d, axis=-1)))
     k = np.array([0 if s[0] == "G" else GLONASS_SLOT_K[int(s[1:]) - 1] for s in CONST.sat_id])
     f = np.where(IS_GPS, F_GPS_L1_HZ, glonass_l1_hz(k))
     with np.errstate(invalid="ignore", divide="ignore"):
-        iono = iono_slant_delay_m(cfg.iono_zenith_m, el, f)
-        tropo = tropo_slant_delay_m(cfg.tropo_zenith_m, el)
+        iono = iono_slant_delay_m(cfg.iono_zenith_m, el_geoc, f)
+        tropo = tropo_slant_delay_m(cfg.tropo_zenith_m, el_geoc)
     offset = np.where(IS_GPS, cfg.gps_glonass_offset_m, 0.0)
     return geo, el, iono, tropo, offset, C_M_S / f
 
@@ -229,7 +233,10 @@ def test_glonass_fdma_wavelengths_and_phase_in_cycles(flight):
     np.testing.assert_allclose((tr.carrier_phase_cycles * tr.wavelength_m)[vis], tr.carrier_phase_m[vis],
                                rtol=1e-15)
     # dispersive delay scales with 1/f^2 per channel: GLONASS below GPS at equal elevation
-    ratio = tr.iono_slant_m / iono_slant_delay_m(cfg.iono_zenith_m, tr.el_rad, F_GPS_L1_HZ)
+    # (the atmosphere is mapped on the geocentric elevation, seed 000 eq. 10)
+    geo = light_time_geometry(t[:, None], pos, vel, CONST)
+    el_geoc = geocentric_elevation_rad(pos[..., None, :], geo.sat_pos_ecef_m)
+    ratio = tr.iono_slant_m / iono_slant_delay_m(cfg.iono_zenith_m, el_geoc, F_GPS_L1_HZ)
     np.testing.assert_allclose(ratio[vis & glo], ((tr.wavelength_m / (C_M_S / F_GPS_L1_HZ)) ** 2
                                                   * np.ones_like(ratio))[vis & glo], rtol=1e-12)
 

@@ -59,6 +59,25 @@ sigma_D^2 + 2 sigma_Phi^2, see _CmcIncrementModel). Ignored: the correlation of 
 with the already-processed pr_j(t - W) (one of ~10^5 code measurements in the state),
 and the dm_I error from the filter's position/geocentric elevation (the truth maps with
 the geodetic elevation).
+
+Variant 3 (run_carrier_phase = run_streamed(variant=3); same world and draws again): the
+ambiguous carrier phase in metres (eqs 35-37, sigma_phase_m) of every tracked satellite is
+a third measurement row, and one constant K_j per tracked satellite is appended to the
+state (eq 38), x = [11 base states, K_j for the satellites in `amb_sats` order]. The
+tracked set is common to the trials, so the state dimension is too; it changes with time:
+* a satellite that rises gets a new K_j appended (after the prediction), one that sets has
+  its row/column removed (marginalised); the transition IonoTropoTransition(n_amb=N) is
+  cached by N;
+* K_j prior (documented choice): mean = phase_j - h_phase,j(x_pred) with K_j = 0, i.e. the
+  phase minus the filter's predicted phase without ambiguity (its error is -H dx + e,
+  a few hundred metres at most at epoch 0 with the 300 m clock prior, metres later), and a
+  flat variance sigma0_amb_m^2 = (1 km)^2 with zero cross-covariances. K enters linearly,
+  so the mean only matters through its weight ~sigma_phase^2/sigma0_amb^2 ~ 1e-11: the
+  same-epoch phase row effectively initialises K_j, and the prior stays conservative;
+* a slip flagged by the cycle-slip detector (fed time, phase and Doppler only, never the
+  receiver's lock_count) resets K_j in that trial the same way (mean re-initialised, variance
+  sigma0_amb_m^2, cross-covariances zeroed) before that epoch's update. A slip the detector
+  misses would bias K_j (counted on the scoring side as `missed_true_slips`).
 """
 from __future__ import annotations
 
@@ -70,7 +89,7 @@ import numpy as np
 
 from filters import metrics
 from filters.cycleslip import CycleSlipConfig, CycleSlipDetector
-from filters.ekf import ekf_step, ekf_update
+from filters.ekf import ekf_predict, ekf_step, ekf_update
 from filters.iono_tropo import (
     F_REF_HZ,
     IDX_CLOCK,
@@ -91,7 +110,8 @@ from sitl.gnss.ranging import light_time_geometry
 from sitl.gnss.receiver import Receiver, ReceiverConfig
 from sitl.gnss.world import ephemeris_for_filter, look_angles
 
-__all__ = ["MIN_SATS", "IonoTropoScenario", "run_cmc_increments", "run_code_doppler", "run_streamed"]
+__all__ = ["MIN_SATS", "IonoTropoScenario", "run_carrier_phase", "run_cmc_increments", "run_code_doppler",
+           "run_streamed"]
 
 MIN_SATS = 4  # position + clock need at least 4 satellites at every epoch
 _CHECK_EVERY_S = 10.0  # visibility pre-check grid
@@ -144,11 +164,14 @@ class IonoTropoScenario:
     # variant 2: code-minus-carrier increments (eqs 29-33)
     cmc_window_s: float = 90.0  # increment interval (seed: 90 s); a multiple of dt_s
     cycle_slip_rate_hz: float = 0.0  # random cycle slips per tracked satellite (receiver), 1/s
+    # variant 3: carrier-phase ambiguity states
+    sigma0_amb_m: float = 1000.0  # prior / reset sigma of a new K_j, m (flat; see module docstring)
 
     def __post_init__(self):
         for name in ("duration_s", "dt_s", "sigma_pr_m", "sigma_prr_m_s", "sigma_phase_m",
                      "sigma0_pos_m", "sigma0_vel_m_s", "sigma0_clock_bias_m", "sigma0_clock_drift_m_s",
-                     "sigma0_gps_glo_m", "sigma0_iono_m", "sigma0_tropo_m", "final_window_s", "cmc_window_s"):
+                     "sigma0_gps_glo_m", "sigma0_iono_m", "sigma0_tropo_m", "final_window_s", "cmc_window_s",
+                     "sigma0_amb_m"):
             object.__setattr__(self, name, _num(name, getattr(self, name)))
         for name in ("iono_zenith_m", "tropo_zenith_m", "speed_m_s", "q_accel_m2_s3", "q_atmo_m2_s",
                      "cycle_slip_rate_hz"):
@@ -231,10 +254,10 @@ class IonoTropoScenario:
         return out
 
     # ------------------------------------------------------------------ the filter
-    def transition(self) -> IonoTropoTransition:
+    def transition(self, n_amb: int = 0) -> IonoTropoTransition:
         q = self.q_atmo_m2_s
-        return IonoTropoTransition(q_accel_m2_s3=self.q_accel_m2_s3, q_gps_glo_m2_s=q, q_iono_m2_s=q,
-                                   q_tropo_m2_s=q)
+        return IonoTropoTransition(n_amb=n_amb, q_accel_m2_s3=self.q_accel_m2_s3, q_gps_glo_m2_s=q,
+                                   q_iono_m2_s=q, q_tropo_m2_s=q)
 
     def prior_sigmas(self) -> np.ndarray:
         sd = np.empty(N_BASE)
@@ -309,10 +332,30 @@ def run_cmc_increments(scn: IonoTropoScenario, trials: int, seed: int, progress=
     return run_streamed(scn, trials, seed, variant=2, progress=progress, backend=backend)
 
 
+def run_carrier_phase(scn: IonoTropoScenario, trials: int, seed: int, progress=None, backend=None) -> dict:
+    """Variant 3 (plus ambiguous carrier phase, K_j states): ``run_streamed(..., variant=3)``."""
+    return run_streamed(scn, trials, seed, variant=3, progress=progress, backend=backend)
+
+
+def _drop_states(x, P, cols):
+    keep = np.setdiff1d(np.arange(x.shape[-1]), cols)
+    return x[:, keep], P[:, keep][:, :, keep]
+
+
+def _append_states(x, P, m):
+    n = x.shape[-1]
+    x2 = np.zeros((x.shape[0], n + m))
+    x2[:, :n] = x
+    P2 = np.zeros((x.shape[0], n + m, n + m))
+    P2[:, :n, :n] = P
+    return x2, P2
+
+
 def run_streamed(scn: IonoTropoScenario, trials: int, seed: int, variant: int = 1, progress=None,
                  backend=None) -> dict:
     """Seed-000 Monte Carlo, trials stepped together; variant 1 (pseudorange + pseudorange
-    rate) or 2 (plus code-minus-carrier increments over scn.cmc_window_s, eqs 29-33).
+    rate), 2 (plus code-minus-carrier increments over scn.cmc_window_s, eqs 29-33) or 3
+    (plus ambiguous carrier phase with one K_j state per tracked satellite, eqs 35-38).
     The world (receiver draws) does not depend on the variant: the same seed gives the same
     simulated data for both.
 
@@ -331,9 +374,13 @@ def run_streamed(scn: IonoTropoScenario, trials: int, seed: int, variant: int = 
     Variant 2 also: increments {candidates, used, rejected_slip, spanning_true_slip,
       used_spanning_true_slip, detector_slips} (counts over trials, satellites, epochs;
       see the module docstring for the pairing rule) and n_increments_used (T,) per epoch.
+    Variant 3 also: n_state (T,) (state dimension after the epoch's update = 11 + number of
+      K states = 11 + n_visible), ambiguity {rises, sets, k_resets (detector slips on
+      satellites with a K state, summed over trials), true_slips, missed_true_slips (true
+      slips at epochs where the detector did not flag that satellite/trial; scoring side)}.
     """
-    if variant not in (1, 2):
-        raise ValueError(f"variant must be 1 or 2, got {variant!r}")
+    if variant not in (1, 2, 3):
+        raise ValueError(f"variant must be 1, 2 or 3, got {variant!r}")
     if not isinstance(scn, IonoTropoScenario):
         raise ValueError(f"scn must be an IonoTropoScenario, got {type(scn).__name__}")  # noqa: TRY004
     trials = _check_trials(trials)
@@ -375,12 +422,20 @@ def run_streamed(scn: IonoTropoScenario, trials: int, seed: int, variant: int = 
     acc = {"iono": 0.0, "tropo": 0.0, "pos": 0.0, "nees": 0.0, "iono_b": 0.0, "tropo_b": 0.0, "n": 0}
     report_every = max(1, T // 10)
 
-    if variant == 2:
-        W = scn.cmc_window_epochs
+    if variant in (2, 3):
         # the detector sees only the receiver's phase and Doppler (no lock_count: the
         # simulated receiver resets it at the slips it generates, which is truth)
         detector = CycleSlipDetector((trials, S), CycleSlipConfig(sigma_prr_m_s=scn.sigma_prr_m_s,
                                                                   sigma_phase_m=scn.sigma_phase_m))
+    if variant == 3:
+        amb_sats = []  # satellite (constellation index) of K state N_BASE + i
+        trans_cache = {0: trans}
+        n_state = np.empty(T, dtype=int)
+        amb = {"rises": 0, "sets": 0, "k_resets": 0, "true_slips": 0, "missed_true_slips": 0}
+        slips_prev = receiver.slip_count.copy()
+        var_amb = scn.sigma0_amb_m**2
+    if variant == 2:
+        W = scn.cmc_window_epochs
         B_buf = np.full((W, trials, S), np.nan)  # ring buffers over the window (filter side)
         m_buf = np.full((W, trials, S), np.nan)
         slips_buf = np.zeros((W, trials, S), dtype=np.int64)  # scoring side only (truth)
@@ -401,7 +456,10 @@ def run_streamed(scn: IonoTropoScenario, trials: int, seed: int, variant: int = 
             bias, drift = clock.step(rng, bias, drift, dt)
         geo = light_time_geometry(t, pos_true[k], vel_true[k], const)
         _, el = look_angles(pos_true[k], geo)
-        obs = receiver.step(rng, t, geo.range_m, geo.range_rate_m_s, el, carrier, is_gps, bias, drift)
+        # mask on the geodetic horizon; atmosphere on the geocentric vertical (eq. 10)
+        el_atmo = geodesy.geocentric_elevation_rad(pos_true[k][..., None, :], geo.sat_pos_ecef_m)
+        obs = receiver.step(rng, t, geo.range_m, geo.range_rate_m_s, el, carrier, is_gps, bias, drift,
+                            el_atmo_rad=el_atmo)
         vis = obs.visible[0]
         if np.any(obs.visible != vis):  # pragma: no cover - the shared trajectory makes it common
             raise RuntimeError("visible set differs between trials")
@@ -412,8 +470,9 @@ def run_streamed(scn: IonoTropoScenario, trials: int, seed: int, variant: int = 
                              f"t = {t_rel[k]:.1f} s (>= {MIN_SATS} needed)")
         pr = obs.pseudorange_m
         prr = obs.pseudorange_rate_m_s
-        if variant == 2:
+        if variant in (2, 3):
             det = detector.update(t_rel[k], obs.carrier_phase_m, prr)
+        if variant == 2:
             inc["detector_slips"] += int(np.sum(det.slip))
 
         # ---------------- filter (measurements + ephemeris + its own clock estimate only)
@@ -451,7 +510,65 @@ def run_streamed(scn: IonoTropoScenario, trials: int, seed: int, variant: int = 
             B_buf[slot] = B_now
             m_buf[slot] = m_now
             slips_buf[slot] = slips_now
-        if k == 0:
+        if variant == 3:
+            phase = obs.carrier_phase_m
+            tracked = set(idx.tolist())
+            gone = [i for i, s in enumerate(amb_sats) if s not in tracked]
+            new = [s for s in idx.tolist() if s not in set(amb_sats)]
+            # resets: detector slips on satellites that keep their K state (per trial)
+            old_cols = np.array([N_BASE + i for i, s in enumerate(amb_sats) if s in tracked], dtype=int)
+            old_sats = np.array([s for s in amb_sats if s in tracked], dtype=int)
+            reset = det.slip[:, old_sats] if old_sats.size else np.zeros((trials, 0), dtype=bool)
+            amb["k_resets"] += int(reset.sum())
+            slips_now = receiver.slip_count.copy()
+            true_slip = (slips_now - slips_prev)[:, idx] > 0
+            amb["true_slips"] += int(true_slip.sum())
+            amb["missed_true_slips"] += int((true_slip & ~det.slip[:, idx]).sum())
+            slips_prev = slips_now
+            if gone or new or reset.any() or k == 0:
+                if k > 0:
+                    x, P = ekf_predict(x, P, trans_cache[len(amb_sats)], dt, backend=backend)
+                if gone:
+                    x, P = _drop_states(x, P, [N_BASE + i for i in gone])
+                    amb_sats = [s for i, s in enumerate(amb_sats) if i not in set(gone)]
+                    amb["sets"] += len(gone)
+                    old_cols = np.array([N_BASE + amb_sats.index(s) for s in old_sats], dtype=int)
+                if new:
+                    x, P = _append_states(x, P, len(new))
+                    amb_sats = amb_sats + new
+                    amb["rises"] += len(new)
+                init = np.zeros((trials, x.shape[-1]), dtype=bool)  # state columns to (re)initialise
+                init[:, N_BASE + len(amb_sats) - len(new):] = True
+                if old_cols.size:
+                    init[:, old_cols] = reset
+                kidx = np.array([N_BASE + amb_sats.index(s) for s in idx.tolist()])
+                m3 = IonoTropoGnss(sp[:, idx], sv[:, idx], carrier[idx], is_gps[idx], scn.sigma_pr_m,
+                                   scn.sigma_prr_m_s, sigma_phase_m=scn.sigma_phase_m, phase_state_index=kidx,
+                                   use_phase=True, n_state=x.shape[-1])
+                hph = m3.h(x)[:, 2 * idx.size:]  # predicted phase incl. the current K
+                kcur = x[:, kidx]
+                kinit = phase[:, idx] - hph + kcur  # phase - predicted phase without K
+                cols = np.flatnonzero(init.any(axis=0))
+                for c in cols:
+                    tr = init[:, c]
+                    j = int(np.flatnonzero(kidx == c)[0])
+                    x[tr, c] = kinit[tr, j]
+                    P[tr, c, :] = 0.0
+                    P[tr, :, c] = 0.0
+                    P[tr, c, c] = var_amb
+                if len(amb_sats) not in trans_cache:
+                    trans_cache[len(amb_sats)] = scn.transition(n_amb=len(amb_sats))
+                z = np.concatenate([z, phase[:, idx]], axis=1)
+                res = ekf_update(x, P, z, m3, backend=backend)
+            else:
+                kidx = np.array([N_BASE + amb_sats.index(s) for s in idx.tolist()])
+                m3 = IonoTropoGnss(sp[:, idx], sv[:, idx], carrier[idx], is_gps[idx], scn.sigma_pr_m,
+                                   scn.sigma_prr_m_s, sigma_phase_m=scn.sigma_phase_m, phase_state_index=kidx,
+                                   use_phase=True, n_state=x.shape[-1])
+                z = np.concatenate([z, phase[:, idx]], axis=1)
+                res = ekf_step(x, P, z, trans_cache[len(amb_sats)], m3, dt, backend=backend)
+            n_state[k] = res.x.shape[-1]
+        elif k == 0:
             res = ekf_update(x, P, z, meas, backend=backend)  # the prior is at the first epoch
         else:
             res = ekf_step(x, P, z, trans, meas, dt, backend=backend)
@@ -495,8 +612,12 @@ def run_streamed(scn: IonoTropoScenario, trials: int, seed: int, variant: int = 
     extra = {}
     if variant == 2:
         extra = {"increments": inc, "n_increments_used": n_inc}
+    if variant == 3:
+        extra = {"ambiguity": amb, "n_state": n_state}
+    names = {1: "seed000-variant1-code-doppler", 2: "seed000-variant2-cmc-increments",
+             3: "seed000-variant3-carrier-phase"}
     return {
-        "experiment": "seed000-variant1-code-doppler" if variant == 1 else "seed000-variant2-cmc-increments",
+        "experiment": names[variant],
         "variant": variant,
         "trials": trials,
         "seed": seed,
@@ -524,9 +645,10 @@ def summary(res: dict) -> str:
     fe = res["final_error_m"]
     fb = res["final_bias_m"]
     ttm = np.asarray(res["time_to_1m_s_per_trial"])
+    label = {1: "code + Doppler", 2: "code + Doppler + CMC increments",
+             3: "code + Doppler + ambiguous carrier phase"}[res.get("variant", 1)]
     lines = [
-        (f"seed 000 variant {res.get('variant', 1)} "
-         f"({'code + Doppler' if res.get('variant', 1) == 1 else 'code + Doppler + CMC increments'}): "
+        (f"seed 000 variant {res.get('variant', 1)} ({label}): "
          f"{res['trials']} trials x {res['epochs']} epochs, "
          f"{res['n_visible_min']}..{res['n_visible_max']} satellites in view"),
         (f"time to 1 m (I_g and U_g): median {res['time_to_1m_s']:.1f} s; per trial min {ttm.min():.1f} "
@@ -540,4 +662,8 @@ def summary(res: dict) -> str:
     ]
     if "increments" in res:
         lines.insert(-1, "increments: " + ", ".join(f"{k} {v}" for k, v in res["increments"].items()))
+    if "ambiguity" in res:
+        ns = np.asarray(res["n_state"])
+        lines.insert(-1, f"state dim {ns.min()}..{ns.max()}; ambiguity: "
+                     + ", ".join(f"{k} {v}" for k, v in res["ambiguity"].items()))
     return "\n".join(lines)

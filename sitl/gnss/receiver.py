@@ -178,10 +178,17 @@ class Receiver:
         is_gps,
         clock_bias_m,
         clock_drift_m_s,
+        el_atmo_rad=None,
     ) -> Observation:
         """Advance tracking to epoch t_gps_s and generate its measurements.
 
-        range_m, range_rate_m_s, el_rad: (*batch, S) geometry (R_j, Ṙ_j, el_j).
+        range_m, range_rate_m_s, el_rad: (*batch, S) geometry (R_j, Ṙ_j, el_j); el_rad is
+        the elevation above the receiver's (geodetic) horizon and sets the mask.
+        el_atmo_rad: (*batch, S) elevation that the atmosphere's mapping functions use;
+        default el_rad. The seed 000 thin-shell and 1/sin mappings are spherical-Earth
+        models whose elevation is the geocentric one (seed 000, eq. 10), so world.observe
+        passes that; using the geodetic elevation there puts up to ~0.3 m of slant-delay
+        error at 55 deg latitude and low elevation into the truth.
         carrier_hz, is_gps: (S,) carrier f_j and system of each satellite.
         clock_bias_m, clock_drift_m_s: (*batch,) receiver clock Δ, Δ̇ against GLONASS time.
         """
@@ -194,6 +201,7 @@ class Receiver:
         range_m = self._full("range_m", range_m)
         range_rate_m_s = self._full("range_rate_m_s", range_rate_m_s)
         el_rad = self._full("el_rad", el_rad)
+        el_atmo = el_rad if el_atmo_rad is None else self._full("el_atmo_rad", el_atmo_rad)
         carrier_hz = np.asarray(carrier_hz, dtype=float)
         is_gps = np.asarray(is_gps)
         if is_gps.dtype != bool:
@@ -242,8 +250,8 @@ class Receiver:
 
         wavelength_m = C_M_S / carrier_hz
         with np.errstate(divide="ignore", invalid="ignore"):
-            iono = iono_slant_delay_m(cfg.iono_zenith_m, el_rad, carrier_hz, cfg.iono_ref_hz)  # seed 000, eq. (9)
-            tropo = tropo_slant_delay_m(cfg.tropo_zenith_m, el_rad)  # seed 000, eq. (11)
+            iono = iono_slant_delay_m(cfg.iono_zenith_m, el_atmo, carrier_hz, cfg.iono_ref_hz)  # seed 000, eq. (9)
+            tropo = tropo_slant_delay_m(cfg.tropo_zenith_m, el_atmo)  # seed 000, eq. (11)
         iono = np.where(visible, iono, np.nan)
         tropo = np.where(visible, tropo, np.nan)
         offset = np.where(is_gps, cfg.gps_glonass_offset_m, 0.0)

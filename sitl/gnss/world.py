@@ -29,7 +29,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from sitl.constants import C_M_S
-from sitl.geodesy import ecef_to_aer
+from sitl.geodesy import ecef_to_aer, geocentric_elevation_rad
 from sitl.gnss.clock import ClockModel
 from sitl.gnss.orbits import Constellation
 from sitl.gnss.ranging import Geometry, _check_constellation, light_time_geometry, sat_state_at_reception_frame
@@ -140,8 +140,10 @@ def _observe(rng, t_gps_s, rx_pos_ecef_m, rx_vel_ecef_m_s, clock_bias_m, clock_d
     pos = np.broadcast_to(pos, batch + (3,))
     geo = light_time_geometry(t, pos, vel, c, ell)
     _, el = look_angles(pos, geo, ell)
+    # mask on the geodetic horizon; atmosphere mapped on the geocentric vertical (seed 000, eq. 10)
+    el_atmo = geocentric_elevation_rad(pos[..., None, :], geo.sat_pos_ecef_m)
     obs = receiver.step(rng, t, geo.range_m, geo.range_rate_m_s, el, c.carrier_l1_hz, c.system == "G",
-                        bias, drift)
+                        bias, drift, el_atmo_rad=el_atmo)
     return obs, geo
 
 
