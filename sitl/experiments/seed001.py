@@ -345,6 +345,15 @@ def summary_table(res: dict) -> str:
     return "\n".join(rows)
 
 
+def _save(fig, path: Path) -> Path:
+    import matplotlib.pyplot as plt
+
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
 def plot(res: dict, out: Path) -> list[Path]:
     """PNG figures like the seed's: std (and mean) of the spherical error per step."""
     import matplotlib
@@ -375,11 +384,7 @@ def plot(res: dict, out: Path) -> list[Path]:
     ax.set_title("RMSE and mean against the posterior CRB")
     ax.grid(alpha=0.3, which="both")
     ax.legend()
-    fig.tight_layout()
-    p = out / "spherical_error.png"
-    fig.savefig(p, dpi=110)
-    plt.close(fig)
-    files.append(p)
+    files.append(_save(fig, out / "spherical_error.png"))
 
     fig, ax = plt.subplots(figsize=(7, 4))
     ax.plot(k, np.asarray(res["ekf"]["mean_nees"]) / res["state_dim"], label="EKF")
@@ -392,11 +397,7 @@ def plot(res: dict, out: Path) -> list[Path]:
     ax.set_title(f"Consistency (ANEES over the last 100 steps: 99% band {lo:.3f}..{hi:.3f})")
     ax.grid(alpha=0.3)
     ax.legend()
-    fig.tight_layout()
-    p = out / "nees.png"
-    fig.savefig(p, dpi=110)
-    plt.close(fig)
-    files.append(p)
+    files.append(_save(fig, out / "nees.png"))
     return files
 
 
