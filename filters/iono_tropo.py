@@ -177,6 +177,17 @@ class IonoTropoTransition:
         return F
 
     def Q(self, dt):
+        """Process noise over dt (memoised per dt: a read-only array)."""
+        memo = self.__dict__.setdefault("_q_memo", {})
+        key = float(dt) if isinstance(dt, (int, float, np.floating)) else None
+        if key is not None and key in memo:
+            return memo[key]
+        out = _readonly(self._Q(dt))
+        if key is not None and len(memo) < 8:
+            memo[key] = out
+        return out
+
+    def _Q(self, dt):
         T = _check_dt(dt)
         Q = np.zeros((self.ndim, self.ndim))
         blk = np.array([[T**3 / 3, T**2 / 2], [T**2 / 2, T]])

@@ -17,6 +17,8 @@ from sitl.gnss.receiver import Observation, Receiver, ReceiverConfig
 from sitl.gnss.world import (
     ObservationTrack,
     ephemeris_for_filter,
+    geometry_track,
+    look_angles,
     observe,
     simulate_receiver,
     visible_count,
@@ -391,3 +393,27 @@ def test_bad_input_raises_value_error_naming_the_parameter():
             fn()
     with pytest.raises(ValueError, match="system"):
         visible_count(np.ones((2, S), bool), CONST, "E")
+
+
+def test_geometry_track_equals_per_epoch_geometry():
+    """Blocks of epochs in one call give what one call per epoch gives (to the ephemeris
+    interpolation: 1e-7 m, 1e-6 m/s), across block boundaries and a ragged last block."""
+    t = DEFAULT_TOA_GPS_S + 900.0 + 0.1 * np.arange(23)
+    pos = RX_STATIC + np.outer(np.arange(23), [30.0, -20.0, 5.0])
+    vel = np.broadcast_to([300.0, -200.0, 50.0], (23, 3))
+    track = list(geometry_track(t, pos, vel, CONST, block=10))
+    assert len(track) == 23
+    for k in (0, 9, 10, 22):
+        g = light_time_geometry(t[k], pos[k], vel[k], CONST)
+        _, el = look_angles(pos[k], g)
+        e = track[k]
+        assert e.t_gps_s == t[k]
+        np.testing.assert_allclose(e.geometry.range_m, g.range_m, rtol=0, atol=1e-7)
+        np.testing.assert_allclose(e.geometry.range_rate_m_s, g.range_rate_m_s, rtol=0, atol=1e-6)
+        np.testing.assert_allclose(e.el_rad, el, rtol=0, atol=1e-12)
+        np.testing.assert_allclose(e.el_atmo_rad, geocentric_elevation_rad(pos[k][None, :], g.sat_pos_ecef_m),
+                                   rtol=0, atol=1e-12)
+    with pytest.raises(ValueError, match="block"):
+        next(geometry_track(t, pos, vel, CONST, block=0))
+    with pytest.raises(ValueError, match="shape"):
+        next(geometry_track(t, pos[:5], vel, CONST))

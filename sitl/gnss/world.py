@@ -13,6 +13,11 @@ Glue between the orbit, light-time, atmosphere, clock and receiver models:
   seed 000 two-state model (``ClockModel``, exact discretisation for any step), and
   every epoch goes through :func:`observe`.  Returns an :class:`ObservationTrack`
   (epochs stacked on a leading axis T) that also keeps the truth needed for scoring.
+* :func:`geometry_track` -- the truth geometry (light time, range rate, geodetic and
+  geocentric elevations) of one trajectory shared by any number of receivers, computed a
+  block of epochs per call and handed out epoch by epoch: memory stays flat in the run
+  length and the per-call overhead of the 55-satellite evaluation is paid once per block.
+  ``Receiver.step`` on each epoch's slice then gives what :func:`observe` gives.
 * :func:`ephemeris_for_filter` -- what a receiver's estimator may use: the satellite
   states at the transit time *measured* by its pseudorange, pr / c (optionally less
   its own clock-bias estimate), masked to the tracked satellites.  No truth enters.
@@ -24,7 +29,8 @@ Times are true GPS seconds of reception.  SI units; randomness only from the pas
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
+from typing import NamedTuple
 
 import numpy as np
 
@@ -36,6 +42,8 @@ from sitl.gnss.ranging import Geometry, _check_constellation, light_time_geometr
 from sitl.gnss.receiver import Observation, Receiver, ReceiverConfig
 
 __all__ = [
+    "EpochGeometry",
+    "geometry_track",
     "look_angles",
     "observe",
     "ObservationTrack",
@@ -115,6 +123,46 @@ def look_angles(rx_pos_ecef_m, geometry: Geometry, ell=None) -> tuple[np.ndarray
     rx = _vec3("rx_pos_ecef_m", rx_pos_ecef_m)
     az, el, _ = ecef_to_aer(rx[..., None, :], geometry.sat_pos_ecef_m, ell)
     return az, el
+
+
+class EpochGeometry(NamedTuple):
+    """Truth geometry of one epoch (see :func:`geometry_track`)."""
+
+    t_gps_s: float
+    geometry: Geometry  # (S,) / (S, 3) arrays
+    el_rad: np.ndarray  # (S,) above the geodetic horizon (the receiver's mask uses it)
+    el_atmo_rad: np.ndarray  # (S,) geocentric elevation (seed 000 eq. 10: atmosphere mapping)
+
+
+def geometry_track(t_gps_s, rx_pos_ecef_m, rx_vel_ecef_m_s, constellation: Constellation, *,
+                   block: int = 256, ell=None):
+    """Yield an :class:`EpochGeometry` per epoch of a trajectory, computed in blocks.
+
+    t_gps_s (T,), rx_pos_ecef_m / rx_vel_ecef_m_s (T, 3).  Each block of ``block`` epochs
+    goes through ``light_time_geometry`` (and the two elevations) as one batched call; the
+    numbers are those of per-epoch calls up to the ephemeris interpolation (both within the
+    ranging module's stated tolerance). A generator: only one block is held at a time.
+    """
+    c = _check_constellation(constellation)
+    t = np.asarray(t_gps_s, dtype=float)
+    if t.ndim != 1 or not np.all(np.isfinite(t)):
+        raise ValueError(f"t_gps_s: expected a 1-D array of finite times, got shape {t.shape}")
+    pos = _vec3("rx_pos_ecef_m", rx_pos_ecef_m)
+    vel = _vec3("rx_vel_ecef_m_s", rx_vel_ecef_m_s)
+    if pos.shape != (t.size, 3) or vel.shape != (t.size, 3):
+        raise ValueError(f"rx_pos_ecef_m and rx_vel_ecef_m_s must have shape ({t.size}, 3), got {pos.shape} "
+                         f"and {vel.shape}")
+    if isinstance(block, bool) or not isinstance(block, (int, np.integer)) or block < 1:
+        raise ValueError(f"block must be an integer >= 1, got {block!r}")
+    for k0 in range(0, t.size, block):
+        sl = slice(k0, min(k0 + block, t.size))
+        geo = light_time_geometry(t[sl], pos[sl], vel[sl], c, ell)
+        _, el = look_angles(pos[sl], geo, ell)
+        el_atmo = geocentric_elevation_rad(pos[sl][:, None, :], geo.sat_pos_ecef_m)
+        arrays = [getattr(geo, f.name) for f in fields(Geometry)]
+        for i in range(sl.stop - sl.start):
+            g = Geometry(*(a[i] for a in arrays))
+            yield EpochGeometry(float(t[k0 + i]), g, el[i], el_atmo[i])
 
 
 def _observe(rng, t_gps_s, rx_pos_ecef_m, rx_vel_ecef_m_s, clock_bias_m, clock_drift_m_s,
