@@ -12,9 +12,9 @@ speed (default 50 m/s, heading 90 deg) on the geocentric sphere through the star
 independently: the receiver clock (ClockModel, the seed's TCXO, initial bias/drift drawn
 from the prior below) and all measurement noise (Receiver). The light-time geometry
 (ranging.light_time_geometry, Earth rotation during the flight) and the look angles are
-computed once per epoch for the shared trajectory and fed, broadcast, to the batched
-Receiver -- the same calls `world.observe` makes, without repeating the identical
-geometry for every trial.
+computed for the shared trajectory by `world.geometry_track` (a block of epochs per call)
+and fed, broadcast, to the batched Receiver -- what `world.observe` does, without
+repeating the identical geometry for every trial or paying its call overhead every epoch.
 
 Filter (no truth): each epoch it gets the tracked satellites' pseudoranges and rates and
 the satellite states from `world.ephemeris_for_filter` evaluated at the *measured*
@@ -88,6 +88,7 @@ from dataclasses import asdict, dataclass
 import numpy as np
 
 from filters import metrics
+from filters.adaptive import AdaptiveQ
 from filters.cycleslip import CycleSlipConfig, CycleSlipDetector
 from filters.ekf import ekf_predict, ekf_step, ekf_update
 from filters.iono_tropo import (
@@ -106,9 +107,8 @@ from filters.iono_tropo import (
 from sitl import geodesy
 from sitl.gnss import orbits
 from sitl.gnss.clock import ClockModel
-from sitl.gnss.ranging import light_time_geometry
 from sitl.gnss.receiver import Receiver, ReceiverConfig
-from sitl.gnss.world import ephemeris_for_filter, look_angles
+from sitl.gnss.world import ephemeris_for_filter, geometry_track
 
 __all__ = ["MIN_SATS", "IonoTropoScenario", "run_carrier_phase", "run_cmc_increments", "run_code_doppler",
            "run_streamed"]
@@ -116,6 +116,8 @@ __all__ = ["MIN_SATS", "IonoTropoScenario", "run_carrier_phase", "run_cmc_increm
 MIN_SATS = 4  # position + clock need at least 4 satellites at every epoch
 _CHECK_EVERY_S = 10.0  # visibility pre-check grid
 IB = [IDX_IONO, IDX_TROPO]
+ADAPTIVE_Q_SCOPES = {"all": None, "dynamic": (0, 1, 2, IDX_CLOCK, 4, 5, 6, IDX_DRIFT)}
+CB = [IDX_CLOCK, IDX_DRIFT]
 
 
 def _num(name, v, positive=True, allow_zero=False):
@@ -166,21 +168,41 @@ class IonoTropoScenario:
     cycle_slip_rate_hz: float = 0.0  # random cycle slips per tracked satellite (receiver), 1/s
     # variant 3: carrier-phase ambiguity states
     sigma0_amb_m: float = 1000.0  # prior / reset sigma of a new K_j, m (flat; see module docstring)
+    # adaptive process noise (eq 7): Q(i+1) = Q_min + decay Q(i) + gain diag((W nu)(W nu)')
+    adaptive_q: bool = False
+    adaptive_q_decay: float = 0.1
+    adaptive_q_gain: float = 0.7
+    # which states adapt: "all" (the seed: diag over the whole state) or "dynamic" (position,
+    # velocity, clock bias and drift only; Delta_A, I_g, U_g and K_j are constants)
+    adaptive_q_scope: str = "all"
+    # truth clock: N_eps of the simulated clock = truth_clock_psd_scale x the filter's N_eps
+    # (1 = correctly modelled; > 1 a mismodelled, noisier clock than the filter assumes)
+    truth_clock_psd_scale: float = 1.0
 
     def __post_init__(self):
         for name in ("duration_s", "dt_s", "sigma_pr_m", "sigma_prr_m_s", "sigma_phase_m",
                      "sigma0_pos_m", "sigma0_vel_m_s", "sigma0_clock_bias_m", "sigma0_clock_drift_m_s",
                      "sigma0_gps_glo_m", "sigma0_iono_m", "sigma0_tropo_m", "final_window_s", "cmc_window_s",
-                     "sigma0_amb_m"):
+                     "sigma0_amb_m", "truth_clock_psd_scale"):
             object.__setattr__(self, name, _num(name, getattr(self, name)))
         for name in ("iono_zenith_m", "tropo_zenith_m", "speed_m_s", "q_accel_m2_s3", "q_atmo_m2_s",
-                     "cycle_slip_rate_hz"):
+                     "cycle_slip_rate_hz", "adaptive_q_decay", "adaptive_q_gain"):
             object.__setattr__(self, name, _num(name, getattr(self, name), allow_zero=True))
         for name in ("gps_glonass_offset_m", "lat_deg", "lon_deg", "h_m", "heading_deg", "t0_gps_s",
                      "iono_prior_m", "tropo_prior_m"):
             object.__setattr__(self, name, _num(name, getattr(self, name), positive=False))
-        if not 0.0 < self.el_mask_deg < 90.0:
-            raise ValueError(f"el_mask_deg must be in (0, 90), got {self.el_mask_deg!r}")
+        if not isinstance(self.adaptive_q, (bool, np.bool_)):
+            raise ValueError(f"adaptive_q must be true or false, got {self.adaptive_q!r}")
+        object.__setattr__(self, "adaptive_q", bool(self.adaptive_q))
+        if self.adaptive_q_scope not in ADAPTIVE_Q_SCOPES:
+            raise ValueError(f"adaptive_q_scope must be one of {', '.join(ADAPTIVE_Q_SCOPES)}, "
+                             f"got {self.adaptive_q_scope!r}")
+        if not self.adaptive_q_decay < 1.0:
+            raise ValueError(f"adaptive_q_decay must be in [0, 1) (Q would grow without bound), "
+                             f"got {self.adaptive_q_decay!r}")
+        if not 5.0 <= self.el_mask_deg < 90.0:
+            raise ValueError(f"el_mask_deg must be in [5, 90): the seed's 1/sin(el) troposphere mapping (eq 11) "
+                             f"does not hold nearer the horizon, got {self.el_mask_deg!r}")
         if not -90.0 < self.lat_deg < 90.0:
             raise ValueError(f"lat_deg must be in (-90, 90), got {self.lat_deg!r}")
         if not -500.0 <= self.h_m <= 1e5:
@@ -337,6 +359,12 @@ def run_carrier_phase(scn: IonoTropoScenario, trials: int, seed: int, progress=N
     return run_streamed(scn, trials, seed, variant=3, progress=progress, backend=backend)
 
 
+def _nees2(e0, e1, P, i, j):
+    """NEES of a 2-state block (i, j) in closed form, (N,): the scoring runs every epoch."""
+    a, b, c = P[:, i, i], P[:, i, j], P[:, j, j]
+    return (c * e0 * e0 - 2.0 * b * e0 * e1 + a * e1 * e1) / (a * c - b * b)
+
+
 def _drop_states(x, P, cols):
     keep = np.setdiff1d(np.arange(x.shape[-1]), cols)
     return x[:, keep], P[:, keep][:, :, keep]
@@ -392,8 +420,8 @@ def run_streamed(scn: IonoTropoScenario, trials: int, seed: int, variant: int = 
     is_gps = const.system == "G"
     cfg = scn.receiver_config()
     receiver = Receiver(S, cfg, (trials,))
-    clock = ClockModel()
     trans = scn.transition()
+    clock = ClockModel(psd_1_s=trans.clock_psd_1_s * scn.truth_clock_psd_scale)
     dt = scn.dt_s
     T = scn.n_epochs
     t_rel = scn.times()
@@ -412,15 +440,27 @@ def run_streamed(scn: IonoTropoScenario, trials: int, seed: int, variant: int = 
     P = np.broadcast_to(np.diag(sd0**2), (trials, N_BASE, N_BASE)).copy()
 
     keys = ("iono_err_mean_m", "iono_err_rms_m", "tropo_err_mean_m", "tropo_err_rms_m", "pos_err_rms_m",
-            "nees_atmo_mean", "nis_mean", "iono_sd_m", "tropo_sd_m")
+            "nees_atmo_mean", "nis_mean", "iono_sd_m", "tropo_sd_m", "clock_err_rms_m", "drift_err_rms_m",
+            "nees_clock_mean")
     ser = {k: np.empty(T) for k in keys}
     n_vis = np.empty(T, dtype=int)
     prior_err = {"iono_rms_m": float(np.sqrt(np.mean((x[:, IDX_IONO] - I_true) ** 2))),
                  "tropo_rms_m": float(np.sqrt(np.mean((x[:, IDX_TROPO] - U_true) ** 2)))}
     last_bad = np.full(trials, -1, dtype=int)  # last epoch with |err| >= 1 m on I_g or U_g
     k_final = int(np.searchsorted(t_rel, scn.duration_s - min(scn.final_window_s, scn.duration_s) - 1e-9))
-    acc = {"iono": 0.0, "tropo": 0.0, "pos": 0.0, "nees": 0.0, "iono_b": 0.0, "tropo_b": 0.0, "n": 0}
+    acc = {"iono": 0.0, "tropo": 0.0, "pos": 0.0, "nees": 0.0, "nees_c": 0.0, "iono_b": 0.0, "tropo_b": 0.0, "n": 0}
     report_every = max(1, T // 10)
+
+    # adaptive process noise (eq 7): Q(i) = s_i Q_min + diag(q_i), see filters/adaptive.py
+    aq = (AdaptiveQ(scn.adaptive_q_decay, scn.adaptive_q_gain, ADAPTIVE_Q_SCOPES[scn.adaptive_q_scope])
+          if scn.adaptive_q else None)
+    aqs = aq.init((trials,), N_BASE) if aq else None
+
+    def predict(x, P, tr):
+        if aq is None:
+            return ekf_predict(x, P, tr, dt, backend=backend)
+        xp, Pp = ekf_predict(x, P, aq.transition(tr, aqs), dt, backend=backend)
+        return xp, aq.add_diag(Pp, aqs)
 
     if variant in (2, 3):
         # the detector sees only the receiver's phase and Doppler (no lock_count: the
@@ -449,17 +489,18 @@ def run_streamed(scn: IonoTropoScenario, trials: int, seed: int, variant: int = 
                "used_spanning_true_slip": 0, "detector_slips": 0}
         n_inc = np.zeros(T, dtype=int)
 
+    # the truth geometry of the shared trajectory, a block of epochs per call
+    geom = geometry_track(scn.t0_gps_s + t_rel, pos_true, vel_true, const)
     for k in range(T):
         t = scn.t0_gps_s + t_rel[k]
         # ---------------- world (truth)
         if k > 0:
             bias, drift = clock.step(rng, bias, drift, dt)
-        geo = light_time_geometry(t, pos_true[k], vel_true[k], const)
-        _, el = look_angles(pos_true[k], geo)
+        eg = next(geom)
+        geo = eg.geometry
         # mask on the geodetic horizon; atmosphere on the geocentric vertical (eq. 10)
-        el_atmo = geodesy.geocentric_elevation_rad(pos_true[k][..., None, :], geo.sat_pos_ecef_m)
-        obs = receiver.step(rng, t, geo.range_m, geo.range_rate_m_s, el, carrier, is_gps, bias, drift,
-                            el_atmo_rad=el_atmo)
+        obs = receiver.step(rng, t, geo.range_m, geo.range_rate_m_s, eg.el_rad, carrier, is_gps, bias, drift,
+                            el_atmo_rad=eg.el_atmo_rad)
         vis = obs.visible[0]
         if np.any(obs.visible != vis):  # pragma: no cover - the shared trajectory makes it common
             raise RuntimeError("visible set differs between trials")
@@ -478,7 +519,9 @@ def run_streamed(scn: IonoTropoScenario, trials: int, seed: int, variant: int = 
         # ---------------- filter (measurements + ephemeris + its own clock estimate only)
         clock_est = x[:, IDX_CLOCK] + (dt * x[:, IDX_DRIFT] if k > 0 else 0.0)
         sp, sv = ephemeris_for_filter(t, pr, const, pseudorange_rate_m_s=prr, clock_bias_est_m=clock_est)
-        meas = IonoTropoGnss(sp[:, idx], sv[:, idx], carrier[idx], is_gps[idx], scn.sigma_pr_m, scn.sigma_prr_m_s)
+        if variant != 3:
+            meas = IonoTropoGnss(sp[:, idx], sv[:, idx], carrier[idx], is_gps[idx], scn.sigma_pr_m,
+                                 scn.sigma_prr_m_s)
         z = np.concatenate([pr[:, idx], prr[:, idx]], axis=1)
         if variant == 2:
             # filter's own mapping at this epoch: predicted position, filter-side satellites
@@ -525,16 +568,20 @@ def run_streamed(scn: IonoTropoScenario, trials: int, seed: int, variant: int = 
             amb["true_slips"] += int(true_slip.sum())
             amb["missed_true_slips"] += int((true_slip & ~det.slip[:, idx]).sum())
             slips_prev = slips_now
-            if gone or new or reset.any() or k == 0:
+            if gone or new or reset.any() or k == 0 or aq is not None:
                 if k > 0:
-                    x, P = ekf_predict(x, P, trans_cache[len(amb_sats)], dt, backend=backend)
+                    x, P = predict(x, P, trans_cache[len(amb_sats)])
                 if gone:
                     x, P = _drop_states(x, P, [N_BASE + i for i in gone])
+                    if aq is not None:
+                        aqs = aqs._replace(q_diag=np.delete(aqs.q_diag, [N_BASE + i for i in gone], axis=-1))
                     amb_sats = [s for i, s in enumerate(amb_sats) if i not in set(gone)]
                     amb["sets"] += len(gone)
                     old_cols = np.array([N_BASE + amb_sats.index(s) for s in old_sats], dtype=int)
                 if new:
                     x, P = _append_states(x, P, len(new))
+                    if aq is not None:
+                        aqs = aqs._replace(q_diag=np.concatenate([aqs.q_diag, np.zeros((trials, len(new)))], axis=-1))
                     amb_sats = amb_sats + new
                     amb["rises"] += len(new)
                 init = np.zeros((trials, x.shape[-1]), dtype=bool)  # state columns to (re)initialise
@@ -545,10 +592,10 @@ def run_streamed(scn: IonoTropoScenario, trials: int, seed: int, variant: int = 
                 m3 = IonoTropoGnss(sp[:, idx], sv[:, idx], carrier[idx], is_gps[idx], scn.sigma_pr_m,
                                    scn.sigma_prr_m_s, sigma_phase_m=scn.sigma_phase_m, phase_state_index=kidx,
                                    use_phase=True, n_state=x.shape[-1])
-                hph = m3.h(x)[:, 2 * idx.size:]  # predicted phase incl. the current K
-                kcur = x[:, kidx]
-                kinit = phase[:, idx] - hph + kcur  # phase - predicted phase without K
                 cols = np.flatnonzero(init.any(axis=0))
+                if cols.size:
+                    hph = m3.h(x)[:, 2 * idx.size:]  # predicted phase incl. the current K
+                    kinit = phase[:, idx] - hph + x[:, kidx]  # phase - predicted phase without K
                 for c in cols:
                     tr = init[:, c]
                     j = int(np.flatnonzero(kidx == c)[0])
@@ -556,9 +603,12 @@ def run_streamed(scn: IonoTropoScenario, trials: int, seed: int, variant: int = 
                     P[tr, c, :] = 0.0
                     P[tr, :, c] = 0.0
                     P[tr, c, c] = var_amb
+                    if aq is not None:
+                        aqs.q_diag[tr, c] = 0.0
                 if len(amb_sats) not in trans_cache:
                     trans_cache[len(amb_sats)] = scn.transition(n_amb=len(amb_sats))
                 z = np.concatenate([z, phase[:, idx]], axis=1)
+                x_pred = x
                 res = ekf_update(x, P, z, m3, backend=backend)
             else:
                 kidx = np.array([N_BASE + amb_sats.index(s) for s in idx.tolist()])
@@ -569,9 +619,15 @@ def run_streamed(scn: IonoTropoScenario, trials: int, seed: int, variant: int = 
                 res = ekf_step(x, P, z, trans_cache[len(amb_sats)], m3, dt, backend=backend)
             n_state[k] = res.x.shape[-1]
         elif k == 0:
+            x_pred = x
             res = ekf_update(x, P, z, meas, backend=backend)  # the prior is at the first epoch
+        elif aq is not None:
+            x_pred, P_pred = predict(x, P, trans)
+            res = ekf_update(x_pred, P_pred, z, meas, backend=backend)
         else:
             res = ekf_step(x, P, z, trans, meas, dt, backend=backend)
+        if aq is not None:
+            aqs = aq.next(aqs, res.x - x_pred)
         x, P = res.x, res.P
 
         # ---------------- statistics (scoring side)
@@ -579,7 +635,12 @@ def run_streamed(scn: IonoTropoScenario, trials: int, seed: int, variant: int = 
         eU = x[:, IDX_TROPO] - U_true
         ep2 = np.sum((x[:, 0:3] - pos_true[k]) ** 2, axis=1)
         e2 = np.stack([eI, eU], axis=1)
-        nees = metrics.nees(e2, P[:, IB][:, :, IB])
+        nees = _nees2(eI, eU, P, IDX_IONO, IDX_TROPO)
+        ec = np.stack([x[:, IDX_CLOCK] - bias, x[:, IDX_DRIFT] - drift], axis=1)
+        nees_c = _nees2(ec[:, 0], ec[:, 1], P, IDX_CLOCK, IDX_DRIFT)
+        ser["clock_err_rms_m"][k] = math.sqrt(np.mean(ec[:, 0] ** 2))
+        ser["drift_err_rms_m"][k] = math.sqrt(np.mean(ec[:, 1] ** 2))
+        ser["nees_clock_mean"][k] = nees_c.mean()
         ser["iono_err_mean_m"][k] = eI.mean()
         ser["iono_err_rms_m"][k] = math.sqrt(np.mean(eI * eI))
         ser["tropo_err_mean_m"][k] = eU.mean()
@@ -596,6 +657,7 @@ def run_streamed(scn: IonoTropoScenario, trials: int, seed: int, variant: int = 
             acc["tropo"] += float(np.sum(eU * eU))
             acc["pos"] += float(np.sum(ep2))
             acc["nees"] += float(np.sum(nees))
+            acc["nees_c"] += float(np.sum(nees_c))
             acc["iono_b"] += float(np.sum(eI))
             acc["tropo_b"] += float(np.sum(eU))
             acc["n"] += trials
@@ -635,6 +697,7 @@ def run_streamed(scn: IonoTropoScenario, trials: int, seed: int, variant: int = 
                           "position": math.sqrt(acc["pos"] / n)},
         "final_bias_m": {"iono_zenith": acc["iono_b"] / n, "tropo_zenith": acc["tropo_b"] / n},
         "anees": acc["nees"] / n / 2.0,
+        "anees_clock": acc["nees_c"] / n / 2.0,
         "anees_bounds_99_one_epoch": [lo / 2.0, hi / 2.0],
         **extra,
         "wall_s": time.perf_counter() - t_wall,
@@ -657,7 +720,8 @@ def summary(res: dict) -> str:
          f"U_g {fe['tropo_zenith']:.3f} m  position {fe['position']:.2f} m;  mean error I_g "
          f"{fb['iono_zenith']:+.3f} m  U_g {fb['tropo_zenith']:+.3f} m"),
         (f"ANEES (I_g, U_g) last window {res['anees']:.3f}  (99% one-epoch band "
-         f"{res['anees_bounds_99_one_epoch'][0]:.3f}..{res['anees_bounds_99_one_epoch'][1]:.3f})"),
+         f"{res['anees_bounds_99_one_epoch'][0]:.3f}..{res['anees_bounds_99_one_epoch'][1]:.3f});  "
+         f"clock (bias, drift) {res['anees_clock']:.3f}"),
         f"wall {res['wall_s']:.1f} s",
     ]
     if "increments" in res:

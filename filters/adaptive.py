@@ -1,0 +1,103 @@
+"""Adaptive process noise (seed 000, eq 7), a layer around any predict/update filter.
+
+    Q(i+1) = Q_min + a Q(i) + b diag( (W nu)(W nu)' )
+
+W nu = x(i|i) - x(i|i-1) is the state correction of the update at step i (gain times
+innovation), Q_min the model's nominal process noise, a = ``decay`` (seed: 0.1) and
+b = ``gain`` (seed: 0.7), both chosen experimentally in the seed and parameters here.
+Large corrections mean the model under-predicts the state's wander (a mismodelled clock, a
+manoeuvre); the next prediction then widens P where the corrections were, so the filter
+does not lock itself out of its own measurements (divergence).
+
+Unrolled, Q(i) = s_i Q_min + diag(q_i), with the scalar s_{i+1} = 1 + a s_i (shared by the
+whole batch, s -> 1/(1 - a)) and the per-trial diagonal q_{i+1} = a q_i + b (W nu)^2. So the
+layer needs no batched Q: the wrapped filter predicts with the shared s Q_min, and q is
+added to the predicted diagonal afterwards -- the same P- = F P F' + Q(i), exactly.
+
+Pure functions on an AdaptiveQState; nothing here keeps state between calls.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import NamedTuple
+
+import numpy as np
+
+__all__ = ["AdaptiveQ", "AdaptiveQState", "ScaledTransition"]
+
+
+class AdaptiveQState(NamedTuple):
+    scale: float  # s_i: Q(i) = s_i Q_min + diag(q_i)
+    q_diag: np.ndarray  # (..., n) the adaptive diagonal per batch member
+
+
+class ScaledTransition:
+    """A transition model whose Q is ``scale`` x the wrapped model's (f and F unchanged)."""
+
+    def __init__(self, base, scale: float):
+        self.base = base
+        self.scale = float(scale)
+        self.linear = getattr(base, "linear", False)
+
+    def f(self, x, dt):
+        return self.base.f(x, dt)
+
+    def F(self, x, dt):
+        return self.base.F(x, dt)
+
+    def Q(self, dt):
+        return self.scale * np.asarray(self.base.Q(dt), dtype=float)
+
+
+@dataclass(frozen=True)
+class AdaptiveQ:
+    """Eq 7 with its coefficients; ``states`` limits the adaptation to some state indices
+    (None: every state, as in the seed)."""
+
+    decay: float = 0.1
+    gain: float = 0.7
+    states: tuple | None = None
+
+    def __post_init__(self):
+        for name in ("decay", "gain"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, (int, float, np.integer, np.floating)) or not math.isfinite(v):
+                raise ValueError(f"{name} must be a finite number, got {v!r}")
+            if v < 0:
+                raise ValueError(f"{name} must be >= 0, got {v!r}")
+        if not self.decay < 1.0:
+            raise ValueError(f"decay must be < 1 (Q would grow without bound), got {self.decay!r}")
+        if self.states is not None:
+            object.__setattr__(self, "states", tuple(int(i) for i in self.states))
+
+    def init(self, batch_shape, n: int) -> AdaptiveQState:
+        """Q(0) = Q_min: scale 1, no adaptive diagonal."""
+        return AdaptiveQState(1.0, np.zeros(tuple(batch_shape) + (int(n),)))
+
+    def transition(self, base, state: AdaptiveQState) -> ScaledTransition:
+        """The wrapped transition with Q = s Q_min (add ``state.q_diag`` to P- after predicting)."""
+        return ScaledTransition(base, state.scale)
+
+    @staticmethod
+    def add_diag(P_pred, state: AdaptiveQState):
+        """P- + diag(q) (a new array)."""
+        P = np.array(P_pred, dtype=float, copy=True)
+        n = P.shape[-1]
+        if state.q_diag.shape[-1] != n:
+            raise ValueError(f"adaptive Q has {state.q_diag.shape[-1]} states, P has {n}")
+        i = np.arange(n)
+        P[..., i, i] += state.q_diag
+        return P
+
+    def next(self, state: AdaptiveQState, correction) -> AdaptiveQState:
+        """Q(i+1) from Q(i) and this step's correction W nu = x(i|i) - x(i|i-1), (..., n)."""
+        d = np.asarray(correction, dtype=float)
+        if d.shape != state.q_diag.shape:
+            raise ValueError(f"correction must have shape {state.q_diag.shape}, got {d.shape}")
+        d2 = np.where(np.isfinite(d), d * d, 0.0)
+        if self.states is not None:
+            keep = np.zeros(d2.shape[-1], dtype=bool)
+            keep[list(self.states)] = True
+            d2 = np.where(keep, d2, 0.0)
+        return AdaptiveQState(1.0 + self.decay * state.scale, self.decay * state.q_diag + self.gain * d2)
