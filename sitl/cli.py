@@ -81,10 +81,13 @@ def output_file(text: str) -> Path:
 EXPERIMENTS = {
     # name -> (module, one-line description); modules are imported only when run
     "ekf-vs-ukf": ("sitl.experiments.seed001", "seed 001: EKF vs UKF on a 4-satellite receiver, Monte Carlo with the PCRB"),
+    "iono-tropo": ("sitl.experiments.iono_tropo", "seed 000: zenith iono/tropo delays by an EKF from a single-frequency "
+                                                  "GPS+GLONASS receiver: code+Doppler vs phase increments vs carrier phase"),
 }
 
 BENCHES = {
     "filters": ("sitl.bench.filters", "batched EKF/UKF time per trial-step against FilterPy"),
+    "iono-tropo": ("sitl.bench.iono_tropo", "a 1200 s seed 000 variant-3 run (12 satellites) against real time"),
 }
 
 
@@ -100,6 +103,63 @@ def _add_seed001_args(p: argparse.ArgumentParser) -> None:
                    help="override the pseudo-velocity noise sigma, m/s")
     p.add_argument("--sigma-a", type=positive_float, default=None, metavar="M_S2",
                    help="Singer manoeuvre sigma, m/s^2 (default 1; the seed gives none)")
+    p.add_argument("--backend", choices=("auto", "numba", "numpy"), default="auto",
+                   help="covariance kernels: compiled (numba) or plain numpy (default auto)")
+    p.add_argument("--quiet", action="store_true", help="no progress lines")
+
+
+IONO_TROPO_VARIANTS = ("code_doppler", "phase_increments", "carrier_phase")  # seed 000 variants 1, 2, 3
+
+
+def finite_float(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+    if value != value or value in (float("inf"), float("-inf")):
+        raise argparse.ArgumentTypeError(f"expected a finite number, got {text}")
+    return value
+
+
+def _add_iono_tropo_args(p: argparse.ArgumentParser) -> None:
+    # defaults are the seed's (sitl.experiments.seed000.IonoTropoScenario); range checks
+    # beyond "positive" are the scenario's, reported as usage errors before any run
+    p.add_argument("--variant", choices=("all",) + IONO_TROPO_VARIANTS, default="all",
+                   help="code_doppler = variant 1 (pseudorange + rate), phase_increments = variant 2 (plus "
+                        "code-minus-carrier increments), carrier_phase = variant 3 (plus ambiguous carrier "
+                        "phase); all three on the same simulated data (default all)")
+    p.add_argument("--trials", type=positive_int, default=20, help="Monte Carlo trials (default 20)")
+    p.add_argument("--seed", type=nonnegative_int, default=0, help="seed of the numpy Generator (default 0)")
+    p.add_argument("--duration", type=positive_float, default=1200.0, metavar="S",
+                   help="observation time, s (default 1200; 10 epochs/s)")
+    p.add_argument("--out", type=output_dir, default=Path("out/iono-tropo"), metavar="DIR",
+                   help="output directory for result.json, series.npz and PNG figures (default out/iono-tropo)")
+    p.add_argument("--sigma-pr", type=positive_float, default=6.0, metavar="M",
+                   help="pseudorange noise sigma, m (default 6)")
+    p.add_argument("--sigma-prr", type=positive_float, default=0.064, metavar="M_S",
+                   help="pseudorange-rate noise sigma, m/s (default 0.064)")
+    p.add_argument("--sigma-phase", type=positive_float, default=0.003, metavar="M",
+                   help="carrier-phase noise sigma, m (default 0.003)")
+    p.add_argument("--el-mask-deg", type=finite_float, default=10.0, metavar="DEG",
+                   help="elevation mask, deg, in [5, 90); >= 4 satellites must stay in view (default 10)")
+    p.add_argument("--adaptive-q", choices=("off", "all", "dynamic"), default="dynamic",
+                   help="adaptive process noise of the seed's eq 7: off; all (every state, as in the seed: "
+                        "the paper's filter); dynamic (position, velocity and clock only: Delta_A, I_g, U_g "
+                        "and the ambiguities are constants) (default dynamic)")
+    p.add_argument("--adaptive-q-decay", type=finite_float, default=None, metavar="X",
+                   help="adaptive Q decay, in [0, 1) (default 0.1)")
+    p.add_argument("--adaptive-q-gain", type=finite_float, default=None, metavar="X",
+                   help="adaptive Q gain, >= 0 (default 0.7)")
+    p.add_argument("--truth-clock-psd-scale", type=positive_float, default=1.0, metavar="X",
+                   help="simulated clock PSD / the filter's (default 1: correctly modelled)")
+    p.add_argument("--study", choices=("none", "adaptive-q", "ordering"), default="none",
+                   help="instead of one run: adaptive-q = variants 1 and 2 with eq 7 off / on all states / on "
+                        "the dynamic states, each with a right and a mismodelled clock (--clock-scale); "
+                        "ordering = the three variants over --seeds seeds (default none)")
+    p.add_argument("--seeds", type=positive_int, default=20,
+                   help="ordering study: seeds --seed, --seed + 1, ... (default 20)")
+    p.add_argument("--clock-scale", type=positive_float, default=1e4, metavar="X",
+                   help="adaptive-q study: the mismodelled clock's PSD / the filter's (default 1e4)")
     p.add_argument("--backend", choices=("auto", "numba", "numpy"), default="auto",
                    help="covariance kernels: compiled (numba) or plain numpy (default auto)")
     p.add_argument("--quiet", action="store_true", help="no progress lines")
@@ -125,6 +185,8 @@ def build_parser() -> argparse.ArgumentParser:
         p = exp_sub.add_parser(name, help=doc, description=doc)
         if name == "ekf-vs-ukf":
             _add_seed001_args(p)
+        elif name == "iono-tropo":
+            _add_iono_tropo_args(p)
 
     bench = sub.add_parser("bench", help="speed benchmarks, each against a peer measured in the same run",
                            description="Benchmarks report ratios against a peer measured in the same run.")
@@ -139,6 +201,19 @@ def build_parser() -> argparse.ArgumentParser:
                            help="steps per timing (default: enough for ~1 s per case)")
             p.add_argument("--json", type=output_file, default=None, metavar="FILE", help="also write the table as JSON")
             p.add_argument("--backend", choices=("numba", "numpy"), default="numba", help="skyfuse kernels to time")
+        elif name == "iono-tropo":
+            p.add_argument("--duration", type=positive_float, default=1200.0, metavar="S",
+                           help="simulated seconds at 10 Hz (default 1200)")
+            p.add_argument("--trials", type=positive_int, default=1, help="trials stepped together (default 1)")
+            p.add_argument("--rounds", type=positive_int, default=2,
+                           help="interleaved rounds; each figure is the minimum (default 2)")
+            p.add_argument("--el-mask-deg", type=positive_float, default=17.0, metavar="DEG",
+                           help="elevation mask (default 17: 12 satellites on the default trajectory)")
+            p.add_argument("--seed", type=nonnegative_int, default=0, help="random seed (default 0)")
+            p.add_argument("--backend", choices=("numba", "numpy"), default="numba",
+                           help="main kernels (numba: also times numpy as the peer)")
+            p.add_argument("--json", type=output_file, default=None, metavar="FILE", help="also write the result as JSON")
+            p.add_argument("--quiet", action="store_true", help="no progress lines")
     return parser
 
 
@@ -178,4 +253,9 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":  # pragma: no cover
-    sys.exit(main())
+    # `python -m sitl.cli` runs this file as __main__, a second copy of the module: the
+    # experiments raise sitl.cli.UsageError, which __main__.UsageError would not catch.
+    # Run the imported module's main, as the `skyfuse` console script does.
+    from sitl.cli import main as _main
+
+    sys.exit(_main())

@@ -10,7 +10,8 @@ import pytest
 
 from sitl.cli import build_parser, main
 
-SUBCOMMANDS = [[], ["demo"], ["experiment"], ["experiment", "ekf-vs-ukf"], ["bench"], ["bench", "filters"]]
+SUBCOMMANDS = [[], ["demo"], ["experiment"], ["experiment", "ekf-vs-ukf"], ["experiment", "iono-tropo"], ["bench"],
+               ["bench", "filters"], ["bench", "iono-tropo"]]
 
 
 @pytest.mark.parametrize("words", SUBCOMMANDS)
@@ -31,6 +32,8 @@ def test_help_on_every_subcommand(words, capsys):
         (["experiment", "ekf-vs-ukf", "--seed", "-1"], "integer >= 0"),
         (["experiment", "ekf-vs-ukf", "--sigma-a", "nan"], "positive finite"),
         (["bench", "filters", "--trials", "0"], "positive integer"),
+        (["bench", "iono-tropo", "--duration", "-1"], "positive finite"),
+        (["bench", "iono-tropo", "--el-mask-deg", "80", "--duration", "5"], "satellites in view"),
         (["frobnicate"], "invalid choice"),
         ([], "required"),
     ],
@@ -108,3 +111,17 @@ def test_bad_scenario_values_are_clear():
         Seed001Scenario(sigma_pr_m=-1.0)
     with pytest.raises(ValueError, match="noise reading"):
         Seed001Scenario.with_noise_reading("cubits")
+
+
+def test_bench_iono_tropo_runs_and_reports_ratios(tmp_path, capsys):
+    out = tmp_path / "b.json"
+    assert main(["bench", "iono-tropo", "--duration", "3", "--rounds", "1", "--quiet", "--json", str(out)]) == 0
+    text = capsys.readouterr().out
+    assert "x real time" in text and "world only" in text
+    doc = json.loads(out.read_text())
+    assert doc["n_visible_min"] == doc["n_visible_max"] == 12  # the 12 satellites
+    cases = {r["case"]: r for r in doc["rows"]}
+    main_row = cases["variant 3, numba kernels"]
+    assert main_row["ratio_to_main"] == 1.0
+    for r in doc["rows"]:
+        assert r["wall_s"] > 0 and abs(r["x_real_time"] - 3.0 / r["wall_s"]) < 1e-9 * r["x_real_time"]
