@@ -1,4 +1,4 @@
-"""Seed 000, variant 1: zenith iono/tropo delays from pseudoranges + pseudorange rates (EKF).
+"""Seed 000, variants 1-3: zenith iono/tropo delays from a single-frequency receiver (EKF).
 
 A single-frequency GPS+GLONASS receiver on a moving object; an EKF on the seed-000 model
 (filters.iono_tropo: x = [x, y, z, Delta, vx, vy, vz, dDelta, Delta_A, I_g, U_g]) estimates,
@@ -35,6 +35,13 @@ Delta_A, I_g, U_g (constant in the truth).
 
 Only per-epoch statistics over the trials are kept (streamed); memory is flat in the
 run length.
+
+Adaptive process noise (eq 7, filters/adaptive.py; off by default here, `adaptive_q`):
+Q(i+1) = Q_min + decay Q(i) + gain diag((W nu)^2), W nu = x(i|i) - x(i|i-1), on every state
+(`adaptive_q_scope="all"`, the seed) or on position, velocity and clock only ("dynamic").
+The K_j entries follow their states (dropped on a set, zero on a rise or a reset). The
+truth clock can be made noisier than the filter's model (`truth_clock_psd_scale`) to show
+what eq 7 is for; the clock block's NEES is scored beside the (I_g, U_g) block's.
 
 Variant 2 (run_cmc_increments = run_streamed(variant=2); same world, same draws, so the
 same seed gives the same data as variant 1): each epoch additionally, per satellite j,
