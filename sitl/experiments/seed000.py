@@ -723,7 +723,7 @@ def summary(res: dict) -> str:
          f"{res['n_visible_min']}..{res['n_visible_max']} satellites in view"),
         (f"time to 1 m (I_g and U_g): median {res['time_to_1m_s']:.1f} s; per trial min {ttm.min():.1f} "
          f"max {ttm.max():.1f} s ({int(np.sum(~np.isfinite(ttm)))} never)"),
-        (f"final RMS (last {res['scenario']['final_window_s']:.0f} s): I_g {fe['iono_zenith']:.3f} m  "
+        (f"final RMS (last {min(res['scenario']['final_window_s'], res['scenario']['duration_s']):g} s): I_g {fe['iono_zenith']:.3f} m  "
          f"U_g {fe['tropo_zenith']:.3f} m  position {fe['position']:.2f} m;  mean error I_g "
          f"{fb['iono_zenith']:+.3f} m  U_g {fb['tropo_zenith']:+.3f} m"),
         (f"ANEES (I_g, U_g) last window {res['anees']:.3f}  (99% one-epoch band "
