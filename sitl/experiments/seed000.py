@@ -498,6 +498,7 @@ def run_streamed(scn: IonoTropoScenario, trials: int, seed: int, variant: int = 
 
     # the truth geometry of the shared trajectory, a block of epochs per call
     geom = geometry_track(scn.t0_gps_s + t_rel, pos_true, vel_true, const)
+    sub_const = {}
     for k in range(T):
         t = scn.t0_gps_s + t_rel[k]
         # ---------------- world (truth)
@@ -525,16 +526,22 @@ def run_streamed(scn: IonoTropoScenario, trials: int, seed: int, variant: int = 
 
         # ---------------- filter (measurements + ephemeris + its own clock estimate only)
         clock_est = x[:, IDX_CLOCK] + (dt * x[:, IDX_DRIFT] if k > 0 else 0.0)
-        sp, sv = ephemeris_for_filter(t, pr, const, pseudorange_rate_m_s=prr, clock_bias_est_m=clock_est)
+        # the tracked satellites' ephemeris only (the sub-constellation is cached per tracked set)
+        key = idx.tobytes()
+        sub = sub_const.get(key)
+        if sub is None:
+            sub = sub_const[key] = const.subset(idx)
+        sp_v, sv_v = ephemeris_for_filter(t, pr[:, idx], sub, pseudorange_rate_m_s=prr[:, idx],
+                                          clock_bias_est_m=clock_est)
         if variant != 3:
-            meas = IonoTropoGnss(sp[:, idx], sv[:, idx], carrier[idx], is_gps[idx], scn.sigma_pr_m,
+            meas = IonoTropoGnss(sp_v, sv_v, carrier[idx], is_gps[idx], scn.sigma_pr_m,
                                  scn.sigma_prr_m_s)
         z = np.concatenate([pr[:, idx], prr[:, idx]], axis=1)
         if variant == 2:
             # filter's own mapping at this epoch: predicted position, filter-side satellites
             pos_f = x[:, 0:3] + (dt * x[:, 4:7] if k > 0 else 0.0)
             m_now = np.full((trials, S), np.nan)
-            m_now[:, idx] = iono_mapping(elevation_rad(pos_f[:, None, :], sp[:, idx]))
+            m_now[:, idx] = iono_mapping(elevation_rad(pos_f[:, None, :], sp_v))
             B_now = pr - obs.carrier_phase_m  # pr - phase = 2I - lambda N + noise
             slips_now = receiver.slip_count.copy()
             slot = k % W
@@ -596,7 +603,7 @@ def run_streamed(scn: IonoTropoScenario, trials: int, seed: int, variant: int = 
                 if old_cols.size:
                     init[:, old_cols] = reset
                 kidx = np.array([N_BASE + amb_sats.index(s) for s in idx.tolist()])
-                m3 = IonoTropoGnss(sp[:, idx], sv[:, idx], carrier[idx], is_gps[idx], scn.sigma_pr_m,
+                m3 = IonoTropoGnss(sp_v, sv_v, carrier[idx], is_gps[idx], scn.sigma_pr_m,
                                    scn.sigma_prr_m_s, sigma_phase_m=scn.sigma_phase_m, phase_state_index=kidx,
                                    use_phase=True, n_state=x.shape[-1])
                 cols = np.flatnonzero(init.any(axis=0))
@@ -619,7 +626,7 @@ def run_streamed(scn: IonoTropoScenario, trials: int, seed: int, variant: int = 
                 res = ekf_update(x, P, z, m3, backend=backend)
             else:
                 kidx = np.array([N_BASE + amb_sats.index(s) for s in idx.tolist()])
-                m3 = IonoTropoGnss(sp[:, idx], sv[:, idx], carrier[idx], is_gps[idx], scn.sigma_pr_m,
+                m3 = IonoTropoGnss(sp_v, sv_v, carrier[idx], is_gps[idx], scn.sigma_pr_m,
                                    scn.sigma_prr_m_s, sigma_phase_m=scn.sigma_phase_m, phase_state_index=kidx,
                                    use_phase=True, n_state=x.shape[-1])
                 z = np.concatenate([z, phase[:, idx]], axis=1)
