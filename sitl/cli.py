@@ -158,8 +158,8 @@ def _add_iono_tropo_args(p: argparse.ArgumentParser) -> None:
                         "ordering = the three variants over --seeds seeds (default none)")
     p.add_argument("--seeds", type=positive_int, default=20,
                    help="ordering study: seeds --seed, --seed + 1, ... (default 20)")
-    p.add_argument("--clock-scale", type=positive_float, default=1e4, metavar="X",
-                   help="adaptive-q study: the mismodelled clock's PSD / the filter's (default 1e4)")
+    p.add_argument("--clock-scale", type=positive_float, default=1e3, metavar="X",
+                   help="adaptive-q study: the mismodelled clock's PSD / the filter's (default 1e3)")
     p.add_argument("--backend", choices=("auto", "numba", "numpy"), default="auto",
                    help="covariance kernels: compiled (numba) or plain numpy (default auto)")
     p.add_argument("--quiet", action="store_true", help="no progress lines")

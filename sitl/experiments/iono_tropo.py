@@ -209,6 +209,10 @@ def plot(results: dict, scn, trials: int, seed: int, out: Path) -> list[Path]:
             c = COLORS[name]
             ax.fill_between(t, est - rms, est + rms, color=c, alpha=0.18, lw=0)
             ax.plot(t, est, color=c, lw=WIDTHS[name], label=LABELS[name] + " (band: ± RMS error)")
+            one = res.get(f"{key}_est_trial0_m")
+            if one is not None:
+                ax.plot(t, one, color=c, lw=0.7, alpha=0.8, ls="-.",
+                        label=f"v{VARIANTS[name]}: trial 0 alone (one realisation, as in the paper)")
             t1 = res["time_to_1m_s"]
             if math.isfinite(t1):
                 ax.axvline(t1, color=c, ls=":", lw=WIDTHS[name],
@@ -216,7 +220,8 @@ def plot(results: dict, scn, trials: int, seed: int, out: Path) -> list[Path]:
         ax.set_ylim(truth - half, truth + half)
         ax.set_ylabel(f"zenith {sym} estimate, m")
         ax.grid(alpha=0.3)
-    axes[0].set_title("mean estimate over trials, band ± RMS error; dotted: median time to 1 m", fontsize=10)
+    axes[0].set_title("mean estimate over trials, band ± RMS error; dash-dot: trial 0 alone; dotted: median time "
+                      "to 1 m", fontsize=10)
     axes[-1].set_xlabel("time, s")
     axes[-1].set_xlim(0, scn.duration_s)
     handles, labels = axes[0].get_legend_handles_labels()

@@ -45,7 +45,7 @@ def _row(res) -> dict:
     }
 
 
-def adaptive_q_study(base: IonoTropoScenario, trials: int, seed: int, variants=(1, 2), clock_scale=1e4,
+def adaptive_q_study(base: IonoTropoScenario, trials: int, seed: int, variants=(1, 2), clock_scale=1e3,
                      progress=None, backend=None) -> dict:
     """Rows {variant, config, clock, ...scores} over configs x {nominal, mismodelled} clocks."""
     if not clock_scale > 1.0:
