@@ -139,6 +139,8 @@ def plot_adaptive_q(study: dict, path) -> None:
                 xs = np.arange(len(configs)) + (c_i - 0.5) * width
                 bars = ax.bar(xs, [0 if np.isnan(q) else q for q in vals], width,
                               label=f"clock {clock}" + (f" (N_eps x{study['clock_scale']:.0e})" if c_i else ""))
+                ax.bar_label(bars, labels=["" if np.isnan(q) else (f"{q:.0f}" if not log else f"{q:.3g}")
+                                           for q in vals], fontsize=7, padding=1)
                 for b, q in zip(bars, vals):
                     if np.isnan(q):
                         ax.annotate("never", (b.get_x() + b.get_width() / 2, 0), ha="center", va="bottom",
@@ -154,7 +156,9 @@ def plot_adaptive_q(study: dict, path) -> None:
                 paper = {"code_doppler": 500.0, "phase_increments": 350.0}.get(v)
                 if paper:
                     ax.axhline(paper, color="k", lw=0.8, ls=":", label=f"paper ~{paper:.0f} s")
-            ax.legend(fontsize=8)
+            lo_, hi_ = ax.get_ylim()
+            ax.set_ylim(lo_, hi_ * (8.0 if log else 1.35))  # room for the legend above the bars
+            ax.legend(fontsize=8, loc="upper left")
     fig.suptitle(f"Seed 000: adaptive process noise (eq 7), {study['trials']} trials, seed {study['seed']}")
     fig.tight_layout()
     fig.savefig(path, dpi=110)
