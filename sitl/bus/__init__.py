@@ -1,0 +1,82 @@
+"""The message bus: one versioned schema, one codec, two transports (in-memory for batch
+runs here; Zenoh for live runs).
+
+    from sitl.bus import InMemoryTransport, UavNav, key_for
+    bus = InMemoryTransport()
+    bus.subscribe("run1/uav/*/nav", lambda key, msg: ...)
+    bus.publish(key_for("run1", nav, uav=3), nav)
+    bus.drain(t_gps_s)
+"""
+
+from .codec import MAX_PAYLOAD_BYTES, BusDecodeError, decode, encode
+from .schema import (
+    KEY_TEMPLATES,
+    KINDS,
+    MESSAGE_TYPES,
+    SCHEMA_VERSION,
+    BeaconMeasurement,
+    Estimate,
+    IntegrityEvent,
+    Message,
+    RadarMeasurement,
+    SchemaError,
+    SondeRelay,
+    Truth,
+    UavNav,
+    check_id,
+    is_valid_id,
+    key_for,
+    key_pattern,
+    parse_key,
+)
+from .transport import (
+    InMemoryTransport,
+    KeyExprError,
+    LinkCounters,
+    SeqCounters,
+    SeqResult,
+    SequenceTracker,
+    Subscription,
+    Transport,
+    TransportStats,
+    key_matches,
+    validate_key,
+    validate_key_expr,
+)
+
+__all__ = [
+    "KEY_TEMPLATES",
+    "KINDS",
+    "MAX_PAYLOAD_BYTES",
+    "MESSAGE_TYPES",
+    "SCHEMA_VERSION",
+    "BeaconMeasurement",
+    "BusDecodeError",
+    "Estimate",
+    "InMemoryTransport",
+    "IntegrityEvent",
+    "KeyExprError",
+    "LinkCounters",
+    "Message",
+    "RadarMeasurement",
+    "SchemaError",
+    "SeqCounters",
+    "SeqResult",
+    "SequenceTracker",
+    "SondeRelay",
+    "Subscription",
+    "Transport",
+    "TransportStats",
+    "Truth",
+    "UavNav",
+    "check_id",
+    "decode",
+    "encode",
+    "is_valid_id",
+    "key_for",
+    "key_matches",
+    "key_pattern",
+    "parse_key",
+    "validate_key",
+    "validate_key_expr",
+]

@@ -1,0 +1,596 @@
+"""Bus message schema, version 1: one definition for the live (Zenoh) and batch (in-memory) bus.
+
+Every message is a frozen dataclass whose constructor validates everything (types, shapes,
+finiteness, ranges, covariances), so an invalid message cannot exist in memory, whether it
+was built by a component or decoded from the wire (`sitl.bus.codec.decode` builds messages
+through the same constructors).
+
+Header, common to every kind:
+  ``t_gps_s``   simulation time in GPS seconds (finite float)
+  ``source_id`` publisher id, 1..64 chars of ``[A-Za-z0-9_.-]``
+  ``seq``       per-source sequence number, 0 <= seq < 2**63
+and the schema version (`SCHEMA_VERSION`) travels in every encoded payload.
+
+Units are SI and appear in the field names; frames are ECEF (WGS-84). Arrays are float64,
+stored as read-only copies. Covariances are 6x6 over [position, velocity] and must be
+symmetric (max |C - C^T| <= 1e-9 max |C|), with a non-negative diagonal and eigenvalues
+>= -1e-9 max |diag| (positive semi-definite up to rounding).
+
+Keys: ``<run_id>/<kind path>``, see `KEY_TEMPLATES`, `key_for` and `parse_key`. The ids that
+only live in the key (beacon id, sonde id, radar id, ...) are recovered with `parse_key`;
+the transports hand the key to every callback together with the message.
+
+Equality (``==``) compares kind and every field, arrays element-wise, NaN equal to NaN (so
+``decode(encode(m)) == m`` also holds for a NaN NIS or invalid radar angles).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import numbers
+import re
+from dataclasses import dataclass, field
+from typing import Any, ClassVar
+
+import numpy as np
+
+SCHEMA_VERSION = 1
+
+ID_MAX_LEN = 64
+_ID_RE = re.compile(r"[A-Za-z0-9_.\-]{1,64}\Z")
+KINDS = ("uav", "beacon", "sonde")
+SEQ_LIMIT = 2**63
+
+# Wire/field types.
+F_FLOAT = "float"
+F_INT = "int"
+F_BOOL = "bool"
+F_STR = "str"
+F_STRS = "strs"  # tuple of str
+F_ARRAY = "array"  # float64 array of a fixed (or n-dependent) shape
+
+
+class SchemaError(ValueError):
+    """A message field breaks the schema.
+
+    ``reason`` is short and stable (``"<Kind>.<field>: <problem>"``, never containing
+    values), so it can key rejection counters; ``detail`` carries the values; ``str(err)``
+    is the one-line combination.
+    """
+
+    def __init__(self, where: str, problem: str, detail: str = ""):
+        self.where = where
+        self.problem = problem
+        self.detail = _one_line(detail)
+        self.reason = f"{where}: {problem}"
+        super().__init__(self.reason + (f" ({self.detail})" if self.detail else ""))
+
+
+def _one_line(text: str, limit: int = 160) -> str:
+    text = " ".join(str(text).split())
+    return text if len(text) <= limit else text[: limit - 3] + "..."
+
+
+def is_valid_id(value: Any) -> bool:
+    """True for a source id / key id: 1..64 chars of [A-Za-z0-9_.-]."""
+    return isinstance(value, str) and _ID_RE.match(value) is not None
+
+
+def check_id(value: Any, where: str) -> str:
+    if not isinstance(value, str):
+        raise SchemaError(where, "expected a str", f"got {type(value).__name__}")
+    if not value:
+        raise SchemaError(where, "empty")
+    if len(value) > ID_MAX_LEN:
+        raise SchemaError(where, f"longer than {ID_MAX_LEN} chars", f"{len(value)} chars")
+    if _ID_RE.match(value) is None:
+        raise SchemaError(where, "only [A-Za-z0-9_.-] allowed", repr(value))
+    return value
+
+
+# ----------------------------------------------------------------------------------------
+# Field descriptors
+
+
+def _arr(*shape: int | str, nan_ok: bool = False) -> Any:
+    """An array field of the given shape; "n" is the per-message length (len(sat_ids))."""
+    return field(metadata={"shape": tuple(shape), "nan_ok": nan_ok})
+
+
+def _nan_ok() -> Any:
+    return field(metadata={"nan_ok": True})
+
+
+@dataclass(frozen=True)
+class FieldSpec:
+    name: str
+    ftype: str
+    shape: tuple[int | str, ...] | None = None
+    nan_ok: bool = False
+
+
+_TYPE_MAP = {float: F_FLOAT, int: F_INT, bool: F_BOOL, str: F_STR, np.ndarray: F_ARRAY,
+             "float": F_FLOAT, "int": F_INT, "bool": F_BOOL, "str": F_STR,
+             "np.ndarray": F_ARRAY, "tuple[str, ...]": F_STRS}
+
+
+def _field_specs(cls: type) -> tuple[FieldSpec, ...]:
+    specs = []
+    for f in dataclasses.fields(cls):
+        if f.name.startswith("_"):
+            raise TypeError(f"{cls.__name__}.{f.name}: field names may not start with '_'")
+        ftype = _TYPE_MAP.get(f.type)
+        if ftype is None:
+            raise TypeError(f"{cls.__name__}.{f.name}: unsupported annotation {f.type!r}")
+        shape = f.metadata.get("shape")
+        if (ftype == F_ARRAY) != (shape is not None):
+            raise TypeError(f"{cls.__name__}.{f.name}: array fields need a shape")
+        specs.append(FieldSpec(f.name, ftype, shape, bool(f.metadata.get("nan_ok", False))))
+    return tuple(specs)
+
+
+# ----------------------------------------------------------------------------------------
+# Coercion and checks
+
+
+def _coerce(cls_name: str, spec: FieldSpec, value: Any, n: int | None) -> Any:
+    ft = spec.ftype
+    if ft == F_FLOAT:
+        t = type(value)
+        if t is not float:
+            if t is bool or isinstance(value, np.bool_) or not isinstance(value, numbers.Real):
+                raise SchemaError(f"{cls_name}.{spec.name}", "expected a float",
+                                  f"got {t.__name__}")
+            try:
+                value = float(value)
+            except (OverflowError, ValueError, TypeError) as e:
+                raise SchemaError(f"{cls_name}.{spec.name}", "expected a float", str(e)) from None
+        if not math.isfinite(value) and not (spec.nan_ok and math.isnan(value)):
+            raise SchemaError(f"{cls_name}.{spec.name}", "not finite", repr(value))
+        return value
+    if ft == F_INT:
+        t = type(value)
+        if t is int:
+            return value
+        if t is bool or isinstance(value, np.bool_) or not isinstance(value, numbers.Integral):
+            raise SchemaError(f"{cls_name}.{spec.name}", "expected an int", f"got {t.__name__}")
+        return int(value)
+    where = f"{cls_name}.{spec.name}"
+    if ft == F_BOOL:
+        if not isinstance(value, (bool, np.bool_)):
+            raise SchemaError(where, "expected a bool", f"got {type(value).__name__}")
+        return bool(value)
+    if ft == F_STR:
+        if type(value) is not str and not isinstance(value, str):
+            raise SchemaError(where, "expected a str", f"got {type(value).__name__}")
+        return str(value)
+    if ft == F_STRS:
+        # numpy str arrays (how sitl.gnss holds satellite ids) are accepted too
+        if isinstance(value, np.ndarray) and value.ndim == 1 and value.dtype.kind == "U":
+            value = value.tolist()
+        if isinstance(value, (str, bytes)) or not isinstance(value, (tuple, list)):
+            raise SchemaError(where, "expected a tuple of str", f"got {type(value).__name__}")
+        for i, s in enumerate(value):
+            if not isinstance(s, str):
+                raise SchemaError(where, "expected a tuple of str",
+                                  f"item {i} is {type(s).__name__}")
+        return tuple(s if type(s) is str else str(s) for s in value)
+    # F_ARRAY
+    if isinstance(value, (str, bytes)):
+        raise SchemaError(where, "expected a float array", f"got {type(value).__name__}")
+    try:
+        if type(value) is np.ndarray and value.dtype == np.float64:
+            a = value.copy()
+        else:
+            a = np.array(value, dtype=np.float64, copy=True)
+    except Exception as e:  # any conversion failure is a schema error
+        raise SchemaError(where, "expected a float array", f"{type(e).__name__}: {e}") from None
+    shape = spec.shape if n is None else tuple(n if d == "n" else d for d in spec.shape)
+    if a.shape != shape:
+        raise SchemaError(where, "wrong shape", f"expected {shape}, got {a.shape}")
+    if not np.isfinite(a).all():
+        bad = np.isinf(a) if spec.nan_ok else ~np.isfinite(a)
+        if bad.any():
+            raise SchemaError(where, "not finite", f"{int(bad.sum())} non-finite values")
+    a.flags.writeable = False
+    return a
+
+
+def _check_cov(where: str, c: np.ndarray) -> None:
+    """Symmetric (relative 1e-9), non-negative diagonal, eigenvalues >= -1e-9 max diag."""
+    # Comparisons are written so that a NaN (from an overflow) fails them.
+    with np.errstate(over="ignore", invalid="ignore"):
+        scale = np.abs(c).max()
+        asym = np.abs(c - c.T).max()
+    if not asym <= 1e-9 * scale:
+        raise SchemaError(where, "not symmetric", f"max |C-C^T| = {asym:.3g}, max |C| = {scale:.3g}")
+    diag = c.diagonal()
+    dmin = diag.min()
+    if not dmin >= 0:
+        raise SchemaError(where, "negative diagonal", f"min diag = {dmin:.3g}")
+    # A successful Cholesky proves positive definiteness (backward stable: the smallest
+    # eigenvalue is then >= -O(n eps max|C|), far inside the tolerance); otherwise decide by
+    # the eigenvalues (singular covariances, e.g. a zero block, are legal).
+    try:
+        np.linalg.cholesky(c)
+        return
+    except np.linalg.LinAlgError:
+        pass
+    dmax = diag.max()
+    with np.errstate(over="ignore", invalid="ignore"):
+        lam = np.linalg.eigvalsh(c).min()
+    if not lam >= -1e-9 * dmax:
+        raise SchemaError(where, "not positive semi-definite",
+                          f"min eigenvalue = {lam:.3g}, max diag = {dmax:.3g}")
+
+
+def _check_positive(where: str, v: float) -> None:
+    if not v > 0:
+        raise SchemaError(where, "must be > 0", repr(v))
+
+
+def _check_token(where: str, v: str) -> None:
+    check_id(v, where)
+
+
+# ----------------------------------------------------------------------------------------
+# Messages
+
+
+@dataclass(frozen=True, kw_only=True, eq=False)
+class Message:
+    """Base of every bus message: the header and the generic validation."""
+
+    KIND: ClassVar[str] = ""
+    KEY_TEMPLATE: ClassVar[str] = ""
+    FIELDS: ClassVar[tuple[FieldSpec, ...]] = ()
+    N_FIELD: ClassVar[str | None] = None  # str-tuple field whose length is "n" in shapes
+
+    t_gps_s: float
+    source_id: str
+    seq: int
+
+    def __post_init__(self) -> None:
+        cls = type(self)
+        name = cls.__name__
+        if not cls.KIND:
+            raise TypeError("Message is abstract; build one of its kinds")
+        n = None
+        if cls.N_FIELD is not None:
+            spec = next(s for s in cls.FIELDS if s.name == cls.N_FIELD)
+            v = _coerce(name, spec, getattr(self, spec.name), None)
+            object.__setattr__(self, spec.name, v)
+            n = len(v)
+        for spec in cls.FIELDS:
+            if spec.name == cls.N_FIELD:
+                continue
+            object.__setattr__(self, spec.name, _coerce(name, spec, getattr(self, spec.name), n))
+        check_id(self.source_id, f"{name}.source_id")
+        if not 0 <= self.seq < SEQ_LIMIT:
+            raise SchemaError(f"{name}.seq", "out of range [0, 2**63)", repr(self.seq))
+        self._validate()
+
+    def _validate(self) -> None:  # per-kind rules
+        pass
+
+    def _where(self, fname: str) -> str:
+        return f"{type(self).__name__}.{fname}"
+
+    def __eq__(self, other: object) -> bool:
+        if type(other) is not type(self):
+            return NotImplemented
+        for spec in self.FIELDS:
+            a, b = getattr(self, spec.name), getattr(other, spec.name)
+            if spec.ftype == F_ARRAY:
+                if not np.array_equal(a, b, equal_nan=True):
+                    return False
+            elif spec.ftype == F_FLOAT:
+                if not (a == b or (math.isnan(a) and math.isnan(b))):
+                    return False
+            elif a != b:
+                return False
+        return True
+
+    __hash__ = None  # type: ignore[assignment]  # arrays inside: not hashable
+
+
+def _message(kind: str, key_template: str, n_field: str | None = None):
+    """Class decorator: make a frozen message dataclass and register it."""
+
+    def wrap(cls):
+        cls = dataclass(frozen=True, kw_only=True, eq=False)(cls)
+        cls.KIND = kind
+        cls.KEY_TEMPLATE = key_template
+        cls.N_FIELD = n_field
+        cls.FIELDS = _field_specs(cls)
+        cls.__hash__ = None
+        if kind in MESSAGE_TYPES:
+            raise TypeError(f"duplicate message kind {kind!r}")
+        MESSAGE_TYPES[kind] = cls
+        return cls
+
+    return wrap
+
+
+MESSAGE_TYPES: dict[str, type[Message]] = {}
+
+
+@_message("uav_nav", "uav/{uav}/nav")
+class UavNav(Message):
+    """A UAV's onboard navigation estimate (ECEF) and its covariance over [pos, vel]."""
+
+    pos_ecef_m: np.ndarray = _arr(3)
+    vel_ecef_m_s: np.ndarray = _arr(3)
+    cov: np.ndarray = _arr(6, 6)
+    n_sats: int
+    fix_type: int  # MAVLink GPS_FIX_TYPE: 0 no GPS .. 6 RTK fixed
+
+    def _validate(self) -> None:
+        _check_cov(self._where("cov"), self.cov)
+        if self.n_sats < 0:
+            raise SchemaError(self._where("n_sats"), "must be >= 0", repr(self.n_sats))
+        if not 0 <= self.fix_type <= 6:
+            raise SchemaError(self._where("fix_type"), "out of range 0..6", repr(self.fix_type))
+
+
+@_message("beacon_meas", "uav/{uav}/beacon/{beacon}")
+class BeaconMeasurement(Message):
+    """Range and range rate of a beacon measured by a UAV, self-contained: it carries the
+    UAV's own navigation estimate at the same time (so a lossy link cannot pair it with the
+    wrong nav message)."""
+
+    range_m: float
+    range_rate_m_s: float
+    var_range_m2: float
+    var_range_rate_m2_s2: float
+    uav_pos_ecef_m: np.ndarray = _arr(3)
+    uav_vel_ecef_m_s: np.ndarray = _arr(3)
+    uav_cov: np.ndarray = _arr(6, 6)
+
+    def _validate(self) -> None:
+        for f in ("range_m", "var_range_m2", "var_range_rate_m2_s2"):
+            _check_positive(self._where(f), getattr(self, f))
+        _check_cov(self._where("uav_cov"), self.uav_cov)
+
+
+PSEUDORANGE_MAX_M = 1e8
+
+
+@_message("sonde_relay", "sonde/{sonde}/relay", n_field="sat_ids")
+class SondeRelay(Message):
+    """One epoch of a radiosonde's raw GNSS observables relayed to a ground receiver.
+
+    n = len(sat_ids) >= 0; an empty epoch (GNSS outage) is legal."""
+
+    sat_ids: tuple[str, ...]
+    pseudorange_m: np.ndarray = _arr("n")
+    pseudo_doppler_m_s: np.ndarray = _arr("n")
+    var_pseudorange_m2: np.ndarray = _arr("n")
+    var_pseudo_doppler_m2_s2: np.ndarray = _arr("n")
+    sat_pos_ecef_m: np.ndarray = _arr("n", 3)
+    sat_vel_ecef_m_s: np.ndarray = _arr("n", 3)
+    ground_pos_ecef_m: np.ndarray = _arr(3)
+
+    def _validate(self) -> None:
+        for i, s in enumerate(self.sat_ids):
+            if not is_valid_id(s):
+                check_id(s, self._where("sat_ids"))
+        if len(set(self.sat_ids)) != len(self.sat_ids):
+            raise SchemaError(self._where("sat_ids"), "duplicate satellite id")
+        pr = self.pseudorange_m
+        if pr.size and not ((pr > 0).all() and (pr < PSEUDORANGE_MAX_M).all()):
+            raise SchemaError(self._where("pseudorange_m"), "out of range (0, 1e8) m",
+                              f"min {pr.min():.6g}, max {pr.max():.6g}")
+        for f in ("var_pseudorange_m2", "var_pseudo_doppler_m2_s2"):
+            v = getattr(self, f)
+            if v.size and not (v > 0).all():
+                raise SchemaError(self._where(f), "must be > 0", f"min {v.min():.3g}")
+
+    @property
+    def n(self) -> int:
+        return len(self.sat_ids)
+
+
+SLANT_RANGE_MAX_M = 1e6
+
+
+@_message("radar_meas", "radar/{radar}/sonde/{sonde}")
+class RadarMeasurement(Message):
+    """A tracking radar's slant range, azimuth and elevation of a sonde.
+
+    ``angles_valid`` False: angular auto-tracking is lost; ``az_rad``/``el_rad`` may then be
+    NaN and must be ignored (range stays valid). Finite angles are range-checked always.
+    An azimuth of exactly 2pi (what ``np.mod(x, 2pi)`` returns for a tiny negative x) is
+    stored as 0.0. No message is published for an epoch without a valid range."""
+
+    slant_range_m: float
+    az_rad: float = _nan_ok()
+    el_rad: float = _nan_ok()
+    var_range_m2: float
+    var_az_rad2: float
+    var_el_rad2: float
+    angles_valid: bool
+    radar_pos_ecef_m: np.ndarray = _arr(3)
+
+    def _validate(self) -> None:
+        if self.az_rad == 2 * math.pi:
+            object.__setattr__(self, "az_rad", 0.0)
+        r = self.slant_range_m
+        if not 0 < r <= SLANT_RANGE_MAX_M:
+            raise SchemaError(self._where("slant_range_m"), "out of range (0, 1e6] m", repr(r))
+        for f in ("var_range_m2", "var_az_rad2", "var_el_rad2"):
+            _check_positive(self._where(f), getattr(self, f))
+        az, el = self.az_rad, self.el_rad
+        for f, v in (("az_rad", az), ("el_rad", el)):
+            if math.isnan(v) and self.angles_valid:
+                raise SchemaError(self._where(f), "NaN while angles_valid")
+        if not math.isnan(az) and not 0.0 <= az < 2 * math.pi:
+            raise SchemaError(self._where("az_rad"), "out of range [0, 2pi)", repr(az))
+        if not math.isnan(el) and not -math.pi / 2 <= el <= math.pi / 2:
+            raise SchemaError(self._where("el_rad"), "out of range [-pi/2, pi/2]", repr(el))
+
+
+def _check_kind(where: str, kind: str) -> None:
+    if kind not in KINDS:
+        raise SchemaError(where, f"must be one of {'|'.join(KINDS)}", repr(kind)[:40])
+
+
+@_message("truth", "truth/{kind}/{id}")
+class Truth(Message):
+    """True state of a vehicle, for scoring only (never read by an estimator)."""
+
+    kind: str
+    pos_ecef_m: np.ndarray = _arr(3)
+    vel_ecef_m_s: np.ndarray = _arr(3)
+
+    def _validate(self) -> None:
+        _check_kind(self._where("kind"), self.kind)
+
+
+@_message("estimate", "gs/estimate/{kind}/{id}")
+class Estimate(Message):
+    """The ground station's estimate of a target. ``nis``: normalised innovation squared of
+    the last update, NaN when none was computed (finite values must be >= 0)."""
+
+    kind: str
+    pos_ecef_m: np.ndarray = _arr(3)
+    vel_ecef_m_s: np.ndarray = _arr(3)
+    cov: np.ndarray = _arr(6, 6)
+    nis: float = _nan_ok()
+    mode: str  # e.g. "fused", "radar_only"
+
+    def _validate(self) -> None:
+        _check_kind(self._where("kind"), self.kind)
+        _check_cov(self._where("cov"), self.cov)
+        if self.nis < 0:
+            raise SchemaError(self._where("nis"), "must be >= 0 or NaN", repr(self.nis))
+        _check_token(self._where("mode"), self.mode)
+
+
+@_message("integrity", "gs/integrity/{channel}")
+class IntegrityEvent(Message):
+    """An integrity-monitor event on a measurement channel. ``statistic``: the test
+    statistic that triggered it, NaN for events without one (e.g. a readmission)."""
+
+    channel: str
+    event: str  # e.g. "step", "ramp", "outlier", "readmit"
+    statistic: float = _nan_ok()
+
+    def _validate(self) -> None:
+        _check_token(self._where("channel"), self.channel)
+        _check_token(self._where("event"), self.event)
+
+
+# ----------------------------------------------------------------------------------------
+# Keys
+
+KEY_TEMPLATES: dict[type[Message], str] = {cls: cls.KEY_TEMPLATE for cls in MESSAGE_TYPES.values()}
+_FIELD_IDS = {"kind", "channel"}  # key ids that the message itself carries
+_TEMPLATE_RE = re.compile(r"\{(\w+)\}")
+
+
+def _template_ids(template: str) -> list[str]:
+    return _TEMPLATE_RE.findall(template)
+
+
+def key_for(run_id: str, msg: Message | type[Message], **ids: str | int) -> str:
+    """The bus key of ``msg`` in run ``run_id``, e.g. ``key_for("r1", nav, uav=3)`` ->
+    ``"r1/uav/3/nav"``.
+
+    Ids named in the template (uav, beacon, sonde, radar, id) are given as keywords (ints
+    are formatted); ``kind`` (Truth, Estimate) and ``channel`` (IntegrityEvent) are taken from
+    the message when a message instance is given. Every id is validated like a source id.
+    """
+    cls = msg if isinstance(msg, type) else type(msg)
+    if cls not in KEY_TEMPLATES:
+        raise TypeError(f"not a bus message kind: {cls!r}")
+    template = cls.KEY_TEMPLATE
+    names = _template_ids(template)
+    values: dict[str, str] = {}
+    for name in names:
+        if name in ids:
+            v = ids[name]
+        elif name in _FIELD_IDS and not isinstance(msg, type):
+            v = getattr(msg, name)
+        else:
+            raise ValueError(f"key_for({cls.__name__}): missing id {name!r} for {template!r}")
+        if isinstance(v, (int, np.integer)) and not isinstance(v, bool):
+            v = str(int(v))
+        values[name] = check_id(v, f"key id {name}")
+    extra = set(ids) - set(names)
+    if extra:
+        raise ValueError(f"key_for({cls.__name__}): unexpected ids {sorted(extra)} for {template!r}")
+    if not isinstance(msg, type):
+        for name in set(names) & _FIELD_IDS:
+            if values[name] != getattr(msg, name):
+                raise ValueError(f"key_for({cls.__name__}): {name}={values[name]!r} "
+                                 f"contradicts the message's {getattr(msg, name)!r}")
+    if "kind" in values:
+        _check_kind("key id kind", values["kind"])
+    return f"{check_id(run_id, 'run_id')}/" + template.format(**values)
+
+
+def key_pattern(run_id: str, cls: type[Message], **ids: str | int) -> str:
+    """A subscription key expression for ``cls`` in ``run_id``: ids not given become ``*``.
+
+    ``key_pattern("r1", BeaconMeasurement, uav=3)`` -> ``"r1/uav/3/beacon/*"``."""
+    if cls not in KEY_TEMPLATES:
+        raise TypeError(f"not a bus message kind: {cls!r}")
+    names = _template_ids(cls.KEY_TEMPLATE)
+    extra = set(ids) - set(names)
+    if extra:
+        raise ValueError(f"key_pattern({cls.__name__}): unexpected ids {sorted(extra)}")
+    values = {}
+    for name in names:
+        if name in ids:
+            v = ids[name]
+            values[name] = check_id(str(v) if isinstance(v, int) else v, f"key id {name}")
+        else:
+            values[name] = "*"
+    return f"{check_id(run_id, 'run_id')}/" + cls.KEY_TEMPLATE.format(**values)
+
+
+_KEY_PARSERS = [
+    (cls, re.compile("^" + _TEMPLATE_RE.sub(lambda m: f"(?P<{m.group(1)}>[^/]+)",
+                                            cls.KEY_TEMPLATE) + r"\Z"))
+    for cls in MESSAGE_TYPES.values()
+]
+
+
+def parse_key(key: str) -> tuple[str, type[Message], dict[str, str]] | None:
+    """Split a bus key into (run_id, message class, ids), or None if it fits no template.
+
+    ``parse_key("r1/uav/3/beacon/b7")`` -> ``("r1", BeaconMeasurement, {"uav": "3",
+    "beacon": "b7"})``."""
+    run_id, sep, rest = key.partition("/")
+    if not sep or not is_valid_id(run_id):
+        return None
+    for cls, rx in _KEY_PARSERS:
+        m = rx.match(rest)
+        if m and all(is_valid_id(v) for v in m.groupdict().values()):
+            return run_id, cls, m.groupdict()
+    return None
+
+
+__all__ = [
+    "KEY_TEMPLATES",
+    "KINDS",
+    "MESSAGE_TYPES",
+    "SCHEMA_VERSION",
+    "BeaconMeasurement",
+    "Estimate",
+    "FieldSpec",
+    "IntegrityEvent",
+    "Message",
+    "RadarMeasurement",
+    "SchemaError",
+    "SondeRelay",
+    "Truth",
+    "UavNav",
+    "check_id",
+    "is_valid_id",
+    "key_for",
+    "key_pattern",
+    "parse_key",
+]
