@@ -1,0 +1,750 @@
+"""UAV kinematics (seed 002): truth trajectories integrated by RK4, batched over vehicles.
+
+State and ODE
+-------------
+Each vehicle's kinematic state is ``y = [lat_rad, lon_rad, h_m, heading_rad]`` (geodetic
+WGS-84 latitude, longitude, ellipsoidal height; heading clockwise from north).  A guidance
+law gives, at time t, the 3-D speed v, the climb rate v_u and the heading rate; then
+
+    v_h   = sqrt(v^2 - v_u^2),   v_e = v_h sin(psi),   v_n = v_h cos(psi)
+    lat'  = v_n / (M(lat) + h),  lon' = v_e / ((N(lat) + h) cos lat),  h' = v_u,
+    psi'  = heading rate,
+
+M, N the meridian and prime-vertical radii of curvature.  The ECEF velocity is the exact
+time derivative of geodetic_to_ecef(lat, lon, h): v_ecef = R_enu' [v_e, v_n, v_u]
+(dX/dlat = (M + h) north, dX/dlon = (N + h) cos(lat) east, dX/dh = up).  Integrating in
+geodetic coordinates keeps the law in the local frame (speed, heading, climb) without an
+ECEF -> geodetic iteration at every RK4 stage.  Singular at the poles (cos lat = 0).
+
+The state arrays carry leading batch axes (vehicles, or anything the law's parameters
+broadcast to); every vehicle of a swarm is advanced by one vectorised RK4 step.
+
+Guidance laws
+-------------
+* :class:`SinusoidalLaw` -- the seed 002 example's character: speed
+  ``v0 + a sin(w_v t + phi_v)``, climb ``c cos(w_c t + phi_c)``, heading
+  ``psi0 + A sin(w_psi t + phi_psi)`` (slow sinusoidal variation, periods ~300-600 s).
+* :class:`WaypointMission` -- fly a list of geodetic waypoints at a commanded speed with a
+  bounded turn rate and climb rate (the mode a MAVLink mission upload drives).
+* :class:`LegsAndTurns` -- straight legs and constant-rate turns on a time schedule.
+* :class:`Hold` -- a static vehicle (speed 0).
+
+How the seed's laws are read (seed 002, the example section "Пример", the V_xi, V_eta, V_zeta formulas of
+UAV-1..3): the OCR gives the velocity *ECEF components* as functions of eta and t whose
+exponents and square-root arguments are damaged; taken literally at the start point they
+give a ~50 m/s vertical speed, so they cannot be used as printed.  What survives and is
+kept: the dominant component ``(100 + 10 sin 0.02t)`` / ``(110 + 10 sin 0.02t)`` along the
+ECEF eta axis (a speed with a 314 s sinusoid), a geocentric radius
+``6.374e6 + 1500 sin 0.01t`` (i.e. the altitude h0 + 1500 sin 0.01t, whose rate is the
+``15 cos 0.01t`` term present in every zeta formula) and small cross terms (~5 % of the
+speed) varying with 0.01t.  :func:`seed002_uav_law` is a law *of the same character*:
+speed 105 + 5 sin(0.02 t) m/s (100..110 m/s as MODELS.md summarises), climb
+15 cos(0.01 t) m/s (altitude h0 + 1500 sin(0.01 t)), heading psi0 + 0.1 sin(0.01 t) rad
+with psi0 the horizontal direction of the ECEF eta axis at the start point (116.6 deg at
+30 N 45 E).  The start points are the seed's geodetic values (lat 30.0/30.1/30.3 deg,
+lon 45.0/45.1/45.3 deg, h 3000/3100/3500 m); the paper's ECEF start values are the same
+for every vehicle (a copy error) and are not used.
+
+SI units, radians inside; no randomness, no clocks: time is the simulation time t_s.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Any, Callable, NamedTuple, Sequence
+
+import numpy as np
+
+try:  # compiled integration loop; the numpy path below is the reference
+    import numba as nb
+except ImportError:  # pragma: no cover
+    nb = None
+
+from sitl import geodesy
+from sitl.constants import Ellipsoid, ellipsoid
+
+__all__ = [
+    "SinusoidalLaw",
+    "WaypointMission",
+    "LegsAndTurns",
+    "Hold",
+    "KinematicState",
+    "VehicleTruth",
+    "KinematicSwarm",
+    "UavSwarm",
+    "geodetic_rates",
+    "rk4_step",
+    "propagate",
+    "initial_state",
+    "truth",
+    "eta_axis_heading_rad",
+    "seed002_uav_law",
+    "seed002_uav_swarm",
+    "SEED002_UAV_START",
+    "wrap_pi",
+]
+
+#: Seed 002 start points of UAV-1..3: (lat deg, lon deg, h m) -- the paper's geodetic values.
+SEED002_UAV_START = ((30.0, 45.0, 3000.0), (30.1, 45.1, 3100.0), (30.3, 45.3, 3500.0))
+
+
+# --------------------------------------------------------------------------- helpers
+
+
+def wrap_pi(a):
+    """Angle(s) wrapped to [-pi, pi)."""
+    return np.mod(np.asarray(a, dtype=float) + np.pi, 2.0 * np.pi) - np.pi
+
+
+def _finite_array(name: str, value) -> np.ndarray:
+    try:
+        a = np.asarray(value, dtype=float)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name} must be numeric, got {value!r}") from None
+    if not np.all(np.isfinite(a)):
+        raise ValueError(f"{name} must be finite, got {value!r}")
+    return a
+
+
+def _positive_scalar(name: str, value) -> float:
+    try:
+        v = float(value)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name} must be a number, got {value!r}") from None
+    if not (math.isfinite(v) and v > 0.0):
+        raise ValueError(f"{name} must be a finite number > 0, got {value!r}")
+    return v
+
+
+def _readonly(a: np.ndarray) -> np.ndarray:
+    a = np.array(a, dtype=float)
+    a.flags.writeable = False
+    return a
+
+
+def _broadcast_fields(obj, names: Sequence[str]) -> tuple:
+    """Validate the named fields as finite arrays and broadcast them to one batch shape."""
+    arrays = [_finite_array(n, getattr(obj, n)) for n in names]
+    try:
+        shape = np.broadcast_shapes(*(a.shape for a in arrays))
+    except ValueError:
+        raise ValueError(f"{', '.join(names)}: shapes {[a.shape for a in arrays]} do not broadcast") from None
+    for n, a in zip(names, arrays):
+        object.__setattr__(obj, n, _readonly(np.broadcast_to(a, shape)))
+    return shape
+
+
+def _radii(lat, ell: Ellipsoid):
+    """Meridian M and prime-vertical N radii of curvature at geodetic latitude lat."""
+    w2 = 1.0 - ell.e2 * np.sin(lat) ** 2
+    n = ell.a_m / np.sqrt(w2)
+    return n * (1.0 - ell.e2) / w2, n
+
+
+def eta_axis_heading_rad(lat_rad, lon_rad):
+    """Heading (clockwise from north) of the horizontal projection of the ECEF eta (y) axis.
+
+    east . y = cos(lon),  north . y = -sin(lat) sin(lon)  ->  atan2(cos lon, -sin lat sin lon).
+    The seed's velocity laws are dominated by the eta component; this is its direction.
+    """
+    lat, lon = np.asarray(lat_rad, float), np.asarray(lon_rad, float)
+    return np.mod(np.arctan2(np.cos(lon), -np.sin(lat) * np.sin(lon)), 2.0 * np.pi)
+
+
+# --------------------------------------------------------------------------- guidance laws
+
+# Law codes and the per-vehicle parameter row of the compiled integrator (_integrate_nb).
+_LAW_SINUSOID, _LAW_LEGS, _LAW_HOLD, _LAW_WAYPOINTS = 0, 1, 2, 3
+_N_PARAMS = 11
+
+
+@dataclass(frozen=True, eq=False)
+class SinusoidalLaw:
+    """Speed, climb and heading as sinusoids of time (seed 002 character).
+
+        v(t)   = speed_mean + speed_amp sin(speed_omega t + speed_phase)      (3-D speed)
+        v_u(t) = climb_amp cos(climb_omega t + climb_phase)                   (climb rate)
+        psi(t) = heading0 + heading_amp sin(heading_omega t + heading_phase)  (heading)
+
+    so the heading rate is heading_amp heading_omega cos(heading_omega t + heading_phase),
+    the altitude h0 + (climb_amp / climb_omega) sin(climb_omega t + climb_phase) (when
+    climb_phase = 0) and the speed stays in [speed_mean - speed_amp, speed_mean + speed_amp].
+    Every field broadcasts to the batch shape (vehicles).  t is the simulation time, s.
+    """
+
+    speed_mean_m_s: Any
+    speed_amp_m_s: Any = 0.0
+    speed_omega_rad_s: Any = 0.0
+    speed_phase_rad: Any = 0.0
+    heading0_rad: Any = 0.0
+    heading_amp_rad: Any = 0.0
+    heading_omega_rad_s: Any = 0.0
+    heading_phase_rad: Any = 0.0
+    climb_amp_m_s: Any = 0.0
+    climb_omega_rad_s: Any = 0.0
+    climb_phase_rad: Any = 0.0
+    batch_shape: tuple = field(init=False)
+
+    _FIELDS = ("speed_mean_m_s", "speed_amp_m_s", "speed_omega_rad_s", "speed_phase_rad", "heading0_rad",
+               "heading_amp_rad", "heading_omega_rad_s", "heading_phase_rad", "climb_amp_m_s",
+               "climb_omega_rad_s", "climb_phase_rad")
+
+    def __post_init__(self):
+        shape = _broadcast_fields(self, self._FIELDS)
+        object.__setattr__(self, "batch_shape", shape)
+        if np.any(self.speed_mean_m_s <= 0):
+            raise ValueError(f"speed_mean_m_s must be > 0, got {self.speed_mean_m_s}")
+        for name in ("speed_amp_m_s", "climb_amp_m_s", "heading_amp_rad", "speed_omega_rad_s",
+                     "heading_omega_rad_s", "climb_omega_rad_s"):
+            if np.any(getattr(self, name) < 0):
+                raise ValueError(f"{name} must be >= 0, got {getattr(self, name)}")
+        if np.any(self.speed_amp_m_s >= self.speed_mean_m_s):
+            raise ValueError(f"speed_amp_m_s must be < speed_mean_m_s, got {self.speed_amp_m_s}")
+        if np.any(self.climb_amp_m_s >= self.speed_mean_m_s - self.speed_amp_m_s):
+            raise ValueError("climb_amp_m_s must be < speed_mean_m_s - speed_amp_m_s (the horizontal speed "
+                             f"must stay > 0), got {self.climb_amp_m_s}")
+
+    def heading_at(self, t_s):
+        return self.heading0_rad + self.heading_amp_rad * np.sin(self.heading_omega_rad_s * t_s
+                                                                 + self.heading_phase_rad)
+
+    def initial_heading(self, t_s, y):
+        return self.heading_at(t_s)
+
+    def target(self, state, t_next_s=None):
+        return None
+
+    def commands(self, t_s, y, aux=None):
+        """(speed m/s, climb m/s, heading rate rad/s), each of the batch shape."""
+        speed = self.speed_mean_m_s + self.speed_amp_m_s * np.sin(self.speed_omega_rad_s * t_s + self.speed_phase_rad)
+        climb = self.climb_amp_m_s * np.cos(self.climb_omega_rad_s * t_s + self.climb_phase_rad)
+        w = self.heading_omega_rad_s
+        rate = self.heading_amp_rad * w * np.cos(w * t_s + self.heading_phase_rad)
+        return speed, climb, rate
+
+    def advance(self, state, ell):
+        return state.wp_index
+
+    def _kernel_args(self):
+        p = np.stack([np.ravel(getattr(self, f)) for f in self._FIELDS], axis=-1)
+        return _LAW_SINUSOID, p, {}
+
+
+@dataclass(frozen=True, eq=False)
+class LegsAndTurns:
+    """Straight legs and constant-rate turns on a time schedule, constant speed, level.
+
+    The heading rate is turn_rates_rad_s[..., j] on the j-th interval of the schedule
+    (-inf, switch_times_s[0]), [switch_times_s[0], switch_times_s[1]), ..., [switch_times_s[-1], inf):
+    0 on a leg, the turn rate (rad/s, > 0 to the right) in a turn.
+    speed_m_s, heading0_rad (heading at the start) broadcast to the batch shape;
+    switch_times_s (K,) strictly increasing, turn_rates_rad_s (..., K + 1).
+    The integrator cuts its steps at the switch times (``breakpoints_s``) and takes each
+    step's interval from its midpoint, so a switch never falls inside an RK4 step.
+    """
+
+    speed_m_s: Any
+    heading0_rad: Any
+    switch_times_s: Any
+    turn_rates_rad_s: Any
+    batch_shape: tuple = field(init=False)
+
+    def __post_init__(self):
+        sw = _finite_array("switch_times_s", self.switch_times_s)
+        if sw.ndim != 1 or (sw.size > 1 and np.any(np.diff(sw) <= 0)):
+            raise ValueError(f"switch_times_s must be a strictly increasing 1-D array, got {self.switch_times_s!r}")
+        tr = _finite_array("turn_rates_rad_s", self.turn_rates_rad_s)
+        if tr.ndim < 1 or tr.shape[-1] != sw.size + 1:
+            raise ValueError(f"turn_rates_rad_s must have shape (..., {sw.size + 1}) (one rate per interval), "
+                             f"got {tr.shape}")
+        sp = _finite_array("speed_m_s", self.speed_m_s)
+        if np.any(sp < 0):
+            raise ValueError(f"speed_m_s must be >= 0, got {self.speed_m_s!r}")
+        h0 = _finite_array("heading0_rad", self.heading0_rad)
+        try:
+            shape = np.broadcast_shapes(sp.shape, h0.shape, tr.shape[:-1])
+        except ValueError:
+            raise ValueError("speed_m_s, heading0_rad, turn_rates_rad_s[..., 0]: shapes do not broadcast") from None
+        object.__setattr__(self, "speed_m_s", _readonly(np.broadcast_to(sp, shape)))
+        object.__setattr__(self, "heading0_rad", _readonly(np.broadcast_to(h0, shape)))
+        object.__setattr__(self, "turn_rates_rad_s", _readonly(np.broadcast_to(tr, shape + tr.shape[-1:])))
+        object.__setattr__(self, "switch_times_s", _readonly(sw))
+        object.__setattr__(self, "batch_shape", shape)
+
+    breakpoints_s = property(lambda self: self.switch_times_s)
+
+    def initial_heading(self, t_s, y):
+        return self.heading0_rad
+
+    def target(self, state, t_next_s=None):
+        """The schedule interval of the step [state.t_s, t_next_s] (from its midpoint: the
+        integrator cuts its steps at the switch times, so a step lies in one interval)."""
+        t = state.t_s if t_next_s is None else 0.5 * (state.t_s + t_next_s)
+        return int(np.searchsorted(self.switch_times_s, t, side="right"))
+
+    def commands(self, t_s, y, aux=None):
+        j = int(np.searchsorted(self.switch_times_s, t_s, side="right")) if aux is None else aux
+        zero = np.zeros(self.batch_shape)
+        return self.speed_m_s, zero, self.turn_rates_rad_s[..., j]
+
+    def advance(self, state, ell):
+        return state.wp_index
+
+    def _kernel_args(self):
+        p = np.zeros((int(np.prod(self.batch_shape, dtype=np.int64)), _N_PARAMS))
+        p[:, 0] = np.ravel(self.speed_m_s)
+        return _LAW_LEGS, p, {"switch_times_s": self.switch_times_s,
+                              "turn_rates_rad_s": self.turn_rates_rad_s.reshape(-1, self.switch_times_s.size + 1)}
+
+
+@dataclass(frozen=True, eq=False)
+class Hold:
+    """A static vehicle: speed, climb and heading rate 0 (batch_shape vehicles)."""
+
+    batch_shape: tuple = ()
+
+    def __post_init__(self):
+        shape = (self.batch_shape,) if isinstance(self.batch_shape, (int, np.integer)) else tuple(self.batch_shape)
+        if any(isinstance(n, bool) or int(n) != n or n < 0 for n in shape):
+            raise ValueError(f"batch_shape must be a tuple of integers >= 0, got {self.batch_shape!r}")
+        object.__setattr__(self, "batch_shape", tuple(int(n) for n in shape))
+
+    def initial_heading(self, t_s, y):
+        return np.zeros(self.batch_shape)
+
+    def target(self, state, t_next_s=None):
+        return None
+
+    def commands(self, t_s, y, aux=None):
+        z = np.zeros(self.batch_shape)
+        return z, z, z
+
+    def advance(self, state, ell):
+        return state.wp_index
+
+    def _kernel_args(self):
+        return _LAW_HOLD, np.zeros((int(np.prod(self.batch_shape, dtype=np.int64)), _N_PARAMS)), {}
+
+
+@dataclass(frozen=True, eq=False)
+class WaypointMission:
+    """Fly geodetic waypoints in order at a commanded speed with bounded turn and climb rates.
+
+    waypoints_rad_m: one (K_i, 3) array [lat_rad, lon_rad, h_m] per vehicle (batch shape (n,)).
+    Guidance towards the current waypoint (lat_w, lon_w, h_w), evaluated at every RK4 stage:
+
+        d_n = (lat_w - lat)(M + h),  d_e = wrap(lon_w - lon)(N + h) cos(lat)   (local flat bearing)
+        psi' = clip(turn_gain * wrap(atan2(d_e, d_n) - psi), -max_turn_rate, +max_turn_rate)
+        v_u  = clip(climb_gain * (h_w - h), -max_climb, +max_climb),   v = speed_m_s.
+
+    After each integration step a vehicle whose horizontal distance to its waypoint is below
+    accept_radius_m moves on to the next one; after the last it keeps pursuing the last
+    waypoint (passes and turns back over it: a loiter).  Pure pursuit with a bounded turn
+    rate cannot hit a point inside its turning circle (radius speed / max_turn_rate): keep
+    consecutive waypoints further apart than about twice that radius, or widen
+    accept_radius_m.
+    """
+
+    waypoints_rad_m: Sequence
+    speed_m_s: Any
+    max_turn_rate_rad_s: Any = math.radians(3.0)
+    max_climb_m_s: Any = 5.0
+    accept_radius_m: Any = 150.0
+    turn_gain_1_s: float = 0.5
+    climb_gain_1_s: float = 0.05
+    batch_shape: tuple = field(init=False)
+    _wp: np.ndarray = field(init=False, repr=False)
+    _count: np.ndarray = field(init=False, repr=False)
+
+    def __post_init__(self):
+        wps = list(self.waypoints_rad_m) if not isinstance(self.waypoints_rad_m, np.ndarray) else (
+            [self.waypoints_rad_m] if self.waypoints_rad_m.ndim == 2 else list(self.waypoints_rad_m))
+        if not wps:
+            raise ValueError("waypoints_rad_m must hold one waypoint list per vehicle, got none")
+        arrs = []
+        for i, w in enumerate(wps):
+            a = _finite_array(f"waypoints_rad_m[{i}]", w)
+            if a.ndim != 2 or a.shape[-1] != 3 or a.shape[0] < 1:
+                raise ValueError(f"waypoints_rad_m[{i}] must have shape (K >= 1, 3) [lat_rad, lon_rad, h_m], "
+                                 f"got {a.shape}")
+            if np.any(np.abs(a[:, 0]) > np.pi / 2):
+                raise ValueError(f"waypoints_rad_m[{i}] latitudes must lie in [-pi/2, pi/2] rad (degrees passed?)")
+            arrs.append(a)
+        n, kmax = len(arrs), max(a.shape[0] for a in arrs)
+        wp = np.zeros((n, kmax, 3))
+        for i, a in enumerate(arrs):
+            wp[i, :a.shape[0]] = a
+            wp[i, a.shape[0]:] = a[-1]
+        object.__setattr__(self, "_wp", _readonly(wp))
+        object.__setattr__(self, "_count", np.array([a.shape[0] for a in arrs]))
+        object.__setattr__(self, "waypoints_rad_m", tuple(_readonly(a) for a in arrs))
+        object.__setattr__(self, "batch_shape", (n,))
+        for name in ("speed_m_s", "max_turn_rate_rad_s", "max_climb_m_s", "accept_radius_m"):
+            a = _finite_array(name, getattr(self, name))
+            try:
+                a = np.broadcast_to(a, (n,))
+            except ValueError:
+                raise ValueError(f"{name} must be a scalar or have shape ({n},), got {a.shape}") from None
+            if np.any(a <= 0):
+                raise ValueError(f"{name} must be > 0, got {getattr(self, name)!r}")
+            object.__setattr__(self, name, _readonly(a))
+        if np.any(self.max_climb_m_s >= self.speed_m_s):
+            raise ValueError(f"max_climb_m_s must be < speed_m_s, got {self.max_climb_m_s}")
+        _positive_scalar("turn_gain_1_s", self.turn_gain_1_s)
+        _positive_scalar("climb_gain_1_s", self.climb_gain_1_s)
+
+    @property
+    def n_waypoints(self) -> np.ndarray:
+        return self._count.copy()
+
+    def replace_vehicle(self, i: int, waypoints_rad_m) -> "WaypointMission":
+        """The same mission with vehicle i's waypoint list replaced (a mission upload)."""
+        if not 0 <= int(i) < self.batch_shape[0]:
+            raise ValueError(f"i must be a vehicle index in [0, {self.batch_shape[0]}), got {i!r}")
+        wps = list(self.waypoints_rad_m)
+        wps[int(i)] = waypoints_rad_m
+        return WaypointMission(wps, self.speed_m_s, self.max_turn_rate_rad_s, self.max_climb_m_s,
+                               self.accept_radius_m, self.turn_gain_1_s, self.climb_gain_1_s)
+
+    def _goal(self, wp_index):
+        idx = np.minimum(np.asarray(wp_index), self._count - 1)
+        return self._wp[np.arange(self.batch_shape[0]), idx]  # (n, 3)
+
+    def _offset(self, y, goal, ell):
+        m, nn = _radii(y[..., 0], ell)
+        d_n = (goal[..., 0] - y[..., 0]) * (m + y[..., 2])
+        d_e = wrap_pi(goal[..., 1] - y[..., 1]) * (nn + y[..., 2]) * np.cos(y[..., 0])
+        return d_e, d_n
+
+    def initial_heading(self, t_s, y):
+        d_e, d_n = self._offset(y, self._goal(np.zeros(self.batch_shape, int)), ellipsoid(None))
+        return np.arctan2(d_e, d_n)
+
+    def target(self, state, t_next_s=None):
+        return self._goal(state.wp_index)
+
+    def commands(self, t_s, y, aux, ell: Ellipsoid | None = None):
+        ell = ellipsoid(ell)
+        d_e, d_n = self._offset(y, aux, ell)
+        err = wrap_pi(np.arctan2(d_e, d_n) - y[..., 3])
+        rate = np.clip(self.turn_gain_1_s * err, -self.max_turn_rate_rad_s, self.max_turn_rate_rad_s)
+        climb = np.clip(self.climb_gain_1_s * (aux[..., 2] - y[..., 2]), -self.max_climb_m_s, self.max_climb_m_s)
+        return self.speed_m_s, climb, rate
+
+    def advance(self, state, ell):
+        """Next waypoint index for vehicles within accept_radius_m of their current one."""
+        idx = np.asarray(state.wp_index)
+        d_e, d_n = self._offset(state.y, self._goal(idx), ell)
+        reached = np.hypot(d_e, d_n) < self.accept_radius_m
+        return np.where(reached, np.minimum(idx + 1, self._count), idx)
+
+    def _kernel_args(self):
+        p = np.zeros((self.batch_shape[0], _N_PARAMS))
+        p[:, :6] = np.stack([self.speed_m_s, self.max_turn_rate_rad_s, self.max_climb_m_s, self.accept_radius_m,
+                             np.full(self.batch_shape, self.turn_gain_1_s),
+                             np.full(self.batch_shape, self.climb_gain_1_s)], axis=-1)
+        return _LAW_WAYPOINTS, p, {"waypoints": self._wp, "count": self._count}
+
+
+# --------------------------------------------------------------------------- state, ODE, RK4
+
+
+class KinematicState(NamedTuple):
+    """t_s simulation time; y (..., 4) [lat_rad, lon_rad, h_m, heading_rad];
+    wp_index (...,) current waypoint (== count once a mission is complete); zeros otherwise."""
+
+    t_s: float
+    y: np.ndarray
+    wp_index: np.ndarray
+
+
+class VehicleTruth(NamedTuple):
+    """Truth of a batch of vehicles at t_s (published for scoring only)."""
+
+    t_s: float
+    pos_ecef_m: np.ndarray  # (..., 3)
+    vel_ecef_m_s: np.ndarray  # (..., 3)
+    lat_rad: np.ndarray
+    lon_rad: np.ndarray
+    h_m: np.ndarray
+    heading_rad: np.ndarray
+    speed_m_s: np.ndarray
+
+
+def _commands(guidance, t_s, y, aux, ell):
+    if isinstance(guidance, WaypointMission):
+        return guidance.commands(t_s, y, aux, ell)
+    return guidance.commands(t_s, y, aux)
+
+
+def _enu_velocity(speed, climb, heading):
+    v_h = np.sqrt(np.maximum(speed * speed - climb * climb, 0.0))
+    return v_h * np.sin(heading), v_h * np.cos(heading), climb
+
+
+def geodetic_rates(t_s, y, guidance, aux=None, ell: Ellipsoid | str | None = None) -> np.ndarray:
+    """dy/dt (..., 4) of y = [lat, lon, h, psi] under a guidance law (see the module docstring)."""
+    e = ellipsoid(ell)
+    speed, climb, rate = _commands(guidance, t_s, y, aux, e)
+    lat, h = y[..., 0], y[..., 2]
+    v_e, v_n, v_u = _enu_velocity(speed, climb, y[..., 3])
+    m, n = _radii(lat, e)
+    out = np.empty(np.broadcast_shapes(y.shape, np.shape(v_e) + (4,)))
+    out[..., 0] = v_n / (m + h)
+    out[..., 1] = v_e / ((n + h) * np.cos(lat))
+    out[..., 2] = v_u
+    out[..., 3] = rate
+    return out
+
+
+def rk4_step(f: Callable, t: float, y: np.ndarray, h: float) -> np.ndarray:
+    """One classical 4th-order Runge-Kutta step of y' = f(t, y) from t to t + h."""
+    k1 = f(t, y)
+    k2 = f(t + 0.5 * h, y + 0.5 * h * k1)
+    k3 = f(t + 0.5 * h, y + 0.5 * h * k2)
+    k4 = f(t + h, y + h * k3)
+    return y + (h / 6.0) * (k1 + 2.0 * k2 + 2.0 * k3 + k4)
+
+
+def initial_state(guidance, lat0_rad, lon0_rad, h0_m, t0_s: float = 0.0, heading0_rad=None) -> KinematicState:
+    """The state at t0_s from geodetic start points (broadcast to the guidance's batch shape).
+
+    heading0_rad defaults to the guidance's own (the law's heading at t0, or the bearing to
+    the first waypoint)."""
+    shape = guidance.batch_shape
+    y = np.empty(shape + (4,))
+    for k, (name, v) in enumerate((("lat0_rad", lat0_rad), ("lon0_rad", lon0_rad), ("h0_m", h0_m))):
+        a = _finite_array(name, v)
+        try:
+            y[..., k] = np.broadcast_to(a, shape)
+        except ValueError:
+            raise ValueError(f"{name} must broadcast to the guidance batch shape {shape}, got {a.shape}") from None
+    if np.any(np.abs(y[..., 0]) >= np.pi / 2):
+        raise ValueError(f"lat0_rad must lie in (-pi/2, pi/2) rad (degrees passed?), got {lat0_rad!r}")
+    t0 = float(_finite_array("t0_s", t0_s))
+    y[..., 3] = guidance.initial_heading(t0, y) if heading0_rad is None else _finite_array("heading0_rad",
+                                                                                             heading0_rad)
+    return KinematicState(t0, y, np.zeros(shape, dtype=int))
+
+
+def propagate(state: KinematicState, t1_s: float, guidance, dt_s: float = 0.01,
+              ell: Ellipsoid | str | None = None, backend: str | None = None) -> KinematicState:
+    """Integrate from state.t_s to t1_s by RK4 with step dt_s (the last step shortened to land
+    on t1_s).  Steps are taken on the grid t0 + k dt_s plus the law's switch times (so a step
+    never straddles one); waypoint indices advance between steps.
+
+    backend: 'numba' (default when numba is installed: one compiled loop per vehicle) or
+    'numpy' (the reference: :func:`rk4_step` on :func:`geodetic_rates`, vectorised over the
+    vehicles).  Both evaluate the same formulas in the same order.
+    """
+    dt = _positive_scalar("dt_s", dt_s)
+    t1 = float(_finite_array("t1_s", t1_s))
+    if t1 < state.t_s:
+        raise ValueError(f"t1_s must be >= the state's time {state.t_s}, got {t1_s!r}")
+    if backend is None:
+        backend = "numba" if nb is not None else "numpy"
+    if backend not in ("numba", "numpy") or (backend == "numba" and nb is None):
+        raise ValueError(f"backend must be 'numba' (needs numba) or 'numpy', got {backend!r}")
+    e = ellipsoid(ell)
+    ts = _step_times(state.t_s, t1, dt, getattr(guidance, "breakpoints_s", ()))
+    if backend == "numba" and hasattr(guidance, "_kernel_args"):
+        law, params, extra = guidance._kernel_args()
+        shape = state.y.shape[:-1]
+        y = np.ascontiguousarray(state.y, dtype=float).reshape(-1, 4).copy()
+        idx = np.ascontiguousarray(state.wp_index, dtype=np.int64).reshape(-1).copy()
+        sw = np.asarray(extra.get("switch_times_s", np.zeros(0)), dtype=float)
+        tr = np.ascontiguousarray(extra.get("turn_rates_rad_s", np.zeros((y.shape[0], 1))), dtype=float)
+        wp = np.ascontiguousarray(extra.get("waypoints", np.zeros((y.shape[0], 1, 3))), dtype=float)
+        cnt = np.ascontiguousarray(extra.get("count", np.ones(y.shape[0])), dtype=np.int64)
+        _integrate_nb(law, y, idx, np.ascontiguousarray(params, dtype=float), sw, tr, wp, cnt, ts, e.a_m, e.e2)
+        return KinematicState(t1, y.reshape(shape + (4,)), idx.reshape(shape))
+    y, idx = state.y, state.wp_index
+    for ta, tb in zip(ts[:-1], ts[1:]):
+        ta, tb = float(ta), float(tb)
+        aux = guidance.target(KinematicState(ta, y, idx), tb)
+        y = rk4_step(lambda t, yy: geodetic_rates(t, yy, guidance, aux, e), ta, y, tb - ta)
+        y[..., 1] = wrap_pi(y[..., 1])
+        y[..., 3] = np.mod(y[..., 3], 2.0 * np.pi)
+        idx = guidance.advance(KinematicState(tb, y, idx), e)
+    return KinematicState(t1, y, idx)
+
+
+def _step_times(t0: float, t1: float, dt: float, breakpoints) -> np.ndarray:
+    """Step boundaries from t0 to t1: the grid t0 + k dt (the last step shortened), plus the
+    law's breakpoints inside (t0, t1), so that no step straddles a switch of the law."""
+    if t1 <= t0:
+        return np.array([t0])
+    n = max(int(math.ceil((t1 - t0) / dt - 1e-9)), 1)
+    ts = t0 + dt * np.arange(n + 1)
+    ts[-1] = t1
+    bp = np.asarray(breakpoints, dtype=float)
+    bp = bp[(bp > t0) & (bp < t1)]
+    if bp.size:
+        ts = np.union1d(ts, bp)
+        keep = np.concatenate([[True], np.diff(ts) > 1e-9 * np.maximum(1.0, np.abs(ts[1:]))])
+        keep[-1] = True
+        ts = ts[keep]
+        if ts.size > 2 and ts[-1] - ts[-2] <= 1e-9 * max(1.0, abs(t1)):
+            ts = np.delete(ts, -2)
+    return ts
+
+
+if nb is not None:
+    _TWO_PI = 2.0 * math.pi
+
+    @nb.njit(cache=True, nogil=True)
+    def _wrap_nb(a):
+        return a - _TWO_PI * math.floor((a + math.pi) / _TWO_PI)
+
+    @nb.njit(cache=True, nogil=True)
+    def _offset_nb(lat, lon, h, glat, glon, a, e2):
+        w2 = 1.0 - e2 * math.sin(lat) ** 2
+        n = a / math.sqrt(w2)
+        m = n * (1.0 - e2) / w2
+        return _wrap_nb(glon - lon) * (n + h) * math.cos(lat), (glat - lat) * (m + h)
+
+    @nb.njit(cache=True, nogil=True)
+    def _rates_nb(law, p, seg, tr, g, t, lat, lon, h, psi, a, e2):
+        """The same law and geodetic rates as SinusoidalLaw/LegsAndTurns/Hold/WaypointMission
+        .commands + geodetic_rates, for one vehicle (p its parameter row, seg the schedule
+        interval of the step, g its waypoint)."""
+        if law == 0:
+            speed = p[0] + p[1] * math.sin(p[2] * t + p[3])
+            climb = p[8] * math.cos(p[9] * t + p[10])
+            rate = p[5] * p[6] * math.cos(p[6] * t + p[7])
+        elif law == 1:
+            speed = p[0]
+            climb = 0.0
+            rate = tr[seg]
+        elif law == 2:
+            speed = 0.0
+            climb = 0.0
+            rate = 0.0
+        else:
+            d_e, d_n = _offset_nb(lat, lon, h, g[0], g[1], a, e2)
+            rate = min(max(p[4] * _wrap_nb(math.atan2(d_e, d_n) - psi), -p[1]), p[1])
+            climb = min(max(p[5] * (g[2] - h), -p[2]), p[2])
+            speed = p[0]
+        v_h = math.sqrt(max(speed * speed - climb * climb, 0.0))
+        w2 = 1.0 - e2 * math.sin(lat) ** 2
+        n = a / math.sqrt(w2)
+        m = n * (1.0 - e2) / w2
+        return (v_h * math.cos(psi) / (m + h), v_h * math.sin(psi) / ((n + h) * math.cos(lat)), climb, rate)
+
+    @nb.njit(cache=True, nogil=True)
+    def _integrate_nb(law, y, idx, params, sw, tr, wp, cnt, ts, a, e2):
+        """RK4 over the step boundaries ts in place on y (N, 4) and idx (N,), one vehicle at a time."""
+        for i in range(y.shape[0]):
+            p = params[i]
+            tri = tr[i] if law == 1 else tr[0]
+            lat, lon, h, psi = y[i, 0], y[i, 1], y[i, 2], y[i, 3]
+            k_wp = idx[i]
+            for k in range(ts.size - 1):
+                ta = ts[k]
+                tb = ts[k + 1]
+                hh = tb - ta
+                seg = np.searchsorted(sw, 0.5 * (ta + tb), side="right")
+                g = wp[i, min(k_wp, cnt[i] - 1)]
+                a1, b1, c1, d1 = _rates_nb(law, p, seg, tri, g, ta, lat, lon, h, psi, a, e2)
+                a2, b2, c2, d2 = _rates_nb(law, p, seg, tri, g, ta + 0.5 * hh, lat + 0.5 * hh * a1,
+                                           lon + 0.5 * hh * b1, h + 0.5 * hh * c1, psi + 0.5 * hh * d1, a, e2)
+                a3, b3, c3, d3 = _rates_nb(law, p, seg, tri, g, ta + 0.5 * hh, lat + 0.5 * hh * a2,
+                                           lon + 0.5 * hh * b2, h + 0.5 * hh * c2, psi + 0.5 * hh * d2, a, e2)
+                a4, b4, c4, d4 = _rates_nb(law, p, seg, tri, g, tb, lat + hh * a3, lon + hh * b3, h + hh * c3,
+                                           psi + hh * d3, a, e2)
+                lat = lat + (hh / 6.0) * (a1 + 2.0 * a2 + 2.0 * a3 + a4)
+                lon = _wrap_nb(lon + (hh / 6.0) * (b1 + 2.0 * b2 + 2.0 * b3 + b4))
+                h = h + (hh / 6.0) * (c1 + 2.0 * c2 + 2.0 * c3 + c4)
+                psi = psi + (hh / 6.0) * (d1 + 2.0 * d2 + 2.0 * d3 + d4)
+                psi = psi - _TWO_PI * math.floor(psi / _TWO_PI)
+                if law == 3:
+                    g = wp[i, min(k_wp, cnt[i] - 1)]
+                    d_e, d_n = _offset_nb(lat, lon, h, g[0], g[1], a, e2)
+                    if math.hypot(d_e, d_n) < p[3]:
+                        k_wp = min(k_wp + 1, cnt[i])
+            y[i, 0], y[i, 1], y[i, 2], y[i, 3] = lat, lon, h, psi
+            idx[i] = k_wp
+
+
+def truth(state: KinematicState, guidance, ell: Ellipsoid | str | None = None) -> VehicleTruth:
+    """ECEF position and velocity (and the geodetic state) of every vehicle at state.t_s."""
+    e = ellipsoid(ell)
+    y = state.y
+    speed, climb, _ = _commands(guidance, state.t_s, y, guidance.target(state, state.t_s), e)
+    v_enu = np.stack(np.broadcast_arrays(*_enu_velocity(speed, climb, y[..., 3])), axis=-1)
+    R = geodesy.enu_rotation(y[..., 0], y[..., 1])  # enu = R @ ecef
+    vel = np.matmul(np.swapaxes(R, -1, -2), v_enu[..., None])[..., 0]
+    pos = geodesy.geodetic_to_ecef(y[..., 0], y[..., 1], y[..., 2], e)
+    return VehicleTruth(state.t_s, pos, vel, y[..., 0].copy(), y[..., 1].copy(), y[..., 2].copy(),
+                        y[..., 3].copy(), np.broadcast_to(speed, y.shape[:-1]).copy())
+
+
+# --------------------------------------------------------------------------- the stepped swarm
+
+
+class KinematicSwarm:
+    """Vehicles of one kind under one guidance law, stepped together in simulation time.
+
+    ``step(t_s)`` integrates (RK4, dt_s) from the current time to t_s and returns the
+    :class:`VehicleTruth`; ``state`` is the functional :class:`KinematicState` (the same
+    numbers as :func:`propagate`).  ``upload_mission(i, waypoints)`` replaces vehicle i's
+    waypoints in waypoint mode and restarts its mission.
+    """
+
+    def __init__(self, guidance, lat0_rad, lon0_rad, h0_m, *, t0_s: float = 0.0, dt_s: float = 0.01,
+                 heading0_rad=None, ell: Ellipsoid | str | None = None):
+        for attr in ("batch_shape", "commands", "initial_heading", "target", "advance"):
+            if not hasattr(guidance, attr):
+                raise ValueError(f"guidance must be a guidance law (no {attr}), got {guidance!r}")
+        self.dt_s = _positive_scalar("dt_s", dt_s)
+        self.ell = ellipsoid(ell)
+        self.guidance = guidance
+        self.state = initial_state(guidance, lat0_rad, lon0_rad, h0_m, t0_s, heading0_rad)
+
+    @property
+    def n(self) -> int:
+        return int(np.prod(self.guidance.batch_shape, dtype=np.int64))
+
+    @property
+    def t_s(self) -> float:
+        return self.state.t_s
+
+    def step(self, t_s: float) -> VehicleTruth:
+        self.state = propagate(self.state, t_s, self.guidance, self.dt_s, self.ell)
+        return self.truth()
+
+    def truth(self) -> VehicleTruth:
+        return truth(self.state, self.guidance, self.ell)
+
+    def upload_mission(self, i: int, waypoints_rad_m) -> None:
+        if not isinstance(self.guidance, WaypointMission):
+            raise ValueError(f"guidance must be a WaypointMission to upload a mission, got "
+                             f"{type(self.guidance).__name__}")
+        self.guidance = self.guidance.replace_vehicle(i, waypoints_rad_m)
+        idx = self.state.wp_index.copy()
+        idx[int(i)] = 0
+        self.state = self.state._replace(wp_index=idx)
+
+
+class UavSwarm(KinematicSwarm):
+    """A swarm of UAVs (a :class:`KinematicSwarm`); see :func:`seed002_uav_swarm`."""
+
+
+def seed002_uav_law(heading_amp_rad: float = 0.1) -> SinusoidalLaw:
+    """The three UAVs of the seed 002 example (module docstring: how the seed is read).
+
+    speed 105 + 5 sin(0.02 t) m/s, climb 15 cos(0.01 t) m/s, heading
+    psi0_i + heading_amp sin(0.01 t), psi0_i the ECEF eta axis's horizontal direction at
+    UAV i's start point."""
+    start = np.radians(np.array(SEED002_UAV_START)[:, :2])
+    return SinusoidalLaw(
+        speed_mean_m_s=105.0, speed_amp_m_s=5.0, speed_omega_rad_s=0.02,
+        heading0_rad=eta_axis_heading_rad(start[:, 0], start[:, 1]), heading_amp_rad=heading_amp_rad,
+        heading_omega_rad_s=0.01, climb_amp_m_s=15.0, climb_omega_rad_s=0.01,
+    )
+
+
+def seed002_uav_swarm(dt_s: float = 0.01, t0_s: float = 0.0) -> UavSwarm:
+    """The seed 002 UAV-1..3 at their geodetic start points, RK4 step dt_s (seed: 0.01 s)."""
+    s = np.array(SEED002_UAV_START)
+    return UavSwarm(seed002_uav_law(), np.radians(s[:, 0]), np.radians(s[:, 1]), s[:, 2], t0_s=t0_s, dt_s=dt_s)

@@ -1,0 +1,543 @@
+"""Onboard GNSS navigation of each UAV (seed 002, eqs 1-6 and 10): receiver + EKF, batched.
+
+Each UAV has a GNSS receiver and runs its own EKF; the filters of all UAVs (and of all
+Monte Carlo trials) are stepped together as one batch.  Each publishes its estimate
+x = [pos_ecef_m, vel_ecef_m_s] (..., 6) and covariance P (..., 6, 6): the decomposition the
+seed requires (UAVs navigate on board; the single computer locates the beacon from their
+estimates).
+
+Measurements (seed 002 eqs 1-2), satellite S_j with velocity V_S_j, UAV U with V_U, ECEF:
+
+    pseudorange       Z_R = |S_j - U| + W_R
+    Doppler velocity  Z_V = (S_j - U) . (V_S_j - V_U) / |S_j - U| + W_V
+
+with NO receiver clock, as in the seed (a real receiver would add a clock bias and drift;
+that is not modelled here -- the choice is the seed's, and with it three satellites fix
+the position).  Sign: Z_V as printed is d|S_j - U|/dt, the range rate, positive when the
+range grows (the standard convention).  W_R, W_V are white noises with two-sided PSDs
+N_R = (30 m)^2 s and N_V = (0.2 m/s)^2 s (seed example); a receiver reporting once per
+dt_s averages them to variances N / dt_s (``sitl.radio.beacon_link.psd_to_variance``):
+sigma 30 m and 0.2 m/s at dt_s = 1 s.
+
+Geometry: by default the truth uses the light-time solution with the Earth's rotation
+during the flight (``sitl.gnss.ranging.light_time_geometry``), and the filter evaluates the
+ephemeris at the transit time measured by its own pseudorange
+(``sitl.gnss.world.ephemeris_for_filter``): no truth enters the estimator.  With
+``light_time=False`` both use the instantaneous satellite state at t (the seed's
+equations literally).
+
+Satellites:
+  (a) the seed's case -- three satellites on unperturbed Keplerian orbits
+      (:func:`seed002_three_satellites`).  The seed's printed initial state vectors lost
+      their exponents in the OCR; read digit for digit, two of the three give hyperbolic
+      orbits (|V| above the escape speed), so they cannot be used.  The three satellites are
+      instead three GPS satellites of the built-in almanac (least clock-free PDOP, above the
+      mask for the whole run) with the secular node drift removed (OmegaDot = 0): the pure
+      two-body orbit, propagated by the analytic Kepler solution
+      (``sitl.gnss.orbits.sat_state_ecef``), which the tests check against an RK4 and a
+      solve_ivp integration of the two-body ODE.
+  (b) the real GPS constellation (``sitl.gnss.orbits.gps_constellation``), every satellite
+      above the elevation mask; clock-free as well.
+
+The measurement vector has a fixed layout over all S satellites of the constellation
+[pr_1..pr_S, prr_1..prr_S]; untracked channels (below the mask) carry no information
+(H row 0, innovation 0, variance 1: the Kalman gain column is exactly 0).
+
+EKF (filters.ekf.ekf_step): state [pos (3), vel (3)] ECEF, constant-velocity transition
+(continuous white-noise acceleration, filters.models.ConstantVelocity):
+F = [[I, T I], [0, I]], Q = q [[T^3/3 I, T^2/2 I], [T^2/2 I, T I]], q the acceleration PSD
+(m^2/s^3).  Default q = 0.02 m^2/s^3 (sqrt(q T) = 0.14 m/s per 1 s step).  The seed's UAVs
+accelerate by up to ~0.2 m/s^2 (speed, heading and climb sinusoids, periods 314-628 s),
+deterministically, so the lag it causes is the same in every Monte Carlo trial and is not
+averaged out: q was set by the NEES over Monte Carlo on the seed trajectories (three
+satellites, 1 s epochs, 100 trials x 3 UAVs): the time-averaged ANEES (6 for a
+consistent filter) is 8.3 at q = 0.01 (the lag shows), 6.1 at 0.02, 5.7 at 0.03 and 5.2 at
+1 (too much process noise for a truth that has none: conservative).  The first epoch
+initialises the filter with a least-squares fix (Gauss-Newton on the same measurement
+model, P0 = (H' R^-1 H)^-1).
+"""
+from __future__ import annotations
+
+import itertools
+import math
+from dataclasses import dataclass, field
+from typing import Any, NamedTuple
+
+import numpy as np
+
+from filters.ekf import ekf_step
+from filters.models import ConstantVelocity
+from sitl import geodesy
+from sitl.gnss import orbits, ranging, world
+from sitl.gnss.orbits import Constellation
+from sitl.radio.beacon_link import psd_to_variance
+
+__all__ = [
+    "SEED002_PSD_PR_M2_S",
+    "SEED002_PSD_PRR_M2_S",
+    "SEED002_T0_GPS_S",
+    "GnssNoise",
+    "NavConfig",
+    "GnssEpoch",
+    "NavEstimate",
+    "NavTrack",
+    "ClockFreePseudorangeDoppler",
+    "unperturbed",
+    "pdop_clock_free",
+    "seed002_three_satellites",
+    "gnss_measure",
+    "nav_measurement_model",
+    "ls_fix",
+    "nav_init",
+    "nav_step",
+    "OnboardNav",
+    "nav_track",
+]
+
+#: Seed 002 GNSS noise intensities (two-sided PSDs): range (30 m)^2 s, Doppler (0.2 m/s)^2 s.
+SEED002_PSD_PR_M2_S = 30.0**2
+SEED002_PSD_PRR_M2_S = 0.2**2
+#: Start of the seed 002 run in GPS time: one hour after the built-in almanac's epoch.
+SEED002_T0_GPS_S = orbits.DEFAULT_TOA_GPS_S + 3600.0
+
+_EARTH_RADIUS_M = 6_371_000.0
+_N = 6
+
+
+def _positive(name: str, value) -> float:
+    try:
+        v = float(value)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name} must be a number, got {value!r}") from None
+    if not (math.isfinite(v) and v > 0.0):
+        raise ValueError(f"{name} must be a finite number > 0, got {value!r}")
+    return v
+
+
+def _nonnegative(name: str, value) -> float:
+    try:
+        v = float(value)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name} must be a number, got {value!r}") from None
+    if not (math.isfinite(v) and v >= 0.0):
+        raise ValueError(f"{name} must be a finite number >= 0, got {value!r}")
+    return v
+
+
+def _check_constellation(constellation) -> Constellation:
+    if not isinstance(constellation, Constellation):
+        raise ValueError(f"constellation must be a sitl.gnss.orbits.Constellation, got {type(constellation).__name__}")
+    return constellation
+
+
+# --------------------------------------------------------------------------- configuration
+
+
+@dataclass(frozen=True)
+class GnssNoise:
+    """GNSS measurement noise: two-sided PSDs and the receiver's output interval.
+
+    psd_pr_m2_s: pseudorange noise PSD, m^2 s (seed: 900).
+    psd_prr_m2_s: Doppler (range-rate) noise PSD, (m/s)^2 s (seed: 0.04).
+    dt_s: interval over which a reported measurement averages the noise, s (default 1).
+    """
+
+    psd_pr_m2_s: float = SEED002_PSD_PR_M2_S
+    psd_prr_m2_s: float = SEED002_PSD_PRR_M2_S
+    dt_s: float = 1.0
+
+    def __post_init__(self):
+        _positive("psd_pr_m2_s", self.psd_pr_m2_s)
+        _positive("psd_prr_m2_s", self.psd_prr_m2_s)
+        _positive("dt_s", self.dt_s)
+
+    @property
+    def var_pr_m2(self) -> float:
+        return float(psd_to_variance(self.psd_pr_m2_s, self.dt_s))
+
+    @property
+    def var_prr_m2_s2(self) -> float:
+        return float(psd_to_variance(self.psd_prr_m2_s, self.dt_s))
+
+
+@dataclass(frozen=True)
+class NavConfig:
+    """Receiver and onboard-filter settings.
+
+    noise: the receiver's noise (and the variances the filter assumes: the same numbers).
+    q_m2_s3: acceleration PSD of the constant-velocity model (see the module docstring).
+    el_mask_rad: satellites below this geodetic elevation are not tracked.
+    light_time: light-time geometry with Earth rotation (True) or instantaneous (False).
+    ls_iterations: Gauss-Newton iterations of the initial least-squares fix.
+    """
+
+    noise: GnssNoise = field(default_factory=GnssNoise)
+    q_m2_s3: float = 0.02
+    el_mask_rad: float = math.radians(10.0)
+    light_time: bool = True
+    ls_iterations: int = 10
+
+    def __post_init__(self):
+        if not isinstance(self.noise, GnssNoise):
+            raise ValueError(f"noise must be a GnssNoise, got {type(self.noise).__name__}")
+        _nonnegative("q_m2_s3", self.q_m2_s3)
+        el = float(self.el_mask_rad)
+        if not (math.isfinite(el) and -math.pi / 2 <= el < math.pi / 2):
+            raise ValueError(f"el_mask_rad must lie in [-pi/2, pi/2) rad, got {self.el_mask_rad!r}")
+        if not isinstance(self.light_time, (bool, np.bool_)):
+            raise ValueError(f"light_time must be a bool, got {self.light_time!r}")
+        if isinstance(self.ls_iterations, bool) or int(self.ls_iterations) != self.ls_iterations \
+                or self.ls_iterations < 1:
+            raise ValueError(f"ls_iterations must be an integer >= 1, got {self.ls_iterations!r}")
+
+    def transition(self) -> ConstantVelocity:
+        return ConstantVelocity(3, q=self.q_m2_s3)
+
+
+# --------------------------------------------------------------------------- satellites
+
+
+def unperturbed(constellation: Constellation) -> Constellation:
+    """The constellation with its secular node drift removed (OmegaDot = 0) and no harmonic
+    corrections: each satellite on its unperturbed two-body (Keplerian) orbit."""
+    c = _check_constellation(constellation)
+    zero = np.zeros(len(c))
+    return c.replace(OmegaDot_rad_s=zero, delta_n_rad_s=zero, idot_rad_s=zero, cuc_rad=zero, cus_rad=zero,
+                     crc_m=zero, crs_m=zero, cic_rad=zero, cis_rad=zero)
+
+
+def pdop_clock_free(rx_pos_ecef_m, sat_pos_ecef_m) -> np.ndarray:
+    """Position DOP without a clock: sqrt(trace((G'G)^-1)), G rows the unit vectors receiver
+    -> satellite.  rx (..., 3), sats (..., S, 3), S >= 3."""
+    los = np.asarray(sat_pos_ecef_m, float) - np.asarray(rx_pos_ecef_m, float)[..., None, :]
+    los = los / np.linalg.norm(los, axis=-1, keepdims=True)
+    G = np.swapaxes(los, -1, -2) @ los
+    return np.sqrt(np.trace(np.linalg.inv(G), axis1=-2, axis2=-1))
+
+
+def seed002_three_satellites(rx_pos_ecef_m, t0_gps_s: float = SEED002_T0_GPS_S, duration_s: float = 1000.0,
+                             el_min_rad: float = math.radians(15.0),
+                             constellation: Constellation | None = None) -> Constellation:
+    """Three satellites on unperturbed Keplerian orbits for the seed's case (module docstring).
+
+    Among the satellites of ``constellation`` (default: the built-in GPS almanac) above
+    el_min_rad at rx_pos_ecef_m (3,) both at t0_gps_s and at t0_gps_s + duration_s, the
+    triple with the least clock-free PDOP at t0 (worst of the two ends), with OmegaDot = 0.
+    """
+    c = _check_constellation(orbits.gps_constellation() if constellation is None else constellation)
+    rx = np.asarray(rx_pos_ecef_m, dtype=float)
+    if rx.shape != (3,) or not np.all(np.isfinite(rx)):
+        raise ValueError(f"rx_pos_ecef_m must be one finite ECEF position (3,), got shape {rx.shape}")
+    _positive("duration_s", duration_s)
+    cu = unperturbed(c)
+    pos, _ = orbits.sat_state_ecef(cu, np.array([t0_gps_s, t0_gps_s + duration_s]))
+    _, el, _ = geodesy.ecef_to_aer(rx, pos)
+    vis = np.flatnonzero(np.all(el >= el_min_rad, axis=0))
+    if vis.size < 3:
+        raise ValueError(f"el_min_rad: only {vis.size} satellites stay above {math.degrees(el_min_rad):.1f} deg "
+                         "for the whole run; 3 are needed")
+    best, best_pdop = None, np.inf
+    for combo in itertools.combinations(vis.tolist(), 3):
+        try:
+            pdop = float(np.max(pdop_clock_free(rx, pos[:, combo])))
+        except np.linalg.LinAlgError:
+            continue
+        if pdop < best_pdop:
+            best, best_pdop = combo, pdop
+    return cu.subset(np.array(best))
+
+
+# --------------------------------------------------------------------------- receiver (truth side)
+
+
+class GnssEpoch(NamedTuple):
+    """One epoch of receiver output for a batch of receivers (..., S).
+
+    pseudorange_m, pseudorange_rate_m_s: NaN where the satellite is not tracked.
+    var_pr_m2, var_prr_m2_s2: per-sample noise variances (scalars: N / dt_s).
+    tracked: (..., S) bool.
+    """
+
+    t_gps_s: float
+    pseudorange_m: np.ndarray
+    pseudorange_rate_m_s: np.ndarray
+    var_pr_m2: float
+    var_prr_m2_s2: float
+    tracked: np.ndarray
+
+
+def gnss_measure(rng: np.random.Generator, t_gps_s: float, pos_ecef_m, vel_ecef_m_s, constellation: Constellation,
+                 config: NavConfig = NavConfig(), trials_shape: tuple = ()) -> GnssEpoch:
+    """The receivers' clock-free pseudoranges and Doppler range rates at t_gps_s (truth in).
+
+    pos_ecef_m, vel_ecef_m_s (..., 3): the true receiver states (e.g. (n_uav, 3)).
+    trials_shape prepends axes of independent noise on the same truth: output
+    trials_shape + (..., S).  A satellite is tracked when its geodetic elevation at the true
+    receiver position is >= config.el_mask_rad.
+    """
+    if not isinstance(rng, np.random.Generator):
+        raise ValueError(f"rng must be a numpy.random.Generator, got {type(rng).__name__}")
+    if not isinstance(config, NavConfig):
+        raise ValueError(f"config must be a NavConfig, got {type(config).__name__}")
+    c = _check_constellation(constellation)
+    t = float(t_gps_s)
+    r = np.asarray(pos_ecef_m, dtype=float)
+    v = np.asarray(vel_ecef_m_s, dtype=float)
+    if r.ndim < 1 or r.shape[-1] != 3 or v.shape != r.shape:
+        raise ValueError(f"pos_ecef_m and vel_ecef_m_s must have the same shape (..., 3), got {r.shape}, {v.shape}")
+    if config.light_time:
+        geo = ranging.light_time_geometry(t, r, v, c)
+        rho, rate = geo.range_m, geo.range_rate_m_s
+        _, el = world.look_angles(r, geo)
+    else:
+        sp, sv = orbits.sat_state_ecef(c, t)
+        d = sp - r[..., None, :]
+        rho = np.linalg.norm(d, axis=-1)
+        rate = np.sum(d * (sv - v[..., None, :]), axis=-1) / rho
+        _, el, _ = geodesy.ecef_to_aer(r[..., None, :], sp)
+    tracked = np.broadcast_to(el >= config.el_mask_rad, tuple(trials_shape) + rho.shape)
+    shape = tracked.shape
+    vr, vv = config.noise.var_pr_m2, config.noise.var_prr_m2_s2
+    pr = rho + math.sqrt(vr) * rng.standard_normal(shape)
+    prr = rate + math.sqrt(vv) * rng.standard_normal(shape)
+    return GnssEpoch(t, np.where(tracked, pr, np.nan), np.where(tracked, prr, np.nan), vr, vv, tracked.copy())
+
+
+# --------------------------------------------------------------------------- estimator side
+
+
+@dataclass(frozen=True, eq=False)
+class ClockFreePseudorangeDoppler:
+    """Clock-free pseudoranges and range rates to S satellites, state x = [X (3), V (3)].
+
+        z = [pr_1 .. pr_S, prr_1 .. prr_S],   pr_j = |S_j - X|,
+        prr_j = u_j . (V_S_j - V),  u_j = (S_j - X) / |S_j - X|  (positive when receding)
+        d pr_j / dX = -u_j',   d prr_j / dX = (prr_j u_j - (V_S_j - V))' / |S_j - X|,
+        d prr_j / dV = -u_j'.
+
+    filters.models.PseudorangeDoppler without the clock states (it needs two of them).
+    Untracked channels (tracked False) give h = 0, a zero H row and variance 1: with the
+    caller's z = 0 there, the innovation and the gain column are exactly 0.
+
+    sat_pos_ecef_m, sat_vel_ecef_m_s (..., S, 3) (NaN allowed where untracked);
+    var_pr_m2, var_prr_m2_s2 scalars or (..., S); tracked (..., S) bool or None (all).
+    """
+
+    sat_pos_ecef_m: np.ndarray
+    sat_vel_ecef_m_s: np.ndarray
+    var_pr_m2: Any
+    var_prr_m2_s2: Any
+    tracked: Any = None
+
+    def __post_init__(self):
+        sp = np.asarray(self.sat_pos_ecef_m, dtype=float)
+        sv = np.asarray(self.sat_vel_ecef_m_s, dtype=float)
+        if sp.ndim < 2 or sp.shape[-1] != 3:
+            raise ValueError(f"sat_pos_ecef_m must have shape (..., S, 3), got {sp.shape}")
+        if sv.shape[-2:] != sp.shape[-2:]:
+            raise ValueError(f"sat_vel_ecef_m_s must have shape (..., {sp.shape[-2]}, 3), got {sv.shape}")
+        tr = np.ones(sp.shape[:-1], bool) if self.tracked is None else np.asarray(self.tracked, dtype=bool)
+        tr = np.broadcast_to(tr, np.broadcast_shapes(tr.shape, sp.shape[:-1], sv.shape[:-1]))
+        for name in ("var_pr_m2", "var_prr_m2_s2"):
+            a = np.asarray(getattr(self, name), dtype=float)
+            if not np.all(np.isfinite(a) & (a > 0)):
+                raise ValueError(f"{name} must be finite and > 0, got {getattr(self, name)!r}")
+        m3 = tr[..., None]
+        # Untracked satellites sit at the Earth's centre: finite geometry, masked afterwards.
+        object.__setattr__(self, "sat_pos_ecef_m", np.where(m3, sp, 0.0))
+        object.__setattr__(self, "sat_vel_ecef_m_s", np.where(m3, sv, 0.0))
+        object.__setattr__(self, "tracked", tr)
+
+    @property
+    def n_sats(self) -> int:
+        return self.sat_pos_ecef_m.shape[-2]
+
+    @property
+    def ndim_meas(self) -> int:
+        return 2 * self.n_sats
+
+    @property
+    def ndim_state(self) -> int:
+        return _N
+
+    def h_and_H(self, x):
+        x = np.asarray(x, dtype=float)
+        if x.ndim < 1 or x.shape[-1] != _N:
+            raise ValueError(f"x must have shape (..., 6), got {x.shape}")
+        d = self.sat_pos_ecef_m - x[..., None, 0:3]
+        rho = np.sqrt(np.sum(d * d, axis=-1))
+        u = d / rho[..., None]
+        w = self.sat_vel_ecef_m_s - x[..., None, 3:6]
+        uw = np.sum(u * w, axis=-1)
+        tr = self.tracked
+        S = self.n_sats
+        hx = np.concatenate([np.where(tr, rho, 0.0), np.where(tr, uw, 0.0)], axis=-1)
+        H = np.zeros(hx.shape[:-1] + (2 * S, _N))
+        t3 = tr[..., None]
+        H[..., :S, 0:3] = np.where(t3, -u, 0.0)
+        H[..., S:, 0:3] = np.where(t3, (uw[..., None] * u - w) / rho[..., None], 0.0)
+        H[..., S:, 3:6] = np.where(t3, -u, 0.0)
+        return hx, H
+
+    def h(self, x):
+        return self.h_and_H(x)[0]
+
+    def H(self, x):
+        return self.h_and_H(x)[1]
+
+    def R_diag(self):
+        S = self.n_sats
+        tr = self.tracked
+        pr = np.where(tr, np.broadcast_to(self.var_pr_m2, tr.shape), 1.0)
+        prr = np.where(tr, np.broadcast_to(self.var_prr_m2_s2, tr.shape), 1.0)
+        return np.concatenate([pr, prr], axis=-1).reshape(tr.shape[:-1] + (2 * S,))
+
+    def R(self):
+        d = self.R_diag()
+        return d[..., None] * np.eye(d.shape[-1])
+
+
+def nav_measurement_model(epoch: GnssEpoch, constellation: Constellation,
+                          config: NavConfig = NavConfig()) -> tuple[ClockFreePseudorangeDoppler, np.ndarray]:
+    """(model, z) for the filter from one epoch of receiver output and the ephemeris only.
+
+    Satellite states: the ephemeris at the transit time measured by the pseudorange
+    (light_time=True) or at t (light_time=False).  z = [pr, prr] with 0 where untracked.
+    The variances are the filter's own model (config.noise), not the receiver's report."""
+    c = _check_constellation(constellation)
+    pr, prr, tr = epoch.pseudorange_m, epoch.pseudorange_rate_m_s, epoch.tracked
+    if pr.shape[-1] != len(c):
+        raise ValueError(f"epoch has {pr.shape[-1]} satellite columns, constellation has {len(c)}")
+    if config.light_time:
+        sp, sv = world.ephemeris_for_filter(epoch.t_gps_s, pr, c, pseudorange_rate_m_s=prr)
+    else:
+        sp, sv = orbits.sat_state_ecef(c, epoch.t_gps_s)
+    model = ClockFreePseudorangeDoppler(sp, sv, config.noise.var_pr_m2, config.noise.var_prr_m2_s2, tr)
+    z = np.concatenate([np.where(tr, pr, 0.0), np.where(tr, prr, 0.0)], axis=-1)
+    return model, z
+
+
+class NavEstimate(NamedTuple):
+    """A batch of onboard estimates at t_gps_s: x (..., 6) [pos, vel] ECEF, P (..., 6, 6),
+    nis (...) of the last update (NaN at initialisation), n_tracked (...)."""
+
+    t_gps_s: float
+    x: np.ndarray
+    P: np.ndarray
+    nis: np.ndarray
+    n_tracked: np.ndarray
+
+    @property
+    def pos_ecef_m(self) -> np.ndarray:
+        return self.x[..., 0:3]
+
+    @property
+    def vel_ecef_m_s(self) -> np.ndarray:
+        return self.x[..., 3:6]
+
+
+def ls_fix(epoch: GnssEpoch, constellation: Constellation, config: NavConfig = NavConfig()):
+    """Least-squares fix (x (..., 6), P (..., 6, 6)) from one epoch, batched.
+
+    Weighted Gauss-Newton on the clock-free model (config.ls_iterations steps) from a point
+    on the Earth's surface under the mean direction of the tracked satellites, velocity 0:
+    x += (H'WH)^-1 H'W (z - h(x)), P = (H'WH)^-1 at the solution.  With three satellites
+    the fix is exact (zero residual); the mirror solution lies on the far side of the
+    satellites' plane, far from the Earth, and the start point avoids it.
+    Raises ValueError where fewer than 3 satellites are tracked.
+    """
+    n_tr = epoch.tracked.sum(axis=-1)
+    if np.any(n_tr < 3):
+        raise ValueError(f"epoch: a fix needs >= 3 tracked satellites, some receivers have {int(n_tr.min())}")
+    model, z = nav_measurement_model(epoch, constellation, config)
+    tr = model.tracked
+    sp = np.where(tr[..., None], model.sat_pos_ecef_m, 0.0).sum(axis=-2)
+    x = np.zeros(z.shape[:-1] + (_N,))
+    x[..., 0:3] = _EARTH_RADIUS_M * sp / np.linalg.norm(sp, axis=-1, keepdims=True)
+    W = 1.0 / model.R_diag()
+    for k in range(int(config.ls_iterations) + 1):
+        hx, H = model.h_and_H(x)
+        A = np.einsum("...ki,...k,...kj->...ij", H, W, H)
+        if k == config.ls_iterations:
+            break
+        g = np.einsum("...ki,...k->...i", H, W * (z - hx))
+        x = x + np.linalg.solve(A, g[..., None])[..., 0]
+    P = np.linalg.inv(A)
+    return x, 0.5 * (P + np.swapaxes(P, -1, -2))
+
+
+def nav_init(epoch: GnssEpoch, constellation: Constellation, config: NavConfig = NavConfig()) -> NavEstimate:
+    """The filters' initial estimate: the least-squares fix of the first epoch."""
+    x, P = ls_fix(epoch, constellation, config)
+    return NavEstimate(epoch.t_gps_s, x, P, np.full(x.shape[:-1], np.nan), epoch.tracked.sum(axis=-1))
+
+
+def nav_step(est: NavEstimate, epoch: GnssEpoch, constellation: Constellation,
+             config: NavConfig = NavConfig(), backend=None) -> NavEstimate:
+    """One EKF predict (to epoch.t_gps_s) + update with the epoch's measurements, batched."""
+    dt = epoch.t_gps_s - est.t_gps_s
+    if not dt > 0:
+        raise ValueError(f"epoch.t_gps_s must be after the estimate's time {est.t_gps_s}, got {epoch.t_gps_s}")
+    model, z = nav_measurement_model(epoch, constellation, config)
+    res = ekf_step(est.x, est.P, z, config.transition(), model, dt, backend=backend)
+    return NavEstimate(epoch.t_gps_s, res.x, res.P, res.nis, epoch.tracked.sum(axis=-1))
+
+
+class OnboardNav:
+    """The onboard navigation of a batch of UAVs: ``update(epoch)`` initialises from the
+    first epoch's least-squares fix, then runs one EKF step per epoch; ``estimate`` is the
+    latest :class:`NavEstimate` (what the UAV publishes, with its covariance)."""
+
+    def __init__(self, constellation: Constellation, config: NavConfig = NavConfig(), backend=None):
+        self.constellation = _check_constellation(constellation)
+        if not isinstance(config, NavConfig):
+            raise ValueError(f"config must be a NavConfig, got {type(config).__name__}")
+        self.config = config
+        self.backend = backend
+        self.estimate: NavEstimate | None = None
+
+    def update(self, epoch: GnssEpoch) -> NavEstimate:
+        if self.estimate is None:
+            self.estimate = nav_init(epoch, self.constellation, self.config)
+        else:
+            self.estimate = nav_step(self.estimate, epoch, self.constellation, self.config, self.backend)
+        return self.estimate
+
+
+class NavTrack(NamedTuple):
+    """A run of the onboard filters: epochs on the leading axis T.
+
+    t_gps_s (T,); x (T, ..., 6); P (T, ..., 6, 6); nis (T, ...); n_tracked (T, ...)."""
+
+    t_gps_s: np.ndarray
+    x: np.ndarray
+    P: np.ndarray
+    nis: np.ndarray
+    n_tracked: np.ndarray
+
+
+def nav_track(rng: np.random.Generator, t_gps_s, pos_ecef_m, vel_ecef_m_s, constellation: Constellation,
+              config: NavConfig = NavConfig(), trials_shape: tuple = (), backend=None,
+              filter_config: NavConfig | None = None) -> NavTrack:
+    """Receivers and onboard EKFs along given truth trajectories (batch mode).
+
+    t_gps_s (T,) epochs; pos_ecef_m, vel_ecef_m_s (T, ..., 3) the UAVs' truth at them.
+    trials_shape prepends independent Monte Carlo trials.  Only the receiver sees the truth.
+    config drives the receivers; filter_config (default: the same) the filters, e.g. to
+    run a filter whose noise model does not match the world.
+    """
+    t = np.asarray(t_gps_s, dtype=float)
+    pos = np.asarray(pos_ecef_m, dtype=float)
+    vel = np.asarray(vel_ecef_m_s, dtype=float)
+    if t.ndim != 1 or t.size < 1 or pos.shape[:1] != t.shape or vel.shape != pos.shape:
+        raise ValueError(f"t_gps_s (T,), pos_ecef_m and vel_ecef_m_s (T, ..., 3) must agree, got {t.shape}, "
+                         f"{pos.shape}, {vel.shape}")
+    nav = OnboardNav(constellation, config if filter_config is None else filter_config, backend)
+    xs, Ps, nis, ntr = [], [], [], []
+    for k in range(t.size):
+        est = nav.update(gnss_measure(rng, t[k], pos[k], vel[k], constellation, config, trials_shape))
+        xs.append(est.x)
+        Ps.append(est.P)
+        nis.append(est.nis)
+        ntr.append(est.n_tracked)
+    return NavTrack(t.copy(), np.stack(xs), np.stack(Ps), np.stack(nis), np.stack(ntr))
