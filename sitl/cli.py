@@ -52,6 +52,16 @@ def positive_float(text: str) -> float:
     return value
 
 
+def nonnegative_float(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number >= 0, got {text!r}") from None
+    if not value >= 0 or value == float("inf"):
+        raise argparse.ArgumentTypeError(f"expected a finite number >= 0, got {text}")
+    return value
+
+
 def output_dir(text: str) -> Path:
     """An output directory: created if missing, and it must be writable."""
     path = Path(text)
@@ -150,6 +160,9 @@ def _add_iono_tropo_args(p: argparse.ArgumentParser) -> None:
                    help="adaptive Q decay, in [0, 1) (default 0.1)")
     p.add_argument("--adaptive-q-gain", type=finite_float, default=None, metavar="X",
                    help="adaptive Q gain, >= 0 (default 0.7)")
+    p.add_argument("--slip-rate", type=nonnegative_float, default=0.0, metavar="HZ",
+                   help="random cycle slips per tracked satellite per second in the simulated receiver "
+                        "(default 0: the seed's 40 dB-Hz case, slips unlikely)")
     p.add_argument("--truth-clock-psd-scale", type=positive_float, default=1.0, metavar="X",
                    help="simulated clock PSD / the filter's (default 1: correctly modelled)")
     p.add_argument("--study", choices=("none", "adaptive-q", "ordering"), default="none",

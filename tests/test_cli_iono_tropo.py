@@ -118,6 +118,7 @@ def test_never_settled_is_null_not_infinity(tmp_path):
         (["--trials", "0"], "positive integer"),
         (["--seed", "-1"], "integer >= 0"),
         (["--adaptive-q", "maybe"], "invalid choice"),
+        (["--slip-rate", "-1"], "--slip-rate"),
         (["--adaptive-q-decay", "1"], "--adaptive-q-decay"),
         (["--adaptive-q-gain", "-0.5"], "--adaptive-q-gain"),
         (["--truth-clock-psd-scale", "0"], "--truth-clock-psd-scale"),
