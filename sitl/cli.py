@@ -225,6 +225,8 @@ def build_parser() -> argparse.ArgumentParser:
             p.add_argument("--seed", type=nonnegative_int, default=0, help="random seed (default 0)")
             p.add_argument("--backend", choices=("numba", "numpy"), default="numba",
                            help="main kernels (numba: also times numpy as the peer)")
+            p.add_argument("--adaptive-q", choices=("off", "all", "dynamic"), default="dynamic",
+                           help="eq 7 scope, as in experiment iono-tropo (default dynamic)")
             p.add_argument("--json", type=output_file, default=None, metavar="FILE", help="also write the result as JSON")
             p.add_argument("--quiet", action="store_true", help="no progress lines")
     return parser
