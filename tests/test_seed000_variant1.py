@@ -58,7 +58,8 @@ def test_the_filter_never_sees_truth(monkeypatch):
     # the public entry point takes only the scenario, the trial count, the seed and options
     assert list(inspect.signature(run_code_doppler).parameters) == ["scn", "trials", "seed", "progress", "backend"]
     # spy: the filter's measurement model holds exactly the satellite states computed by
-    # ephemeris_for_filter from the receiver's own outputs and the filter's clock estimate
+    # ephemeris_for_filter from the receiver's own outputs (the tracked satellites' columns,
+    # with the matching sub-constellation) and the filter's clock estimate
     outputs, ephem_calls, models = [], [], []
     real_step = seed000.Receiver.step
 
@@ -81,17 +82,19 @@ def test_the_filter_never_sees_truth(monkeypatch):
     run_code_doppler(IonoTropoScenario(duration_s=1.0), 2, seed=1)
     assert len(models) == len(ephem_calls) == len(outputs) == 11
     for m, (sp, sv), obs in zip(models, ephem_calls, outputs):
-        vis = obs.visible[0]
-        np.testing.assert_array_equal(m.sat_pos_ecef_m, sp[:, vis])
-        np.testing.assert_array_equal(m.sat_vel_ecef_m_s, sv[:, vis])
+        np.testing.assert_array_equal(m.sat_pos_ecef_m, sp)
+        np.testing.assert_array_equal(m.sat_vel_ecef_m_s, sv)
 
 
 def _spy(calls, outputs, t, pr, const, **kw):
     from sitl.gnss import world
 
     assert set(kw) == {"pseudorange_rate_m_s", "clock_bias_est_m"}
-    assert pr is outputs[-1].pseudorange_m
-    assert kw["pseudorange_rate_m_s"] is outputs[-1].pseudorange_rate_m_s
+    obs = outputs[-1]
+    vis = obs.visible[0]
+    np.testing.assert_array_equal(pr, obs.pseudorange_m[:, vis])  # the receiver's numbers, tracked only
+    np.testing.assert_array_equal(kw["pseudorange_rate_m_s"], obs.pseudorange_rate_m_s[:, vis])
+    assert list(const.sat_id) == list(IonoTropoScenario(duration_s=1.0).constellation().sat_id[vis])
     out = world.ephemeris_for_filter(t, pr, const, **kw)
     calls.append(out)
     return out
