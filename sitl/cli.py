@@ -93,6 +93,8 @@ EXPERIMENTS = {
     "ekf-vs-ukf": ("sitl.experiments.seed001", "seed 001: EKF vs UKF on a 4-satellite receiver, Monte Carlo with the PCRB"),
     "iono-tropo": ("sitl.experiments.iono_tropo", "seed 000: zenith iono/tropo delays by an EKF from a single-frequency "
                                                   "GPS+GLONASS receiver: code+Doppler vs phase increments vs carrier phase"),
+    "beacon": ("sitl.experiments.beacon", "seed 002: a moving radio beacon located from >= 3 UAVs' range and Doppler "
+                                          "over the in-memory bus; decomposed vs centralised, against the PCRB"),
 }
 
 BENCHES = {
@@ -178,6 +180,32 @@ def _add_iono_tropo_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--quiet", action="store_true", help="no progress lines")
 
 
+def _uav_counts(text: str) -> list[int]:
+    try:
+        values = [int(v) for v in text.split(",") if v.strip()]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected comma-separated integers, got {text!r}") from None
+    if not values or any(v < 3 for v in values):
+        raise argparse.ArgumentTypeError(f"expected comma-separated integers >= 3, got {text!r}")
+    return values
+
+
+def _add_beacon_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--uavs", type=_int_at_least(3, "an integer >= 3 (three UAVs at least)"), default=3,
+                   help="UAVs of the two main cases (default 3, as in the seed)")
+    p.add_argument("--duration", type=positive_float, default=1000.0, metavar="S",
+                   help="simulated time, s at 1 Hz; > 105 (errors are scored after the first 100 s) (default 1000)")
+    p.add_argument("--seed", type=nonnegative_int, default=1, help="seed of the numpy Generators (default 1)")
+    p.add_argument("--out", type=output_dir, default=Path("out/beacon"), metavar="DIR",
+                   help="output directory for result.json and PNG figures (default out/beacon)")
+    p.add_argument("--trials", type=positive_int, default=20, help="Monte Carlo trials of the main cases (default 20)")
+    p.add_argument("--sweep-trials", type=positive_int, default=5,
+                   help="Monte Carlo trials of each by_uav_count run (default 5)")
+    p.add_argument("--uav-counts", type=_uav_counts, default=[3, 5, 10, 30], metavar="N,N,...",
+                   help="UAV counts of by_uav_count, GPS constellation (default 3,5,10,30)")
+    p.add_argument("--quiet", action="store_true", help="no progress lines")
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = _Parser(prog="skyfuse", description="GNSS-aided tracking software-in-the-loop: experiments, benchmarks and the live SITL.")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=_Parser)
@@ -200,6 +228,8 @@ def build_parser() -> argparse.ArgumentParser:
             _add_seed001_args(p)
         elif name == "iono-tropo":
             _add_iono_tropo_args(p)
+        elif name == "beacon":
+            _add_beacon_args(p)
 
     bench = sub.add_parser("bench", help="speed benchmarks, each against a peer measured in the same run",
                            description="Benchmarks report ratios against a peer measured in the same run.")

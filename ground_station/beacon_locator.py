@@ -1,0 +1,1125 @@
+"""Seed 002 ground-station beacon locator: a filter on the beacon from range and Doppler at N UAVs.
+
+The decomposition the seed requires (eqs 10-11): every UAV navigates on board (its own GNSS
+EKF) and sends, with each beacon measurement, its own estimate [U_i, V_i] and covariance
+P_i (``sitl.bus.BeaconMeasurement`` carries that snapshot); this one computer estimates the
+beacon from those messages alone.  It never sees the truth nor the UAVs' raw GNSS.
+
+Why the filter does not run in ECEF
+-----------------------------------
+On the seed's geometry the beacon is ~230 km from three UAVs that are 15-45 km apart and
+nearly collinear.  The ranges then fix the beacon's distance from the UAVs' line and its
+position along it to metres, but hardly its angle phi about the line: turning the beacon on
+that circle (radius ~230 km; the turn is mostly a change of height) changes the ranges
+only through the UAVs' small departures from a line.  Its information is ~1-3 km per
+epoch, a million times weaker (in variance) than the radial one.  An EKF in ECEF fails on
+this banana: linearised at an estimate a few km round the circle, its range normal is
+tilted by (a few km)/(230 km) and the strong radial information leaks into the weak
+direction at every update -- measured here on the seed run, the ECEF EKF's height sigma fell
+to ~500 m while its error grew to 20-50 km (NEES ~1e6), and an ECEF UKF did no better;
+with the Jacobians taken at the truth (an oracle) the same filter stayed consistent.  The
+curvature is removed by coordinates in which the circle is a coordinate line:
+
+    formation-cylindrical coordinates of the beacon (per trial, rebuilt every epoch):
+    c the centroid of the present UAVs' estimates, a their principal axis, e1 the unit
+    normal from the axis towards the predicted beacon, e2 = a x e1;
+    B = c + s a + rho (cos phi e1 + sin phi e2),  y = [s, rho, phi, v_s, v_rho, v_phi],
+    the velocity in the local basis (a, e_rho, e_phi) at B.
+
+With collinear UAVs the ranges depend on (s, rho) only and the beacon's own velocity enters
+the Doppler without phi (u has no e_phi component), so the weak pair (phi, v_phi) is
+separated from the strong ones and no product of two uncertain quantities (phi and an
+ECEF velocity) appears in the Doppler.  The frame changes a little between epochs (the
+formation moves ~100 m and turns ~1 mrad per second); the state is carried across by the
+exact conversion (mean) and its Jacobian (covariance).  A formation that is not line-like
+(second singular value > ``axis_ratio`` of the first) keeps the previous axis.  Whether a
+track uses these coordinates is decided when it starts (:func:`formation_frame`): only for a
+line-like formation with the beacon more than 3 formation lengths from its axis (the seed's
+case); otherwise (UAVs spread in two dimensions, as in the experiment's 5-30 UAV runs, or a
+beacon near or inside the formation, where the coordinates would be singular) the state
+stays plain ECEF [B, V_B] and the filter is an ordinary EKF.
+
+Motion model: constant velocity in ECEF with white acceleration of PSD ``q_m2_s3``
+(isotropic, so the same in any rotated basis), mapped into the cylindrical state by the
+conversion's Jacobians.  q = 1 m^2/s^3 by default: the beacon's acceleration is
+deterministic (speed, heading and climb sinusoids, up to ~0.3 m/s^2, periods 314 s) and
+the weak direction is corrected only slowly, so the model must allow a vertical speed
+change of ~10 m/s in ~80 s; with the UAVs' positions exact (so that only the beacon model
+is tested) the time-averaged 6-state NEES in the filter's coordinates over 10 trials was
+~13 at q = 0.1, ~9 at 0.3, ~5.4 at 1 and ~5 at 3 (6 is consistent).
+
+Output: the Gaussian the filter carries lives in the cylindrical coordinates; its image in
+ECEF is a banana whose bend along the weak direction (delta^2 / 2 rho = 35 m for delta =
+4 km) dwarfs the ~3 m radial sigma.  The published ECEF mean and covariance are therefore
+the unscented transform of (y, P) (sigma points at +-sqrt(6) sigma, W0 = 0), i.e. the
+moments of that banana to second order, not the linearised image.
+
+``motion="position"`` keeps the seed's own beacon filter for comparison
+(:func:`position_only_step`, ECEF): predict B+ = B + T V_hat_B with V_hat_B the weighted
+least-squares Doppler solution at the prior (eq 8, any N >= 3), F = I + T dV_hat/dB (central
+differences, the seed's dPsi^-1 U1/dX term), process noise T^2 Cov(V_hat_B) (eq 11's
+Psi^-1 U2 D U2' Psi^-T); update with the ranges only.  On the seed geometry its Doppler
+velocity solve is ill-conditioned (nearly parallel lines of sight: the velocity across them,
+mostly vertical, is amplified from 0.1 m/s Doppler noise to tens of m/s).
+
+Measurements and the UAVs' own uncertainty
+------------------------------------------
+``filters.beacon.ObserverRangeDoppler`` at the UAVs' estimates, z_i = [r_i, rdot_i].
+``observer_uncertainty="inflate"`` (default): R_i = diag(var_r, var_v) + kappa J_i P_i J_i',
+the first-order effect of UAV i's navigation error (a consider term, white by construction);
+``"ignore"``: R_i = diag(var_r, var_v), the UAVs taken as exact.  kappa = 1 + 2 tau / dt
+with tau = ``uav_error_corr_s``: the UAVs' errors are the outputs of their own filters and
+persist for tens of seconds (seed run, three satellites: position-error autocorrelation
+0.9 at 10 s, 0.6 at 50 s; velocity 0.67 at 1 s, 0.3 at 10-50 s), and K samples of an error
+with correlation time tau carry the information of only ~K / (1 + 2 tau / dt) independent
+ones -- treated as white with kappa = 1 the filter is over-confident by that factor
+(measured on the seed run, 20 trials, position ANEES after 100 s, 99 % band 1.8-4.6:
+223 (three satellites) and 5e4 (GPS constellation) at kappa = 1, 4.5 and 3.2 at kappa = 101).  ``uav_error_corr_s``
+= 0 gives the plain consider term R + J P J'.
+
+Each observer's 2x2 R block is whitened by its Cholesky factor and the update runs as a
+scalar sequential Joseph update (``filters.kernels.joseph_update``) batched over trials;
+absent or rejected observers have zero rows (gain exactly 0), so every trial may have its
+own N.
+
+What the locator takes in, and what it rejects (``rejected``, ``counters``)
+--------------------------------------------------------------------------
+The transport has already rejected malformed / NaN payloads (counted by the transport).
+``on_message`` rejects and counts: a message for another beacon, a range or range rate
+outside plausible limits, a UAV position off the Earth's neighbourhood, a UAV covariance
+with a position sigma above ``max_uav_pos_sigma_m`` or a velocity sigma above
+``max_uav_vel_sigma_m_s`` (an absurd navigation solution would be believed otherwise),
+a message older than the filter; ``counters`` has duplicates (same run, UAV and time) and
+messages of runs it does not track.  ``step`` gates each observer by its own 2-dof
+normalised innovation (chi-square tail ``gate_prob``) and counts the rejections.
+
+Initialisation
+--------------
+A single epoch is a poor fix on this geometry: ``sitl.radio.beacon_link.multilaterate``
+errs by 10-200 km (the circle above, and the mirror: three UAVs are coplanar, and the
+beacon's reflection through their plane has exactly the same ranges).  The locator
+accumulates ``init_epochs`` epochs with >= 3 valid observers, takes the closed-form
+multilateration of each (UAV estimates as anchors) and the component-wise median as the
+start, then solves for [B(t_K), V_B] by Levenberg-Marquardt on all ranges and Dopplers of
+the window (constant velocity across it, so the window must stay short: the beacon
+accelerates) with two weak priors: the beacon's height within ``init_height_sigma_m`` of the
+UAVs' mean height (an emitter in the same airspace: a few km, not hundreds -- without it
+the first minutes are spent on the circle) and each velocity component ~ N(0,
+``init_vel_sigma_m_s``^2).  The circle is handled by scanning the height (pinned) over
++-3 sigma and keeping the best fit; the mirror by doing that from the start and from the
+start turned by 180 deg about the UAVs' axis.  The better of the two is the track, the
+other a mirror hypothesis carried along as a second filter: the reflection of a track
+through the formation's turning plane accelerates, so the two tracks' summed -2
+log-likelihoods (every present observer, gated or not) drift apart; the likelier is kept as
+soon as they differ by ``init_resolve_llr`` (a sequential likelihood-ratio test), at the
+latest after ``init_resolve_s``.  Until then the published estimate is the two-track
+mixture (weights from the likelihoods, moments matched: the MMSE estimate, whose covariance
+spans both sides while they are undecided).  Measured on 20
+trials of the seed run (10 three-satellite, 10 constellation): the scores part by 150 within
+27-99 s in 19 trials and 332 s in one, whose true track had first drifted 132 towards the
+mirror (hence the high threshold); the largest excursion of any other trial towards the
+wrong side was 16.  The start covariance
+is the window's inverse information times ``init_cov_scale``.
+
+Fewer than three UAVs
+---------------------
+UAVs may join and leave: each epoch uses the observers present.  With fewer than 3 the
+update still uses what is there (one or two ranges and Dopplers are valid information)
+while the covariance grows in the unobserved directions; with none the filter only
+predicts.  The Estimate's ``mode`` says which: "fused" (>= 3 observers used), "degraded"
+(1-2), "coast" (0), and "lost" once ``coast_s`` (time since the last epoch with >= 3)
+exceeds ``max_coast_s`` -- the estimate is still published, with its large covariance.
+Before initialisation nothing is published.
+
+Bus
+---
+``BeaconLocator(transport, run_ids=[...], beacon_id="b1")`` subscribes once to
+``*/uav/*/beacon/<beacon_id>``; each run id is one Monte Carlo trial (runs share a bus by
+their key prefix) and one row of the batch.  ``on_message(key, msg)`` collects an epoch's
+measurements; ``step(t_gps_s)`` processes the epoch for every trial at once and publishes
+one ``Estimate`` per initialised trial on ``<run>/gs/estimate/beacon/<beacon_id>``.
+``process(t_gps_s, obs)`` is the same filter step on arrays (:class:`ObserverEpoch`).
+
+numpy/scipy plus sitl (bus, geodesy, multilateration) and filters; never imports vehicles.
+"""
+from __future__ import annotations
+
+import functools
+import math
+from collections import Counter
+from dataclasses import dataclass
+from typing import NamedTuple
+
+import numpy as np
+import scipy.stats
+
+from filters import kernels
+from filters.beacon import OBSERVER_UNCERTAINTY, ObserverRangeDoppler
+from filters.models import ConstantVelocity
+from sitl.bus import BeaconMeasurement, Estimate, key_for, parse_key
+from sitl.geodesy import ecef_to_geodetic
+from sitl.radio.beacon_link import multilaterate
+
+__all__ = [
+    "LocatorConfig",
+    "ObserverEpoch",
+    "Frame",
+    "formation_frame",
+    "cyl_to_ecef",
+    "ecef_to_cyl",
+    "ut_to_ecef",
+    "InitFix",
+    "init_fix",
+    "cyl_step",
+    "position_only_step",
+    "BeaconLocator",
+    "MOTIONS",
+]
+
+MOTIONS = ("cv", "position")
+_EARTH_R_MIN_M, _EARTH_R_MAX_M = 6.2e6, 7.0e6  # a UAV position outside this shell is absurd
+_UT_C2 = 6.0  # n + lambda of the sigma points (alpha = 1, kappa = 0): +-sqrt(6) sigma, W0 = 0
+
+
+@functools.lru_cache(maxsize=64)
+def _chi2_isf(p: float, dof: int) -> float:
+    return float(scipy.stats.chi2.isf(p, dof))
+
+
+@functools.lru_cache(maxsize=64)
+def _cv_matrices(q: float, dt: float):
+    """(F, Q) of the constant-velocity model (memoised: built every step otherwise)."""
+    m = ConstantVelocity(3, q=q)
+    F, Q = np.asarray(m.F(None, dt), float), np.asarray(m.Q(dt), float)
+    F.flags.writeable = False
+    Q.flags.writeable = False
+    return F, Q
+
+
+def _pos(name, v):
+    v = float(v)
+    if not (math.isfinite(v) and v > 0):
+        raise ValueError(f"{name} must be a finite number > 0, got {v!r}")
+    return v
+
+
+def _nonneg(name, v):
+    v = float(v)
+    if not (math.isfinite(v) and v >= 0):
+        raise ValueError(f"{name} must be a finite number >= 0, got {v!r}")
+    return v
+
+
+@dataclass(frozen=True)
+class LocatorConfig:
+    """Settings of the beacon locator (module docstring).
+
+    q_m2_s3: acceleration PSD of the beacon's constant-velocity model, m^2/s^3.
+    observer_uncertainty: "inflate" (R + kappa J P_i J') or "ignore" (R only).
+    uav_error_corr_s: correlation time tau of the UAVs' navigation errors; kappa = 1 + 2 tau / dt.
+    motion: "cv" (the cylindrical [B, V_B] filter) or "position" (the seed's position-only filter).
+    init_epochs: epochs with >= 3 observers accumulated before the first estimate.
+    init_height_sigma_m: prior sigma of the beacon's height about the UAVs' mean height, m
+        (inf: no height prior, no height scan).
+    init_vel_sigma_m_s: prior sigma of each beacon velocity component, m/s.
+    init_cov_scale: the initial covariance is the window's inverse information times this.
+    init_resolve_s: the longest the mirror hypothesis is carried, s (0: not carried).
+    init_resolve_llr: the mirror is resolved as soon as the two tracks' summed -2 log-likelihoods
+        differ by this much (a likelihood ratio of exp(llr / 2)), else at init_resolve_s.
+    gate_prob: an observer whose NIS exceeds the chi-square (1 - gate_prob) quantile is
+        rejected (2 dof; 1 dof for the position-only ranges).
+    max_uav_pos_sigma_m, max_uav_vel_sigma_m_s: a UAV snapshot whose largest position
+        (velocity) standard deviation exceeds this is rejected.
+    max_range_m, max_range_rate_m_s: plausibility limits of a beacon measurement.
+    max_coast_s: time without >= 3 observers after which the mode reads "lost".
+    axis_ratio: a formation whose second singular value exceeds this fraction of the first
+        is not line-like; it keeps the previous axis.
+    position_q_m2_s3: extra process noise PSD of the position-only filter (numerical floor).
+    backend: covariance kernels (None: the default, numba when installed).
+    """
+
+    q_m2_s3: float = 1.0
+    observer_uncertainty: str = "inflate"
+    uav_error_corr_s: float = 50.0
+    motion: str = "cv"
+    init_epochs: int = 3
+    init_height_sigma_m: float = 5000.0
+    init_vel_sigma_m_s: float = 300.0
+    init_cov_scale: float = 4.0
+    init_resolve_s: float = 600.0
+    init_resolve_llr: float = 150.0
+    gate_prob: float = 1e-5
+    max_uav_pos_sigma_m: float = 1000.0
+    max_uav_vel_sigma_m_s: float = 50.0
+    max_range_m: float = 1.0e6
+    max_range_rate_m_s: float = 3000.0
+    max_coast_s: float = 60.0
+    axis_ratio: float = 0.5
+    position_q_m2_s3: float = 1e-3
+    backend: str | None = None
+
+    def __post_init__(self):
+        _nonneg("q_m2_s3", self.q_m2_s3)
+        if self.observer_uncertainty not in OBSERVER_UNCERTAINTY:
+            raise ValueError(f"observer_uncertainty must be one of {OBSERVER_UNCERTAINTY}, "
+                             f"got {self.observer_uncertainty!r}")
+        if self.motion not in MOTIONS:
+            raise ValueError(f"motion must be one of {MOTIONS}, got {self.motion!r}")
+        if isinstance(self.init_epochs, bool) or int(self.init_epochs) != self.init_epochs or self.init_epochs < 1:
+            raise ValueError(f"init_epochs must be an integer >= 1, got {self.init_epochs!r}")
+        if not float(self.init_height_sigma_m) > 0:
+            raise ValueError(f"init_height_sigma_m must be > 0 (inf: no prior), got {self.init_height_sigma_m!r}")
+        for name in ("init_vel_sigma_m_s", "init_cov_scale", "max_uav_pos_sigma_m", "max_uav_vel_sigma_m_s",
+                     "max_range_m", "max_range_rate_m_s", "max_coast_s", "position_q_m2_s3"):
+            _pos(name, getattr(self, name))
+        _nonneg("uav_error_corr_s", self.uav_error_corr_s)
+        _nonneg("init_resolve_s", self.init_resolve_s)
+        _pos("init_resolve_llr", self.init_resolve_llr)
+        if not 0.0 < float(self.gate_prob) < 1.0:
+            raise ValueError(f"gate_prob must lie in (0, 1), got {self.gate_prob!r}")
+        if not 0.0 < float(self.axis_ratio) <= 1.0:
+            raise ValueError(f"axis_ratio must lie in (0, 1], got {self.axis_ratio!r}")
+        kernels.resolve_backend(self.backend)
+
+    @property
+    def n_state(self) -> int:
+        return 6 if self.motion == "cv" else 3
+
+    @property
+    def gate_chi2(self) -> float:
+        return _chi2_isf(float(self.gate_prob), 2 if self.motion == "cv" else 1)
+
+    def kappa(self, dt_s: float) -> float:
+        """Inflation of the UAVs' covariance for their errors' time correlation."""
+        if self.observer_uncertainty != "inflate":
+            return 0.0
+        return 1.0 + 2.0 * float(self.uav_error_corr_s) / (dt_s if dt_s > 0 else 1.0)
+
+
+class ObserverEpoch(NamedTuple):
+    """One epoch of beacon measurements for a batch of trials, padded to N observers.
+
+    pos (T, N, 3), vel (T, N, 3): the UAVs' own estimates; cov (T, N, 6, 6) their covariance
+    over [U, V]; range_m, range_rate_m_s, var_range_m2, var_range_rate_m2_s2 (T, N);
+    mask (T, N) True where an observer is present.  Absent slots hold finite fillers.
+    """
+
+    pos: np.ndarray
+    vel: np.ndarray
+    cov: np.ndarray
+    range_m: np.ndarray
+    range_rate_m_s: np.ndarray
+    var_range_m2: np.ndarray
+    var_range_rate_m2_s2: np.ndarray
+    mask: np.ndarray
+
+    @property
+    def n_trials(self) -> int:
+        return self.pos.shape[0]
+
+    def take(self, idx) -> "ObserverEpoch":
+        return ObserverEpoch(*(a[idx] for a in self))
+
+    @staticmethod
+    def empty(n_trials: int, n_obs: int) -> "ObserverEpoch":
+        cov = np.broadcast_to(np.eye(6), (n_trials, n_obs, 6, 6)).copy()
+        z = np.zeros((n_trials, n_obs))
+        return ObserverEpoch(np.zeros((n_trials, n_obs, 3)), np.zeros((n_trials, n_obs, 3)), cov, z + 1.0, z.copy(),
+                             z + 1.0, z + 1.0, np.zeros((n_trials, n_obs), bool))
+
+
+def _fill_absent(obs: ObserverEpoch, anchor) -> ObserverEpoch:
+    """Absent observers moved to a harmless finite place (1000 km from ``anchor`` along x,
+    unit covariance) so that the geometry stays finite; their rows are zeroed anyway."""
+    m = obs.mask
+    if m.all():
+        return obs
+    filler = np.asarray(anchor, float)[..., None, 0:3] + np.array([1.0e6, 0.0, 0.0])
+    one = np.ones_like(obs.range_m)
+    return ObserverEpoch(np.where(m[..., None], obs.pos, filler), np.where(m[..., None], obs.vel, 0.0),
+                         np.where(m[..., None, None], obs.cov, np.eye(6)), np.where(m, obs.range_m, one),
+                         np.where(m, obs.range_rate_m_s, 0.0), np.where(m, obs.var_range_m2, one),
+                         np.where(m, obs.var_range_rate_m2_s2, one), m)
+
+
+def _chol2(S):
+    """Cholesky factors of 2x2 blocks (..., 2, 2): (l11, l21, l22)."""
+    l11 = np.sqrt(S[..., 0, 0])
+    l21 = S[..., 1, 0] / l11
+    l22 = np.sqrt(np.maximum(S[..., 1, 1] - l21 * l21, 1e-300))
+    return l11, l21, l22
+
+
+def _solve2(l11, l21, l22, v):
+    """L^-1 v for lower-triangular 2x2 factors; v (..., 2, k)."""
+    a = v[..., 0, :] / l11[..., None]
+    b = (v[..., 1, :] - l21[..., None] * a) / l22[..., None]
+    return np.stack([a, b], axis=-2)
+
+
+def range_doppler_blocks(x, obs: ObserverEpoch, kappa: float):
+    """(zhat (T, N, 2), H (T, N, 2, 6) wrt ECEF [B, V_B], R (T, N, 2, 2)) at x (T, 6).
+
+    R = diag(var_r, var_v) + kappa J_i P_i J_i' (kappa 0: the UAVs taken as exact), J_i the
+    Jacobian wrt UAV i's [U_i, V_i] -- which is minus the Jacobian wrt [B, V_B] (d r/dU = u =
+    -d r/dB, d rdot/dU = -d rdot/dB, d rdot/dV_i = u = -d rdot/dV_B): the same numbers as
+    ``ObserverRangeDoppler.R`` with "inflate", without forming the full 2N x 2N matrix."""
+    T, N = obs.mask.shape
+    model = ObserverRangeDoppler(obs.pos, obs.vel, obs.var_range_m2, obs.var_range_rate_m2_s2,
+                                 observer_uncertainty="ignore")
+    zhat, H = model.h_and_H(x)
+    H = H.reshape(T, N, 2, 6)
+    R = np.zeros((T, N, 2, 2))
+    if kappa > 0:
+        R += kappa * np.einsum("tnai,tnij,tnbj->tnab", H, obs.cov, H)
+    R[..., 0, 0] += obs.var_range_m2
+    R[..., 1, 1] += obs.var_range_rate_m2_s2
+    return zhat.reshape(T, N, 2), H, R
+
+
+def _m2ll(yw, Hw, P, logdet_r):
+    """-2 log-likelihood (without 2 pi) of whitened innovations yw (T, M) with whitened
+    Jacobians Hw (T, M, n) (zero rows for absent observers): nu' S^-1 nu + log det S,
+    S = Hw P Hw' + I, plus log det R (logdet_r (T,))."""
+    S = np.einsum("tai,tij,tbj->tab", Hw, P, Hw) + np.eye(yw.shape[-1])
+    L = np.linalg.cholesky(S)
+    w = np.linalg.solve(L, yw[..., None])[..., 0]
+    return np.sum(w * w, axis=-1) + 2.0 * np.sum(np.log(np.diagonal(L, axis1=-2, axis2=-1)), axis=-1) + logdet_r
+
+
+# --------------------------------------------------------------------------- coordinates
+
+
+class Frame(NamedTuple):
+    """Formation-cylindrical frames, one per row: origin c, axis a, normals e1, e2 (T, 3);
+    cart (T,) True where the row's state is plain ECEF instead (see formation_frame)."""
+
+    c: np.ndarray
+    a: np.ndarray
+    e1: np.ndarray
+    e2: np.ndarray
+    cart: np.ndarray
+
+    def take(self, idx) -> "Frame":
+        return Frame(*(v[idx] for v in self))
+
+
+def _unit(v):
+    return v / np.sqrt(np.sum(v * v, axis=-1, keepdims=True))
+
+
+def _cross(a, b):
+    a, b = np.broadcast_arrays(a, b)
+    return np.stack([a[..., 1] * b[..., 2] - a[..., 2] * b[..., 1], a[..., 2] * b[..., 0] - a[..., 0] * b[..., 2],
+                     a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0]], axis=-1)
+
+
+def formation_frame(upos, mask, beacon_pos, prev: Frame | None = None, axis_ratio: float = 0.5) -> Frame:
+    """The frame of each row: centroid and principal axis of the present UAVs (previous
+    frame's where fewer than 2 are present, previous axis where the formation is not
+    line-like), e1 towards ``beacon_pos`` (so that phi = 0 there).
+
+    Which rows use the cylindrical coordinates is decided once, when a track starts (no
+    ``prev``), and kept: those whose formation is line-like (second singular value <=
+    axis_ratio x the first) with the beacon more than 3 formation lengths from its axis.
+    The others -- a formation spread in two dimensions, or a beacon near or inside the
+    formation, where the coordinates would be singular -- keep plain ECEF (cart True)."""
+    m = mask[..., None]
+    n = mask.sum(axis=-1)
+    c = (upos * m).sum(axis=-2) / np.maximum(n, 1)[:, None]
+    d = (upos - c[:, None, :]) * m
+    w2, vec = np.linalg.eigh(np.swapaxes(d, -1, -2) @ d)  # ascending eigenvalues (singular values^2)
+    a = vec[..., :, 2]
+    line_like = w2[:, 1] <= axis_ratio ** 2 * w2[:, 2]
+    if prev is not None:
+        a = np.where((np.sum(a * prev.a, axis=-1) < 0)[:, None], -a, a)
+        keep_c = n < 2
+        keep_a = keep_c | ~line_like
+        c = np.where(keep_c[:, None], prev.c, c)
+        a = np.where(keep_a[:, None], prev.a, a)
+    w = beacon_pos - c
+    w = w - np.sum(w * a, axis=-1, keepdims=True) * a
+    rho = np.sqrt(np.sum(w * w, axis=-1))
+    if prev is None:
+        extent = np.max(np.sqrt(np.sum(d * d, axis=-1)), axis=-1)
+        cart = ~(line_like & (rho > 3.0 * extent) & (n >= 2))
+    else:
+        cart = np.asarray(prev.cart, bool)
+    e1 = np.where((rho > 0)[:, None], w / np.where(rho > 0, rho, 1.0)[:, None], _any_normal(a))
+    return Frame(c, a, e1, _cross(a, e1), cart)
+
+
+def _any_normal(a):
+    """A unit vector normal to each a (..., 3)."""
+    t = np.where((np.abs(a[..., 0]) < 0.9)[..., None], np.array([1.0, 0.0, 0.0]), np.array([0.0, 1.0, 0.0]))
+    return _unit(t - np.sum(t * a, axis=-1, keepdims=True) * a)
+
+
+def _basis(phi, fr: Frame):
+    cp, sp = np.cos(phi)[..., None], np.sin(phi)[..., None]
+    return cp * fr.e1 + sp * fr.e2, -sp * fr.e1 + cp * fr.e2
+
+
+def cyl_to_ecef(y, fr: Frame, jacobian: bool = False):
+    """ECEF [B, V] (..., 6) of states y (..., 6) (frames broadcast against the last batch
+    axis; rows with fr.cart are ECEF already); with ``jacobian`` also d x / d y (..., 6, 6)."""
+    s, rho = y[..., 0:1], y[..., 1:2]
+    er, ep = _basis(y[..., 2], fr)
+    a = fr.a
+    cart = fr.cart[..., None]
+    x = np.concatenate([fr.c + s * a + rho * er, y[..., 3:4] * a + y[..., 4:5] * er + y[..., 5:6] * ep], axis=-1)
+    x = np.where(cart, y, x)
+    if not jacobian:
+        return x
+    J = np.zeros(y.shape[:-1] + (6, 6))
+    J[..., 0:3, 0] = a
+    J[..., 0:3, 1] = er
+    J[..., 0:3, 2] = rho * ep
+    J[..., 3:6, 2] = y[..., 4:5] * ep - y[..., 5:6] * er
+    J[..., 3:6, 3] = a
+    J[..., 3:6, 4] = er
+    J[..., 3:6, 5] = ep
+    return x, np.where(cart[..., None], np.eye(6), J)
+
+
+def ecef_to_cyl(x, fr: Frame, jacobian: bool = False):
+    """States (..., 6) of ECEF [B, V] (..., 6) (unchanged in rows with fr.cart); with
+    ``jacobian`` also (d y / d x, d x / d y) (..., 6, 6) at that point (exact inverses)."""
+    d = x[..., 0:3] - fr.c
+    s = np.sum(d * fr.a, axis=-1)
+    w = d - s[..., None] * fr.a
+    rho = np.sqrt(np.sum(w * w, axis=-1))
+    rho_s = np.where(rho > 0, rho, 1.0)
+    phi = np.arctan2(np.sum(w * fr.e2, axis=-1), np.sum(w * fr.e1, axis=-1))
+    er = w / rho_s[..., None]
+    ep = _cross(fr.a, er)
+    v = x[..., 3:6]
+    vr, vp = np.sum(v * er, axis=-1), np.sum(v * ep, axis=-1)
+    y = np.stack([s, rho, phi, np.sum(v * fr.a, axis=-1), vr, vp], axis=-1)
+    cart = fr.cart[..., None]
+    y = np.where(cart, x, y)
+    if not jacobian:
+        return y
+    a = np.broadcast_to(fr.a, er.shape)
+    J = np.zeros(y.shape[:-1] + (6, 6))
+    J[..., 0:3, 0], J[..., 0:3, 1], J[..., 0:3, 2] = a, er, rho[..., None] * ep
+    J[..., 3:6, 2] = vr[..., None] * ep - vp[..., None] * er
+    J[..., 3:6, 3], J[..., 3:6, 4], J[..., 3:6, 5] = a, er, ep
+    # inverse: position rows a', er', ep'/rho; velocity rows R' = [a, er, ep]' plus the phi coupling
+    Ji = np.zeros_like(J)
+    Ji[..., 0, 0:3], Ji[..., 1, 0:3], Ji[..., 2, 0:3] = a, er, ep / rho_s[..., None]
+    Ji[..., 3, 3:6], Ji[..., 4, 3:6], Ji[..., 5, 3:6] = a, er, ep
+    # v = R(phi)' V: d v / d B = (dR'/dphi V) dphi/dB = [0, v_phi, -v_rho]' ep' / rho
+    Ji[..., 4, 0:3] = vp[..., None] * ep / rho_s[..., None]
+    Ji[..., 5, 0:3] = -vr[..., None] * ep / rho_s[..., None]
+    eye = np.eye(6)
+    return y, np.where(cart[..., None], eye, Ji), np.where(cart[..., None], eye, J)
+
+
+def _sigma_points(y, P):
+    n = y.shape[-1]
+    L = np.linalg.cholesky(P) * math.sqrt(_UT_C2)
+    Lt = np.moveaxis(L, -1, 0)  # (n, T, n): the columns
+    return np.concatenate([y[None], y[None] + Lt, y[None] - Lt]), np.r_[0.0, np.full(2 * n, 0.5 / _UT_C2)]
+
+
+def ut_to_ecef(y, P, fr: Frame):
+    """ECEF mean (T, 6) and covariance (T, 6, 6) of the cylindrical Gaussian (y, P): the
+    unscented transform (sigma points +-sqrt(6) sigma, W0 = 0): the banana's moments."""
+    X, W = _sigma_points(y, P)
+    xs = cyl_to_ecef(X, fr)
+    m = np.einsum("k,kti->ti", W, xs)
+    d = xs - m
+    C = np.einsum("k,kti,ktj->tij", W, d, d)
+    return m, 0.5 * (C + np.swapaxes(C, -1, -2))
+
+
+# --------------------------------------------------------------------------- filter steps
+
+
+def cyl_step(y, P, fr: Frame, obs: ObserverEpoch, config: LocatorConfig, dt_s: float, loglik: bool = False):
+    """One predict (over dt_s, skipped when 0) + update of the cylindrical filter, batched.
+
+    y (T, 6), P (T, 6, 6) in the frames ``fr``; obs with T rows.  Returns (y, P, frame,
+    nis (T,), used (T, N), gated (T, N), m2ll (T,) or None); the new frame is the epoch's;
+    nis is NaN where no observer was used; m2ll (``loglik``) is -2 log p(z | past) of every
+    present observer, gated or not (it scores hypotheses).
+    """
+    y = np.asarray(y, float)
+    P = np.asarray(P, float)
+    x, G = cyl_to_ecef(y, fr, jacobian=True)
+    F6, Q = _cv_matrices(float(config.q_m2_s3), float(dt_s))
+    xp = x @ F6.T
+    fr = formation_frame(obs.pos, obs.mask, xp[:, 0:3], fr, config.axis_ratio)
+    y, Gi, G2 = ecef_to_cyl(xp, fr, jacobian=True)
+    if dt_s > 0:
+        F = Gi @ F6 @ G
+        P = F @ P @ np.swapaxes(F, -1, -2) + Gi @ Q @ np.swapaxes(Gi, -1, -2)
+        P = 0.5 * (P + np.swapaxes(P, -1, -2))
+    obs = _fill_absent(obs, xp)
+    T, N = obs.mask.shape
+    kappa = config.kappa(dt_s)
+    zhat, H, R = range_doppler_blocks(xp, obs, kappa)
+    H = H @ G2[:, None]  # wrt the cylindrical state
+    nu = np.stack([obs.range_m, obs.range_rate_m_s], axis=-1) - zhat  # (T, N, 2)
+    R_score = None
+    if loglik and kappa > 1.0:
+        # hypotheses are scored with the UAVs' per-epoch error variance (kappa = 1): kappa > 1
+        # discounts their information for the update, and as a noise model its log det term
+        # would favour whichever hypothesis projects less of the UAVs' covariance (measured:
+        # it picked the mirror in 10 of 10 constellation trials)
+        R0 = np.zeros_like(R)
+        R0[..., 0, 0], R0[..., 1, 1] = obs.var_range_m2, obs.var_range_rate_m2_s2
+        R_score = R0 + (R - R0) / kappa
+    return _update(y, P, nu, H, R, obs.mask, config, loglik, R_score) + (fr,)
+
+
+def _update(y, P, nu, H, R, mask, config, loglik, R_score=None):
+    """Gate per observer, whiten the 2x2 blocks, Joseph update.  Returns (y, P, nis, used,
+    gated, m2ll); m2ll (``loglik``) with R_score in place of R when given."""
+    T, N = mask.shape
+    n = y.shape[-1]
+    S = np.einsum("tnai,tij,tnbj->tnab", H, P, H) + R
+    s11, s21, s22 = _chol2(S)
+    w = _solve2(s11, s21, s22, nu[..., None])[..., 0]
+    d = np.sum(w * w, axis=-1)
+    gated = mask & ~(d <= config.gate_chi2)
+    used = mask & ~gated
+    l11, l21, l22 = _chol2(R)
+    yw_all = _solve2(l11, l21, l22, nu[..., None])[..., 0]
+    Hw_all = _solve2(l11, l21, l22, H)
+    m2ll = None
+    if loglik:
+        pm = mask[..., None]
+        f11, f21, f22 = (l11, l21, l22) if R_score is None else _chol2(R_score)
+        yw_s = yw_all if R_score is None else _solve2(f11, f21, f22, nu[..., None])[..., 0]
+        Hw_s = Hw_all if R_score is None else _solve2(f11, f21, f22, H)
+        m2ll = _m2ll((yw_s * pm).reshape(T, 2 * N), (Hw_s * pm[..., None]).reshape(T, 2 * N, n), P,
+                     2.0 * np.sum(np.log(f11 * f22) * mask, axis=-1))
+    yo, Po, nis = kernels.joseph_update(np.ascontiguousarray(y), np.ascontiguousarray(P),
+                                        (yw_all * used[..., None]).reshape(T, 2 * N),
+                                        (Hw_all * used[..., None, None]).reshape(T, 2 * N, n),
+                                        r_diag=np.ones((T, 2 * N)), backend=config.backend)
+    nis = np.where(used.any(axis=-1), nis, np.nan)
+    return yo, Po, nis, used, gated, m2ll
+
+
+def _doppler_velocity(B, obs: ObserverEpoch, kappa: float):
+    """Weighted least-squares beacon velocity from the Dopplers (seed eq 8, any N >= 3).
+
+    rdot_i = u_i . (V_i - V_B)  ->  u_i' V_B = u_i' V_i - rdot_i,  u_i = (U_i - B)/|U_i - B|;
+    weight 1 / (var_v + kappa u_i' P_Vi u_i).  Returns (V (T, 3), Cov (T, 3, 3)); absent
+    observers weigh 0 (a tiny ridge keeps fewer than 3 finite)."""
+    d = obs.pos - B[..., None, :]
+    u = d / np.linalg.norm(d, axis=-1, keepdims=True)
+    b = np.sum(u * obs.vel, axis=-1) - obs.range_rate_m_s
+    var = obs.var_range_rate_m2_s2 + kappa * np.einsum("tni,tnij,tnj->tn", u, obs.cov[..., 3:6, 3:6], u)
+    wgt = np.where(obs.mask, 1.0 / var, 0.0)
+    A = np.einsum("tni,tn,tnj->tij", u, wgt, u) + 1e-12 * np.eye(3)
+    C = np.linalg.inv(A)
+    return np.einsum("tij,tj->ti", C, np.einsum("tni,tn,tn->ti", u, wgt, b)), C
+
+
+def position_only_step(x, P, obs: ObserverEpoch, config: LocatorConfig, dt_s: float, loglik: bool = False):
+    """The seed's beacon filter (eq 11) on B only (ECEF), batched (module docstring).
+
+    x (T, 3), P (T, 3, 3).  Returns (x, P, nis, used, gated, m2ll, V_hat (T, 3), Cov_V (T, 3, 3)).
+    """
+    x = np.asarray(x, float)
+    P = np.asarray(P, float)
+    obs = _fill_absent(obs, x)
+    T, N = obs.mask.shape
+    kappa = config.kappa(dt_s)
+    V, CV = _doppler_velocity(x, obs, kappa)
+    if dt_s > 0:
+        eps = 10.0  # m: central differences of V_hat(B)
+        J = np.empty((T, 3, 3))
+        for k in range(3):
+            e = np.zeros(3)
+            e[k] = eps
+            J[..., k] = (_doppler_velocity(x + e, obs, kappa)[0] - _doppler_velocity(x - e, obs, kappa)[0]) / (2 * eps)
+        F = np.eye(3) + dt_s * J
+        x = x + dt_s * V
+        P = F @ P @ np.swapaxes(F, -1, -2) + dt_s * dt_s * CV + config.position_q_m2_s3 * dt_s * np.eye(3)
+        P = 0.5 * (P + np.swapaxes(P, -1, -2))
+    d = obs.pos - x[..., None, :]
+    r = np.linalg.norm(d, axis=-1)
+    u = d / r[..., None]
+    R = obs.var_range_m2 + kappa * np.einsum("tni,tnij,tnj->tn", u, obs.cov[..., 0:3, 0:3], u)
+    # ranges only, as 2x2 blocks with a dummy unit second row so that _update applies
+    H = np.zeros((T, N, 2, 3))
+    H[..., 0, :] = -u
+    R2 = np.zeros((T, N, 2, 2))
+    R2[..., 0, 0] = R
+    R2[..., 1, 1] = 1.0
+    nu = np.stack([obs.range_m - r, np.zeros_like(r)], axis=-1)
+    # (the dummy rows add nothing: zero innovation, zero Jacobian, unit variance)
+    xo, Po, nis, used, gated, m2ll = _update(x, P, nu, H, R2, obs.mask, config, loglik)
+    return xo, Po, nis, used, gated, m2ll, V, CV
+
+
+# --------------------------------------------------------------------------- initialisation
+
+
+class InitFix(NamedTuple):
+    """The initial estimate of one trial (ECEF): x (6,) [B, V_B] at the last window epoch,
+    P (6, 6), the closed-form start (3,), the number of epochs, the final weighted cost and
+    LM iterations; mirror_x, mirror_P, mirror_cost: the best solution on the other side of
+    the UAVs' axis."""
+
+    x: np.ndarray
+    P: np.ndarray
+    start_pos_ecef_m: np.ndarray
+    n_epochs: int
+    cost: float
+    iterations: int
+    mirror_x: np.ndarray
+    mirror_P: np.ndarray
+    mirror_cost: float
+
+
+def _up(pos):
+    lat, lon, h = ecef_to_geodetic(pos)
+    return np.array([math.cos(lat) * math.cos(lon), math.cos(lat) * math.sin(lon), math.sin(lat)]), float(h)
+
+
+def init_fix(epochs, config: LocatorConfig = LocatorConfig(), iterations: int = 30) -> InitFix:
+    """Initial [B, V_B] of one trial from a window of epochs (module docstring).
+
+    epochs: list of (t_gps_s, ObserverEpoch with one row) -- at least one, each with >= 3
+    present observers.  Closed-form multilateration per epoch (UAV estimates as anchors,
+    range variance inflated by the UAV position variance), component-wise median as the
+    start, then Levenberg-Marquardt on ranges, Dopplers and the height / velocity priors,
+    with the height scanned on both sides of the UAVs' axis.
+    """
+    if not epochs:
+        raise ValueError("epochs must hold at least one epoch")
+    tK = float(epochs[-1][0])
+    fixes, hs, rows = [], [], []
+    # the UAVs' errors barely change across a short window: fully correlated, so their
+    # consider term counts once for the window (kappa = number of epochs)
+    kappa = float(len(epochs)) if config.observer_uncertainty == "inflate" else 0.0
+    for t, ob in epochs:
+        m = ob.mask[0]
+        if m.sum() < 3:
+            raise ValueError(f"epoch t={t}: a fix needs >= 3 observers, got {int(m.sum())}")
+        pos, vel, cov = ob.pos[0, m], ob.vel[0, m], ob.cov[0, m]
+        r, rd = ob.range_m[0, m], ob.range_rate_m_s[0, m]
+        vr, vv = ob.var_range_m2[0, m], ob.var_range_rate_m2_s2[0, m]
+        try:
+            fixes.append(multilaterate(r, pos, vr + np.trace(cov[:, 0:3, 0:3], axis1=-2, axis2=-1) / 3.0).pos_ecef_m)
+        except ValueError:  # collinear anchors: no closed-form fix from this epoch
+            pass
+        hs.append(ecef_to_geodetic(pos)[2])
+        rows.append((float(t), ObserverEpoch(pos[None], vel[None], cov[None], r[None], rd[None], vr[None], vv[None],
+                                             np.ones((1, r.size), bool))))
+    if not fixes:
+        raise ValueError("no epoch of the window gives a closed-form fix (collinear anchors)")
+    start = np.median(np.array(fixes), axis=0)
+    h_prior = float(np.mean(np.concatenate(hs)))
+    sig_h = float(config.init_height_sigma_m)
+    sig_v = float(config.init_vel_sigma_m_s)
+    # the window's epochs stacked as rows (padded to the largest N; absent rows zeroed)
+    K, Nm = len(rows), max(r[1].mask.shape[1] for r in rows)
+    win = ObserverEpoch.empty(K, Nm)
+    for j, (_, ob) in enumerate(rows):
+        n = ob.mask.shape[1]
+        for dst, src in zip(win, ob):
+            dst[j, :n] = src[0]
+    dts = np.array([t for t, _ in rows]) - tK
+    pres = win.mask[..., None]
+
+    def residuals(s, h_target=None, sig=sig_h):
+        """Whitened residuals and Jacobian wrt s = [B(tK), V_B]."""
+        xj = np.concatenate([s[0:3] + dts[:, None] * s[3:6], np.broadcast_to(s[3:6], (K, 3))], axis=-1)
+        ob = _fill_absent(win, xj)
+        zhat, H, R = range_doppler_blocks(xj, ob, kappa)
+        nu = (np.stack([ob.range_m, ob.range_rate_m_s], axis=-1) - zhat) * pres
+        Hs = np.concatenate([H[..., 0:3], dts[:, None, None, None] * H[..., 0:3] + H[..., 3:6]], axis=-1)
+        l11, l21, l22 = _chol2(R)
+        res = [_solve2(l11, l21, l22, nu[..., None])[..., 0].ravel()]
+        jac = [(_solve2(l11, l21, l22, Hs) * pres[..., None]).reshape(-1, 6)]
+        if math.isfinite(sig):
+            up, h = _up(s[0:3])
+            res.append(np.array([((h_prior if h_target is None else h_target) - h) / sig]))
+            jac.append(np.concatenate([up, np.zeros(3)])[None] / sig)
+        res.append(-s[3:6] / sig_v)
+        jac.append(np.concatenate([np.zeros((3, 3)), np.eye(3)], axis=1) / sig_v)
+        return np.concatenate(res), np.concatenate(jac)
+
+    def solve(s, **kw):
+        """Levenberg-Marquardt from s; returns (s, J, cost, iterations)."""
+        y, J = residuals(s, **kw)
+        cost = float(y @ y)
+        lam, it = 1e-3, 0
+        for it in range(1, iterations + 1):
+            A, g = J.T @ J, J.T @ y
+            accepted = done = False
+            for _ in range(20):
+                step = np.linalg.solve(A + lam * np.diag(np.diag(A)), g)
+                y2, J2 = residuals(s + step, **kw)
+                c2 = float(y2 @ y2)
+                if c2 < cost:
+                    done = cost - c2 < 1e-10 * max(cost, 1.0) or bool(np.all(np.abs(step[0:3]) < 1e-3))
+                    s, y, J, cost, lam = s + step, y2, J2, c2, max(lam / 10.0, 1e-12)
+                    accepted = True
+                    break
+                lam *= 10.0
+            if not accepted or done:
+                break
+        return s, J, cost, it
+
+    def best_from(p0):
+        """Scan the height (pinned) over the prior's +-3 sigma from p0 (each pinned solve
+        starts from the previous one), then release it from the best."""
+        s0 = np.concatenate([p0, np.zeros(3)])
+        if math.isfinite(sig_h):
+            best, sc = None, s0
+            for hc in h_prior + sig_h * np.arange(-3.0, 3.01, 1.0):
+                sc = solve(sc, h_target=hc, sig=1.0)[0]
+                yc, _ = residuals(sc)
+                if best is None or float(yc @ yc) < best[1]:
+                    best = (sc, float(yc @ yc))
+            s0 = best[0]
+        s, J, cost, it = solve(s0)
+        P = np.linalg.inv(J.T @ J) * float(config.init_cov_scale)
+        return s, 0.5 * (P + P.T), cost, it
+
+    # the mirror: the solution turned by 180 deg about the last epoch's principal axis (same
+    # distance from the axis, so near the other side's ring), refined the same way
+    one = best_from(start)
+    last = rows[-1][1].pos[0]
+    c = last.mean(axis=0)
+    a = np.linalg.svd(last - c)[2][0]
+    d = one[0][0:3] - c
+    two = best_from(c + 2.0 * (d @ a) * a - d)
+    if two[2] < one[2]:
+        one, two = two, one
+    return InitFix(one[0], one[1], start, len(rows), one[2], one[3], two[0], two[1], two[2])
+
+
+# --------------------------------------------------------------------------- the bus component
+
+
+class BeaconLocator:
+    """Bus component: collects BeaconMeasurements, steps the batched filter, publishes Estimates.
+
+    transport: a ``sitl.bus.Transport`` (None: no bus; feed ``process`` directly).
+    run_ids: one run id per Monte Carlo trial (the trial axis of the batch).
+    beacon_id: the beacon tracked (key id).
+    ``rejected``: messages refused by reason; ``counters``: accepted, duplicate, other_run,
+    gated, used, epochs_fused / _degraded / _coast / _lost (summed over trials),
+    initialised, mirror_hypotheses / _chosen / _dropped, published.
+    """
+
+    def __init__(self, transport=None, *, run_ids=("run",), beacon_id: str = "b1",
+                 config: LocatorConfig = LocatorConfig(), source_id: str = "gs", publish_estimates: bool = True):
+        if not isinstance(config, LocatorConfig):
+            raise ValueError(f"config must be a LocatorConfig, got {type(config).__name__}")
+        run_ids = list(run_ids)
+        if not run_ids or len(set(run_ids)) != len(run_ids):
+            raise ValueError(f"run_ids must be non-empty and distinct, got {run_ids!r}")
+        self.config = config
+        self.transport = transport
+        self.run_ids = run_ids
+        self.beacon_id = beacon_id
+        self.source_id = source_id
+        self.publish_estimates = bool(publish_estimates)
+        self._trial = {r: k for k, r in enumerate(run_ids)}
+        T, n = len(run_ids), config.n_state
+        self.t_gps_s: float | None = None  # time of the filters' state (shared by the batch)
+        self.y = np.zeros((T, n))  # cylindrical state ("cv") or ECEF position ("position")
+        self.P = np.broadcast_to(np.eye(n), (T, n, n)).copy()
+        self.frame = Frame(*(np.tile(v, (T, 1)) for v in np.eye(3)[[0, 0, 1, 2]]), np.ones(T, bool))
+        self.initialised = np.zeros(T, bool)
+        self.nis = np.full(T, np.nan)
+        self.n_used = np.zeros(T, int)
+        self.coast_s = np.zeros(T)
+        self.mode = np.array(["init"] * T, dtype=object)
+        self.vel_doppler = np.zeros((T, 3))  # position-only mode: the Doppler velocity
+        self.vel_doppler_cov = np.broadcast_to(np.eye(3) * 1e6, (T, 3, 3)).copy()
+        self.init_info: list[InitFix | None] = [None] * T
+        self.init_window_last: list[ObserverEpoch | None] = [None] * T  # the frame's UAVs at the start
+        self.start_side = np.zeros(T, bool)  # True: the mirror of init_info was kept
+        # the mirror hypothesis of each trial while it is alive (see _initialise)
+        self.alt_active = np.zeros(T, bool)
+        self.alt_y = np.zeros((T, n))
+        self.alt_P = np.broadcast_to(np.eye(n), (T, n, n)).copy()
+        self.alt_frame = Frame(*(v.copy() for v in self.frame))
+        self.alt_vel = np.zeros((T, 3))
+        self.score = np.zeros(T)
+        self.alt_score = np.zeros(T)
+        self.resolve_at = np.full(T, np.inf)
+        self._window: list[list] = [[] for _ in range(T)]
+        self._pending: list[dict] = [dict() for _ in range(T)]  # per trial {(uav, t): msg}
+        self._seq: dict[int, int] = {}
+        self._report = None  # cached ECEF moments of the current state
+        self.counters = Counter()
+        self.rejected = Counter()
+        self._sub = None
+        if transport is not None:
+            self._sub = transport.subscribe(f"*/uav/*/beacon/{beacon_id}", self.on_message)
+
+    # ---------------------------------------------------------------- input
+    @property
+    def n_trials(self) -> int:
+        return len(self.run_ids)
+
+    def on_message(self, key: str, msg) -> None:
+        """Bus callback: check and collect one BeaconMeasurement (counted either way)."""
+        parsed = parse_key(key)
+        if parsed is None or parsed[1] is not BeaconMeasurement or not isinstance(msg, BeaconMeasurement):
+            self.rejected["not_a_beacon_measurement"] += 1
+            return
+        run, _, ids = parsed
+        if ids.get("beacon") != self.beacon_id:
+            self.rejected["other_beacon"] += 1
+            return
+        k = self._trial.get(run)
+        if k is None:
+            self.counters["other_run"] += 1
+            return
+        c = self.config
+        if not (msg.range_m <= c.max_range_m and abs(msg.range_rate_m_s) <= c.max_range_rate_m_s):
+            self.rejected["range_out_of_limits"] += 1
+            return
+        if not (_EARTH_R_MIN_M <= float(np.linalg.norm(msg.uav_pos_ecef_m)) <= _EARTH_R_MAX_M):
+            self.rejected["uav_position_implausible"] += 1
+            return
+        dg = np.diagonal(msg.uav_cov)
+        if not (dg[0:3].max() <= c.max_uav_pos_sigma_m ** 2 and dg[3:6].max() <= c.max_uav_vel_sigma_m_s ** 2):
+            self.rejected["uav_covariance_absurd"] += 1
+            return
+        if self.t_gps_s is not None and msg.t_gps_s < self.t_gps_s - 1e-9:
+            self.rejected["stale"] += 1
+            return
+        slot = (ids["uav"], float(msg.t_gps_s))
+        pend = self._pending[k]
+        if slot in pend:
+            self.counters["duplicate"] += 1
+            return
+        pend[slot] = msg
+        self.counters["accepted"] += 1
+
+    def _collect(self, t: float, tol: float = 1e-6) -> ObserverEpoch:
+        """The pending measurements of epoch t as padded arrays (older ones dropped, counted)."""
+        per = []
+        for k, pend in enumerate(self._pending):
+            now, keep = [], {}
+            for slot, msg in pend.items():
+                if abs(slot[1] - t) <= tol:
+                    now.append((slot[0], msg))
+                elif slot[1] < t:
+                    self.rejected["stale"] += 1
+                else:
+                    keep[slot] = msg
+            self._pending[k] = keep
+            now.sort(key=lambda a: a[0])
+            per.append(now)
+        N = max(1, max(len(p) for p in per))
+        obs = ObserverEpoch.empty(self.n_trials, N)
+        for k, now in enumerate(per):
+            for i, (_, m) in enumerate(now):
+                obs.pos[k, i] = m.uav_pos_ecef_m
+                obs.vel[k, i] = m.uav_vel_ecef_m_s
+                obs.cov[k, i] = m.uav_cov
+                obs.range_m[k, i] = m.range_m
+                obs.range_rate_m_s[k, i] = m.range_rate_m_s
+                obs.var_range_m2[k, i] = m.var_range_m2
+                obs.var_range_rate_m2_s2[k, i] = m.var_range_rate_m2_s2
+                obs.mask[k, i] = True
+        return obs
+
+    # ---------------------------------------------------------------- processing
+    def step(self, t_gps_s: float):
+        """Process the epoch t_gps_s for every trial and publish the Estimates; returns self."""
+        t = float(t_gps_s)
+        self.process(t, self._collect(t))
+        if self.transport is not None and self.publish_estimates:
+            self.publish()
+        return self
+
+    def _filter(self, y, P, fr, obs, dt, loglik):
+        """One filter step on stacked rows; returns (y, P, frame, nis, used, gated, m2ll, V)."""
+        c = self.config
+        if c.motion == "cv":
+            y, P, nis, used, gated, m2ll, fr = cyl_step(y, P, fr, obs, c, dt, loglik)
+            return y, P, fr, nis, used, gated, m2ll, None
+        y, P, nis, used, gated, m2ll, V, CV = position_only_step(y, P, obs, c, dt, loglik)
+        return y, P, fr, nis, used, gated, m2ll, (V, CV)
+
+    def process(self, t_gps_s: float, obs: ObserverEpoch):
+        """The filter step of epoch t on arrays (T trials): predict + update the initialised
+        trials (and their mirror hypotheses while alive), initialise those whose window is
+        complete."""
+        t = float(t_gps_s)
+        if obs.n_trials != self.n_trials:
+            raise ValueError(f"obs has {obs.n_trials} trials, the locator {self.n_trials}")
+        if self.t_gps_s is not None and t < self.t_gps_s:
+            raise ValueError(f"t_gps_s must not go back: {t} < {self.t_gps_s}")
+        dt = 0.0 if self.t_gps_s is None else t - self.t_gps_s
+        c = self.config
+        self._report = None
+        on = np.flatnonzero(self.initialised)
+        alt = np.flatnonzero(self.alt_active)
+        self.nis[:] = np.nan
+        self.n_used[:] = 0
+        if on.size:
+            n = on.size
+            rows = np.concatenate([on, alt])
+            sub = obs if (alt.size == 0 and n == self.n_trials) else obs.take(rows)
+            y0 = np.concatenate([self.y[on], self.alt_y[alt]])
+            P0 = np.concatenate([self.P[on], self.alt_P[alt]])
+            fr0 = Frame(*(np.concatenate([u[on], v[alt]]) for u, v in zip(self.frame, self.alt_frame)))
+            y, P, fr, nis, used, gated, m2ll, vel = self._filter(y0, P0, fr0, sub, dt, alt.size > 0)
+            self.y[on], self.P[on], self.nis[on] = y[:n], P[:n], nis[:n]
+            self.alt_y[alt], self.alt_P[alt] = y[n:], P[n:]
+            for full, part, fa in zip(self.frame, fr, self.alt_frame):
+                full[on] = part[:n]
+                fa[alt] = part[n:]
+            if vel is not None:
+                self.vel_doppler[on], self.vel_doppler_cov[on] = vel[0][:n], vel[1][:n]
+                self.alt_vel[alt] = vel[0][n:]
+            if alt.size:
+                row_of = {k: i for i, k in enumerate(on)}
+                self.score[alt] += m2ll[[row_of[k] for k in alt]]
+                self.alt_score[alt] += m2ll[n:]
+            used, gated = used[:n], gated[:n]
+            n_used = used.sum(axis=-1)
+            self.n_used[on] = n_used
+            self.counters["gated"] += int(gated.sum())
+            self.counters["used"] += int(used.sum())
+            self.coast_s[on] = np.where(n_used >= 3, 0.0, self.coast_s[on] + dt)
+            mode = np.where(n_used >= 3, "fused", np.where(n_used > 0, "degraded", "coast"))
+            mode = np.where(self.coast_s[on] > c.max_coast_s, "lost", mode)
+            self.mode[on] = mode
+            for name in ("fused", "degraded", "coast", "lost"):
+                self.counters[f"epochs_{name}"] += int(np.sum(mode == name))
+            # resolve the mirror hypotheses that are decided or whose time is up: keep the likelier
+            done = (t >= self.resolve_at[alt] - 1e-9) | (np.abs(self.alt_score[alt] - self.score[alt])
+                                                         >= c.init_resolve_llr)
+            for k in alt[done]:
+                self.alt_active[k] = False
+                if self.alt_score[k] < self.score[k]:
+                    self.y[k], self.P[k] = self.alt_y[k], self.alt_P[k]
+                    for full, fa in zip(self.frame, self.alt_frame):
+                        full[k] = fa[k]
+                    self.vel_doppler[k] = self.alt_vel[k]
+                    self.start_side[k] = True
+                    self.counters["mirror_chosen"] += 1
+                else:
+                    self.counters["mirror_dropped"] += 1
+        for k in np.flatnonzero(~self.initialised):
+            if obs.mask[k].sum() >= 3:
+                self._window[k].append((t, obs.take(slice(k, k + 1))))
+            if len(self._window[k]) >= c.init_epochs:
+                self._initialise(k, init_fix(self._window[k], c), t)
+        self.t_gps_s = t
+        return self
+
+    def _to_state(self, x, P, ob: ObserverEpoch):
+        """ECEF (x (6,), P (6, 6)) -> (state, covariance, frame) of this locator's model."""
+        if self.config.motion == "position":
+            return x[0:3].copy(), P[0:3, 0:3].copy(), None
+        fr = formation_frame(ob.pos, ob.mask, x[None, 0:3], None, self.config.axis_ratio)
+        y, Gi, _ = ecef_to_cyl(x[None], fr, jacobian=True)
+        Py = Gi[0] @ P @ Gi[0].T
+        return y[0], 0.5 * (Py + Py.T), fr
+
+    def _initialise(self, k: int, fix: InitFix, t: float) -> None:
+        c = self.config
+        ob = self._window[k][-1][1]
+        self.init_info[k] = fix
+        self.init_window_last[k] = ob
+        self._window[k] = []
+        self.initialised[k] = True
+        y, P, fr = self._to_state(fix.x, fix.P, ob)
+        self.y[k], self.P[k] = y, P
+        if fr is not None:
+            for full, part in zip(self.frame, fr):
+                full[k] = part[0]
+        self.vel_doppler[k] = fix.x[3:6]
+        self.vel_doppler_cov[k] = fix.P[3:6, 3:6]
+        self.mode[k] = "fused"
+        self.coast_s[k] = 0.0
+        self.counters["initialised"] += 1
+        d = fix.mirror_x[0:3] - fix.x[0:3]
+        if c.init_resolve_s > 0 and d @ np.linalg.solve(fix.P[0:3, 0:3], d) > 9.0:
+            y, P, fr = self._to_state(fix.mirror_x, fix.mirror_P, ob)
+            self.alt_active[k] = True
+            self.alt_y[k], self.alt_P[k] = y, P
+            if fr is not None:
+                for full, part in zip(self.alt_frame, fr):
+                    full[k] = part[0]
+            self.alt_vel[k] = fix.mirror_x[3:6]
+            self.score[k] = fix.cost
+            self.alt_score[k] = fix.mirror_cost
+            self.resolve_at[k] = t + c.init_resolve_s
+            self.counters["mirror_hypotheses"] += 1
+
+    # ---------------------------------------------------------------- output
+    def _moments(self, y, P, fr, vel_doppler, vel_cov, on=None):
+        """ECEF moments of states (rows where ``on``, default: initialised)."""
+        T = y.shape[0]
+        on = self.initialised if on is None else on
+        if self.config.motion == "cv":
+            x = np.zeros((T, 6))
+            Px = np.broadcast_to(np.eye(6), (T, 6, 6)).copy()
+            rows = np.flatnonzero(on)
+            if rows.size:
+                x[rows], Px[rows] = ut_to_ecef(y[rows], P[rows], fr.take(rows))
+            return x, Px
+        x = np.concatenate([y, vel_doppler], axis=-1)
+        Px = np.zeros((T, 6, 6))
+        Px[:, 0:3, 0:3] = P
+        Px[:, 3:6, 3:6] = vel_cov
+        return x, Px
+
+    def state_ecef(self):
+        """(x (T, 6), P (T, 6, 6)) over ECEF [B, V_B] of every trial (meaningful where
+        ``initialised``): the unscented moments of the cylindrical state, or for the
+        position-only filter its position with the Doppler velocity (cross-covariance 0)."""
+        if self._report is not None:
+            return self._report
+        x, P = self._moments(self.y, self.P, self.frame, self.vel_doppler, self.vel_doppler_cov)
+        alt = np.flatnonzero(self.alt_active)
+        if alt.size:
+            # while the mirror hypothesis is alive the posterior is the two-component mixture:
+            # weights from the summed likelihoods, moments matched (the MMSE estimate)
+            xa, Pa = self._moments(self.alt_y[alt], self.alt_P[alt], self.alt_frame.take(alt), self.alt_vel[alt],
+                                   self.vel_doppler_cov[alt], np.ones(alt.size, bool))
+            w = 1.0 / (1.0 + np.exp(np.clip(0.5 * (self.alt_score[alt] - self.score[alt]), -700, 700)))
+            w0 = 1.0 - w
+            xm = w0[:, None] * x[alt] + w[:, None] * xa
+            d0, d1 = x[alt] - xm, xa - xm
+            P[alt] = (w0[:, None, None] * (P[alt] + d0[:, :, None] * d0[:, None, :])
+                      + w[:, None, None] * (Pa + d1[:, :, None] * d1[:, None, :]))
+            x[alt] = xm
+        self._report = (x, P)
+        return self._report
+
+    def estimates(self):
+        """One ``Estimate`` per initialised trial: [(run_id, Estimate)]."""
+        x, P = self.state_ecef()
+        out = []
+        for k in np.flatnonzero(self.initialised):
+            seq = self._seq.get(k, 0)
+            self._seq[k] = seq + 1
+            out.append((self.run_ids[k], Estimate(t_gps_s=self.t_gps_s, source_id=self.source_id, seq=seq,
+                                                  kind="beacon", pos_ecef_m=x[k, 0:3], vel_ecef_m_s=x[k, 3:6],
+                                                  cov=0.5 * (P[k] + P[k].T), nis=float(self.nis[k]),
+                                                  mode=str(self.mode[k]))))
+        return out
+
+    def publish(self) -> int:
+        n = 0
+        for run, est in self.estimates():
+            self.transport.publish(key_for(run, est, kind="beacon", id=self.beacon_id), est)
+            n += 1
+        self.counters["published"] += n
+        return n
+
+    def close(self) -> None:
+        if self._sub is not None:
+            self._sub.close()
+            self._sub = None

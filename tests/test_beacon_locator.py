@@ -1,0 +1,354 @@
+"""Seed 002 ground station: the beacon locator, the centralised yardstick's PCRB, the CLI.
+
+* formation-cylindrical coordinates: exact round trip, Jacobians inverse of each other;
+* NEES over Monte Carlo within the chi-square band for the locator with "inflate" when the
+  UAVs' errors are white (the consider model's assumption) and dominate; "ignore" is
+  over-confident on the same data;
+* T trials in one batch equal T single-trial locators;
+* UAVs leave (5 -> 3 -> 2) and come back: the track is kept, the mode says so;
+* a NaN payload and garbage bytes published raw are rejected by the transport, an absurd UAV
+  covariance by the locator, all counted, and the estimate is bit-for-bit unaffected;
+* the initialisation (multilateration + window least squares) on a good and on the seed's
+  near-collinear geometry;
+* pcrb_central equals filters.metrics.pcrb on a small centralised model;
+* a tiny `skyfuse experiment beacon` run writes result.json with the required keys; bad
+  flags exit 2 with one line.
+"""
+from __future__ import annotations
+
+import json
+import math
+
+import msgpack
+import numpy as np
+import pytest
+
+from filters import metrics
+from filters.models import Composite, ConstantVelocity
+from ground_station.beacon_central import link_information, pcrb_central
+from ground_station.beacon_locator import (
+    BeaconLocator,
+    LocatorConfig,
+    ObserverEpoch,
+    cyl_to_ecef,
+    ecef_to_cyl,
+    formation_frame,
+    init_fix,
+)
+from sitl import cli
+from sitl.bus import BeaconMeasurement, InMemoryTransport, encode, key_for
+from sitl.geodesy import geodetic_to_ecef
+from sitl.radio.beacon_link import range_and_rate
+
+VAR_R, VAR_V = 25.0, 0.01
+UAV_SIG_POS, UAV_SIG_VEL = 30.0, 0.3
+
+
+def _scene(K, N=5):
+    """A good geometry: beacon at 31 N 47.3 E 3 km, UAVs 40-80 km around at 1-6 km, all on
+    straight lines (exactly the constant-velocity model).  Returns t (K,), B, VB (K, 3),
+    U, V (K, N, 3)."""
+    t = np.arange(K, dtype=float)
+    b0 = geodetic_to_ecef(math.radians(31.0), math.radians(47.3), 3000.0)
+    vb = np.array([-60.0, 80.0, 30.0])
+    ang = np.linspace(0.0, 2 * math.pi, N, endpoint=False) + 0.3
+    lat = 31.0 + 0.5 * np.cos(ang) * np.linspace(0.8, 1.4, N)
+    lon = 47.3 + 0.6 * np.sin(ang) * np.linspace(1.4, 0.8, N)
+    u0 = geodetic_to_ecef(np.radians(lat), np.radians(lon), np.linspace(1000.0, 6000.0, N))
+    vu = np.stack([np.full(N, 70.0), np.linspace(-50, 50, N), np.linspace(20, -20, N)], axis=-1)
+    B = b0 + t[:, None] * vb
+    U = u0[None] + t[:, None, None] * vu[None]
+    return t, B, np.broadcast_to(vb, B.shape), U, np.broadcast_to(vu, U.shape)
+
+
+def _epochs(rng, scene, trials):
+    """Per epoch ObserverEpoch (trials, N): links with noise, UAV reports = truth + white errors."""
+    t, B, VB, U, V = scene
+    K, N = U.shape[:2]
+    cov = np.diag([UAV_SIG_POS ** 2] * 3 + [UAV_SIG_VEL ** 2] * 3)
+    out = []
+    for k in range(K):
+        r, rr = range_and_rate(U[k], V[k], B[k], VB[k])
+        e = rng.standard_normal((trials, N, 6)) * np.r_[[UAV_SIG_POS] * 3, [UAV_SIG_VEL] * 3]
+        out.append(ObserverEpoch(U[k] + e[..., 0:3], V[k] + e[..., 3:6], np.broadcast_to(cov, (trials, N, 6, 6)).copy(),
+                                 r + math.sqrt(VAR_R) * rng.standard_normal((trials, N)),
+                                 rr + math.sqrt(VAR_V) * rng.standard_normal((trials, N)),
+                                 np.full((trials, N), VAR_R), np.full((trials, N), VAR_V),
+                                 np.ones((trials, N), bool)))
+    return out
+
+
+def _run(config, epochs, t, trials):
+    loc = BeaconLocator(None, run_ids=[f"r{k}" for k in range(trials)], config=config)
+    xs, Ps = [], []
+    for k, ob in enumerate(epochs):
+        loc.process(t[k], ob)
+        x, P = loc.state_ecef()
+        xs.append(x.copy())
+        Ps.append(P.copy())
+    return np.array(xs), np.array(Ps), loc
+
+
+# ---------------------------------------------------------------------------- coordinates
+
+
+def test_cylindrical_round_trip_and_jacobians():
+    rng = np.random.default_rng(3)
+    c0 = np.array([3.9e6, 3.9e6, 3.2e6])
+    line = np.array([0.6, -0.7, 0.39]) / np.linalg.norm([0.6, -0.7, 0.39])
+    U = c0 + np.array([0.0, 15e3, 45e3])[None, :, None] * line + rng.normal(0, 300.0, (4, 3, 3))
+    side = np.cross(line, c0 / np.linalg.norm(c0))
+    x = np.concatenate([c0 + 2.3e5 * side + rng.normal(0, 2e4, (4, 3)), rng.normal(0, 100, (4, 3))], -1)
+    fr = formation_frame(U, np.ones((4, 3), bool), x[:, 0:3] + rng.normal(0, 1e3, (4, 3)))
+    assert not fr.cart.any()  # a line-like formation, the beacon far from its axis
+    y, Ji, J = ecef_to_cyl(x, fr, jacobian=True)
+    np.testing.assert_allclose(cyl_to_ecef(y, fr), x, rtol=0, atol=1e-6)
+    np.testing.assert_allclose(Ji @ J, np.broadcast_to(np.eye(6), J.shape), atol=1e-9)
+    h = np.r_[1.0, 1.0, 1.0, 1e-3, 1e-3, 1e-3]
+    Jn = np.stack([(ecef_to_cyl(x + np.eye(6)[j] * h[j], fr) - ecef_to_cyl(x - np.eye(6)[j] * h[j], fr)) / (2 * h[j])
+                   for j in range(6)], -1)
+    np.testing.assert_allclose(Jn, Ji, atol=1e-8)
+
+
+# ---------------------------------------------------------------------------- consistency
+
+
+@pytest.fixture(scope="module")
+def white_uav_runs():
+    """30 trials, 160 epochs, UAV errors white and dominant: inflate (kappa = 1) and ignore."""
+    trials, K = 30, 160
+    scene = _scene(K)
+    eps = _epochs(np.random.default_rng(11), scene, trials)
+    base = dict(q_m2_s3=1e-4, uav_error_corr_s=0.0)
+    runs = {name: _run(LocatorConfig(observer_uncertainty=name, **base), eps, scene[0], trials)
+            for name in ("inflate", "ignore")}
+    return scene, trials, runs
+
+
+def _anees(scene, xs, Ps, k0=60):
+    B = scene[1]
+    e = xs[k0:, :, 0:3] - B[k0:, None]
+    return metrics.nees(e, Ps[k0:, :, 0:3, 0:3]).mean(axis=1)  # per epoch, averaged over trials
+
+
+def test_nees_inflate_within_chi_square_bounds(white_uav_runs):
+    scene, trials, runs = white_uav_runs
+    xs, Ps, loc = runs["inflate"]
+    assert loc.initialised.all() and loc.counters["gated"] <= 2
+    per_epoch = _anees(scene, xs, Ps)
+    lo, hi = metrics.chi2_bounds(3, trials, 0.99)
+    assert lo < per_epoch.mean() < hi, (per_epoch.mean(), lo, hi)
+    assert np.mean((per_epoch > lo) & (per_epoch < hi)) > 0.9
+
+
+def test_ignore_is_overconfident_when_uav_errors_dominate(white_uav_runs):
+    scene, trials, runs = white_uav_runs
+    lo, hi = metrics.chi2_bounds(3, trials, 0.99)
+    assert _anees(scene, *runs["ignore"][:2]).mean() > 3 * hi
+    # and its own sigma is smaller than the inflated filter's while its error is not
+    sig_ig = np.sqrt(np.trace(runs["ignore"][1][60:, :, 0:3, 0:3], axis1=-2, axis2=-1)).mean()
+    sig_in = np.sqrt(np.trace(runs["inflate"][1][60:, :, 0:3, 0:3], axis1=-2, axis2=-1)).mean()
+    assert sig_ig < 0.5 * sig_in
+
+
+def test_batch_equals_loop():
+    trials, K = 3, 40
+    scene = _scene(K)
+    eps = _epochs(np.random.default_rng(5), scene, trials)
+    cfg = LocatorConfig()
+    xb, Pb, _ = _run(cfg, eps, scene[0], trials)
+    for j in range(trials):
+        xj, Pj, _ = _run(cfg, [ob.take(slice(j, j + 1)) for ob in eps], scene[0], 1)
+        np.testing.assert_allclose(xj[:, 0], xb[:, j], rtol=1e-10, atol=1e-6)
+        np.testing.assert_allclose(Pj[:, 0], Pb[:, j], rtol=1e-8, atol=1e-9)
+
+
+# ---------------------------------------------------------------------------- the bus
+
+
+def _publish_epoch(bus, run, k, t, ob, j, present):
+    for i in present:
+        C = ob.cov[j, i]
+        bus.publish(key_for(run, BeaconMeasurement, uav=i + 1, beacon="b1"), BeaconMeasurement(
+            t_gps_s=float(t), source_id=f"uav{i + 1}", seq=k, range_m=float(ob.range_m[j, i]),
+            range_rate_m_s=float(ob.range_rate_m_s[j, i]), var_range_m2=VAR_R, var_range_rate_m2_s2=VAR_V,
+            uav_pos_ecef_m=ob.pos[j, i], uav_vel_ecef_m_s=ob.vel[j, i], uav_cov=C))
+
+
+def test_uavs_leave_and_rejoin_keep_the_track():
+    K = 200
+    scene = _scene(K)
+    t, B = scene[0], scene[1]
+    eps = _epochs(np.random.default_rng(8), scene, 1)
+    bus = InMemoryTransport()
+    loc = BeaconLocator(bus, run_ids=["run"], config=LocatorConfig(uav_error_corr_s=0.0))
+    got = []
+    bus.subscribe("run/gs/estimate/beacon/b1", lambda key, m: got.append(m))
+    err, sig, modes = [], [], []
+    for k in range(K):
+        present = range(5) if k < 60 or k >= 140 else (range(3) if k < 110 else range(2))
+        _publish_epoch(bus, "run", k, t[k], eps[k], 0, present)
+        bus.drain(t[k])
+        loc.step(t[k])
+        bus.drain(t[k])
+        if loc.initialised[0]:
+            x, P = loc.state_ecef()
+            err.append(np.linalg.norm(x[0, 0:3] - B[k]))
+            sig.append(math.sqrt(np.trace(P[0, 0:3, 0:3])))
+            modes.append(loc.mode[0])
+    err, sig = np.array(err), np.array(sig)
+    assert loc.initialised[0] and len(got) == len(err)
+    assert {"fused", "degraded"} <= set(modes) and modes[-1] == "fused"
+    assert loc.counters["epochs_degraded"] == 30
+    # consistent throughout (3 sigma on the 3-D error), the degraded phase widens sigma, and
+    # after the return the error comes back to the level before the drop
+    assert np.all(err < 4 * sig)
+    before, during, after = slice(40, 58), slice(110 - 2, 138 - 2), slice(K - 22, K - 2)
+    assert sig[during].mean() > sig[before].mean()
+    assert err[after].mean() < 3 * err[before].mean() + 10.0
+
+
+def test_nan_and_malformed_payloads_rejected_and_counted_estimate_unaffected():
+    K = 30
+    scene = _scene(K)
+    t = scene[0]
+    eps = _epochs(np.random.default_rng(9), scene, 1)
+
+    def run(inject):
+        bus = InMemoryTransport()
+        loc = BeaconLocator(bus, run_ids=["run"])
+        for k in range(K):
+            _publish_epoch(bus, "run", k, t[k], eps[k], 0, range(5))
+            if inject and k == 10:
+                ok = BeaconMeasurement(t_gps_s=float(t[k]), source_id="uav9", seq=k, range_m=1e5, range_rate_m_s=1.0,
+                                       var_range_m2=VAR_R, var_range_rate_m2_s2=VAR_V,
+                                       uav_pos_ecef_m=eps[k].pos[0, 0], uav_vel_ecef_m_s=eps[k].vel[0, 0],
+                                       uav_cov=eps[k].cov[0, 0])
+                d = msgpack.unpackb(encode(ok), raw=False)
+                d["range_m"] = float("nan")
+                key = key_for("run", BeaconMeasurement, uav=9, beacon="b1")
+                bus.publish_raw(key, msgpack.packb(d, use_bin_type=True), t_gps_s=float(t[k]))
+                bus.publish_raw(key, b"\x93\x01\x02", t_gps_s=float(t[k]))
+                absurd = BeaconMeasurement(t_gps_s=float(t[k]), source_id="uav9", seq=k + 1, range_m=1e5,
+                                           range_rate_m_s=1.0, var_range_m2=VAR_R, var_range_rate_m2_s2=VAR_V,
+                                           uav_pos_ecef_m=eps[k].pos[0, 0], uav_vel_ecef_m_s=eps[k].vel[0, 0],
+                                           uav_cov=np.eye(6) * 1e10)
+                bus.publish(key, absurd)
+            bus.drain(t[k])
+            loc.step(t[k])
+        return loc, bus
+
+    ref, _ = run(False)
+    loc, bus = run(True)
+    assert bus.stats.total.rejected_total == 2
+    assert any("range_m" in r for r in bus.stats.total.rejected)
+    assert loc.rejected["uav_covariance_absurd"] == 1
+    np.testing.assert_array_equal(loc.state_ecef()[0], ref.state_ecef()[0])
+    np.testing.assert_array_equal(loc.state_ecef()[1], ref.state_ecef()[1])
+
+
+# ---------------------------------------------------------------------------- initialisation
+
+
+def test_multilateration_init_good_geometry():
+    scene = _scene(4)
+    t, B, VB = scene[0], scene[1], scene[2]
+    eps = _epochs(np.random.default_rng(2), scene, 1)
+    fix = init_fix([(t[k], eps[k]) for k in range(3)], LocatorConfig(uav_error_corr_s=0.0))
+    e = fix.x[0:3] - B[2]
+    assert e @ np.linalg.solve(fix.P[0:3, 0:3], e) < 16.27  # chi2(3) 99.9 %
+    assert np.linalg.norm(e) < 1000.0 and np.linalg.norm(fix.x[3:6] - VB[2]) < 100.0
+    # five UAVs out of one plane: no second solution (the search from the other side of
+    # their axis comes back to this one, or ends worse)
+    assert fix.mirror_cost >= fix.cost * (1 - 1e-9)
+
+
+def test_multilateration_init_seed_geometry_keeps_both_sides():
+    """The seed's three near-collinear UAVs: one side of their axis is the truth (within the
+    prior's sigma), the other its mirror, 2 x the distance from the axis away."""
+    from vehicles import beacon, uav
+
+    sw, bc = uav.seed002_uav_swarm(), beacon.seed002_beacon("seed")
+    rng = np.random.default_rng(4)
+    eps, B = [], None
+    for k in range(3):
+        tu, tb = sw.step(float(k)), bc.step(float(k))
+        r, rr = range_and_rate(tu.pos_ecef_m, tu.vel_ecef_m_s, tb.pos_ecef_m, tb.vel_ecef_m_s)
+        cov = np.diag([25.0] * 3 + [0.01] * 3)
+        eps.append((float(k), ObserverEpoch(tu.pos_ecef_m[None], tu.vel_ecef_m_s[None], cov[None, None].repeat(3, 1),
+                                            (r + 5 * rng.standard_normal(3))[None],
+                                            (rr + 0.1 * rng.standard_normal(3))[None], np.full((1, 3), VAR_R),
+                                            np.full((1, 3), VAR_V), np.ones((1, 3), bool))))
+        B = tb.pos_ecef_m
+    fix = init_fix(eps, LocatorConfig())
+    d = [np.linalg.norm(fix.x[0:3] - B), np.linalg.norm(fix.mirror_x[0:3] - B)]
+    near, far = min(d), max(d)
+    assert near < 3 * math.sqrt(np.trace(fix.P[0:3, 0:3])) and near < 5e3
+    assert far > 100e3
+
+
+# ---------------------------------------------------------------------------- PCRB
+
+
+def test_pcrb_central_equals_the_generic_recursion():
+    K, N = 12, 2
+    t, B, VB, U, V = _scene(K, N)
+    rng = np.random.default_rng(1)
+    A = 0.1 * rng.normal(size=(K, N, 6, 6))  # any square-root GNSS information per UAV
+    gnss_info = np.einsum("kmai,kmaj->kmij", A, A)
+    J0 = np.diag([1e-8] * 3 + [1e-4] * 3)
+    qb, qu = 0.5, 0.02
+    ours = pcrb_central(t, B, VB, U, V, gnss_info, VAR_R, VAR_V, J0, q_beacon_m2_s3=qb, q_uav_m2_s3=qu)
+    # the same model for filters.metrics.pcrb: H stacks square-root information rows, R = I
+    n = 6 + 6 * N
+    H = np.zeros((K, 2 * N + 6 * N, n))
+    for k in range(K):
+        H[k, : 2 * N] = _rows(link_information(B[k], VB[k], U[k], V[k], VAR_R, VAR_V), 2 * N)
+        for i in range(N):
+            H[k, 2 * N + 6 * i:2 * N + 6 * i + 6, 6 + 6 * i:12 + 6 * i] = A[k, i]
+    model = Composite(tuple([ConstantVelocity(3, q=qb)] + [ConstantVelocity(3, q=qu)] * N))
+    J0_full = np.eye(n) * 1e-12  # the UAVs' prior is their first epoch's GNSS information
+    J0_full[0:6, 0:6] = J0
+    ref = metrics.pcrb(J0_full, model, 1.0, K, H, np.eye(H.shape[1]), first_meas_at_0=True)
+    np.testing.assert_allclose(ours, ref[:, 0:3, 0:3], rtol=1e-5)
+
+
+def _rows(I, m):
+    """m rows R with R'R = I (I PSD of rank <= m): eigen-factor."""
+    w, Q = np.linalg.eigh(I)
+    idx = np.argsort(w)[::-1][:m]
+    return (Q[:, idx] * np.sqrt(np.clip(w[idx], 0, None))).T
+
+
+# ---------------------------------------------------------------------------- the CLI
+
+
+def test_cli_tiny_run_writes_result(tmp_path, capsys):
+    out = tmp_path / "b"
+    rc = cli.main(["experiment", "beacon", "--duration", "110", "--trials", "2", "--sweep-trials", "1",
+                   "--uav-counts", "3", "--seed", "3", "--out", str(out), "--quiet"])
+    assert rc == 0
+    doc = json.loads((out / "result.json").read_text())
+    for case in ("three_satellites", "constellation"):
+        c = doc["cases"][case]
+        assert set(c["errors_m"]) == {"xi", "eta", "zeta"}
+        for ax in ("xi", "eta", "zeta"):
+            assert c["errors_m"][ax]["median_of_trial_max"] <= c["errors_m"][ax]["max_over_trials"]
+        assert c["rmse_m"] > 0 and c["pcrb_m"] > 0
+        assert {"value", "bounds_99_one_epoch"} <= set(c["anees"])
+        assert {"decomposed_rmse_m", "centralised_rmse_m"} <= set(doc["centralised_vs_decomposed"][case])
+        assert {"inflate", "ignore"} <= set(doc["inflate_vs_ignore"][case])
+    assert doc["wall_s"] > 0
+    assert [s["uavs"] for s in doc["by_uav_count"]] == [3]
+    assert {"uavs", "rmse_m", "pcrb_m"} <= set(doc["by_uav_count"][0])
+    for f in doc["figures"]:
+        assert (out / f).stat().st_size > 1000
+
+
+@pytest.mark.parametrize("flags", [["--uavs", "2"], ["--duration", "-1"], ["--duration", "50"], ["--trials", "0"],
+                                   ["--uav-counts", "2,5"]])
+def test_cli_bad_flags_exit_2_with_one_line(tmp_path, capsys, flags):
+    rc = cli.main(["experiment", "beacon", "--out", str(tmp_path / "x"), *flags])
+    err = capsys.readouterr().err
+    assert rc == 2
+    assert len(err.strip().splitlines()) == 1 and err.startswith("error:")
