@@ -39,13 +39,13 @@ from __future__ import annotations
 
 import json
 import math
-import os
-import sys
 import time
 import warnings
 from pathlib import Path
 
 import numpy as np
+
+from sitl.experiments._common import component, prepare_out, progress_printer, save_figure, strict
 
 PAPER_ERRORS_M = {"xi": 25.0, "eta": 9.0, "zeta": 15.0}
 AXES = ("xi", "eta", "zeta")
@@ -66,7 +66,7 @@ LOCATORS = {
 # ------------------------------------------------------------------ the world
 def uav_starts(n: int):
     """(lat deg, lon deg, h m) of n UAVs: the seed's three, then a sunflower pattern."""
-    from vehicles.uav import SEED002_UAV_START
+    SEED002_UAV_START = component("vehicles.uav").SEED002_UAV_START
 
     out = [tuple(s) for s in SEED002_UAV_START[:n]]
     golden = math.pi * (3.0 - math.sqrt(5.0))
@@ -80,7 +80,8 @@ def uav_starts(n: int):
 
 def truth_tracks(n_uavs: int, duration_s: float):
     """Truth at the epochs 0, 1, ... duration (RK4, 0.01 s): t (K,), U, V (K, N, 3), B, VB (K, 3)."""
-    from vehicles import beacon, uav
+    beacon = component("vehicles.beacon")
+    uav = component("vehicles.uav")
 
     if n_uavs == 3:
         sw = uav.seed002_uav_swarm()
@@ -105,7 +106,7 @@ def truth_tracks(n_uavs: int, duration_s: float):
 
 def constellation_for(case: str, U0, duration_s: float):
     from sitl.gnss import orbits
-    from vehicles import uav_nav
+    uav_nav = component("vehicles.uav_nav")
 
     if case == "three_satellites":
         return uav_nav.seed002_three_satellites(U0, uav_nav.SEED002_T0_GPS_S, duration_s=duration_s)
@@ -117,7 +118,7 @@ def gnss_information(t_gps, U, V, constellation, config):
     satellites' instantaneous states and the elevation mask at the true position."""
     from sitl import geodesy
     from sitl.gnss import orbits
-    from vehicles.uav_nav import ClockFreePseudorangeDoppler
+    ClockFreePseudorangeDoppler = component("vehicles.uav_nav").ClockFreePseudorangeDoppler
 
     K, N = U.shape[:2]
     out = np.empty((K, N, 6, 6))
@@ -168,10 +169,11 @@ class _Scorer:
 def run_case(case, tracks, trials, seed, locators=("inflate",), progress=None, central=True,
              timing=None) -> dict:
     """One case through the bus (module docstring).  Returns the raw series and counters."""
-    from ground_station.beacon_locator import BeaconLocator, LocatorConfig
+    BeaconLocator = component("ground_station.beacon_locator").BeaconLocator
+    LocatorConfig = component("ground_station.beacon_locator").LocatorConfig
     from sitl.bus import BeaconMeasurement, InMemoryTransport, Truth, UavNav, key_for
     from sitl.radio import beacon_link
-    from vehicles import uav_nav
+    uav_nav = component("vehicles.uav_nav")
 
     t, U, V, B, VB = tracks
     K, N = U.shape[:2]
@@ -283,8 +285,9 @@ def _bus_stats(bus) -> dict:
 
 def _central(loc, const, nav_cfg, t_gps, epochs, links, nav_x, nav_P):
     """Replay the centralised filter on the same data from the locator's start (module doc)."""
-    from ground_station.beacon_central import CentralFilter, LinkEpoch
-    from vehicles import uav_nav
+    CentralFilter = component("ground_station.beacon_central").CentralFilter
+    LinkEpoch = component("ground_station.beacon_central").LinkEpoch
+    uav_nav = component("vehicles.uav_nav")
 
     K, T, N = nav_x.shape[:3]
     if not loc.initialised.all() or len({f.n_epochs for f in loc.init_info}) != 1:
@@ -299,7 +302,7 @@ def _central(loc, const, nav_cfg, t_gps, epochs, links, nav_x, nav_P):
         y0.append(y)
         P0.append(Py)
         fr0.append(fr)
-    from ground_station.beacon_locator import Frame
+    Frame = component("ground_station.beacon_locator").Frame
 
     frame = Frame(*(np.concatenate([f[i] for f in fr0]) for i in range(len(Frame._fields))))
     cf = CentralFilter(N, loc.config, q_uav_m2_s3=nav_cfg.q_m2_s3).start(
@@ -369,10 +372,10 @@ def _series(t, x, truth):
 
 def pcrb_series(tracks, const, nav_cfg, cfg):
     """sqrt(trace) of the PCRB beacon position block per epoch (K,) (centralised model)."""
-    from ground_station.beacon_central import pcrb_central
-    from ground_station.beacon_locator import _up
+    pcrb_central = component("ground_station.beacon_central").pcrb_central
+    _up = component("ground_station.beacon_locator")._up
     from sitl.radio.beacon_link import BeaconLinkConfig
-    from vehicles import uav_nav
+    uav_nav = component("vehicles.uav_nav")
 
     t, U, V, B, VB = tracks
     t_gps = uav_nav.SEED002_T0_GPS_S + t
@@ -405,28 +408,8 @@ def uav_nav_rmse(res, tracks):
 
 
 # ------------------------------------------------------------------ result.json and figures
-def _strict(v):
-    if isinstance(v, dict):
-        return {str(k): _strict(x) for k, x in v.items()}
-    if isinstance(v, (list, tuple)):
-        return [_strict(x) for x in v]
-    if isinstance(v, np.ndarray):
-        return _strict(v.tolist())
-    if isinstance(v, (bool, np.bool_)):
-        return bool(v)
-    if isinstance(v, (int, np.integer)):
-        return int(v)
-    if isinstance(v, (float, np.floating)):
-        return float(v) if math.isfinite(v) else None
-    return v
 
 
-def _save(fig, path: Path) -> Path:
-    import matplotlib.pyplot as plt
-
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
 
 
 def plot(out: Path, cases: dict, sweep: list, meta: str) -> list[Path]:
@@ -461,7 +444,7 @@ def plot(out: Path, cases: dict, sweep: list, meta: str) -> list[Path]:
     h, lab = axes[0, 0].get_legend_handles_labels()
     fig.legend(h, lab, loc="outside lower center", ncol=3, fontsize=8)
     fig.suptitle(f"Seed 002: beacon position error per ECEF axis (symlog; linear within +-30 m)\n{meta}")
-    files.append(_save(fig, out / FIGURES[0]))
+    files.append(save_figure(fig, out / FIGURES[0]))
 
     # b) RMSE vs PCRB over time
     fig, axes = plt.subplots(1, len(cases), figsize=(6.5 * len(cases), 4.8), squeeze=False, constrained_layout=True)
@@ -485,7 +468,7 @@ def plot(out: Path, cases: dict, sweep: list, meta: str) -> list[Path]:
     h, lab = axes[0, 0].get_legend_handles_labels()
     fig.legend(h, lab, loc="outside lower center", ncol=3, fontsize=8)
     fig.suptitle(f"Seed 002: beacon RMSE against the posterior Cramer-Rao bound\n{meta}")
-    files.append(_save(fig, out / FIGURES[1]))
+    files.append(save_figure(fig, out / FIGURES[1]))
 
     # c) RMSE and PCRB vs number of UAVs
     fig, ax = plt.subplots(figsize=(6.5, 4.8), constrained_layout=True)
@@ -510,27 +493,13 @@ def plot(out: Path, cases: dict, sweep: list, meta: str) -> list[Path]:
     trials = sweep[0]["trials"] if sweep else 0
     ax.set_title(f"Seed 002, GPS constellation: accuracy against the number of UAVs ({trials} trials each)\n"
                  "3 UAVs: the seed's near-collinear line; more: spread in two dimensions", fontsize=10)
-    files.append(_save(fig, out / FIGURES[2]))
+    files.append(save_figure(fig, out / FIGURES[2]))
     return files
 
 
 # ------------------------------------------------------------------ the command
-def _progress(quiet):
-    if quiet:
-        return None
-    return lambda msg: print(msg, file=sys.stderr, flush=True)
 
 
-def _prepare_out(out: Path) -> Path:
-    from sitl.cli import UsageError
-
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise UsageError(f"cannot create output directory {str(out)!r}: {exc.strerror}") from None
-    if not out.is_dir() or not os.access(out, os.W_OK | os.X_OK):
-        raise UsageError(f"output directory {str(out)!r} is not writable")
-    return out
 
 
 def check_args(args):
@@ -554,12 +523,12 @@ def check_args(args):
 
 def run(args) -> dict:
     """The whole experiment; returns the result document (also written to DIR)."""
-    from ground_station.beacon_locator import LocatorConfig
-    from vehicles import uav_nav
+    LocatorConfig = component("ground_station.beacon_locator").LocatorConfig
+    uav_nav = component("vehicles.uav_nav")
 
     counts = check_args(args)
-    out = _prepare_out(Path(args.out))
-    prog = _progress(args.quiet)
+    out = prepare_out(Path(args.out))
+    prog = progress_printer(args.quiet)
     wall0 = time.perf_counter()
     timing = {}
     cfg = LocatorConfig()
@@ -659,7 +628,7 @@ def run(args) -> dict:
         "timing_s": timing,
         "figures": [f.name for f in figs],
     }
-    doc = _strict(doc)
+    doc = strict(doc)
     (out / "result.json").write_text(json.dumps(doc, indent=1, allow_nan=False))
     return doc
 

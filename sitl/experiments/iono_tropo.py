@@ -19,11 +19,11 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
-import os
-import sys
 from pathlib import Path
 
 import numpy as np
+
+from sitl.experiments._common import prepare_out, progress_printer, save_figure, strict
 
 from sitl.experiments import seed000
 
@@ -90,21 +90,6 @@ def run_all(scn, names, trials: int, seed: int, backend=None, progress=None) -> 
 
 
 # ------------------------------------------------------------------ result.json
-def _strict(v):
-    """JSON-able copy: numpy to Python, inf / nan to None."""
-    if isinstance(v, dict):
-        return {str(k): _strict(x) for k, x in v.items()}
-    if isinstance(v, (list, tuple)):
-        return [_strict(x) for x in v]
-    if isinstance(v, np.ndarray):
-        return _strict(v.tolist())
-    if isinstance(v, (bool, np.bool_)):
-        return bool(v)
-    if isinstance(v, (int, np.integer)):
-        return int(v)
-    if isinstance(v, (float, np.floating)):
-        return float(v) if math.isfinite(v) else None
-    return v
 
 
 def ordering_3_lt_2_lt_1(results: dict):
@@ -126,7 +111,7 @@ def result_document(scn, trials: int, seed: int, results: dict, figures) -> dict
     doc = {"experiment": "iono-tropo", "schema": 1, "seed": seed, "trials": trials,
            "scenario": dataclasses.asdict(scn), "variants": variants, "paper": PAPER,
            "ordering_3_lt_2_lt_1": ordering_3_lt_2_lt_1(results), "figures": [Path(f).name for f in figures]}
-    return _strict(doc)
+    return strict(doc)
 
 
 def series_arrays(results: dict) -> dict:
@@ -174,12 +159,6 @@ def comparison_table(results: dict) -> str:
 
 
 # ------------------------------------------------------------------ figures
-def _save(fig, path: Path) -> Path:
-    import matplotlib.pyplot as plt
-
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
 
 
 def _title(results: dict, scn) -> str:
@@ -228,7 +207,7 @@ def plot(results: dict, scn, trials: int, seed: int, out: Path) -> list[Path]:
     handles, labels = axes[0].get_legend_handles_labels()
     fig.legend(handles, labels, loc="outside lower center", fontsize=8, ncol=2)
     fig.suptitle(f"Seed 000: zenith ionospheric (I_g) and tropospheric (U_g) delay estimates\n{sub}")
-    files.append(_save(fig, out / FIGURES[0]))
+    files.append(save_figure(fig, out / FIGURES[0]))
 
     # b) RMS error against the filter's own sigma, log scale
     fig, axes = plt.subplots(3, 1, figsize=(10, 10), sharex=True, constrained_layout=True)
@@ -256,7 +235,7 @@ def plot(results: dict, scn, trials: int, seed: int, out: Path) -> list[Path]:
     axes[-1].set_xlabel("time, s")
     axes[-1].set_xlim(0, scn.duration_s)
     fig.suptitle(f"Seed 000: estimation errors and consistency\n{sub}")
-    files.append(_save(fig, out / FIGURES[1]))
+    files.append(save_figure(fig, out / FIGURES[1]))
 
     # c) per-trial time to 1 m
     fig, ax = plt.subplots(figsize=(3.0 + 2.2 * len(results), 5.5), constrained_layout=True)
@@ -296,27 +275,13 @@ def plot(results: dict, scn, trials: int, seed: int, out: Path) -> list[Path]:
     ax.set_ylabel("time to 1 m on I_g and U_g, s")
     ax.grid(alpha=0.3, axis="y")
     ax.set_title(f"Seed 000: per-trial time to 1 m (box: settled trials; x: never)\n{sub}", fontsize=10)
-    files.append(_save(fig, out / FIGURES[2]))
+    files.append(save_figure(fig, out / FIGURES[2]))
     return files
 
 
 # ------------------------------------------------------------------ the command
-def _progress(quiet):
-    if quiet:
-        return None
-    return lambda msg: print(msg, file=sys.stderr, flush=True)
 
 
-def _prepare_out(out: Path) -> Path:
-    from sitl.cli import UsageError
-
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise UsageError(f"cannot create output directory {str(out)!r}: {exc.strerror}") from None
-    if not out.is_dir() or not os.access(out, os.W_OK | os.X_OK):
-        raise UsageError(f"output directory {str(out)!r} is not writable")
-    return out
 
 
 def main(args) -> int:
@@ -327,13 +292,13 @@ def main(args) -> int:
         scn = scenario_from_args(args)
     except ValueError as exc:
         raise UsageError(str(exc)) from None
-    out = _prepare_out(Path(args.out))
+    out = prepare_out(Path(args.out))
     names = selected_variants(args.variant)
     backend = None if args.backend == "auto" else args.backend
     if getattr(args, "study", "none") != "none":
         return _study(args, scn, out, backend)
     try:
-        results = run_all(scn, names, args.trials, args.seed, backend=backend, progress=_progress(args.quiet))
+        results = run_all(scn, names, args.trials, args.seed, backend=backend, progress=progress_printer(args.quiet))
     except ValueError as exc:
         # the per-epoch visibility check is finer than the scenario's 10 s pre-check
         if "satellites in view" in str(exc):
@@ -352,7 +317,7 @@ def _study(args, scn, out: Path, backend) -> int:
     """`--study adaptive-q|ordering`: writes DIR/<study>.json and a PNG."""
     from sitl.experiments import seed000_studies as studies
 
-    prog = _progress(args.quiet)
+    prog = progress_printer(args.quiet)
     if args.study == "adaptive-q":
         res = studies.adaptive_q_study(scn, args.trials, args.seed, clock_scale=args.clock_scale, progress=prog,
                                        backend=backend)
@@ -374,7 +339,7 @@ def _study(args, scn, out: Path, backend) -> int:
               f"({'holds' if res['pooled_ordering_holds'] else 'does not hold'}); same-data pairs: variant 2 "
               f"first in {pf['variant2_before_variant1']:.0%}, variant 3 before 2 in "
               f"{pf['variant3_before_variant2']:.0%} of trials")
-    doc = _strict({"experiment": "iono-tropo", "study": args.study, "scenario": dataclasses.asdict(scn), **res})
+    doc = strict({"experiment": "iono-tropo", "study": args.study, "scenario": dataclasses.asdict(scn), **res})
     (out / name).write_text(json.dumps(doc, indent=1, allow_nan=False))
     print(f"wrote {out / name}, {fig}")
     return 0
