@@ -1,0 +1,1320 @@
+"""Radiosonde tracker (seed 004): relayed GNSS fused with an aerological radar, EKF or UKF.
+
+The ground complex-processing point (GCPP) receives, per sonde and epoch, a `SondeRelay`
+(relayed pseudoranges and pseudo-Dopplers of the delivered satellites) and a
+`RadarMeasurement` (slant range, azimuth, elevation; angles invalid while the angular
+auto-tracking is lost) from the bus, and publishes an `Estimate` per sonde and epoch on
+``<run>/gs/estimate/sonde/<id>``. Three modes run the same code on the same messages:
+``fused`` (both sources), ``radar_only`` and ``relay_only``. Truth never reaches it.
+
+State (ECEF, SI), per mode
+--------------------------
+The seed's vector is X = [x, y, z, Vx, Vy, Vz, ax, ay, az, dd, phi, Dw] (eq 15). Here:
+
+====================  =====================================================  =========
+index                 meaning                                                modes
+====================  =====================================================  =========
+0-2  pos_ecef_m       sonde position P (true ECEF, at the epoch)             all
+3-5  vel_ecef_m_s     its velocity V
+6-8  acc_ecef_m_s2    its acceleration a (Gauss-Markov, eq 20)
+dd   delta_d_m        the lumped path offset dd of eq 22 (relay delay         fused,
+                      c tau_ret + GCPP clock offset): constant (eq 21), here   relay_only
+                      a random walk of PSD ``delta_d_rw_psd_m2_s`` (tiny)
+osc  osc_m_s          the relay LO frequency offset Dw of eq 17, carried in    fused,
+                      m/s: (c / omega_L1) Dw, the term it adds to every        relay_only
+                      pseudo-Doppler; Gauss-Markov with the relay's gamma
+                      and stationary std ``osc_sigma_m_s``
+err  radar_err        the radar's AR(1) errors [range m, az rad, el rad]       fused,
+                      (eqs 12-14, 31-33), only with ``radar_noise="colored"``  radar_only
+====================  =====================================================  =========
+
+so n = 14 (fused), 12 (radar_only), 11 (relay_only) with coloured radar noise, and 11 / 9 /
+11 with the naive white treatment.
+
+* phi, the relay oscillator phase (eq 16), is **dropped**: it is unobservable here. It
+  enters no measurement (the relay delivers pseudoranges and pseudo-Dopplers, no carrier
+  phase; eq 24's phase observation is not produced) and no other state depends on it
+  (phi' = Dw + ..., nothing is driven by phi), so keeping it would change no other
+  estimate (its H column and its F row into the other states are zero) while its variance
+  grows without bound (~2 sigma_w^2 T / gamma).
+* dd is unobservable from the radar, so ``radar_only`` has neither dd nor Dw (Dw enters
+  only the pseudo-Dopplers).
+* In ``relay_only`` dd is observable together with the position: d pr_i / dP = K_i + K
+  with K = (P - G)/|P - G| common to every satellite, so K.dP + d(dd) acts like a
+  receiver clock and the position is fixed by the K_i geometry, as in ordinary GNSS.
+
+Dynamics (eq 20; "the filter may know the model's parameters, not the truth's state")
+    per axis  p' = V,  V' = a,  a' = -(p1 + p2) a + w,   E[w w'] = 2 (p1 + p2) Sigma_a delta
+i.e. Singer's model (filters.models.Singer, exact discretisation) with rate p1 + p2 and
+the stationary acceleration covariance Sigma_a = R' diag(s_h^2, s_h^2, s_v^2) R (R the
+ENU rotation at the GCPP: horizontal and vertical stds differ, as in the sonde model), so
+Q = kron(Q_singer_unit(p1 + p2, T), Sigma_a). dd: random walk. Dw: Gauss-Markov,
+F = e^{-gamma T}, Q = s^2 (1 - e^{-2 gamma T}). Radar errors: AR(1) per axis with
+mu = e^{-gamma T}, Q = sigma^2 (1 - mu^2) (eqs 12-14).
+
+Measurements
+    relay, per delivered satellite i (eqs 22-23; relay.py's sign convention):
+        pr_i  = |S_i - P'| + |P' - G| + dd
+        prr_i = K_i.(V - W_i) + K.V + osc,     K_i = (P' - S_i)/|P' - S_i|,  K = (P' - G)/|P' - G|
+      with P' = `relay_frame_point`(P, V): the point the relay's observables locate, the
+      sonde at the downlink emission (P - V tau, tau = |P - G|/c) rotated into the ECEF
+      frame of reception by w_e tau (sitl.radio.relay); 0.1-0.4 m from P at 50-250 km,
+      which matters against a ~0.6 m relay track (H is taken at P: the map is the identity
+      to ~1e-7). R = diag(the message's variances). The number of satellites varies per
+      epoch (none during a GNSS outage); the rows of a batch of sondes are padded to a
+      common satellite set with zero rows (H = 0, y = 0, r = 1), which leave a Kalman
+      update exactly unchanged.
+    radar (spherical at the radar site, geodetic horizon, azimuth clockwise from north):
+        [D, az, el] = aer(P - site) + err          (coloured: err in the state, R tiny)
+                    = aer(P - site) + v,  R = diag(sigma^2)   (naive "white")
+      The coloured treatment augments the state with the three AR(1) errors; its R is a
+      white part of ``radar_white_fraction`` x sigma^2 (default 1e-3, numerical
+      regularisation: a zero R makes P singular after each update). The naive treatment
+      takes the errors as white, which over-weights the radar by about (1+mu)/(1-mu)
+      (~20 at mu = e^{-0.1}) and makes the filter over-confident (see the experiment's
+      NEES comparison). With ``angles_valid`` False only the range row is used (the
+      angle rows are zero-padded: a range-only update). Azimuth wrap-around: h returns
+      the representative of the predicted azimuth nearest the measured one,
+      h_az = z_az - wrap(z_az - az(x)), wrap to [-pi, pi), so the innovation is always
+      the short way round (a sonde crossing north gives no 2 pi jump); the same h serves
+      the UKF's sigma points.
+    The rows are computed by a compiled kernel (numba) when available; the numpy code in
+    `SondeMeasurement` is the reference (they agree to rounding, tested).
+
+Per epoch (all messages of one time together): initialise new sondes; then one joint
+predict + update with every relay and radar row of the epoch (the fused EKF kernel
+filters.kernels.predict_joseph_update; the UKF: predict, then ukf_update), gated: the NIS
+y' S^-1 y over the sonde's real rows against the chi-square quantile ``gate_prob``.
+A sonde failing it is redone block by block from its prediction -- relay, then radar
+(linearised at the relay-updated state) -- each block gated on its own and, if it fails,
+retried once under a manoeuvre hypothesis: the covariance of an unknown acceleration step
+a ~ N(0, manoeuvre_sigma_acc^2 I) at the start of the step, [dP, dV, da] = [dt^2/2, dt, 1] a
+(e.g. the balloon burst: the vertical speed goes from +5 to about -40 m/s in ~10 s); accepted
+then, it is counted a manoeuvre, else rejected and counted (``relay_gated`` /
+``radar_gated``), never silently dropped. A sliding-window test (the NIS summed over the
+last ``manoeuvre_window`` epochs against the chi-square quantile of the summed dof) catches
+the slow drift no single epoch's gate sees (the radar alone after the burst) and adds the
+same covariance (``window_manoeuvre``). After ``reacquire_after`` rejections of a block in
+a row the track is re-initialised from that epoch's fix (``reacquired``).
+
+Initialisation
+    * from the first radar fix with valid angles (fused, radar_only): P = aer -> ECEF
+      (sitl.radio.radar.radar_aer_to_ecef), cov(P) = J Sigma J' (aer_cov_to_ecef); with
+      coloured noise the fix is P = g(z - err - v) (v the small white part), so
+      cov(P) = J (Sigma + R_w) J' and cov(P, err) = -J Sigma (R_w keeps the joint covariance
+      positive definite, which the UKF's Cholesky needs);
+    * from a least-squares fix on the first relay epoch (relay_only, and fused when no radar
+      fix with angles has come yet): Gauss-Newton on pr_i = |S_i - P| + |P - G| + dd with
+      4 unknowns (P, dd), which needs >= 4 satellites (epochs with fewer are skipped,
+      counted ``init_waiting``), started 1 km above G; then the velocity and the oscillator
+      term from the pseudo-Dopplers by linear least squares (4 unknowns again); the
+      covariances are the least-squares ones (H' W H)^-1.
+    Unknown parts get wide priors: V ~ N(0, prior_sigma_vel^2 I), a ~ N(0, Sigma_a),
+    dd ~ N(0, prior_sigma_delta_d^2), osc ~ N(0, osc_sigma^2), err ~ N(0, Sigma_radar).
+
+Bus: `SondeTracker.attach(transport)` subscribes to ``<run>/sonde/*/relay`` and
+``<run>/radar/*/sonde/*`` (or the given sondes); ``on_message(key, msg)`` only buffers
+(duplicates by (source, seq), stale messages older than the sonde's filter time, other
+radars and wrong runs are counted and dropped); ``step(t)`` processes every buffered
+epoch <= t in time order, predicts every initialised sonde to t and publishes one
+`Estimate` per sonde (covariance over [pos, vel], ``nis`` the summed block NIS of this
+epoch or NaN, ``mode`` the tracker's label) -- an estimate every epoch, measurements or
+not. The driver calls ``step(t)`` once per epoch after delivering that epoch's messages
+(batch mode: ``bus.drain(t)`` then ``step(t)``).
+
+Batching: one tracker follows any number of sondes (e.g. Monte Carlo trials) as one
+batch: the per-epoch predict and updates run over all sondes with data at that epoch
+(filters.kernels), and a sonde's numbers do not depend on the others (to rounding, tested).
+
+EKF or UKF: the same models; the EKF suits the relay (pseudoranges to satellites 20,000 km
+away are linear to millimetres); the UKF copes better with a radar-only track coasting on
+range alone close to the radar, where the cross-range uncertainty reaches the range itself
+and the EKF's linearisation breaks (NEES ~10^3 there with the EKF, ~5 with the UKF).
+``filter="auto"`` picks per sonde and epoch: the UKF while sqrt(trace P_pos) exceeds
+``auto_ukf_ratio`` (2 %) of the distance to the radar (or G), the EKF otherwise.
+"""
+from __future__ import annotations
+
+import math
+from collections import defaultdict
+from dataclasses import dataclass, fields
+from typing import NamedTuple
+
+import numpy as np
+from scipy.stats import chi2
+
+try:  # compiled measurement rows (numba); the numpy path in SondeMeasurement is the reference
+    import numba as _nb
+except ImportError:  # pragma: no cover
+    _nb = None
+
+from filters import kernels
+from filters.ekf import ekf_update
+from filters.models import Singer
+from filters.ukf import SigmaPoints, ukf_update
+from sitl.bus import (
+    Estimate,
+    RadarMeasurement,
+    SequenceTracker,
+    SondeRelay,
+    is_valid_id,
+    key_for,
+    key_pattern,
+    parse_key,
+)
+from sitl.constants import C_M_S, WGS84
+from sitl.geodesy import ecef_to_geodetic, enu_rotation
+from sitl.radio.radar import (
+    RadarParams,
+    aer_cov_to_ecef,
+    aer_to_ecef_jacobian,
+    radar_aer_to_ecef,
+)
+from sitl.radio.relay import RelayParams
+
+__all__ = [
+    "MODES",
+    "RADAR_NOISE",
+    "Layout",
+    "RelayFix",
+    "SondeMeasurement",
+    "SondeTracker",
+    "SondeTrackerParams",
+    "SondeTransition",
+    "TrackerCounters",
+    "layout_for",
+    "relay_fix",
+    "relay_frame_point",
+    "wrap_pi",
+]
+
+MODES = ("fused", "radar_only", "relay_only")
+RADAR_NOISE = ("colored", "white")
+TWO_PI = 2.0 * math.pi
+
+_RADAR_DEFAULT = RadarParams()
+_RELAY_DEFAULT = RelayParams()
+
+
+def wrap_pi(a):
+    """Angle(s) wrapped to [-pi, pi)."""
+    return np.mod(np.asarray(a, dtype=float) + math.pi, TWO_PI) - math.pi
+
+
+# ---------------------------------------------------------------------------
+# parameters and state layout
+
+
+def _finite(name, value, lo=None, lo_open=False) -> float:
+    try:
+        v = float(value)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name} must be a number, got {value!r}") from None
+    if not math.isfinite(v) or (lo is not None and (v <= lo if lo_open else v < lo)):
+        raise ValueError(f"{name} must be a finite number {'>' if lo_open else '>='} {lo}, got {value!r}")
+    return v
+
+
+@dataclass(frozen=True)
+class SondeTrackerParams:
+    """The tracker's model of the sonde, the relay and the radar, and its gating (SI units).
+
+    The defaults are the world models' parameters (vehicles.sonde.SondeParams,
+    sitl.radio.relay.RelayParams, sitl.radio.radar.RadarParams): the filter knows the
+    models, not the truth's state.
+    """
+
+    mode: str = "fused"  # one of MODES
+    radar_noise: str = "colored"  # "colored": AR(1) errors in the state; "white": naive
+    filter: str = "ekf"  # "ekf", "ukf" (same models) or "auto" (per sonde and epoch, see below)
+    auto_ukf_ratio: float = 0.02  # auto: the UKF when sqrt(trace P_pos) > this x the distance to the site
+    accel_rate_1_s: float = 0.12  # p1 + p2 (seed eq 20)
+    sigma_acc_horizontal_m_s2: float = 0.15
+    sigma_acc_vertical_m_s2: float = 0.10
+    delta_d_rw_psd_m2_s: float = 1e-6  # dd random walk (eq 21: constant; tiny slack)
+    osc_gamma_1_s: float = _RELAY_DEFAULT.osc_gamma_1_s
+    osc_sigma_m_s: float = _RELAY_DEFAULT.osc_sigma_hz * _RELAY_DEFAULT.osc_doppler_scale_m_s_per_rad_s * TWO_PI
+    radar_sigma: tuple = tuple(float(s) for s in _RADAR_DEFAULT.sigma)  # (m, rad, rad), AR(1) stationary std
+    radar_gamma_1_s: tuple = tuple(float(g) for g in _RADAR_DEFAULT.gamma_1_s)  # AR(1) spectrum widths
+    radar_white_fraction: float = 1e-3  # coloured model: white part of R, fraction of sigma^2
+    gate_prob: float | None = 1.0 - 1e-4  # chi-square gate per block; None: no gating
+    manoeuvre_sigma_acc_m_s2: float = 10.0  # unknown acceleration step of the manoeuvre hypothesis
+    manoeuvre_window: int | None = 10  # epochs of the sliding-window NIS test (None: off)
+    reacquire_after: int | None = 5  # re-initialise after this many rejected blocks in a row
+    prior_sigma_vel_m_s: float = 20.0
+    prior_sigma_delta_d_m: float = 3000.0
+    label: str | None = None  # Estimate.mode; default: mode (+ "_white" for naive radar noise)
+    backend: str | None = None  # filters.kernels backend (None: default)
+
+    def __post_init__(self):
+        if self.mode not in MODES:
+            raise ValueError(f"mode must be one of {MODES}, got {self.mode!r}")
+        if self.radar_noise not in RADAR_NOISE:
+            raise ValueError(f"radar_noise must be one of {RADAR_NOISE}, got {self.radar_noise!r}")
+        if self.filter not in ("ekf", "ukf", "auto"):
+            raise ValueError(f"filter must be 'ekf', 'ukf' or 'auto', got {self.filter!r}")
+        _finite("auto_ukf_ratio", self.auto_ukf_ratio, 0.0, lo_open=True)
+        for name in ("accel_rate_1_s", "osc_gamma_1_s", "osc_sigma_m_s", "prior_sigma_vel_m_s",
+                     "prior_sigma_delta_d_m"):
+            _finite(name, getattr(self, name), 0.0, lo_open=True)
+        for name in ("sigma_acc_horizontal_m_s2", "sigma_acc_vertical_m_s2", "delta_d_rw_psd_m2_s",
+                     "manoeuvre_sigma_acc_m_s2"):
+            _finite(name, getattr(self, name), 0.0)
+        _finite("radar_white_fraction", self.radar_white_fraction, 0.0, lo_open=True)
+        for name in ("radar_sigma", "radar_gamma_1_s"):
+            v = getattr(self, name)
+            try:
+                t = tuple(float(a) for a in v)
+            except (TypeError, ValueError):
+                raise ValueError(f"{name} must be 3 numbers (range, az, el), got {v!r}") from None
+            if len(t) != 3 or not all(math.isfinite(a) and a > 0 for a in t):
+                raise ValueError(f"{name} must be 3 finite numbers > 0 (range, az, el), got {v!r}")
+            object.__setattr__(self, name, t)
+        if self.gate_prob is not None:
+            g = _finite("gate_prob", self.gate_prob, 0.0, lo_open=True)
+            if not g < 1.0:
+                raise ValueError(f"gate_prob must lie in (0, 1) or be None, got {self.gate_prob!r}")
+        for name in ("reacquire_after", "manoeuvre_window"):
+            v = getattr(self, name)
+            if v is not None and (isinstance(v, bool) or not isinstance(v, int) or v < 1):
+                raise ValueError(f"{name} must be an integer >= 1 or None, got {v!r}")
+        if self.label is not None and not is_valid_id(self.label):
+            raise ValueError(f"label must be 1..64 chars of [A-Za-z0-9_.-], got {self.label!r}")
+        if self.backend not in (None, "auto", "numpy", "numba"):
+            raise ValueError(f"backend must be None, 'auto', 'numpy' or 'numba', got {self.backend!r}")
+
+    @property
+    def mode_label(self) -> str:
+        if self.label is not None:
+            return self.label
+        white = self.radar_noise == "white" and self.mode != "relay_only"
+        return self.mode + ("_white" if white else "")
+
+
+class Layout(NamedTuple):
+    """Where each part of the state lives for a mode (None: absent)."""
+
+    n: int
+    dd: int | None
+    osc: int | None
+    err: int | None  # first of the three radar error states
+    uses_relay: bool
+    uses_radar: bool
+
+
+def layout_for(mode: str, radar_noise: str = "colored") -> Layout:
+    if mode not in MODES:
+        raise ValueError(f"mode must be one of {MODES}, got {mode!r}")
+    relay = mode != "radar_only"
+    radar = mode != "relay_only"
+    n = 9
+    dd = osc = err = None
+    if relay:
+        dd, osc, n = 9, 10, 11
+    if radar and radar_noise == "colored":
+        err, n = n, n + 3
+    return Layout(n, dd, osc, err, relay, radar)
+
+
+# ---------------------------------------------------------------------------
+# transition
+
+
+class SondeTransition:
+    """x(k+1) = F x(k) + w: Singer kinematics (rate p1 + p2, covariance Sigma_a), dd random
+    walk, oscillator and radar errors first-order Gauss-Markov. Linear; F and Q memoised per dt."""
+
+    linear = True
+
+    def __init__(self, layout: Layout, params: SondeTrackerParams, acc_cov_ecef: np.ndarray):
+        self.layout = layout
+        self.ndim = layout.n
+        self.params = params
+        self.acc_cov_ecef = np.array(acc_cov_ecef, dtype=float)
+        self._unit = Singer(params.accel_rate_1_s, 1.0, ndim_pos=1)
+        self._memo: dict = {}
+
+    def _build(self, dt: float):
+        L, p = self.layout, self.params
+        n = L.n
+        F, Q = np.zeros((n, n)), np.zeros((n, n))
+        F[:9, :9] = np.kron(self._unit.F(None, dt), np.eye(3))
+        Q[:9, :9] = np.kron(self._unit.Q(dt), self.acc_cov_ecef)
+        if L.dd is not None:
+            F[L.dd, L.dd] = 1.0
+            Q[L.dd, L.dd] = p.delta_d_rw_psd_m2_s * dt
+            e = math.exp(-p.osc_gamma_1_s * dt)
+            F[L.osc, L.osc] = e
+            Q[L.osc, L.osc] = p.osc_sigma_m_s**2 * -math.expm1(-2.0 * p.osc_gamma_1_s * dt)
+        if L.err is not None:
+            for j, (s, g) in enumerate(zip(p.radar_sigma, p.radar_gamma_1_s)):
+                F[L.err + j, L.err + j] = math.exp(-g * dt)
+                Q[L.err + j, L.err + j] = s * s * -math.expm1(-2.0 * g * dt)
+        Q = 0.5 * (Q + Q.T)
+        F.flags.writeable = Q.flags.writeable = False
+        return F, Q
+
+    def _get(self, dt):
+        key = float(dt)
+        out = self._memo.get(key)
+        if out is None:
+            if len(self._memo) > 64:
+                self._memo.clear()
+            out = self._memo[key] = self._build(key)
+        return out
+
+    def F(self, x, dt):
+        return self._get(dt)[0]
+
+    def boost(self, dt):
+        """Covariance added under the manoeuvre hypothesis over a step dt: an unknown
+        acceleration step a ~ N(0, s^2 I) at its start, [dp, dV, da] = [dt^2/2, dt, 1] a."""
+        key = ("boost", float(dt))
+        out = self._memo.get(key)
+        if out is None:
+            g = np.array([0.5 * dt * dt, dt, 1.0])
+            out = np.zeros((self.ndim, self.ndim))
+            out[:9, :9] = self.params.manoeuvre_sigma_acc_m_s2**2 * np.kron(np.outer(g, g), np.eye(3))
+            out.flags.writeable = False
+            self._memo[key] = out
+        return out
+
+    def Q(self, dt):
+        return self._get(dt)[1]
+
+    def f(self, x, dt):
+        return np.asarray(x, dtype=float) @ self._get(dt)[0].T
+
+
+# ---------------------------------------------------------------------------
+# the measurement model: relay rows then radar rows, batched over sondes
+
+
+OMEGA_E = float(WGS84.omega_rad_s)
+
+
+def relay_frame_point(pos_ecef_m, vel_ecef_m_s, ground_pos_ecef_m):
+    """The point the relay's measurements locate: the sonde at the downlink emission,
+    P - V tau, rotated into the ECEF frame of reception at G (the Earth turns by w_e tau
+    meanwhile), tau = |P - G| / c (sitl.radio.relay). It lies 0.1-0.4 m from P between 50
+    and 250 km, not negligible against a relay fix of ~0.6 m. (..., 3) arrays."""
+    P, V = np.asarray(pos_ecef_m, float), np.asarray(vel_ecef_m_s, float)
+    tau = np.linalg.norm(P - ground_pos_ecef_m, axis=-1, keepdims=True) / C_M_S
+    o = P - V * tau
+    th = OMEGA_E * tau[..., 0]
+    ct, st = np.cos(th), np.sin(th)
+    return np.stack([ct * o[..., 0] + st * o[..., 1], ct * o[..., 1] - st * o[..., 0], o[..., 2]], axis=-1)
+
+
+def _rows_py(x, sat_pos, sat_vel, ground, relay_mask, site, rot, z_az, radar_mask, dd, osc, err, h, H):
+    """h (N, m) and H (N, m, n) at states x (N, n), row by row (the compiled path; H must come
+    in zeroed). Rows: U pseudoranges, U pseudo-Dopplers (if U > 0), then [range, az, el]
+    (if h has 2U + 3 columns). dd, osc, err: state indices, -1 when absent."""
+    N = x.shape[0]
+    U = sat_pos.shape[1]
+    radar = h.shape[1] == 2 * U + 3
+    for b in range(N):
+        px, py, pz = x[b, 0], x[b, 1], x[b, 2]
+        vx, vy, vz = x[b, 3], x[b, 4], x[b, 5]
+        if U > 0:
+            # the relay measures the downlink-emission point in the ECEF frame of reception
+            tau = math.sqrt((px - ground[0]) ** 2 + (py - ground[1]) ** 2 + (pz - ground[2]) ** 2) / C_M_S
+            ox, oy, oz = px - vx * tau, py - vy * tau, pz - vz * tau
+            th = OMEGA_E * tau
+            ct, st = math.cos(th), math.sin(th)
+            px, py, pz = ct * ox + st * oy, ct * oy - st * ox, oz
+            gx, gy, gz = px - ground[0], py - ground[1], pz - ground[2]
+            rg = max(math.sqrt(gx * gx + gy * gy + gz * gz), 1e-3)
+            kx, ky, kz = gx / rg, gy / rg, gz / rg
+            kv = kx * vx + ky * vy + kz * vz
+            for u in range(U):
+                if not relay_mask[b, u]:
+                    h[b, u] = 0.0
+                    h[b, U + u] = 0.0
+                    continue
+                dx, dy, dz = px - sat_pos[b, u, 0], py - sat_pos[b, u, 1], pz - sat_pos[b, u, 2]
+                rho = math.sqrt(dx * dx + dy * dy + dz * dz)
+                ix, iy, iz = dx / rho, dy / rho, dz / rho
+                wx, wy, wz = vx - sat_vel[b, u, 0], vy - sat_vel[b, u, 1], vz - sat_vel[b, u, 2]
+                uw = ix * wx + iy * wy + iz * wz
+                h[b, u] = rho + rg + x[b, dd]
+                h[b, U + u] = uw + kv + x[b, osc]
+                H[b, u, 0], H[b, u, 1], H[b, u, 2] = ix + kx, iy + ky, iz + kz
+                H[b, u, dd] = 1.0
+                H[b, U + u, 0] = (wx - ix * uw) / rho + (vx - kx * kv) / rg
+                H[b, U + u, 1] = (wy - iy * uw) / rho + (vy - ky * kv) / rg
+                H[b, U + u, 2] = (wz - iz * uw) / rho + (vz - kz * kv) / rg
+                H[b, U + u, 3], H[b, U + u, 4], H[b, U + u, 5] = ix + kx, iy + ky, iz + kz
+                H[b, U + u, osc] = 1.0
+        if radar:
+            r0 = 2 * U
+            qx, qy, qz = x[b, 0] - site[0], x[b, 1] - site[1], x[b, 2] - site[2]
+            e = rot[0, 0] * qx + rot[0, 1] * qy + rot[0, 2] * qz
+            n = rot[1, 0] * qx + rot[1, 1] * qy + rot[1, 2] * qz
+            u_ = rot[2, 0] * qx + rot[2, 1] * qy + rot[2, 2] * qz
+            rho2 = max(e * e + n * n, 1e-6)
+            rho = math.sqrt(rho2)
+            d2 = rho2 + u_ * u_
+            d = math.sqrt(d2)
+            D, az, el = d, math.atan2(e, n), math.atan2(u_, rho)
+            if err >= 0:
+                D += x[b, err]
+                az += x[b, err + 1]
+                el += x[b, err + 2]
+            # the representative of az nearest the measured azimuth (no 2 pi jump)
+            a = z_az[b] - az + math.pi
+            az = z_az[b] - (a - 2.0 * math.pi * math.floor(a / (2.0 * math.pi)) - math.pi)
+            vals = (D, az, el)
+            jac = ((e / d, n / d, u_ / d), (n / rho2, -e / rho2, 0.0),
+                   (-e * u_ / (rho * d2), -n * u_ / (rho * d2), rho / d2))
+            for j in range(3):
+                if not radar_mask[b, j]:
+                    h[b, r0 + j] = 0.0
+                    continue
+                h[b, r0 + j] = vals[j]
+                j0, j1, j2 = jac[j]
+                for c in range(3):
+                    H[b, r0 + j, c] = j0 * rot[0, c] + j1 * rot[1, c] + j2 * rot[2, c]
+                if err >= 0:
+                    H[b, r0 + j, err + j] = 1.0
+
+
+_rows_nb = None if _nb is None else _nb.njit(cache=True, nogil=True)(_rows_py)
+
+
+class SondeMeasurement:
+    """Relayed pseudoranges, pseudo-Dopplers (U satellite slots) and the radar's [range, az,
+    el] for Bs sondes, as one measurement model (rows: U pr, U prr, then 3 radar rows; either
+    part may be absent).
+
+    relay part: sat_pos, sat_vel (Bs, U, 3), relay_mask (Bs, U), ground (3,) G;
+    radar part: site (3,), rot (3, 3) its ENU rotation, radar_mask (Bs, 3);
+    z (Bs, m) the measurements (held for the azimuth unwrap), r (Bs, m) the variances.
+    Padded rows (mask False) have h = 0 and H = 0; the caller sets z = 0 and r = 1 there.
+    ``h`` is numpy and broadcasts over leading sigma-point axes (UKF); ``h_and_H`` runs the
+    compiled row kernel when numba is there (x (Bs, n)), else the numpy reference.
+    """
+
+    def __init__(self, layout: Layout, z, r, *, sat_pos=None, sat_vel=None, relay_mask=None, ground=None,
+                 site=None, rot=None, radar_mask=None):
+        self.layout = layout
+        self.z, self._r = z, r
+        Bs = z.shape[0]
+        self.relay = sat_pos is not None
+        self.radar = site is not None
+        if not self.relay:
+            sat_pos = sat_vel = np.zeros((Bs, 0, 3))
+            relay_mask = np.zeros((Bs, 0), dtype=bool)
+            ground = np.zeros(3)
+        if not self.radar:
+            site, rot, radar_mask = np.zeros(3), np.eye(3), np.zeros((Bs, 0), dtype=bool)
+        self.sat_pos, self.sat_vel, self.relay_mask, self.ground = sat_pos, sat_vel, relay_mask, ground
+        self.site, self.rot, self.radar_mask = site, rot, radar_mask
+        self.U = sat_pos.shape[1]
+        self.mask = np.concatenate([relay_mask, relay_mask, radar_mask], axis=-1)
+        if self.mask.shape != z.shape or r.shape != z.shape:
+            raise ValueError(f"z {z.shape} and r {r.shape} must have the rows of the mask {self.mask.shape}")
+
+    @property
+    def m_eff(self) -> np.ndarray:
+        """Real (unpadded) rows per sonde."""
+        return self.mask.sum(axis=-1)
+
+    def _part(self, relay: bool, idx=slice(None)) -> SondeMeasurement:
+        U = self.U
+        if relay:
+            cols = slice(0, 2 * U)
+            kw = {"sat_pos": self.sat_pos[idx], "sat_vel": self.sat_vel[idx], "relay_mask": self.relay_mask[idx],
+                  "ground": self.ground}
+        else:
+            cols = slice(2 * U, None)
+            kw = {"site": self.site, "rot": self.rot, "radar_mask": self.radar_mask[idx]}
+        return SondeMeasurement(self.layout, self.z[idx][:, cols], self._r[idx][:, cols], **kw)
+
+    def relay_part(self, idx=slice(None)) -> SondeMeasurement | None:
+        return self._part(True, idx) if self.relay else None
+
+    def radar_part(self, idx=slice(None)) -> SondeMeasurement | None:
+        return self._part(False, idx) if self.radar else None
+
+    def subset(self, idx) -> SondeMeasurement:
+        kw = {}
+        if self.relay:
+            kw.update(sat_pos=self.sat_pos[idx], sat_vel=self.sat_vel[idx], relay_mask=self.relay_mask[idx],
+                      ground=self.ground)
+        if self.radar:
+            kw.update(site=self.site, rot=self.rot, radar_mask=self.radar_mask[idx])
+        return SondeMeasurement(self.layout, self.z[idx], self._r[idx], **kw)
+
+    # -- numpy reference (any leading axes before the sonde axis) --------------
+
+    def _relay_np(self, x):
+        L = self.layout
+        P, V = relay_frame_point(x[..., 0:3], x[..., 3:6], self.ground), x[..., 3:6]
+        dS = P[..., None, :] - self.sat_pos
+        rho = np.sqrt(np.sum(dS * dS, axis=-1))
+        Ki = dS / rho[..., None]
+        dG = P - self.ground
+        rG = np.maximum(np.sqrt(np.sum(dG * dG, axis=-1)), 1e-3)
+        K = dG / rG[..., None]
+        w = V[..., None, :] - self.sat_vel
+        uw = np.sum(Ki * w, axis=-1)
+        KV = np.sum(K * V, axis=-1)
+        h = np.concatenate([rho + (rG + x[..., L.dd])[..., None], uw + (KV + x[..., L.osc])[..., None]], axis=-1)
+        return h, (Ki, K, rho, rG, w, uw, V, KV)
+
+    def _radar_np(self, x):
+        L = self.layout
+        enu = (x[..., 0:3] - self.site) @ self.rot.T
+        e, n, u = enu[..., 0], enu[..., 1], enu[..., 2]
+        rho2 = np.maximum(e * e + n * n, 1e-6)
+        rho = np.sqrt(rho2)
+        d2 = rho2 + u * u
+        d = np.sqrt(d2)
+        D, az, el = d, np.arctan2(e, n), np.arctan2(u, rho)
+        if L.err is not None:
+            D, az, el = D + x[..., L.err], az + x[..., L.err + 1], el + x[..., L.err + 2]
+        az = self.z[:, 2 * self.U + 1] - wrap_pi(self.z[:, 2 * self.U + 1] - az)
+        return np.stack([D, az, el], axis=-1), (e, n, u, rho, rho2, d2, d)
+
+    def h(self, x):
+        x = np.asarray(x, dtype=float)
+        parts = []
+        if self.relay:
+            parts.append(self._relay_np(x)[0])
+        if self.radar:
+            parts.append(self._radar_np(x)[0])
+        h = parts[0] if len(parts) == 1 else np.concatenate(parts, axis=-1)
+        return np.where(self.mask, h, 0.0)
+
+    def h_and_H_numpy(self, x):
+        L = self.layout
+        x = np.asarray(x, dtype=float)
+        Bs, m = self.z.shape
+        h = np.zeros((Bs, m))
+        H = np.zeros((Bs, m, L.n))
+        U = self.U
+        if self.relay:
+            hr, (Ki, K, rho, rG, w, uw, V, KV) = self._relay_np(x)
+            h[:, :2 * U] = hr
+            KiK = Ki + K[:, None, :]
+            H[:, :U, 0:3] = KiK
+            H[:, :U, L.dd] = 1.0
+            H[:, U:2 * U, 0:3] = ((w - Ki * uw[..., None]) / rho[..., None]
+                                  + ((V - K * KV[:, None]) / rG[:, None])[:, None, :])
+            H[:, U:2 * U, 3:6] = KiK
+            H[:, U:2 * U, L.osc] = 1.0
+        if self.radar:
+            hd, (e, n, u, rho, rho2, d2, d) = self._radar_np(x)
+            h[:, 2 * U:] = hd
+            z0 = np.zeros_like(e)
+            # rows d/d(enu) of range, azimuth, elevation (sitl.radio.radar.ecef_to_aer_jacobian)
+            J = np.stack([np.stack([e / d, n / d, u / d], -1),
+                          np.stack([n / rho2, -e / rho2, z0], -1),
+                          np.stack([-e * u / (rho * d2), -n * u / (rho * d2), rho / d2], -1)], -2)
+            H[:, 2 * U:, 0:3] = J @ self.rot
+            if L.err is not None:
+                for j in range(3):
+                    H[:, 2 * U + j, L.err + j] = 1.0
+        h *= self.mask
+        H *= self.mask[..., None]
+        return h, H
+
+    def h_and_H(self, x):
+        x = np.asarray(x, dtype=float)
+        if _rows_nb is None or x.ndim != 2:
+            return self.h_and_H_numpy(x)
+        L = self.layout
+        Bs, m = self.z.shape
+        h = np.empty((Bs, m))
+        H = np.zeros((Bs, m, L.n))
+        z_az = self.z[:, 2 * self.U + 1] if self.radar else np.zeros(Bs)
+        _rows_nb(np.ascontiguousarray(x), self.sat_pos, self.sat_vel, self.ground, self.relay_mask, self.site,
+                 self.rot, np.ascontiguousarray(z_az), self.radar_mask, -1 if L.dd is None else L.dd,
+                 -1 if L.osc is None else L.osc, -1 if L.err is None else L.err, h, H)
+        return h, H
+
+    def H(self, x):
+        return self.h_and_H(x)[1]
+
+    def R_diag(self):
+        return self._r
+
+    def R(self):
+        return self._r[..., None] * np.eye(self._r.shape[-1])
+
+
+# ---------------------------------------------------------------------------
+# relay least-squares fix (relay-only initialisation)
+
+
+class RelayFix(NamedTuple):
+    pos_ecef_m: np.ndarray  # (3,)
+    delta_d_m: float
+    vel_ecef_m_s: np.ndarray  # (3,)
+    osc_m_s: float
+    cov_pos_dd: np.ndarray  # (4, 4) over [P, dd]
+    cov_vel_osc: np.ndarray  # (4, 4) over [V, osc]
+    iterations: int
+
+
+def relay_fix(sat_pos, sat_vel, pr, prr, var_pr, var_prr, ground, *, max_iter: int = 30,
+              tol_m: float = 1e-4) -> RelayFix | None:
+    """Least-squares fix from one relay epoch, or None (< 4 satellites, singular geometry or no
+    convergence).
+
+    Gauss-Newton on pr_i = |S_i - P| + |P - G| + dd (4 unknowns: P and dd) weighted by
+    1/var_pr, started 1 km above G (never on G itself, where K = (P - G)/|P - G| is
+    undefined); then prr_i + K_i.W_i = (K_i + K).V + osc, linear in (V, osc), weighted by
+    1/var_prr. Covariances (A' W A)^-1.
+    """
+    sp, sv = np.asarray(sat_pos, float), np.asarray(sat_vel, float)
+    pr, prr = np.asarray(pr, float), np.asarray(prr, float)
+    wp, wv = 1.0 / np.asarray(var_pr, float), 1.0 / np.asarray(var_prr, float)
+    G = np.asarray(ground, float)
+    if pr.size < 4:
+        return None
+    up = G / np.linalg.norm(G)
+    P, dd = G + 1000.0 * up, 0.0
+    A = np.empty((pr.size, 4))
+    A[:, 3] = 1.0
+    it = 0
+    for it in range(1, max_iter + 1):
+        dS = P - sp
+        rho = np.linalg.norm(dS, axis=1)
+        Ki = dS / rho[:, None]
+        dG = P - G
+        rG = max(float(np.linalg.norm(dG)), 1e-3)
+        A[:, :3] = Ki + dG / rG
+        res = pr - (rho + rG + dd)
+        N = A.T @ (A * wp[:, None])
+        try:
+            step = np.linalg.solve(N, A.T @ (wp * res))
+        except np.linalg.LinAlgError:
+            return None
+        P, dd = P + step[:3], dd + step[3]
+        if not np.all(np.isfinite(step)):
+            return None
+        if np.linalg.norm(step) < tol_m:
+            break
+    else:
+        return None
+    dS = P - sp
+    rho = np.linalg.norm(dS, axis=1)
+    Ki = dS / rho[:, None]
+    K = (P - G) / max(float(np.linalg.norm(P - G)), 1e-3)
+    A[:, :3] = Ki + K
+    try:
+        cov_pd = np.linalg.inv(A.T @ (A * wp[:, None]))
+        Nv = A.T @ (A * wv[:, None])
+        cov_vo = np.linalg.inv(Nv)
+    except np.linalg.LinAlgError:
+        return None
+    sol = cov_vo @ (A.T @ (wv * (prr + np.sum(Ki * sv, axis=1))))
+    # back from the relay's frame point to the sonde (relay_frame_point, inverted to first order)
+    P = P + (P - relay_frame_point(P, sol[:3], G))
+    return RelayFix(P, float(dd), sol[:3], float(sol[3]), 0.5 * (cov_pd + cov_pd.T), 0.5 * (cov_vo + cov_vo.T), it)
+
+
+# ---------------------------------------------------------------------------
+# the tracker
+
+
+@dataclass
+class TrackerCounters:
+    """What the tracker took in, and what it refused or could not use (counted, not hidden)."""
+
+    messages: int = 0  # bus messages handed to on_message
+    ignored: int = 0  # other runs, kinds or sondes this tracker does not follow, other radars
+    duplicates: int = 0  # (source, seq) seen before
+    stale: int = 0  # older than (or at) the sonde's filter time
+    superseded: int = 0  # a second message of the same kind, sonde and epoch (the later wins)
+    epochs: int = 0  # sonde-epochs processed
+    relay_updates: int = 0
+    relay_empty: int = 0  # relay epochs with no satellite (GNSS outage, out of range)
+    relay_gated: int = 0  # relay blocks rejected at the chi-square gate
+    relay_manoeuvre: int = 0  # relay blocks accepted only under the manoeuvre hypothesis
+    radar_updates: int = 0
+    range_only_updates: int = 0  # angles_valid False: range row only
+    radar_gated: int = 0
+    radar_manoeuvre: int = 0
+    init_radar: int = 0
+    init_relay: int = 0
+    init_waiting: int = 0  # epochs of a sonde that could not initialise it
+    reacquired: int = 0  # tracks re-initialised after reacquire_after rejections in a row
+    window_manoeuvre: int = 0  # manoeuvres found by the sliding-window NIS test
+    ukf_updates: int = 0  # sonde-epochs updated by the UKF (filter "ukf", or "auto" when needed)
+    estimates: int = 0
+
+    def as_dict(self) -> dict:
+        return {f.name: getattr(self, f.name) for f in fields(self)}
+
+
+class SondeTracker:
+    """EKF/UKF radiosonde tracker on the bus, for one mode and any number of sondes.
+
+    run_id : the bus run prefix. params : SondeTrackerParams (mode, models, gating).
+    source_id : the publisher id of its Estimates (default ``sonde_tracker.<label>``).
+    sonde_ids : follow only these sondes (default: every sonde seen).
+    radar_id : follow only this radar (default: the first radar heard).
+    """
+
+    def __init__(self, run_id: str, params: SondeTrackerParams | None = None, *, source_id: str | None = None,
+                 sonde_ids=None, radar_id: str | None = None):
+        if not is_valid_id(run_id):
+            raise ValueError(f"run_id must be 1..64 chars of [A-Za-z0-9_.-], got {run_id!r}")
+        self.params = p = SondeTrackerParams() if params is None else params
+        if not isinstance(p, SondeTrackerParams):
+            raise TypeError(f"params: expected a SondeTrackerParams, got {type(p).__name__}")
+        self.run_id = run_id
+        self.label = p.mode_label
+        self.source_id = source_id or f"sonde_tracker.{self.label}"
+        if not is_valid_id(self.source_id):
+            raise ValueError(f"source_id must be 1..64 chars of [A-Za-z0-9_.-], got {self.source_id!r}")
+        self.sonde_ids = None if sonde_ids is None else tuple(str(s) for s in sonde_ids)
+        self.radar_id = radar_id
+        self.layout = layout_for(p.mode, p.radar_noise)
+        self.counters = TrackerCounters()
+        self._seqtrack = SequenceTracker()
+        self._transport = None
+        self._subs: list = []
+        self._seq = 0
+        self._transition: SondeTransition | None = None
+        self._radar_sites: dict = {}
+        self._points = SigmaPoints(self.layout.n, alpha=1.0, beta=2.0, kappa=0.0)
+        n = self.layout.n
+        self._slots: dict[str, int] = {}
+        self._ids: list[str] = []
+        self._keys: list[str] = []
+        self._x = np.zeros((0, n))
+        self._P = np.zeros((0, n, n))
+        self._t = np.zeros(0)  # filter time per sonde (NaN before initialisation)
+        self._nis = np.zeros(0)  # summed block NIS of the last processed epoch
+        self._rejects = np.zeros((0, 2), dtype=np.int64)  # consecutive rejections [relay, radar]
+        W = p.manoeuvre_window or 1
+        self._win_nis, self._win_m = np.zeros((0, W)), np.zeros((0, W), dtype=np.int64)  # NIS window
+        self._win_k = np.zeros(0, dtype=np.int64)
+        self._win_S, self._win_M = np.zeros(0), np.zeros(0, dtype=np.int64)
+        self._pending: dict[float, dict[str, list]] = defaultdict(dict)
+        self._gates: dict[int, float] = {}
+
+    # -- bus ---------------------------------------------------------------
+
+    def attach(self, transport) -> list:
+        """Subscribe to the relay and radar messages of the run (and publish Estimates there)."""
+        self._transport = transport
+        sondes = self.sonde_ids or ("*",)
+        for s in sondes:
+            ids = {} if s == "*" else {"sonde": s}
+            if self.layout.uses_relay:
+                self._subs.append(transport.subscribe(key_pattern(self.run_id, SondeRelay, **ids), self.on_message))
+            if self.layout.uses_radar:
+                self._subs.append(transport.subscribe(key_pattern(self.run_id, RadarMeasurement, **ids),
+                                                      self.on_message))
+        return list(self._subs)
+
+    def close(self) -> None:
+        for s in self._subs:
+            s.close()
+        self._subs.clear()
+
+    def on_message(self, key: str, msg) -> None:
+        """Buffer one bus message for its epoch (processed by ``step``)."""
+        c = self.counters
+        c.messages += 1
+        parsed = parse_key(key) if isinstance(key, str) else None
+        if parsed is None or parsed[0] != self.run_id or "sonde" not in parsed[2]:
+            c.ignored += 1
+            return
+        _, cls, ids = parsed
+        sonde = ids["sonde"]
+        if self.sonde_ids is not None and sonde not in self.sonde_ids:
+            c.ignored += 1
+            return
+        if isinstance(msg, SondeRelay) and cls is SondeRelay and self.layout.uses_relay:
+            kind = 0
+        elif isinstance(msg, RadarMeasurement) and cls is RadarMeasurement and self.layout.uses_radar:
+            if self.radar_id is None:
+                self.radar_id = ids["radar"]
+            if ids["radar"] != self.radar_id:
+                c.ignored += 1
+                return
+            kind = 1
+        else:
+            c.ignored += 1
+            return
+        if self._seqtrack.update(msg.source_id, msg.seq).duplicate:
+            c.duplicates += 1
+            return
+        t = float(msg.t_gps_s)
+        slot = self._slots.get(sonde)
+        if slot is not None and self._t[slot] >= t:  # NaN (not initialised yet) compares False
+            c.stale += 1
+            return
+        entry = self._pending[t].setdefault(sonde, [None, None])
+        if entry[kind] is not None:
+            c.superseded += 1
+        entry[kind] = msg
+
+    def step(self, t_gps_s: float) -> list[Estimate]:
+        """Process every buffered epoch <= t, predict every initialised sonde to t and publish
+        (and return) one Estimate per sonde."""
+        t = float(t_gps_s)
+        if not math.isfinite(t):
+            raise ValueError(f"t_gps_s must be finite, got {t_gps_s!r}")
+        for tau in sorted(k for k in self._pending if k <= t):
+            self._process(tau, self._pending.pop(tau))
+        live = np.flatnonzero(self._t < t)  # initialised and behind (NaN excluded)
+        if live.size:
+            self._predict(live, t)
+            self._nis[live] = np.nan
+        out = []
+        for slot in np.flatnonzero(self._t == t):
+            out.append(self._estimate(int(slot), t))
+        return out
+
+    def _estimate(self, slot: int, t: float) -> Estimate:
+        x, P = self._x[slot], self._P[slot]
+        cov = P[:6, :6]
+        est = Estimate(t_gps_s=t, source_id=self.source_id, seq=self._seq, kind="sonde", pos_ecef_m=x[0:3],
+                       vel_ecef_m_s=x[3:6], cov=0.5 * (cov + cov.T), nis=float(self._nis[slot]), mode=self.label)
+        self._seq += 1
+        self.counters.estimates += 1
+        if self._transport is not None:
+            self._transport.publish(self._keys[slot], est)
+        return est
+
+    # -- state access ------------------------------------------------------
+
+    @property
+    def sondes(self) -> list[str]:
+        return list(self._ids)
+
+    def state(self, sonde: str):
+        """(t, x, P) of a sonde (copies), or None before its initialisation."""
+        slot = self._slots.get(sonde)
+        if slot is None or not math.isfinite(self._t[slot]):
+            return None
+        return float(self._t[slot]), self._x[slot].copy(), self._P[slot].copy()
+
+    # -- internals ---------------------------------------------------------
+
+    def _slot(self, sonde: str) -> int:
+        slot = self._slots.get(sonde)
+        if slot is None:
+            n = self.layout.n
+            slot = self._slots[sonde] = len(self._ids)
+            self._ids.append(sonde)
+            self._keys.append(key_for(self.run_id, Estimate, kind="sonde", id=sonde))
+            self._x = np.concatenate([self._x, np.zeros((1, n))])
+            self._P = np.concatenate([self._P, np.zeros((1, n, n))])
+            self._t = np.append(self._t, np.nan)
+            self._nis = np.append(self._nis, np.nan)
+            self._rejects = np.concatenate([self._rejects, np.zeros((1, 2), dtype=np.int64)])
+            W = self.params.manoeuvre_window or 1
+            self._win_nis = np.concatenate([self._win_nis, np.zeros((1, W))])
+            self._win_m = np.concatenate([self._win_m, np.zeros((1, W), dtype=np.int64)])
+            self._win_k = np.append(self._win_k, 0)
+            self._win_S = np.append(self._win_S, 0.0)
+            self._win_M = np.append(self._win_M, 0)
+        return slot
+
+    def _ensure_transition(self, site_ecef) -> None:
+        if self._transition is not None:
+            return
+        p = self.params
+        lat, lon, _ = ecef_to_geodetic(np.asarray(site_ecef, float))
+        r = enu_rotation(lat, lon)  # Q's horizontal / vertical split at the site
+        acc = r.T @ np.diag([p.sigma_acc_horizontal_m_s2**2, p.sigma_acc_horizontal_m_s2**2,
+                             p.sigma_acc_vertical_m_s2**2]) @ r
+        self._transition = SondeTransition(self.layout, p, acc)
+
+    def _radar_site(self, pos):
+        key = np.asarray(pos, float).tobytes()
+        out = self._radar_sites.get(key)
+        if out is None:
+            lat, lon, _ = ecef_to_geodetic(np.asarray(pos, float))
+            out = self._radar_sites[key] = (np.array(pos, float), enu_rotation(lat, lon))
+        return out
+
+    def _gate(self, m: np.ndarray) -> np.ndarray:
+        if self.params.gate_prob is None:
+            return np.full(m.shape, np.inf)
+        out = np.empty(m.shape)
+        for i, mi in enumerate(m.tolist()):
+            g = self._gates.get(mi)
+            if g is None:
+                g = self._gates[mi] = float(chi2.ppf(self.params.gate_prob, mi))
+            out[i] = g
+        return out
+
+    def _predict(self, slots: np.ndarray, t: float) -> None:
+        """x- = F x, P- = F P F' + Q for the sondes in slots, to time t."""
+        dts = t - self._t[slots]
+        for dt in (dts[:1] if np.all(dts == dts[0]) else np.unique(dts)):
+            sel = slots if dts.size == 1 or np.all(dts == dt) else slots[dts == dt]
+            F, Q = self._transition.F(None, dt), self._transition.Q(dt)
+            self._x[sel] = self._x[sel] @ F.T
+            self._P[sel] = kernels.cov_predict(F, self._P[sel], Q, backend=self.params.backend)
+        self._t[slots] = t
+
+    def _update(self, x, P, z, model, filt: str):
+        if filt == "ukf":
+            return ukf_update(x, P, z, model, points=self._points, backend=self.params.backend)
+        return ekf_update(x, P, z, model, backend=self.params.backend)
+
+    def _gated_update(self, slots: np.ndarray, x, P, model, what: str, dt: float, filt: str) -> np.ndarray:
+        """One block update (prior x, P of the sondes in slots) with the chi-square gate and the
+        manoeuvre retry; writes the posteriors (or the prior, where rejected) back and returns
+        the NIS (NaN where rejected)."""
+        c = self.counters
+        z = model.z
+        res = self._update(x, P, z, model, filt)
+        gate = self._gate(model.m_eff)
+        nis = np.array(res.nis, dtype=float)
+        xo, Po = np.array(res.x), np.array(res.P)
+        bad = np.flatnonzero(~(nis <= gate))
+        if bad.size:
+            res2 = self._update(x[bad], P[bad] + self._transition.boost(dt), z[bad], model.subset(bad), filt)
+            ok2 = np.asarray(res2.nis) <= gate[bad]
+            acc, rej = bad[ok2], bad[~ok2]
+            xo[acc], Po[acc], nis[acc] = np.asarray(res2.x)[ok2], np.asarray(res2.P)[ok2], np.asarray(res2.nis)[ok2]
+            xo[rej], Po[rej], nis[rej] = x[rej], P[rej], np.nan
+            setattr(c, f"{what}_manoeuvre", getattr(c, f"{what}_manoeuvre") + int(acc.size))
+            setattr(c, f"{what}_gated", getattr(c, f"{what}_gated") + int(rej.size))
+        j = 0 if what == "relay" else 1
+        self._rejects[slots, j] = np.where(np.isfinite(nis), 0, self._rejects[slots, j] + 1)
+        self._x[slots], self._P[slots] = xo, 0.5 * (Po + np.swapaxes(Po, -1, -2))
+        return nis
+
+    # -- initialisation ----------------------------------------------------
+
+    def _prior(self) -> tuple[np.ndarray, np.ndarray]:
+        L, p = self.layout, self.params
+        x, P = np.zeros(L.n), np.zeros((L.n, L.n))
+        P[3:6, 3:6] = np.eye(3) * p.prior_sigma_vel_m_s**2
+        P[6:9, 6:9] = self._transition.acc_cov_ecef
+        if L.dd is not None:
+            P[L.dd, L.dd] = p.prior_sigma_delta_d_m**2
+            P[L.osc, L.osc] = p.osc_sigma_m_s**2
+        if L.err is not None:
+            P[L.err:L.err + 3, L.err:L.err + 3] = np.diag(np.square(p.radar_sigma))
+        return x, P
+
+    def _init_from_radar(self, slot: int, m: RadarMeasurement, count: bool = True) -> bool:
+        if not m.angles_valid:
+            return False
+        self._ensure_transition(m.radar_pos_ecef_m)
+        site = np.asarray(m.radar_pos_ecef_m)
+        L = self.layout
+        x, P = self._prior()
+        x[0:3] = radar_aer_to_ecef(m.az_rad, m.el_rad, m.slant_range_m, site)
+        var = np.array([m.var_az_rad2, m.var_el_rad2, m.var_range_m2])  # radar.py's column order
+        P[0:3, 0:3] = aer_cov_to_ecef(m.az_rad, m.el_rad, m.slant_range_m, site, var)
+        if L.err is not None:
+            J = aer_to_ecef_jacobian(m.az_rad, m.el_rad, m.slant_range_m, site)[:, [2, 0, 1]]  # [D, az, el]
+            S = P[L.err:L.err + 3, L.err:L.err + 3]
+            Rw = self.params.radar_white_fraction * np.diag([m.var_range_m2, m.var_az_rad2, m.var_el_rad2])
+            # P = g(z - err - v), v the white part: cov(P) = J (S + Rw) J', cov(P, err) = -J S
+            # (without Rw the joint covariance is singular: P would be a function of err)
+            P[0:3, 0:3] = J @ (S + Rw) @ J.T
+            P[0:3, L.err:L.err + 3] = -J @ S
+            P[L.err:L.err + 3, 0:3] = -(J @ S).T
+        self._x[slot], self._P[slot] = x, 0.5 * (P + P.T)
+        self.counters.init_radar += count
+        return True
+
+    def _init_from_relay(self, slot: int, m: SondeRelay, count: bool = True) -> bool:
+        fix = relay_fix(m.sat_pos_ecef_m, m.sat_vel_ecef_m_s, m.pseudorange_m, m.pseudo_doppler_m_s,
+                        m.var_pseudorange_m2, m.var_pseudo_doppler_m2_s2, m.ground_pos_ecef_m)
+        if fix is None:
+            return False
+        self._ensure_transition(m.ground_pos_ecef_m)
+        L = self.layout
+        x, P = self._prior()
+        x[0:3], x[3:6], x[L.dd], x[L.osc] = fix.pos_ecef_m, fix.vel_ecef_m_s, fix.delta_d_m, fix.osc_m_s
+        ip, iv = [0, 1, 2, L.dd], [3, 4, 5, L.osc]
+        P[np.ix_(ip, ip)] = fix.cov_pos_dd
+        P[np.ix_(iv, iv)] = fix.cov_vel_osc
+        self._x[slot], self._P[slot] = x, P
+        self.counters.init_relay += count
+        return True
+
+    # -- one epoch -----------------------------------------------------------
+
+    def _process(self, t: float, items: dict) -> None:
+        L, c = self.layout, self.counters
+        upd = []  # (sonde, slot, relay msg or None, radar msg or None) to update at t
+        idle = []  # initialised sondes with nothing usable at t: predicted only
+        for sonde, (rel, rad) in items.items():
+            slot = self._slot(sonde)
+            c.epochs += 1
+            if math.isfinite(self._t[slot]):
+                if not self._t[slot] < t:  # the filter is already at t (step called before)
+                    c.stale += (rel is not None) + (rad is not None)
+                    continue
+            else:  # initialisation: the radar fix first, else a relay least-squares fix
+                if L.uses_radar and rad is not None and self._init_from_radar(slot, rad):
+                    rad = None
+                elif L.uses_relay and rel is not None and rel.n >= 4 and self._init_from_relay(slot, rel):
+                    rel = None
+                else:
+                    c.init_waiting += 1
+                    continue
+                self._t[slot] = t
+                self._nis[slot] = np.nan
+            if rel is not None and rel.n == 0:
+                c.relay_empty += 1
+                rel = None
+            if rel is None and rad is None:
+                idle.append(slot)
+            else:
+                upd.append((sonde, slot, rel, rad))
+        if idle:
+            self._predict(np.array(idle), t)
+            self._nis[idle] = np.nan
+        if not upd:
+            return
+        dts = [t - float(self._t[u[1]]) for u in upd]
+        for dt in sorted(set(dts)):
+            group = upd if len(dts) == 1 else [u for u, d in zip(upd, dts) if d == dt]
+            self._epoch_update(group, dt, t)
+
+    def _measurement(self, group) -> SondeMeasurement:
+        """The joint measurement model of a group of sondes (padded to common rows)."""
+        L, p = self.layout, self.params
+        Bs = len(group)
+        kw = {}
+        cols = []
+        U = 0
+        if L.uses_relay:
+            rels = [g[2] for g in group if g[2] is not None]
+            if len(rels) == 1:  # one sonde: its satellites as they come
+                union = rels[0].sat_ids
+            else:  # satellite slots in order of first appearance
+                union = list(dict.fromkeys(s for m in rels for s in m.sat_ids))
+            U = len(union)
+            col = None
+            sat_pos, sat_vel = np.zeros((Bs, U, 3)), np.zeros((Bs, U, 3))
+            mask = np.zeros((Bs, U), dtype=bool)
+            zr, rr = np.zeros((Bs, 2 * U)), np.ones((Bs, 2 * U))
+            ground = rels[0].ground_pos_ecef_m if rels else np.zeros(3)
+            for b, g in enumerate(group):
+                m = g[2]
+                if m is None:
+                    continue
+                if m is not rels[0] and not np.array_equal(m.ground_pos_ecef_m, ground):
+                    raise _MixedSites
+                if m.sat_ids == union:
+                    j = slice(0, U)
+                else:
+                    if col is None:
+                        col = {sid: k for k, sid in enumerate(union)}
+                    j = np.fromiter((col[s] for s in m.sat_ids), dtype=np.intp, count=m.n)
+                sat_pos[b, j], sat_vel[b, j], mask[b, j] = m.sat_pos_ecef_m, m.sat_vel_ecef_m_s, True
+                jj = j if isinstance(j, slice) else None
+                if jj is not None:
+                    zr[b, :U], zr[b, U:] = m.pseudorange_m, m.pseudo_doppler_m_s
+                    rr[b, :U], rr[b, U:] = m.var_pseudorange_m2, m.var_pseudo_doppler_m2_s2
+                else:
+                    zr[b, j], zr[b, U + j] = m.pseudorange_m, m.pseudo_doppler_m_s
+                    rr[b, j], rr[b, U + j] = m.var_pseudorange_m2, m.var_pseudo_doppler_m2_s2
+            kw.update(sat_pos=sat_pos, sat_vel=sat_vel, relay_mask=mask, ground=np.asarray(ground))
+            cols.append((zr, rr))
+        if L.uses_radar:
+            rads = [g[3] for g in group if g[3] is not None]
+            site0 = rads[0].radar_pos_ecef_m if rads else None
+            zd, rd = np.zeros((Bs, 3)), np.ones((Bs, 3))
+            dmask = np.zeros((Bs, 3), dtype=bool)
+            frac = p.radar_white_fraction if L.err is not None else 1.0
+            for b, g in enumerate(group):
+                m = g[3]
+                if m is None:
+                    continue
+                if not np.array_equal(m.radar_pos_ecef_m, site0):
+                    raise _MixedSites
+                zd[b, 0], rd[b, 0] = m.slant_range_m, frac * m.var_range_m2
+                dmask[b, 0] = True
+                if m.angles_valid:
+                    zd[b, 1], zd[b, 2] = m.az_rad, m.el_rad
+                    rd[b, 1], rd[b, 2] = frac * m.var_az_rad2, frac * m.var_el_rad2
+                    dmask[b, 1:] = True
+            site, rot = self._radar_site(site0) if site0 is not None else (np.zeros(3), np.eye(3))
+            kw.update(site=site, rot=rot, radar_mask=dmask)
+            cols.append((zd, rd))
+        z = np.concatenate([a for a, _ in cols], axis=-1)
+        r = np.concatenate([b for _, b in cols], axis=-1)
+        return SondeMeasurement(L, z, r, **kw)
+
+    def _filter_for(self, group) -> list[str]:
+        """The filter of each sonde's update; "auto": the UKF while the position is uncertain on
+        the scale of its distance to the radar (or G) -- sqrt(trace P_pos) above
+        ``auto_ukf_ratio`` x that distance, where the measurement functions curve within the
+        uncertainty (a range-only coast near the radar) -- the EKF otherwise."""
+        p = self.params
+        if p.filter != "auto":
+            return [p.filter] * len(group)
+        if len(group) == 1:  # one sonde: plain floats
+            _, slot, rel, rad = group[0]
+            site = rad.radar_pos_ecef_m if rad is not None else rel.ground_pos_ecef_m
+            x, P = self._x[slot], self._P[slot]
+            d2 = (x[0] - site[0]) ** 2 + (x[1] - site[1]) ** 2 + (x[2] - site[2]) ** 2
+            return ["ukf" if P[0, 0] + P[1, 1] + P[2, 2] > p.auto_ukf_ratio**2 * d2 else "ekf"]
+        slots = [g[1] for g in group]
+        sites = np.array([g[3].radar_pos_ecef_m if g[3] is not None else g[2].ground_pos_ecef_m for g in group])
+        dx = self._x[slots, 0:3] - sites
+        P = self._P[slots]
+        spread2 = P[:, 0, 0] + P[:, 1, 1] + P[:, 2, 2]
+        ukf = spread2 > p.auto_ukf_ratio**2 * np.sum(dx * dx, axis=1)
+        return ["ukf" if u else "ekf" for u in ukf.tolist()]
+
+    def _epoch_update(self, group, dt: float, t: float) -> None:
+        """Predict the group over dt and update it with all its measurements of the epoch: one
+        joint update, gated on its NIS; sondes failing the gate are redone block by block
+        (relay, then radar), each block gated with the manoeuvre retry."""
+        filts = self._filter_for(group)
+        if len(set(filts)) > 1:
+            for f in ("ekf", "ukf"):
+                sub = [g for g, fi in zip(group, filts) if fi == f]
+                if sub:
+                    self._joint_update(sub, dt, t, f)
+            return
+        self._joint_update(group, dt, t, filts[0])
+
+    def _joint_update(self, group, dt: float, t: float, filt: str) -> None:
+        c, p = self.counters, self.params
+        try:
+            model = self._measurement(group)
+        except _MixedSites:  # different ground receivers / radar sites: one sonde at a time
+            for g in group:
+                self._joint_update([g], dt, t, filt)
+            return
+        if filt == "ukf":
+            c.ukf_updates += len(group)
+        slots = np.array([g[1] for g in group])
+        c.relay_updates += sum(g[2] is not None for g in group)
+        n_rad = sum(g[3] is not None for g in group)
+        c.radar_updates += n_rad
+        c.range_only_updates += sum(g[3] is not None and not g[3].angles_valid for g in group)
+        F, Q = self._transition.F(None, dt), self._transition.Q(dt)
+        x, P = self._x[slots], self._P[slots]
+        x_pred = x @ F.T
+        if filt == "ekf":
+            h, H = model.h_and_H(x_pred)
+            xo, Po, nis = kernels.predict_joseph_update(F, Q, x_pred, P, model.z - h, H, model.R_diag(),
+                                                        backend=p.backend)
+            P_pred = None
+        else:
+            P_pred = kernels.cov_predict(F, P, Q, backend=p.backend)
+            xo, Po, _, nis = ukf_update(x_pred, P_pred, model.z, model, points=self._points, backend=p.backend)
+        gate = self._gate(model.m_eff)
+        bad = np.flatnonzero(~(np.asarray(nis) <= gate))
+        self._x[slots], self._P[slots] = xo, Po
+        self._t[slots] = t
+        self._nis[slots] = nis
+        if not bad.size:
+            self._rejects[slots] = 0
+            self._window_test(slots, np.asarray(nis, dtype=float), model.m_eff, dt)
+            return
+        good = np.ones(slots.size, dtype=bool)
+        good[bad] = False
+        self._rejects[slots[good]] = 0
+        # block by block for the sondes that failed the joint gate
+        bs = slots[bad]
+        if P_pred is None:
+            P_pred = kernels.cov_predict(F, P[bad], Q, backend=p.backend)
+        else:
+            P_pred = P_pred[bad]
+        self._x[bs], self._P[bs] = x_pred[bad], P_pred
+        total, used = np.zeros(bad.size), np.zeros(bad.size, dtype=bool)
+        m_used = np.zeros(bad.size, dtype=np.int64)
+        for part in (model.relay_part(bad), model.radar_part(bad)):
+            if part is None:
+                continue
+            has = np.flatnonzero(part.m_eff > 0)
+            if not has.size:
+                continue
+            sub = part.subset(has) if has.size < bad.size else part
+            v = self._gated_update(bs[has], self._x[bs[has]], self._P[bs[has]], sub,
+                                   "relay" if part.relay else "radar", dt, filt)
+            total[has] += np.where(np.isfinite(v), v, 0.0)
+            used[has] |= np.isfinite(v)
+            m_used[has] += np.where(np.isfinite(v), sub.m_eff, 0)
+        self._nis[bs] = np.where(used, total, np.nan)
+        m_all = model.m_eff.copy()
+        m_all[bad] = m_used
+        nis_all = np.asarray(nis, dtype=float).copy()
+        nis_all[bad] = total
+        self._window_test(slots, nis_all, m_all, dt)
+        self._reacquire(bs, [group[i] for i in bad])
+
+    def _window_test(self, slots, nis, m, dt: float) -> None:
+        """Sliding-window manoeuvre test: the NIS summed over the last ``manoeuvre_window``
+        epochs against the chi-square quantile of its summed dof catches a slow drift away
+        from the model (e.g. the radar alone after the burst) that no single epoch's gate
+        sees; then the manoeuvre covariance is added to the posterior and the window restarts."""
+        W = self.params.manoeuvre_window
+        if W is None or self.params.gate_prob is None:
+            return
+        if slots.size == 1:  # one sonde: plain floats, the same arithmetic
+            slot, v, mi = int(slots[0]), float(nis[0]), int(m[0])
+            if not math.isfinite(v):
+                v, mi = 0.0, 0
+            k = int(self._win_k[slot]) % W
+            self._win_S[slot] += v - self._win_nis[slot, k]
+            self._win_M[slot] += mi - self._win_m[slot, k]
+            self._win_nis[slot, k], self._win_m[slot, k] = v, mi
+            self._win_k[slot] += 1
+            S, M = float(self._win_S[slot]), int(self._win_M[slot])
+            if self._win_k[slot] < W or not S > M or not S > self._gate(np.array([M]))[0]:
+                return
+            self._P[slot] += (S / M) * self._transition.boost(dt)
+            self._win_nis[slot], self._win_m[slot], self._win_k[slot] = 0.0, 0, 0
+            self._win_S[slot], self._win_M[slot] = 0.0, 0
+            self.counters.window_manoeuvre += 1
+            return
+        ok = np.isfinite(nis)
+        nis, m = np.where(ok, nis, 0.0), np.where(ok, m, 0)
+        k = self._win_k[slots] % W
+        self._win_S[slots] += nis - self._win_nis[slots, k]  # running sums over the window
+        self._win_M[slots] += m - self._win_m[slots, k]
+        self._win_nis[slots, k], self._win_m[slots, k] = nis, m
+        self._win_k[slots] += 1
+        S, M = self._win_S[slots], self._win_M[slots]
+        cand = (self._win_k[slots] >= W) & (S > M)  # the quantile is above M: test only these
+        if not cand.any():
+            return
+        hit = np.zeros(slots.size, dtype=bool)
+        hit[cand] = S[cand] > self._gate(M[cand])
+        if hit.any():
+            hs = slots[hit]
+            # scaled by how far the window's NIS exceeds its expectation (a burst seen by the
+            # radar alone is a 40 m/s surprise, not one acceleration step)
+            scale = (S[hit] / M[hit])[:, None, None]
+            self._P[hs] += scale * self._transition.boost(dt)
+            self._win_nis[hs], self._win_m[hs], self._win_k[hs] = 0.0, 0, 0
+            self._win_S[hs], self._win_M[hs] = 0.0, 0
+            self.counters.window_manoeuvre += int(hit.sum())
+
+    def _reacquire(self, slots, group) -> None:
+        """Re-initialise sondes whose relay or radar block was rejected ``reacquire_after``
+        epochs in a row (a lost track: e.g. after a long range-only coast), from this epoch's fix."""
+        n = self.params.reacquire_after
+        if n is None:
+            return
+        for slot, (_, _, rel, rad) in zip(slots, group):
+            k = self._rejects[slot]
+            if k.max() < n:
+                continue
+            ok = False
+            if k[1] >= n and rad is not None:
+                ok = self._init_from_radar(slot, rad, count=False)
+            if not ok and k[0] >= n and rel is not None and rel.n >= 4:
+                ok = self._init_from_relay(slot, rel, count=False)
+            if ok:
+                self.counters.reacquired += 1
+                self._rejects[slot] = 0
+
+
+class _MixedSites(Exception):
+    """Sondes of one epoch heard through different ground receivers or radar sites."""

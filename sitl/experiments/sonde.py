@@ -1,0 +1,760 @@
+"""`skyfuse experiment sonde`: seed 004, radiosonde position from relayed GNSS fused with an
+aerological radar, against each source alone, in batch mode over the in-memory bus.
+
+The world (vehicles.sonde.SondeFlight, sitl.radio.radar.Radar, sitl.radio.relay.Relay)
+publishes, per sonde and epoch, a `Truth`, a `SondeRelay` (empty during a GNSS outage or
+out of range) and a `RadarMeasurement` (when the radar has a valid range) through an
+`InMemoryTransport`; three `ground_station.sonde_tracker.SondeTracker`s (fused,
+radar_only, relay_only) subscribe, and by default two more with the naive white radar-noise
+treatment (fused_white, radar_only_white) for the consistency comparison. Each epoch:
+publish, ``drain(t)``, ``tracker.step(t)`` (which publishes the Estimates), ``drain(t)``.
+A scorer subscribed to truth/** and gs/estimate/** gathers the errors; nothing else reads
+the truth.
+
+Scenario (`SondeScenario`): a 2 h flight at 1 Hz from the default aerological station; the
+GCPP (radar and relay ground receiver G) 300 m from the launch pad at a bearing of 140 deg,
+i.e. across the surface wind (from 230 deg), so the launch happens in a strong side wind
+for the radar's antenna; the default winter jet-stream profile scaled by 1.15 (67 m/s at
+11 km) so that every sonde reaches 250 km ground range inside the 2 h (checked and
+reported); angular auto-tracking lost from 30 s to 330 s after launch (a 5 min loss in
+the side wind at launch: range only meanwhile); a 120 s GNSS outage (the relay delivers
+nothing) from 3600 s. Monte Carlo trials draw everything independently (one SeedSequence
+child per trial, split into flight, radar and relay streams), so a trial's numbers do not
+depend on which other trials run beside it.
+
+Trackers: the tracker's model is the world models' parameters (not their states): Singer
+with the rate p1 + p2 and the stationary acceleration std of the sonde model,
+sigma_a sqrt((p1 + p2) / (2 p1 + p2)) (k_v for p1 vertically), the relay's oscillator, the
+radar's AR(1) errors. ``filter="auto"``: the EKF, and the UKF for a sonde-epoch whose position
+uncertainty is large against its distance to the radar (the radar-only track's range-only
+coast after launch).
+
+Scoring (scoring-side truth: the Truth messages, the flight's ground range and the slant
+range from the GCPP), over the epochs inside the operating radius (ground range < 250 km and
+slant range <= 250 km: beyond, neither source measures and every mode coasts alike):
+  * ``by_range_km``: 3-D position RMSE per mode in 25 km ground-range bins up to 250 km,
+    pooled over trials, over the epochs where every mode has an estimate; with the same-data
+    comparison of fused and relay-only (RMSE gain, per-trial MSE difference and its standard
+    error over the trials);
+  * ``during_radar_loss``, ``during_gnss_outage``: RMSE per mode inside the episodes;
+  * ``anees``: NEES of the published [pos, vel] estimate and covariance (6 dof) averaged over
+    the trials at each epoch while every trial is inside, against the two-sided 99 %
+    chi-square band of one epoch's average (chi2(6 N)/N); reported as the time mean, the
+    fraction of epochs inside the band and the per-epoch band; ``consistent`` = the time
+    mean inside the band;
+  * ``continuity``: the fused track has an estimate at every epoch of every trial (from its
+    first one), and its largest gap;
+  * ``wall_s`` and where it went (world, publishing, bus delivery, trackers -- which include
+    building and publishing their Estimates).
+"""
+from __future__ import annotations
+
+import dataclasses
+import itertools
+import json
+import math
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from sitl.experiments._common import component, prepare_out, progress_printer, save_figure, strict
+
+MODES = ("fused", "radar_only", "relay_only")
+WHITE_MODES = ("fused_white", "radar_only_white")
+COLORS = {"fused": "C3", "radar_only": "C0", "relay_only": "C2", "fused_white": "C1", "radar_only_white": "C9"}
+LABELS = {"fused": "fused (relay + radar)", "radar_only": "radar only", "relay_only": "relayed GNSS only",
+          "fused_white": "fused, naive white radar noise", "radar_only_white": "radar only, naive white radar noise"}
+RUN_ID = "seed004"
+RADAR_ID = "arls1"
+FIGURES = ("sonde_error_vs_time.png", "sonde_rmse_vs_range.png", "sonde_nees.png")
+
+
+@dataclass(frozen=True)
+class SondeScenario:
+    """The seed 004 experiment (times relative to launch, seconds; SI units)."""
+
+    duration_s: float = 7200.0
+    dt_s: float = 1.0
+    wind_scale: float = 1.15  # x the default winter jet profile (58 -> 67 m/s at 11 km)
+    gcpp_offset_m: float = 300.0  # radar / ground receiver from the launch pad
+    gcpp_bearing_deg: float = 140.0  # across the surface wind (from 230 deg)
+    radar_loss_s: tuple = (30.0, 330.0)  # angular auto-tracking lost (side wind at launch)
+    gnss_outage_s: tuple = (3600.0, 3720.0)  # relay delivers nothing
+    bin_km: float = 25.0
+    max_range_km: float = 250.0
+    white_baseline: bool = True  # also run fused / radar_only with naive white radar noise
+    filter: str = "auto"  # "auto": EKF, UKF per sonde-epoch where the radar geometry needs it; "ekf"; "ukf"
+
+    def __post_init__(self):
+        for name in ("duration_s", "dt_s", "wind_scale", "gcpp_offset_m", "bin_km", "max_range_km"):
+            v = getattr(self, name)
+            if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
+                raise ValueError(f"{name} must be a finite number > 0, got {v!r}")
+        for name in ("radar_loss_s", "gnss_outage_s"):
+            a, b = getattr(self, name)
+            if not (math.isfinite(a) and math.isfinite(b) and 0 <= a < b):
+                raise ValueError(f"{name} must be (start, end) with 0 <= start < end, got {getattr(self, name)!r}")
+        if self.filter not in ("auto", "ekf", "ukf"):
+            raise ValueError(f"filter must be 'auto', 'ekf' or 'ukf', got {self.filter!r}")
+
+    def filter_for(self, mode: str) -> str:
+        """The trackers' filter: "auto" lets each tracker take the UKF for a sonde while its
+        position uncertainty is large against its distance to the radar (a range-only coast
+        near the radar, where the EKF's linearisation fails) and the EKF otherwise."""
+        return self.filter
+
+    @property
+    def n_epochs(self) -> int:
+        return round(self.duration_s / self.dt_s) + 1
+
+    @property
+    def modes(self) -> tuple:
+        return MODES + (WHITE_MODES if self.white_baseline else ())
+
+
+# ------------------------------------------------------------------ the world
+
+
+def _trial_streams(seed: int, trials) -> list:
+    """Per trial (flight, radar, relay) Generators: SeedSequence(seed) child i, split in three."""
+    root = np.random.SeedSequence(seed)
+    idx = list(trials)
+    kids = root.spawn(max(idx) + 1)
+    return [tuple(np.random.default_rng(s) for s in kids[i].spawn(3)) for i in idx]
+
+
+def _sonde_params(scn: SondeScenario):
+    SondeParams = component("vehicles.sonde").SondeParams
+
+    d = SondeParams()
+    return SondeParams(wind_speed_m_s=tuple(scn.wind_scale * v for v in d.wind_speed_m_s))
+
+
+def gcpp_site(scn: SondeScenario):
+    """(lat, lon, h) of the GCPP: gcpp_offset_m from the launch pad at gcpp_bearing_deg."""
+    from sitl.geodesy import ecef_to_geodetic, enu_to_ecef
+    sonde = component("vehicles.sonde")
+    DEFAULT_LAUNCH_H_M, DEFAULT_LAUNCH_LAT_RAD, DEFAULT_LAUNCH_LON_RAD = (
+        sonde.DEFAULT_LAUNCH_H_M, sonde.DEFAULT_LAUNCH_LAT_RAD, sonde.DEFAULT_LAUNCH_LON_RAD)
+
+    b = math.radians(scn.gcpp_bearing_deg)
+    enu = np.array([scn.gcpp_offset_m * math.sin(b), scn.gcpp_offset_m * math.cos(b), 0.0])
+    pos = enu_to_ecef(enu, DEFAULT_LAUNCH_LAT_RAD, DEFAULT_LAUNCH_LON_RAD, DEFAULT_LAUNCH_H_M)
+    lat, lon, h = ecef_to_geodetic(pos)
+    return float(lat), float(lon), float(h)
+
+
+def tracker_params(scn: SondeScenario, label: str, backend=None):
+    """The trackers' model: the world models' parameters (not their states)."""
+    SondeTrackerParams = component("ground_station.sonde_tracker").SondeTrackerParams
+    from sitl.radio.radar import RadarParams
+    from sitl.radio.relay import RelayParams
+
+    sp, rp, gp = _sonde_params(scn), RadarParams(), RelayParams()
+    white = label.endswith("_white")
+    beta = sp.p1_1_s + sp.p2_1_s
+    # the acceleration of the sonde model, a = (s / (s + p1)) a_g (the gust a_g seen through the
+    # sonde's response p1; k_v vertically), has the stationary variance sigma_a^2 beta / (beta + p1):
+    # the Singer model's sigma_a (eq 20 with the rate p1 + p2)
+    s_h = sp.sigma_a_m_s2 * math.sqrt(beta / (beta + sp.p1_1_s))
+    s_v = sp.sigma_a_vertical_m_s2 * math.sqrt(beta / (beta + sp.vertical_relax_rate_1_s))
+    return SondeTrackerParams(
+        mode=label.removesuffix("_white"), radar_noise="white" if white else "colored", filter=scn.filter_for(label),
+        accel_rate_1_s=beta, sigma_acc_horizontal_m_s2=s_h, sigma_acc_vertical_m_s2=s_v, osc_gamma_1_s=gp.osc_gamma_1_s,
+        osc_sigma_m_s=2.0 * math.pi * gp.osc_sigma_hz * gp.osc_doppler_scale_m_s_per_rad_s,
+        radar_sigma=tuple(rp.sigma), radar_gamma_1_s=tuple(rp.gamma_1_s), label=label,
+        backend=None if backend in (None, "auto") else backend)
+
+
+class _Scorer:
+    """Collects Truth and Estimate messages from the bus into arrays (trial, epoch)."""
+
+    def __init__(self, modes, n_trials: int, n_epochs: int, t0: float, dt: float, sonde_index: dict):
+        self.modes = {m: i for i, m in enumerate(modes)}
+        self.t0, self.dt, self.index = t0, dt, sonde_index
+        M, B, T = len(modes), n_trials, n_epochs
+        self.truth_pos = np.full((B, T, 3), np.nan)
+        self.truth_vel = np.full((B, T, 3), np.nan)
+        self.pos = np.full((M, B, T, 3), np.nan)
+        self.vel = np.full((M, B, T, 3), np.nan)
+        self.cov = np.full((M, B, T, 6, 6), np.nan)
+        self.count = np.zeros((M, B, T), dtype=np.int32)
+        self.unexpected = 0
+
+    def _k(self, t):
+        return round((t - self.t0) / self.dt)
+
+    def on_truth(self, key, msg):
+        b = self.index.get(key.rsplit("/", 1)[-1])
+        if b is None:
+            self.unexpected += 1
+            return
+        k = self._k(msg.t_gps_s)
+        self.truth_pos[b, k], self.truth_vel[b, k] = msg.pos_ecef_m, msg.vel_ecef_m_s
+
+    def on_estimate(self, key, msg):
+        b = self.index.get(key.rsplit("/", 1)[-1])
+        m = self.modes.get(msg.mode)
+        if b is None or m is None:
+            self.unexpected += 1
+            return
+        k = self._k(msg.t_gps_s)
+        self.pos[m, b, k], self.vel[m, b, k], self.cov[m, b, k] = msg.pos_ecef_m, msg.vel_ecef_m_s, msg.cov
+        self.count[m, b, k] += 1
+
+
+def run_trials(scn: SondeScenario, seed: int, trials, *, backend=None, progress=None, chunk: int = 300) -> dict:
+    """Simulate and track the given trial indices as one batch over the in-memory bus.
+
+    Returns the raw arrays (truth, estimates per mode, ground range, times) and timings.
+    """
+    # the world and the ground station are imported here, not at module import: sitl must
+    # not import vehicles or ground_station when it is itself imported
+    SondeTracker = component("ground_station.sonde_tracker").SondeTracker
+    from sitl.bus import InMemoryTransport, RadarMeasurement, SondeRelay, Truth
+    from sitl.geodesy import geodetic_to_ecef
+    from sitl.gnss.orbits import DEFAULT_TOA_GPS_S, default_constellation
+    from sitl.radio.radar import Radar, RadarParams
+    from sitl.radio.relay import Relay, RelayParams
+    SondeFlight = component("vehicles.sonde").SondeFlight
+
+    trials = list(trials)
+    B, T = len(trials), scn.n_epochs
+    timing = dict.fromkeys(("world", "publish", "deliver", "trackers", "estimates_delivery"), 0.0)
+    wall0 = time.perf_counter()
+    streams = _trial_streams(seed, trials)
+    t0 = DEFAULT_TOA_GPS_S
+    lat, lon, h = gcpp_site(scn)
+    w0 = time.perf_counter()
+    flight = SondeFlight([s[0] for s in streams], params=_sonde_params(scn), t0_gps_s=t0, dt_s=scn.dt_s,
+                         backend="numba" if backend == "numba" else ("numpy" if backend == "numpy" else "auto"))
+    track = flight.simulate(T - 1)
+    radar = Radar([s[1] for s in streams], site_lat_rad=lat, site_lon_rad=lon, site_h_m=h,
+                  params=RadarParams(loss_schedule=((t0 + scn.radar_loss_s[0], t0 + scn.radar_loss_s[1]),)),
+                  batch_shape=(B,))
+    relay = Relay([s[2] for s in streams], default_constellation("GR"), ground_lat_rad=lat, ground_lon_rad=lon,
+                  ground_h_m=h, params=RelayParams(outage_schedule=((t0 + scn.gnss_outage_s[0],
+                                                                    t0 + scn.gnss_outage_s[1]),)),
+                  batch_shape=(B,))
+    timing["world"] += time.perf_counter() - w0
+
+    bus = InMemoryTransport(start_t_gps_s=t0)
+    ids = [f"s{i:04d}" for i in trials]
+    index = {s: b for b, s in enumerate(ids)}
+    modes = scn.modes
+    scorer = _Scorer(modes, B, T, t0, scn.dt_s, index)
+    bus.subscribe(f"{RUN_ID}/truth/sonde/*", scorer.on_truth)
+    bus.subscribe(f"{RUN_ID}/gs/estimate/sonde/*", scorer.on_estimate)
+    trackers = []
+    for m in modes:
+        tr = SondeTracker(RUN_ID, tracker_params(scn, m, backend), radar_id=RADAR_ID)
+        tr.attach(bus)
+        trackers.append(tr)
+    k_relay = [f"{RUN_ID}/sonde/{s}/relay" for s in ids]
+    k_radar = [f"{RUN_ID}/radar/{RADAR_ID}/sonde/{s}" for s in ids]
+    k_truth = [f"{RUN_ID}/truth/sonde/{s}" for s in ids]
+    seq = {"world": 0, "gcpp": 0, RADAR_ID: 0}
+    examples = {"truth": None, "relay": None, "radar": None, "estimate": None}
+    n_msgs = {"truth": 0, "relay": 0, "radar": 0}
+    last_report = 0
+    for c0 in range(0, T, chunk):
+        c1 = min(T, c0 + chunk)
+        w0 = time.perf_counter()
+        rt = relay.track(track.t_gps_s[c0:c1], track.pos_ecef_m[c0:c1], track.vel_ecef_m_s[c0:c1])
+        rms = [radar.step(track.t_gps_s[k], track.pos_ecef_m[k], track.vel_ecef_m_s[k]) for k in range(c0, c1)]
+        timing["world"] += time.perf_counter() - w0
+        sat_id = rt.sat_id
+        for j, k in enumerate(range(c0, c1)):
+            t = float(track.t_gps_s[k])
+            w0 = time.perf_counter()
+            rm = rms[j]
+            for b in range(B):
+                msg = Truth(t_gps_s=t, source_id="world", seq=seq["world"], kind="sonde",
+                            pos_ecef_m=track.pos_ecef_m[k, b], vel_ecef_m_s=track.vel_ecef_m_s[k, b])
+                seq["world"] += 1
+                bus.publish(k_truth[b], msg)
+                examples["truth"] = msg
+                d = rt.delivered[j, b]
+                msg = SondeRelay(t_gps_s=t, source_id="gcpp", seq=seq["gcpp"], sat_ids=sat_id[d],
+                                 pseudorange_m=rt.pseudorange_m[j, b][d], pseudo_doppler_m_s=rt.pseudo_doppler_m_s[j, b][d],
+                                 var_pseudorange_m2=rt.var_pr_m2[j, b][d], var_pseudo_doppler_m2_s2=rt.var_prr_m2_s2[j, b][d],
+                                 sat_pos_ecef_m=rt.sat_pos_ecef_m[j, b][d], sat_vel_ecef_m_s=rt.sat_vel_ecef_m_s[j, b][d],
+                                 ground_pos_ecef_m=rt.ground_pos_ecef_m)
+                seq["gcpp"] += 1
+                bus.publish(k_relay[b], msg)
+                if msg.n:
+                    examples["relay"] = msg
+                n_msgs["truth"] += 1
+                n_msgs["relay"] += 1
+                if rm.range_valid[b]:
+                    msg = RadarMeasurement(t_gps_s=t, source_id=RADAR_ID, seq=seq[RADAR_ID],
+                                           slant_range_m=float(rm.slant_range_m[b]), az_rad=float(rm.az_rad[b]),
+                                           el_rad=float(rm.el_rad[b]), var_range_m2=float(rm.var_range_m2[b]),
+                                           var_az_rad2=float(rm.var_az_rad2[b]), var_el_rad2=float(rm.var_el_rad2[b]),
+                                           angles_valid=bool(rm.angles_valid[b]), radar_pos_ecef_m=rm.site_pos_ecef_m)
+                    seq[RADAR_ID] += 1
+                    bus.publish(k_radar[b], msg)
+                    examples["radar"] = msg
+                    n_msgs["radar"] += 1
+            w1 = time.perf_counter()
+            bus.drain(t)
+            w2 = time.perf_counter()
+            for tr in trackers:
+                est = tr.step(t)
+            if est:
+                examples["estimate"] = est[-1]
+            w3 = time.perf_counter()
+            bus.drain(t)
+            w4 = time.perf_counter()
+            timing["publish"] += w1 - w0
+            timing["deliver"] += w2 - w1
+            timing["trackers"] += w3 - w2
+            timing["estimates_delivery"] += w4 - w3
+        if progress and (c1 == T or c1 - last_report >= T // 10):
+            last_report = c1
+            progress(f"[sonde] {B} trial(s): {c1 - 1:>5d} / {T - 1} s simulated, "
+                     f"{time.perf_counter() - wall0:6.1f} s wall")
+    bus.close()
+    return {
+        "trials": trials, "t_gps_s": track.t_gps_s.copy(), "t0_gps_s": t0, "modes": modes,
+        "ground_range_m": track.ground_range_m.T.copy(),  # (B, T), scoring-side truth
+        "slant_range_m": np.linalg.norm(track.pos_ecef_m - geodetic_to_ecef(lat, lon, h), axis=-1).T.copy(),
+        "alt_m": track.alt_m.T.copy(), "phase": track.phase.T.copy(), "burst_alt_m": track.burst_alt_m.copy(),
+        "truth_pos": scorer.truth_pos, "truth_vel": scorer.truth_vel,
+        "pos": scorer.pos, "vel": scorer.vel, "cov": scorer.cov, "count": scorer.count,
+        "counters": {tr.label: tr.counters.as_dict() for tr in trackers},
+        "bus": {"published": bus.stats.published, "delivered": bus.stats.total.delivered,
+                "rejected": dict(bus.stats.total.rejected), "callback_errors": bus.stats.total.callback_errors,
+                "messages_by_kind": {**n_msgs, "estimate": int(scorer.count.sum())}},
+        "scorer_unexpected": scorer.unexpected,
+        "timing_s": timing, "wall_s": time.perf_counter() - wall0, "examples": examples,
+    }
+
+
+def bus_costs(examples: dict, rounds: int = 200) -> dict:
+    """Per-message cost (us, best of 3 x ``rounds``) of the bus path for one example of each
+    kind: building the message (the schema's validation), encoding, and decoding (which
+    validates again) -- what every message of the run pays."""
+    from sitl.bus import decode, encode
+
+    out = {}
+    for kind, msg in examples.items():
+        if msg is None:
+            continue
+        cls = type(msg)
+        kw = {f: getattr(msg, f) for f in ("t_gps_s", "source_id", "seq")}
+        kw.update({s.name: getattr(msg, s.name) for s in cls.FIELDS})
+        wire = encode(msg)
+        best = {"build": math.inf, "encode": math.inf, "decode": math.inf}
+        calls = (("build", lambda c=cls, k=kw: c(**k)), ("encode", lambda m=msg: encode(m)),
+                 ("decode", lambda w=wire: decode(w)))
+        for _ in range(3):
+            for name, fn in calls:
+                t0 = time.perf_counter()
+                for _ in range(rounds):
+                    fn()
+                best[name] = min(best[name], (time.perf_counter() - t0) / rounds * 1e6)
+        out[kind] = {**{k: round(v, 1) for k, v in best.items()}, "total_us": round(sum(best.values()), 1),
+                     "bytes": len(wire)}
+    return out
+
+
+def _merge(parts: list[dict]) -> dict:
+    """Concatenate run_trials outputs along the trial axis (same scenario)."""
+    if len(parts) == 1:
+        return parts[0]
+    out = dict(parts[0])
+    for k in ("ground_range_m", "slant_range_m", "alt_m", "phase", "burst_alt_m", "truth_pos", "truth_vel"):
+        out[k] = np.concatenate([p[k] for p in parts], axis=0)
+    for k in ("pos", "vel", "cov", "count"):
+        out[k] = np.concatenate([p[k] for p in parts], axis=1)
+    out["trials"] = [i for p in parts for i in p["trials"]]
+    out["counters"] = {m: {c: sum(p["counters"][m][c] for p in parts) for c in parts[0]["counters"][m]}
+                       for m in parts[0]["counters"]}
+    bus = {"published": 0, "delivered": 0, "rejected": {}, "callback_errors": 0, "messages_by_kind": {}}
+    for p in parts:
+        for k in ("published", "delivered", "callback_errors"):
+            bus[k] += p["bus"][k]
+        for k, v in p["bus"]["rejected"].items():
+            bus["rejected"][k] = bus["rejected"].get(k, 0) + v
+        for k, v in p["bus"]["messages_by_kind"].items():
+            bus["messages_by_kind"][k] = bus["messages_by_kind"].get(k, 0) + v
+    out["bus"] = bus
+    out["scorer_unexpected"] = sum(p["scorer_unexpected"] for p in parts)
+    out["timing_s"] = {k: sum(p["timing_s"][k] for p in parts) for k in parts[0]["timing_s"]}
+    out["wall_s"] = sum(p["wall_s"] for p in parts)
+    return out
+
+
+# ------------------------------------------------------------------ scoring
+
+
+def _rmse(e2: np.ndarray):
+    return float(np.sqrt(np.mean(e2))) if e2.size else None
+
+
+def _paired(e2_a: np.ndarray, e2_b: np.ndarray, sel: np.ndarray):
+    """Same-data comparison of two modes over the samples sel (B, T): the relative RMSE gain
+    of a over b, 100 (1 - rmse_a / rmse_b) %, and the difference of the per-trial mean squared
+    errors, mean and standard error over the trials (the trials are independent, the epochs
+    of one trial are not)."""
+    if not sel.any():
+        return None
+    per = [float(np.mean(e2_a[b][sel[b]] - e2_b[b][sel[b]])) for b in range(sel.shape[0]) if sel[b].any()]
+    d = np.array(per)
+    se = float(d.std(ddof=1) / math.sqrt(d.size)) if d.size > 1 else None
+    ra, rb = math.sqrt(np.mean(e2_a[sel])), math.sqrt(np.mean(e2_b[sel]))
+    return {"gain_percent": 100.0 * (1.0 - ra / rb), "mse_difference_m2": float(d.mean()),
+            "mse_difference_stderr_m2": se, "trials": int(d.size)}
+
+
+def score(raw: dict, scn: SondeScenario) -> dict:
+    """The result document's numbers from run_trials' arrays."""
+    from filters.metrics import chi2_bounds, nees
+
+    modes = list(raw["modes"])
+    t_rel = raw["t_gps_s"] - raw["t0_gps_s"]
+    gr_km = raw["ground_range_m"] / 1e3  # (B, T)
+    B = gr_km.shape[0]
+    err = raw["pos"] - raw["truth_pos"][None]  # (M, B, T, 3)
+    e2 = np.sum(err * err, axis=-1)  # (M, B, T)
+    have = np.isfinite(e2)
+    main = [modes.index(m) for m in MODES]
+    common = np.all(have[main], axis=0)  # every main mode has an estimate
+    # inside the operating radius: ground range below 250 km and slant range from the GCPP
+    # within it too (beyond, neither radar nor relay measures: every mode coasts alike)
+    inside = (gr_km < scn.max_range_km) & (raw["slant_range_m"] <= scn.max_range_km * 1e3)
+
+    # RMSE by ground range
+    edges = np.arange(0.0, scn.max_range_km + 1e-9, scn.bin_km)
+    bins = []
+    for lo, hi in itertools.pairwise(edges):
+        sel = common & inside & (gr_km >= lo) & (gr_km < hi)
+        row = {"range_km": float(lo), "rmse_m": {m: _rmse(e2[i][sel]) for i, m in enumerate(modes)},
+               "n": int(sel.sum())}
+        r = row["rmse_m"]
+        row["fused_below_both"] = (None if r["fused"] is None else bool(r["fused"] < r["radar_only"]
+                                                                        and r["fused"] < r["relay_only"]))
+        row["fused_vs_relay_only"] = _paired(e2[modes.index("fused")], e2[modes.index("relay_only")], sel)
+        bins.append(row)
+    filled = [b for b in bins if b["n"] > 0]
+
+    def episode(a, b):
+        sel = common & (t_rel >= a)[None] & (t_rel < b)[None] & inside
+        fi, ri, di = modes.index("fused"), modes.index("relay_only"), modes.index("radar_only")
+        return {"window_s": [a, b], "n": int(sel.sum()),
+                "rmse_m": {m: _rmse(e2[i][sel]) for i, m in enumerate(modes)},
+                "fused_vs_relay_only": _paired(e2[fi], e2[ri], sel),
+                "fused_vs_radar_only": _paired(e2[fi], e2[di], sel),
+                "max_error_m": {m: (float(np.sqrt(e2[i][sel].max())) if sel.any() else None)
+                                for i, m in enumerate(modes)}}
+
+    # consistency: NEES of the published [pos, vel] estimate (6 dof), epochs with every trial inside
+    x_err = np.concatenate([err, raw["vel"] - raw["truth_vel"][None]], axis=-1)  # (M, B, T, 6)
+    ep = np.all(inside, axis=0) & np.all(common, axis=0)  # epochs (T,)
+    lo, hi = chi2_bounds(6, B, 0.99)
+    lo3, hi3 = chi2_bounds(3, B, 0.99)
+    anees = {}
+    for i, m in enumerate(modes):
+        e_ok = ep & np.all(have[i], axis=0)
+        if not e_ok.any():
+            anees[m] = None
+            continue
+        nv = nees(x_err[i][:, e_ok], raw["cov"][i][:, e_ok])  # (B, Te)
+        np3 = nees(err[i][:, e_ok], raw["cov"][i][:, e_ok, :3, :3])
+        a, a3 = nv.mean(axis=0), np3.mean(axis=0)
+        anees[m] = {"dof": 6, "mean": float(a.mean()), "median": float(np.median(a)),
+                    "bounds_99_one_epoch": [lo, hi], "fraction_of_epochs_inside": float(np.mean((a >= lo) & (a <= hi))),
+                    "consistent": bool(lo <= a.mean() <= hi),
+                    "position_only": {"dof": 3, "mean": float(a3.mean()), "bounds_99_one_epoch": [lo3, hi3],
+                                      "fraction_of_epochs_inside": float(np.mean((a3 >= lo3) & (a3 <= hi3)))},
+                    "epochs": int(e_ok.sum()), "trials": B, "per_epoch": a, "per_epoch_t_s": t_rel[e_ok]}
+
+    # continuity of the fused track: an estimate at every epoch from its first one
+    fi = modes.index("fused")
+    got = raw["count"][fi] > 0  # (B, T)
+    first = np.argmax(got, axis=1)
+    missing, max_gap = 0, 0.0
+    for b in range(B):
+        g = got[b, first[b]:]
+        missing += int((~g).sum())
+        idx = np.flatnonzero(got[b])
+        if idx.size > 1:
+            max_gap = max(max_gap, float(np.max(np.diff(idx)) * scn.dt_s))
+    dup = int((raw["count"][fi] > 1).sum())
+    first_s = (first * scn.dt_s).tolist()
+    reached = np.any(gr_km >= scn.max_range_km, axis=1)
+    t_reach = [float(t_rel[np.argmax(g >= scn.max_range_km)]) if r else None for g, r in zip(gr_km, reached)]
+    out = {
+        "by_range_km": bins,
+        "fused_below_both_in_every_bin": bool(filled and all(b["fused_below_both"] for b in filled)),
+        "during_radar_loss": episode(*scn.radar_loss_s),
+        "during_gnss_outage": episode(*scn.gnss_outage_s),
+        "anees": anees,
+        "continuity": {"fused_estimate_every_epoch": bool(missing == 0 and dup == 0), "missing_epochs": missing,
+                       "duplicate_epochs": dup, "max_gap_s": max_gap, "first_estimate_s": first_s},
+        "flight": {"reached_max_range": [bool(r) for r in reached], "time_to_max_range_s": t_reach,
+                   "all_reach_max_range": bool(reached.all()), "max_ground_range_km": gr_km.max(axis=1).tolist(),
+                   "burst_alt_m": raw["burst_alt_m"].tolist(),
+                   "burst_time_s": [float(t_rel[np.argmax(p == 1)]) if (p == 1).any() else None for p in raw["phase"]]},
+    }
+    out["overall_rmse_m"] = {m: _rmse(e2[i][common & inside]) for i, m in enumerate(modes)}
+    with np.errstate(invalid="ignore"):
+        w = (common & inside).sum(axis=0)
+        out["series"] = {"t_s": t_rel, "rms_error_m": {m: np.where(w > 0, np.sqrt(
+            np.where(common & inside, e2[i], 0.0).sum(axis=0) / np.maximum(w, 1)), np.nan) for i, m in enumerate(modes)}}
+    return out
+
+
+# ------------------------------------------------------------------ result.json and figures
+
+
+
+
+def result_document(scn, seed: int, raw: dict, sc: dict, figures, wall_s: float, one_trial_wall_s) -> dict:
+    anees = {m: ({k: v for k, v in a.items() if not k.startswith("per_epoch")} if a else None)
+             for m, a in sc["anees"].items()}
+    main = {m: anees[m] for m in MODES}
+    comparison = None
+    if scn.white_baseline:
+        comparison = {
+            "note": "naive: radar AR(1) errors taken as white (R = sigma^2); colored: the errors are states",
+            "anees": {"colored": {m: anees[m] for m in ("fused", "radar_only")},
+                      "white": {m.removesuffix("_white"): anees[m] for m in WHITE_MODES}},
+            "overall_rmse_m": {"colored": {m: sc["overall_rmse_m"][m] for m in ("fused", "radar_only")},
+                               "white": {m.removesuffix("_white"): sc["overall_rmse_m"][m] for m in WHITE_MODES}},
+        }
+    timing = dict(raw["timing_s"])
+    nmsg = raw["bus"]["delivered"]
+    costs = bus_costs(raw.get("examples", {}))
+    kinds = raw["bus"]["messages_by_kind"]
+    implied = sum(kinds.get(k, 0) * c["total_us"] for k, c in costs.items()) * 1e-6
+    bus_s = timing["publish"] + timing["deliver"] + timing["estimates_delivery"]
+    doc = {
+        "experiment": "sonde", "schema": 1, "seed": seed, "trials": len(raw["trials"]),
+        "scenario": dataclasses.asdict(scn), "epochs": scn.n_epochs,
+        "by_range_km": sc["by_range_km"],
+        "fused_below_both_in_every_bin": sc["fused_below_both_in_every_bin"],
+        "during_radar_loss": sc["during_radar_loss"], "during_gnss_outage": sc["during_gnss_outage"],
+        "anees": main, "radar_noise_comparison": comparison,
+        "continuity": sc["continuity"], "flight": sc["flight"], "overall_rmse_m": sc["overall_rmse_m"],
+        "tracker_counters": raw["counters"], "bus": raw["bus"],
+        "wall_s": wall_s, "wall_s_per_trial": wall_s / max(1, len(raw["trials"])),
+        "one_trial_wall_s": one_trial_wall_s,
+        "timing_s": {**timing, "bus_total": bus_s, "messages_delivered": nmsg,
+                     "bus_s_per_message": bus_s / nmsg if nmsg else None},
+        "bus_cost_per_message_us": costs,
+        "bus_cost_implied_s": implied,
+        "bus_cost_note": "build + encode + decode of every message of the run at the measured per-kind cost "
+                         "(the Estimates are built and published inside the trackers' time)",
+        "figures": [Path(f).name for f in figures],
+    }
+    return strict(doc)
+
+
+def _shade(ax, scn):
+    a, b = scn.radar_loss_s
+    ax.axvspan(a, b, color="C0", alpha=0.12, lw=0, label=f"radar angle tracking lost ({a:g}-{b:g} s)")
+    a, b = scn.gnss_outage_s
+    ax.axvspan(a, b, color="C2", alpha=0.15, lw=0, label=f"GNSS outage ({a:g}-{b:g} s)")
+
+
+def plot(raw: dict, sc: dict, scn: SondeScenario, seed: int, out: Path) -> list[Path]:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    B = len(raw["trials"])
+    filt = "EKF (UKF where needed)" if scn.filter == "auto" else scn.filter.upper()
+    sub = f"seed 004, {B} trial(s), seed {seed}, {scn.duration_s:g} s at {1 / scn.dt_s:g} Hz, {filt}"
+    files = []
+    t = sc["series"]["t_s"]
+    # a) error against time
+    fig, ax = plt.subplots(figsize=(11, 6), constrained_layout=True)
+    _shade(ax, scn)
+    for m in ("radar_only", "relay_only", "fused"):  # fused last: on top of relay-only, which it hugs
+        ax.plot(t, sc["series"]["rms_error_m"][m], color=COLORS[m], lw=1.0 if m != "fused" else 0.9,
+                ls="-" if m != "fused" else (0, (4, 2)), label=LABELS[m])
+    ax.set_yscale("log")
+    ax.set_xlabel("time since launch, s")
+    ax.set_ylabel("3-D position error, m (RMS over trials)")
+    ax.set_xlim(0, scn.duration_s)
+    ax.grid(alpha=0.3, which="both")
+    ax2 = ax.twinx()
+    gr = np.nanmean(raw["ground_range_m"], axis=0) / 1e3
+    ax2.plot(t, gr, color="0.5", lw=0.8, ls="--", label="mean ground range (right axis)")
+    ax2.set_ylabel("ground range, km")
+    h1, l1 = ax.get_legend_handles_labels()
+    h2, l2 = ax2.get_legend_handles_labels()
+    ax.legend(h1 + h2, l1 + l2, loc="upper left", fontsize=8)
+    ax.set_title(f"Radiosonde position error against time (epochs inside {scn.max_range_km:g} km)\n{sub}")
+    files.append(save_figure(fig, out / FIGURES[0]))
+
+    # b) RMSE against ground range, and the same-data gain of fused over relay-only
+    fig, (ax, axg) = plt.subplots(2, 1, figsize=(10, 8), sharex=True, constrained_layout=True,
+                                  gridspec_kw={"height_ratios": [2.2, 1]})
+    bins = [b for b in sc["by_range_km"] if b["n"] > 0]
+    centres = np.array([b["range_km"] + scn.bin_km / 2 for b in bins])
+    order = [m for m in raw["modes"] if m in WHITE_MODES] + ["radar_only", "relay_only", "fused"]
+    for m in order:
+        y = np.array([np.nan if b["rmse_m"][m] is None else b["rmse_m"][m] for b in bins])
+        white = m in WHITE_MODES
+        ax.plot(centres, y, marker="s" if m == "fused" else "o", ms=4 if m == "fused" else 6,
+                ls=":" if white else ("--" if m == "fused" else "-"), color=COLORS[m], label=LABELS[m],
+                lw=1.0 if white else 1.6, zorder=5 if m == "fused" else 3)
+        if m == "fused":
+            for c, v in zip(centres, y):
+                ax.annotate(f"{v:.2f}", (c, v), xytext=(5, -12), textcoords="offset points", ha="left",
+                            fontsize=7, color=COLORS[m])
+    ax.set_yscale("log")
+    ax.set_ylabel("3-D position RMSE, m")
+    ax.grid(alpha=0.3, which="both")
+    ax.legend(fontsize=8, loc="center left")
+    ax.set_title(f"Position RMSE against ground range ({scn.bin_km:g} km bins, all trials pooled)\n{sub}")
+    gains, errs = [], []
+    for b in bins:
+        p = b.get("fused_vs_relay_only")
+        r = b["rmse_m"]["relay_only"]
+        if not p or not r:
+            gains.append(np.nan)
+            errs.append(0.0)
+            continue
+        gains.append(p["gain_percent"])
+        se = p["mse_difference_stderr_m2"]
+        errs.append(0.0 if se is None else 2.0 * 100.0 * se / (2.0 * r * r))  # 2 s.e., in RMSE %
+    gains = np.array(gains)
+    axg.bar(centres, gains, width=0.6 * scn.bin_km, color=np.where(gains > 0, "C3", "0.6"), alpha=0.8,
+            yerr=errs, capsize=3, label="fused vs relay-only, same data (error bar: 2 standard errors over trials)")
+    axg.axhline(0.0, color="k", lw=0.8)
+    axg.set_yscale("symlog", linthresh=1.0)
+    axg.set_ylabel("RMSE gain over\nrelay-only, %")
+    axg.set_xlabel("ground range from the launch site, km (bin centres)")
+    axg.set_xlim(0, scn.max_range_km)
+    axg.grid(alpha=0.3, which="both")
+    axg.legend(fontsize=8, loc="upper left")
+    files.append(save_figure(fig, out / FIGURES[1]))
+
+    # c) ANEES against time with the chi-square band
+    fig, ax = plt.subplots(figsize=(11, 5.5), constrained_layout=True)
+    _shade(ax, scn)
+    band = None
+    order = [m for m in raw["modes"] if m in WHITE_MODES] + ["radar_only", "relay_only", "fused"]
+    for m in order:
+        a = sc["anees"].get(m)
+        if not a:
+            continue
+        ax.plot(a["per_epoch_t_s"], a["per_epoch"], color=COLORS[m], lw=0.7, ls=":" if m in WHITE_MODES else "-",
+                label=f"{LABELS[m]} (mean {a['mean']:.2f}, {100 * a['fraction_of_epochs_inside']:.0f} % inside)")
+        band = a["bounds_99_one_epoch"]
+    if band:
+        ax.axhspan(band[0], band[1], color="k", alpha=0.08, label=f"99 % band of one epoch ({band[0]:.2f}-{band[1]:.2f})")
+        ax.axhline(6.0, color="k", lw=0.8)
+    ax.set_yscale("log")
+    ax.set_xlabel("time since launch, s")
+    ax.set_ylabel("ANEES over trials, [pos, vel] (6 dof)")
+    ax.set_xlim(0, scn.duration_s)
+    ax.grid(alpha=0.3, which="both")
+    ax.legend(fontsize=7, loc="upper right")
+    ax.set_title(f"Consistency: average NEES over trials per epoch (while every trial is inside "
+                 f"{scn.max_range_km:g} km)\n{sub}")
+    files.append(save_figure(fig, out / FIGURES[2]))
+    return files
+
+
+
+
+def _paired_text(p) -> str:
+    if not p:
+        return "-"
+    se = p["mse_difference_stderr_m2"]
+    return (f"{p['gain_percent']:+.2f} %, {p['mse_difference_m2']:+.4g}"
+            + (f" +- {se:.2g}" if se is not None else ""))
+
+
+def summary_table(doc: dict) -> str:
+    modes = list(MODES) + ([m for m in WHITE_MODES] if doc["radar_noise_comparison"] else [])
+    head = (f"{'range km':>9} | " + " | ".join(f"{m:>16}" for m in modes)
+            + f" | {'n':>7} | fused best | fused vs relay-only: RMSE gain, MSE diff +- s.e. (m^2)")
+    rows = [f"position RMSE (m) by ground range, {doc['trials']} trials, seed {doc['seed']}", head, "-" * len(head)]
+    for b in doc["by_range_km"]:
+        if not b["n"]:
+            continue
+        vals = [("" if b["rmse_m"][m] is None else f"{b['rmse_m'][m]:.2f}") for m in MODES]
+        extra = [f"{b['rmse_m'][m]:.2f}" for m in WHITE_MODES] if doc["radar_noise_comparison"] else []
+        rows.append(f"{b['range_km']:>5.0f}-{b['range_km'] + doc['scenario']['bin_km']:<3.0f} | "
+                    + " | ".join(f"{v:>16}" for v in vals + extra) + f" | {b['n']:>7d} | {b['fused_below_both']!s:>10} | "
+                    + _paired_text(b["fused_vs_relay_only"]))
+    for name in ("during_radar_loss", "during_gnss_outage"):
+        e = doc[name]
+        vals = ", ".join(f"{m} {e['rmse_m'][m]:.2f}" for m in MODES if e["rmse_m"][m] is not None)
+        rows.append(f"{name} {e['window_s']} s: RMSE {vals} m (n={e['n']}); fused vs relay-only "
+                    f"{_paired_text(e['fused_vs_relay_only'])}; vs radar-only {_paired_text(e['fused_vs_radar_only'])}")
+    for m in modes:
+        a = (doc["anees"] if m in MODES else
+             doc["radar_noise_comparison"]["anees"]["white"]).get(m.removesuffix("_white") if m in WHITE_MODES else m)
+        if a:
+            rows.append(f"ANEES {m:<17} {a['mean']:8.3f}  (99 % one-epoch band {a['bounds_99_one_epoch'][0]:.3f}-"
+                        f"{a['bounds_99_one_epoch'][1]:.3f}, {100 * a['fraction_of_epochs_inside']:.1f} % of "
+                        f"{a['epochs']} epochs inside; position only {a['position_only']['mean']:.3f})")
+    c = doc["continuity"]
+    rows.append(f"fused continuity: estimate every epoch {c['fused_estimate_every_epoch']} (missing {c['missing_epochs']}, "
+                f"max gap {c['max_gap_s']:g} s); fused below both in every bin: {doc['fused_below_both_in_every_bin']}")
+    f = doc["flight"]
+    rows.append(f"every flight reaches {doc['scenario']['max_range_km']:g} km: {f['all_reach_max_range']} "
+                f"(at {', '.join('-' if x is None else f'{x:.0f}' for x in f['time_to_max_range_s'])} s)")
+    tm = doc["timing_s"]
+    rows.append(f"wall {doc['wall_s']:.1f} s ({doc['wall_s_per_trial']:.2f} s per trial): world {tm['world']:.1f}, "
+                f"publish {tm['publish']:.1f}, bus delivery {tm['deliver']:.1f} + {tm['estimates_delivery']:.1f}, "
+                f"trackers {tm['trackers']:.1f} s; bus {1e6 * (tm['bus_s_per_message'] or 0):.0f} us per message")
+    bc = doc["bus_cost_per_message_us"]
+    rows.append("bus path per message (build + encode + decode, us): "
+                + ", ".join(f"{k} {v['total_us']:.0f}" for k, v in bc.items())
+                + f"; for the {sum(doc['bus']['messages_by_kind'].values())} messages of this run: "
+                  f"{doc['bus_cost_implied_s']:.1f} s of the {doc['wall_s']:.1f} s")
+    return "\n".join(rows)
+
+
+# ------------------------------------------------------------------ the command
+
+
+def scenario_from_args(args) -> SondeScenario:
+    kw = {"white_baseline": not getattr(args, "no_white_baseline", False), "filter": getattr(args, "filter", "auto")}
+    if getattr(args, "duration", None) is not None:
+        kw["duration_s"] = float(args.duration)
+    return SondeScenario(**kw)
+
+
+def run(scn: SondeScenario, trials: int, seed: int, *, backend=None, progress=None, batch: int = 10) -> dict:
+    """All trials, in batches of ``batch`` trials (the bus and the trackers carry a batch)."""
+    parts = []
+    for s in range(0, trials, batch):
+        idx = list(range(s, min(trials, s + batch)))
+        prog = (lambda m, _i=idx: progress(f"trials {_i[0]}-{_i[-1]}: {m}")) if progress else None
+        parts.append(run_trials(scn, seed, idx, backend=backend, progress=prog))
+    return _merge(parts)
+
+
+def main(args) -> int:
+    from sitl.cli import UsageError
+
+    try:
+        scn = scenario_from_args(args)
+    except ValueError as exc:
+        raise UsageError(" ".join(str(exc).split())) from None
+    out = prepare_out(Path(args.out))
+    progress = progress_printer(args.quiet)
+    backend = None if args.backend == "auto" else args.backend
+    wall0 = time.perf_counter()
+    raw = run(scn, args.trials, args.seed, backend=backend, progress=progress)
+    sc = score(raw, scn)
+    wall = time.perf_counter() - wall0
+    one = raw["wall_s"] if args.trials == 1 else None
+    figures = plot(raw, sc, scn, args.seed, out)
+    doc = result_document(scn, args.seed, raw, sc, figures, wall, one)
+    (out / "result.json").write_text(json.dumps(doc, indent=1, allow_nan=False))
+    print(summary_table(doc))
+    print("wrote " + ", ".join(str(p) for p in [out / "result.json", *figures]))
+    return 0
