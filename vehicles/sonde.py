@@ -88,6 +88,8 @@ import numpy as np
 import scipy.linalg
 
 from sitl.atmosphere_std import RHO0_KG_M3, Z_MAX_M, Z_MIN_M, us76_density
+from sitl.checks import nonnegative as _nonneg
+from sitl.checks import positive as _pos
 from sitl.constants import WGS84
 from sitl.geodesy import enu_rotation, geodetic_to_ecef
 from sitl.gnss.orbits import DEFAULT_TOA_GPS_S
@@ -189,26 +191,6 @@ def spawn_rngs(seed, n: int) -> list[np.random.Generator]:
 
 # ---------------------------------------------------------------------------
 # parameters
-
-
-def _pos(name, value) -> float:
-    try:
-        v = float(value)
-    except (TypeError, ValueError):
-        raise ValueError(f"{name} must be a number, got {value!r}") from None
-    if not (math.isfinite(v) and v > 0.0):
-        raise ValueError(f"{name} must be a finite number > 0, got {value!r}")
-    return v
-
-
-def _nonneg(name, value) -> float:
-    try:
-        v = float(value)
-    except (TypeError, ValueError):
-        raise ValueError(f"{name} must be a number, got {value!r}") from None
-    if not (math.isfinite(v) and v >= 0.0):
-        raise ValueError(f"{name} must be a finite number >= 0, got {value!r}")
-    return v
 
 
 @dataclass(frozen=True)
@@ -359,7 +341,6 @@ def _radii(lat):
     s2 = np.sin(lat) ** 2
     w = np.sqrt(1.0 - WGS84.e2 * s2)
     return WGS84.a_m * (1.0 - WGS84.e2) / w**3, WGS84.a_m / w  # M (meridian), N (prime vertical)
-
 
 
 # ---------------------------------------------------------------------------

@@ -55,6 +55,9 @@ from typing import Any, Callable, NamedTuple, Sequence
 
 import numpy as np
 
+from sitl.checks import finite_array as _finite_array
+from sitl.checks import positive as _positive_scalar
+
 try:  # compiled integration loop; the numpy path below is the reference
     import numba as nb
 except ImportError:  # pragma: no cover
@@ -94,26 +97,6 @@ SEED002_UAV_START = ((30.0, 45.0, 3000.0), (30.1, 45.1, 3100.0), (30.3, 45.3, 35
 def wrap_pi(a):
     """Angle(s) wrapped to [-pi, pi)."""
     return np.mod(np.asarray(a, dtype=float) + np.pi, 2.0 * np.pi) - np.pi
-
-
-def _finite_array(name: str, value) -> np.ndarray:
-    try:
-        a = np.asarray(value, dtype=float)
-    except (TypeError, ValueError):
-        raise ValueError(f"{name} must be numeric, got {value!r}") from None
-    if not np.all(np.isfinite(a)):
-        raise ValueError(f"{name} must be finite, got {value!r}")
-    return a
-
-
-def _positive_scalar(name: str, value) -> float:
-    try:
-        v = float(value)
-    except (TypeError, ValueError):
-        raise ValueError(f"{name} must be a number, got {value!r}") from None
-    if not (math.isfinite(v) and v > 0.0):
-        raise ValueError(f"{name} must be a finite number > 0, got {value!r}")
-    return v
 
 
 def _readonly(a: np.ndarray) -> np.ndarray:

@@ -68,6 +68,8 @@ import numpy as np
 from filters.ekf import ekf_step
 from filters.models import ConstantVelocity
 from sitl import geodesy
+from sitl.checks import nonnegative as _nonnegative
+from sitl.checks import positive as _positive
 from sitl.gnss import orbits, ranging, world
 from sitl.gnss.orbits import Constellation
 from sitl.radio.beacon_link import psd_to_variance
@@ -102,26 +104,6 @@ SEED002_T0_GPS_S = orbits.DEFAULT_TOA_GPS_S + 3600.0
 
 _EARTH_RADIUS_M = 6_371_000.0
 _N = 6
-
-
-def _positive(name: str, value) -> float:
-    try:
-        v = float(value)
-    except (TypeError, ValueError):
-        raise ValueError(f"{name} must be a number, got {value!r}") from None
-    if not (math.isfinite(v) and v > 0.0):
-        raise ValueError(f"{name} must be a finite number > 0, got {value!r}")
-    return v
-
-
-def _nonnegative(name: str, value) -> float:
-    try:
-        v = float(value)
-    except (TypeError, ValueError):
-        raise ValueError(f"{name} must be a number, got {value!r}") from None
-    if not (math.isfinite(v) and v >= 0.0):
-        raise ValueError(f"{name} must be a finite number >= 0, got {value!r}")
-    return v
 
 
 def _check_constellation(constellation) -> Constellation:

@@ -31,6 +31,8 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
+from sitl.checks import positive as _check_positive
+from sitl.checks import vec3 as _vec3
 from sitl.constants import Ellipsoid
 from sitl.geodesy import ecef_to_geodetic
 
@@ -49,16 +51,6 @@ __all__ = [
 #: Seed 002 beacon-link noise intensities (two-sided PSDs): range (5 m)^2 s, Doppler (0.1 m/s)^2 s.
 SEED002_PSD_RANGE_M2_S = 5.0**2
 SEED002_PSD_RANGE_RATE_M2_S = 0.1**2
-
-
-def _check_positive(name: str, value) -> float:
-    try:
-        v = float(value)
-    except (TypeError, ValueError):
-        raise ValueError(f"{name} must be a number, got {value!r}") from None
-    if not (math.isfinite(v) and v > 0.0):
-        raise ValueError(f"{name} must be a finite number > 0, got {value!r}")
-    return v
 
 
 def psd_to_variance(psd_two_sided, dt_s):
@@ -122,18 +114,6 @@ class BeaconLinkMeasurement(NamedTuple):
     range_rate_m_s: np.ndarray
     var_range_m2: np.ndarray
     var_range_rate_m2_s2: np.ndarray
-
-
-def _vec3(name: str, value) -> np.ndarray:
-    try:
-        a = np.asarray(value, dtype=float)
-    except (TypeError, ValueError):
-        raise ValueError(f"{name} must be numeric (..., 3), got {value!r}") from None
-    if a.ndim < 1 or a.shape[-1] != 3:
-        raise ValueError(f"{name} must have shape (..., 3), got {a.shape}")
-    if not np.all(np.isfinite(a)):
-        raise ValueError(f"{name} must be finite")
-    return a
 
 
 def range_and_rate(uav_pos_ecef_m, uav_vel_ecef_m_s, beacon_pos_ecef_m, beacon_vel_ecef_m_s):

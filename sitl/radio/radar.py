@@ -57,6 +57,9 @@ from typing import NamedTuple
 
 import numpy as np
 
+from sitl.checks import nonnegative as _nonneg
+from sitl.checks import positive as _pos
+from sitl.checks import vec3 as _vec3
 from sitl.geodesy import aer_to_ecef, ecef_to_aer, enu_rotation, geodetic_to_ecef
 
 __all__ = [
@@ -76,26 +79,6 @@ MAX_RANGE_M = 250_000.0
 
 # ---------------------------------------------------------------------------
 # helpers shared with sitl.radio.relay
-
-
-def _pos(name, value) -> float:
-    try:
-        v = float(value)
-    except (TypeError, ValueError):
-        raise ValueError(f"{name} must be a number, got {value!r}") from None
-    if not (math.isfinite(v) and v > 0.0):
-        raise ValueError(f"{name} must be a finite number > 0, got {value!r}")
-    return v
-
-
-def _nonneg(name, value) -> float:
-    try:
-        v = float(value)
-    except (TypeError, ValueError):
-        raise ValueError(f"{name} must be a number, got {value!r}") from None
-    if not (math.isfinite(v) and v >= 0.0):
-        raise ValueError(f"{name} must be a finite number >= 0, got {value!r}")
-    return v
 
 
 def _intervals(name, value) -> tuple:
@@ -160,18 +143,6 @@ class _Streams:
         if self.single is not None:
             return self.single.random((self.n, k)).reshape(self.batch_shape + (k,))
         return np.stack([g.random(k) for g in self.gens]).reshape(self.batch_shape + (k,))
-
-
-def _vec3(name, value) -> np.ndarray:
-    try:
-        a = np.asarray(value, dtype=float)
-    except (TypeError, ValueError):
-        raise ValueError(f"{name} must be an array of numbers") from None
-    if a.ndim < 1 or a.shape[-1] != 3:
-        raise ValueError(f"{name}: expected shape (..., 3), got {a.shape}")
-    if not np.all(np.isfinite(a)):
-        raise ValueError(f"{name} must be finite")
-    return a
 
 
 def _time(name, value) -> float:
