@@ -88,6 +88,7 @@ import numpy as np
 import scipy.linalg
 
 from sitl.atmosphere_std import RHO0_KG_M3, Z_MAX_M, Z_MIN_M, us76_density
+from sitl.checks import finite_array
 from sitl.checks import nonnegative as _nonneg
 from sitl.checks import positive as _pos
 from sitl.constants import WGS84
@@ -230,25 +231,16 @@ class SondeParams:
                              f"{self.burst_alt_range_m!r}") from None
         if not (math.isfinite(lo) and math.isfinite(hi) and 0.0 < lo <= hi <= 50_000.0):
             raise ValueError(f"burst_alt_range_m must satisfy 0 < low <= high <= 50 km, got {self.burst_alt_range_m!r}")
-        alt = self._knots("wind_alt_m", self.wind_alt_m)
+        alt = finite_array("wind_alt_m", self.wind_alt_m)
         if alt.ndim != 1 or alt.size < 1 or np.any(np.diff(alt) <= 0.0):
             raise ValueError("wind_alt_m must be a non-empty, strictly increasing sequence of altitudes")
-        spd = self._knots("wind_speed_m_s", self.wind_speed_m_s)
+        spd = finite_array("wind_speed_m_s", self.wind_speed_m_s)
         if spd.shape != alt.shape or np.any(spd < 0.0):
             raise ValueError(f"wind_speed_m_s must have one value >= 0 per altitude knot ({alt.size})")
-        frm = self._knots("wind_from_rad", self.wind_from_rad)
+        frm = finite_array("wind_from_rad", self.wind_from_rad)
         if frm.ndim > 1 or (frm.ndim == 1 and frm.shape != alt.shape):
             raise ValueError(f"wind_from_rad must be a scalar or have one value per altitude knot ({alt.size})")
 
-    @staticmethod
-    def _knots(name, value) -> np.ndarray:
-        try:
-            arr = np.asarray(value, dtype=float)
-        except (TypeError, ValueError):
-            raise ValueError(f"{name} must be a sequence of numbers, got {value!r}") from None
-        if not np.all(np.isfinite(arr)):
-            raise ValueError(f"{name} must be finite")
-        return arr
 
     def wind_enu_m_s(self, h_m) -> np.ndarray:
         """Mean wind (..., 2) [east, north] at altitude(s) h_m (linear in components)."""

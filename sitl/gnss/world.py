@@ -34,11 +34,18 @@ from typing import NamedTuple
 
 import numpy as np
 
+from sitl.checks import finite_array as _finite
+from sitl.checks import vec3 as _vec3
 from sitl.constants import C_M_S
 from sitl.geodesy import ecef_to_aer, geocentric_elevation_rad
 from sitl.gnss.clock import ClockModel
 from sitl.gnss.orbits import Constellation
-from sitl.gnss.ranging import Geometry, _check_constellation, light_time_geometry, sat_state_at_reception_frame
+from sitl.gnss.ranging import (
+    Geometry,
+    _check_constellation,
+    light_time_geometry,
+    sat_state_at_reception_frame,
+)
 from sitl.gnss.receiver import Observation, Receiver, ReceiverConfig
 
 __all__ = [
@@ -66,23 +73,6 @@ def _check_rng(rng) -> np.random.Generator:
     if not isinstance(rng, np.random.Generator):
         raise ValueError(f"rng: expected a numpy.random.Generator, got {type(rng).__name__}")
     return rng
-
-
-def _finite(name: str, value) -> np.ndarray:
-    try:
-        arr = np.asarray(value, dtype=float)
-    except (TypeError, ValueError):
-        raise ValueError(f"{name}: cannot convert to a float array") from None
-    if not np.all(np.isfinite(arr)):
-        raise ValueError(f"{name}: values must be finite")
-    return arr
-
-
-def _vec3(name: str, value) -> np.ndarray:
-    arr = _finite(name, value)
-    if arr.ndim < 1 or arr.shape[-1] != 3:
-        raise ValueError(f"{name}: expected shape (..., 3), got {arr.shape}")
-    return arr
 
 
 def _scalar_time(name: str, value) -> float:
