@@ -281,6 +281,10 @@ def build_parser() -> argparse.ArgumentParser:
                            help="eq 7 scope, as in experiment iono-tropo (default dynamic)")
             p.add_argument("--json", type=output_file, default=None, metavar="FILE", help="also write the result as JSON")
             p.add_argument("--quiet", action="store_true", help="no progress lines")
+        else:  # newer benches declare their own flags: add_args(parser) in their module
+            import importlib
+
+            importlib.import_module(BENCHES[name][0]).add_args(p)
     return parser
 
 
