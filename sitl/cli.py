@@ -167,6 +167,11 @@ def _add_iono_tropo_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--slip-rate", type=nonnegative_float, default=0.0, metavar="HZ",
                    help="random cycle slips per tracked satellite per second in the simulated receiver "
                         "(default 0: the seed's 40 dB-Hz case, slips unlikely)")
+    p.add_argument("--cmc-noise", choices=("states", "whitened"), default="states",
+                   help="variant 2, the code noise in the increments E_j = B_j(t) - B_j(t - 90 s): states = "
+                        "exact (the code noise at the window start is a filter state, so E_j carries the "
+                        "carrier-phase change); whitened = decorrelated from the same epoch's pseudorange only, "
+                        "close to the seed's treatment (default states)")
     p.add_argument("--truth-clock-psd-scale", type=positive_float, default=1.0, metavar="X",
                    help="simulated clock PSD / the filter's (default 1: correctly modelled)")
     p.add_argument("--study", choices=("none", "adaptive-q", "ordering"), default="none",

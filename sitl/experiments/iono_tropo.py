@@ -49,7 +49,8 @@ FIGURES = ("iono_tropo_estimates.png", "iono_tropo_errors.png", "iono_tropo_time
 FLAGS = {"duration_s": "--duration", "dt_s": "--duration", "sigma_pr_m": "--sigma-pr", "sigma_prr_m_s": "--sigma-prr",
          "sigma_phase_m": "--sigma-phase", "el_mask_deg": "--el-mask-deg", "adaptive_q": "--adaptive-q", "adaptive_q_scope": "--adaptive-q",
          "adaptive_q_decay": "--adaptive-q-decay", "adaptive_q_gain": "--adaptive-q-gain",
-         "truth_clock_psd_scale": "--truth-clock-psd-scale", "cycle_slip_rate_hz": "--slip-rate"}
+         "truth_clock_psd_scale": "--truth-clock-psd-scale", "cycle_slip_rate_hz": "--slip-rate",
+         "cmc_noise": "--cmc-noise"}
 
 
 # ------------------------------------------------------------------ scenario and runs
@@ -58,7 +59,7 @@ def scenario_from_args(args) -> seed000.IonoTropoScenario:
     kw = {"duration_s": args.duration, "sigma_pr_m": args.sigma_pr, "sigma_prr_m_s": args.sigma_prr,
           "sigma_phase_m": args.sigma_phase, "el_mask_deg": args.el_mask_deg,
           "adaptive_q": args.adaptive_q != "off", "truth_clock_psd_scale": args.truth_clock_psd_scale,
-          "cycle_slip_rate_hz": getattr(args, "slip_rate", 0.0)}
+          "cycle_slip_rate_hz": getattr(args, "slip_rate", 0.0), "cmc_noise": getattr(args, "cmc_noise", "states")}
     if args.adaptive_q != "off":
         kw["adaptive_q_scope"] = args.adaptive_q
     if args.adaptive_q_decay is not None:

@@ -53,19 +53,27 @@ kept per satellite in a ring buffer of W epochs with B_j. Used only where the cy
 detector (filters.cycleslip, fed the receiver's phase and Doppler only -- not its
 lock_count, which the simulator resets at the slips it generates) reports the carrier arc
 slip-free over the whole window.
-Noise bookkeeping (documented choice): code and phase noise are white per epoch, so E_j(t)
-and E_j(t') are correlated only when they share an endpoint (|t - t'| = W), not because
-their windows overlap; but a chain E(t), E(t + W), ... telescopes and, treated as
-independent, overstates the information badly. So every B sample enters at most one
-increment: each satellite's epochs alternate between W-long "start" and "end" blocks
-(staggered across satellites) and at an end epoch E pairs B(t) with B(t - W) from the
-preceding start block -- half the epochs, at the full 10 Hz rate inside the end blocks.
-E_j(t) also shares eps_D,j(t) with the same epoch's pseudorange row (cov sigma_D^2, var
-2 sigma_D^2 + 2 sigma_Phi^2); that pair is whitened exactly (row E_j - pr_j, variance
-sigma_D^2 + 2 sigma_Phi^2, see _CmcIncrementModel). Ignored: the correlation of E_j(t)
-with the already-processed pr_j(t - W) (one of ~10^5 code measurements in the state),
-and the dm_I error from the filter's position/geocentric elevation (the truth maps with
-the geodetic elevation).
+Noise bookkeeping: code and phase noise are white per epoch. E_j(t) = 2 I_g k_j dm_j +
+eps_D,j(t) - eps_D,j(t - W) + (phase noise): its code noise is the *same* noise as that of
+pr_j(t) and of pr_j(t - W), which the filter also uses. Two treatments (`cmc_noise`):
+* "states" (default, exact): all satellites' windows run on one grid of W epochs. At a
+  window start the code noise eps_D,j of every tracked satellite becomes a state e_j (prior
+  N(0, sigma_D^2), constant) and pr_j's row carries it (h += e_j, R = 0: marginally the
+  usual pr_j). At the window end, E_j = 2 k_j dm_j I_g + e_j(new) - e_j(old) with variance
+  2 sigma_Phi^2 only; then the old e_j are marginalised (dropped) and the new ones start the
+  next window. A satellite that sets inside its window just loses its e_j. All correlations
+  are carried by the states, so the increment is worth what it is really worth: with pr_j(t)
+  and pr_j(t - W) it pins down the carrier-phase change over the window (3 mm) -- the
+  information the seed's "noise 2 sigma_D^2" reading throws away (_CodeNoiseStateModel; the
+  test checks it against one batch GLS solve with the full noise covariance).
+* "whitened" (close to the seed): every B sample enters at most one increment (each
+  satellite's epochs alternate between W-long "start" and "end" blocks, staggered across
+  satellites; at an end epoch E pairs B(t) with B(t - W) from the preceding start block),
+  and E_j(t) is decorrelated from the same epoch's pr_j(t) (row E_j - pr_j, variance
+  sigma_D^2 + 2 sigma_Phi^2, see _CmcIncrementModel). Ignored: the correlation with the
+  already-processed pr_j(t - W); E then carries only 2 I_g dm_j against ~6 m of noise.
+Both: the dm_I error from the filter's position/geocentric elevation (the truth maps with the
+geodetic elevation) is ignored.
 
 Variant 3 (run_carrier_phase = run_streamed(variant=3); same world and draws again): the
 ambiguous carrier phase in metres (eqs 35-37, sigma_phase_m) of every tracked satellite is
@@ -125,6 +133,7 @@ _CHECK_EVERY_S = 10.0  # visibility pre-check grid
 IB = [IDX_IONO, IDX_TROPO]
 ADAPTIVE_Q_SCOPES = {"all": None, "dynamic": (0, 1, 2, IDX_CLOCK, 4, 5, 6, IDX_DRIFT)}
 CB = [IDX_CLOCK, IDX_DRIFT]
+CMC_NOISE = ("states", "whitened")
 
 
 def _num(name, v, positive=True, allow_zero=False):
@@ -173,6 +182,10 @@ class IonoTropoScenario:
     # variant 2: code-minus-carrier increments (eqs 29-33)
     cmc_window_s: float = 90.0  # increment interval (seed: 90 s); a multiple of dt_s
     cycle_slip_rate_hz: float = 0.0  # random cycle slips per tracked satellite (receiver), 1/s
+    # how E_j's code noise is handled: "states" (exact: eps_D,j at the window start is a state,
+    # see the module docstring) or "whitened" (against the same epoch's pr_j only; the
+    # correlation with the already-used pr_j(t - W) ignored)
+    cmc_noise: str = "states"
     # variant 3: carrier-phase ambiguity states
     sigma0_amb_m: float = 1000.0  # prior / reset sigma of a new K_j, m (flat; see module docstring)
     # adaptive process noise (eq 7): Q(i+1) = Q_min + decay Q(i) + gain diag((W nu)(W nu)')
@@ -198,6 +211,8 @@ class IonoTropoScenario:
         for name in ("gps_glonass_offset_m", "lat_deg", "lon_deg", "h_m", "heading_deg", "t0_gps_s",
                      "iono_prior_m", "tropo_prior_m"):
             object.__setattr__(self, name, _num(name, getattr(self, name), positive=False))
+        if self.cmc_noise not in CMC_NOISE:
+            raise ValueError(f"cmc_noise must be one of {', '.join(CMC_NOISE)}, got {self.cmc_noise!r}")
         if not isinstance(self.adaptive_q, (bool, np.bool_)):
             raise ValueError(f"adaptive_q must be true or false, got {self.adaptive_q!r}")
         object.__setattr__(self, "adaptive_q", bool(self.adaptive_q))
@@ -351,6 +366,65 @@ class _CmcIncrementModel:
         return np.concatenate([rb, re], axis=-1)
 
 
+class _CodeNoiseStateModel:
+    """Seed 000 variant 2 with the code noise at the window start as states (cmc_noise="states").
+
+    x = [11 base states, e_1 .. e_M]: e_i is the code noise eps_D of one satellite at the
+    epoch its window started (a constant once drawn; prior N(0, sigma_D^2)). Rows:
+    * pr_j, prr_j as in IonoTropoGnss (``base``, built with n_state = len(x)); where
+      ``pr_cols[j] >= 0`` the window of satellite j starts now, pr_j's noise is the state
+      e = x[pr_cols[j]] (h += e, H[e] = 1) and its R entry is 0: marginalised over e that is
+      exactly the usual pr_j with variance sigma_D^2;
+    * one increment row per (local satellite ``inc_rows[r]``) whose window ends now:
+        E_j = B_j(t) - B_j(t - W) = 2 k_j dm_j I_g + e_new - e_old + (phase noise),
+      e_new = x[inc_new[r]] the code noise of this epoch (the same state as pr_j's, so the
+      correlation with pr_j(t) is carried), e_old = x[inc_old[r]] the one at the window
+      start (correlated with everything that pr_j(t - W) told the filter), variance
+      var_e = 2 sigma_Phi^2. Where ``used`` is False (a slip in the window) the row is inert.
+    """
+
+    def __init__(self, base, pr_cols, inc_rows, inc_new, inc_old, coef, used, var_e):
+        self.base = base
+        self.pr_cols = pr_cols
+        self.inc_rows, self.inc_new, self.inc_old = inc_rows, inc_new, inc_old
+        self.coef = np.where(used, coef, 0.0)
+        self.used = used
+        self.var_e = var_e
+
+    def h_and_H(self, x):
+        z, H = self.base.h_and_H(x)
+        z = np.array(z, dtype=float)
+        H = np.array(np.broadcast_to(H, x.shape[:-1] + H.shape[-2:]), dtype=float)
+        rows = np.flatnonzero(self.pr_cols >= 0)
+        cols = self.pr_cols[rows]
+        z[..., rows] += x[..., cols]
+        H[..., rows, cols] = 1.0
+        if self.inc_rows.size == 0:
+            return z, H
+        used = self.used
+        R = self.inc_rows.size
+        hE = np.where(used, self.coef * x[..., IDX_IONO, None] + x[..., self.inc_new] - x[..., self.inc_old], 0.0)
+        HE = np.zeros(x.shape[:-1] + (R, x.shape[-1]))
+        HE[..., IDX_IONO] = self.coef
+        r = np.arange(R)
+        HE[..., r, self.inc_new] = np.where(used, 1.0, 0.0)
+        HE[..., r, self.inc_old] = np.where(used, -1.0, 0.0)
+        return np.concatenate([z, hE], axis=-1), np.concatenate([H, HE], axis=-2)
+
+    def h(self, x):
+        return self.h_and_H(x)[0]
+
+    def H(self, x):
+        return self.h_and_H(x)[1]
+
+    def R_diag(self):
+        batch = self.used.shape[:-1]
+        rb = np.array(np.broadcast_to(self.base.R_diag(), batch + np.shape(self.base.R_diag())[-1:]), dtype=float)
+        rb[..., np.flatnonzero(self.pr_cols >= 0)] = 0.0
+        re = np.broadcast_to(self.var_e, self.used.shape)
+        return np.concatenate([rb, re], axis=-1)
+
+
 def run_code_doppler(scn: IonoTropoScenario, trials: int, seed: int, progress=None, backend=None) -> dict:
     """Variant 1 (pseudorange + pseudorange rate): ``run_streamed(..., variant=1)``."""
     return run_streamed(scn, trials, seed, variant=1, progress=progress, backend=backend)
@@ -474,6 +548,7 @@ def run_streamed(scn: IonoTropoScenario, trials: int, seed: int, variant: int = 
         # simulated receiver resets it at the slips it generates, which is truth)
         detector = CycleSlipDetector((trials, S), CycleSlipConfig(sigma_prr_m_s=scn.sigma_prr_m_s,
                                                                   sigma_phase_m=scn.sigma_phase_m))
+    cmc_states = False
     if variant == 3:
         amb_sats = []  # satellite (constellation index) of K state N_BASE + i
         trans_cache = {0: trans}
@@ -483,9 +558,11 @@ def run_streamed(scn: IonoTropoScenario, trials: int, seed: int, variant: int = 
         var_amb = scn.sigma0_amb_m**2
     if variant == 2:
         W = scn.cmc_window_epochs
-        B_buf = np.full((W, trials, S), np.nan)  # ring buffers over the window (filter side)
-        m_buf = np.full((W, trials, S), np.nan)
-        slips_buf = np.zeros((W, trials, S), dtype=np.int64)  # scoring side only (truth)
+        cmc_states = scn.cmc_noise == "states"
+        if not cmc_states:
+            B_buf = np.full((W, trials, S), np.nan)  # ring buffers over the window (filter side)
+            m_buf = np.full((W, trials, S), np.nan)
+            slips_buf = np.zeros((W, trials, S), dtype=np.int64)  # scoring side only (truth)
         k_iono = (F_REF_HZ / carrier) ** 2
         # disjoint pairing: satellite j's epochs alternate between W-epoch "start" and "end"
         # blocks (staggered by satellite); at an end epoch k, E_j pairs B(k) with B(k - W),
@@ -495,6 +572,17 @@ def run_streamed(scn: IonoTropoScenario, trials: int, seed: int, variant: int = 
         inc = {"candidates": 0, "used": 0, "rejected_slip": 0, "spanning_true_slip": 0,
                "used_spanning_true_slip": 0, "detector_slips": 0}
         n_inc = np.zeros(T, dtype=int)
+        if cmc_states:
+            # x = [11 base, e states]; e_sats[i] = satellite whose window-start code noise is
+            # column N_BASE + i; one window per satellite at a time, all on the same W grid
+            e_sats = []
+            trans_cache = {0: trans}
+            e_m = np.full((trials, S), np.nan)  # filter's m_I at each window start
+            e_B = np.full((trials, S), np.nan)  # B_j at each window start
+            e_slips = np.zeros((trials, S), dtype=np.int64)  # scoring side only (truth)
+            var_e = 2.0 * scn.sigma_phase_m**2
+            inc["lost_to_set"] = 0
+            n_state = np.empty(T, dtype=int)
 
     # the truth geometry of the shared trajectory, a block of epochs per call
     geom = geometry_track(scn.t0_gps_s + t_rel, pos_true, vel_true, const)
@@ -544,6 +632,7 @@ def run_streamed(scn: IonoTropoScenario, trials: int, seed: int, variant: int = 
             m_now[:, idx] = iono_mapping(elevation_rad(pos_f[:, None, :], sp_v))
             B_now = pr - obs.carrier_phase_m  # pr - phase = 2I - lambda N + noise
             slips_now = receiver.slip_count.copy()
+        if variant == 2 and not cmc_states:
             slot = k % W
             rows = np.zeros(0, dtype=int)
             if k >= W:
@@ -567,6 +656,75 @@ def run_streamed(scn: IonoTropoScenario, trials: int, seed: int, variant: int = 
             B_buf[slot] = B_now
             m_buf[slot] = m_now
             slips_buf[slot] = slips_now
+        tr_now = trans
+        if variant == 2 and cmc_states:
+            tracked = set(idx.tolist())
+            gone = [i for i, s_ in enumerate(e_sats) if s_ not in tracked]
+            boundary = k % W == 0
+            n_e = len(e_sats)
+            if gone or boundary:
+                x_pred, P_pred = predict(x, P, trans_cache[n_e]) if k > 0 else (x, P)
+                if gone:  # set inside its window: the start noise is marginalised, no increment
+                    cols_g = [N_BASE + i for i in gone]
+                    x_pred, P_pred = _drop_states(x_pred, P_pred, cols_g)
+                    if aq is not None:
+                        aqs = aqs._replace(q_diag=np.delete(aqs.q_diag, cols_g, axis=-1))
+                    inc["lost_to_set"] += len(gone) * trials
+                    e_sats = [s_ for i, s_ in enumerate(e_sats) if i not in set(gone)]
+                pr_cols = np.full(idx.size, -1)
+                inc_rows = np.zeros(0, dtype=int)
+                old = np.zeros(0, dtype=int)
+                if boundary:
+                    n_old = len(e_sats)
+                    x_pred, P_pred = _append_states(x_pred, P_pred, idx.size)
+                    P_pred[:, n_old + N_BASE + np.arange(idx.size), n_old + N_BASE + np.arange(idx.size)] = \
+                        scn.sigma_pr_m**2
+                    if aq is not None:
+                        aqs = aqs._replace(q_diag=np.concatenate([aqs.q_diag, np.zeros((trials, idx.size))], axis=-1))
+                    pr_cols = N_BASE + n_old + np.arange(idx.size)
+                    loc = {s_: j for j, s_ in enumerate(idx.tolist())}
+                    inc_rows = np.array([loc[s_] for s_ in e_sats], dtype=int)
+                    old = N_BASE + np.arange(n_old)
+                    inc_new = pr_cols[inc_rows]
+                    sats = idx[inc_rows]
+                    ok = detector.slip_free(scn.cmc_window_s)[:, sats]
+                    true_slip = (slips_now[:, sats] - e_slips[:, sats]) > 0
+                    inc["candidates"] += ok.size
+                    inc["used"] += int(ok.sum())
+                    inc["rejected_slip"] += int((~ok).sum())
+                    inc["spanning_true_slip"] += int(true_slip.sum())
+                    inc["used_spanning_true_slip"] += int((ok & true_slip).sum())
+                    n_inc[k] = int(ok.sum())
+                    coef = 2.0 * k_iono[sats] * (m_now[:, sats] - e_m[:, sats])
+                    E = B_now[:, sats] - e_B[:, sats]
+                    e_sats = e_sats + idx.tolist()
+                    e_m[:, idx] = m_now[:, idx]
+                    e_B[:, idx] = B_now[:, idx]
+                    e_slips[:, idx] = slips_now[:, idx]
+                else:
+                    inc_new, coef, ok, E = old, np.zeros((trials, 0)), np.zeros((trials, 0), bool), np.zeros((trials, 0))
+                base = IonoTropoGnss(sp_v, sv_v, carrier[idx], is_gps[idx], scn.sigma_pr_m, scn.sigma_prr_m_s,
+                                     n_state=x_pred.shape[-1])
+                m2 = _CodeNoiseStateModel(base, pr_cols, inc_rows, inc_new, old, coef, ok, var_e)
+                z2 = np.concatenate([z, np.where(ok, E, 0.0)], axis=1)
+                res = ekf_update(x_pred, P_pred, z2, m2, backend=backend)
+                aq_dx = res.x - x_pred
+                if boundary and old.size:  # the ended windows' start noises: used, marginalised
+                    rx, rP = _drop_states(res.x, res.P, old)
+                    if aq is not None:
+                        aqs = aqs._replace(q_diag=np.delete(aqs.q_diag, old, axis=-1))
+                        aq_dx = np.delete(aq_dx, old, axis=-1)
+                    e_sats = e_sats[old.size:]
+                    res = res._replace(x=rx, P=rP)
+                cmc_done = True
+            else:
+                cmc_done = False
+            if len(e_sats) not in trans_cache:
+                trans_cache[len(e_sats)] = scn.transition(n_amb=len(e_sats))
+            tr_now = trans_cache[len(e_sats)]
+            if not cmc_done:
+                meas = IonoTropoGnss(sp_v, sv_v, carrier[idx], is_gps[idx], scn.sigma_pr_m, scn.sigma_prr_m_s,
+                                     n_state=N_BASE + len(e_sats))
         if variant == 3:
             phase = obs.carrier_phase_m
             tracked = set(idx.tolist())
@@ -632,23 +790,26 @@ def run_streamed(scn: IonoTropoScenario, trials: int, seed: int, variant: int = 
                 z = np.concatenate([z, phase[:, idx]], axis=1)
                 res = ekf_step(x, P, z, trans_cache[len(amb_sats)], m3, dt, backend=backend)
             n_state[k] = res.x.shape[-1]
+        elif variant == 2 and cmc_states and cmc_done:
+            pass  # updated above (window boundary or a satellite set)
         elif k == 0:
             x_pred = x
             res = ekf_update(x, P, z, meas, backend=backend)  # the prior is at the first epoch
         elif aq is not None:
-            x_pred, P_pred = predict(x, P, trans)
+            x_pred, P_pred = predict(x, P, tr_now)
             res = ekf_update(x_pred, P_pred, z, meas, backend=backend)
         else:
-            res = ekf_step(x, P, z, trans, meas, dt, backend=backend)
+            res = ekf_step(x, P, z, tr_now, meas, dt, backend=backend)
         if aq is not None:
-            aqs = aq.next(aqs, res.x - x_pred)
+            aqs = aq.next(aqs, aq_dx if (variant == 2 and cmc_states and cmc_done) else res.x - x_pred)
+        if variant == 2 and cmc_states:
+            n_state[k] = res.x.shape[-1]
         x, P = res.x, res.P
 
         # ---------------- statistics (scoring side)
         eI = x[:, IDX_IONO] - I_true
         eU = x[:, IDX_TROPO] - U_true
         ep2 = np.sum((x[:, 0:3] - pos_true[k]) ** 2, axis=1)
-        e2 = np.stack([eI, eU], axis=1)
         nees = _nees2(eI, eU, P, IDX_IONO, IDX_TROPO)
         ec = np.stack([x[:, IDX_CLOCK] - bias, x[:, IDX_DRIFT] - drift], axis=1)
         nees_c = _nees2(ec[:, 0], ec[:, 1], P, IDX_CLOCK, IDX_DRIFT)
@@ -690,6 +851,8 @@ def run_streamed(scn: IonoTropoScenario, trials: int, seed: int, variant: int = 
     extra = {}
     if variant == 2:
         extra = {"increments": inc, "n_increments_used": n_inc}
+        if cmc_states:
+            extra["n_state"] = n_state
     if variant == 3:
         extra = {"ambiguity": amb, "n_state": n_state}
     names = {1: "seed000-variant1-code-doppler", 2: "seed000-variant2-cmc-increments",
