@@ -44,7 +44,7 @@ truth clock can be made noisier than the filter's model (`truth_clock_psd_scale`
 what eq 7 is for; the clock block's NEES is scored beside the (I_g, U_g) block's.
 
 Variant 2 (run_cmc_increments = run_streamed(variant=2); same world, same draws, so the
-same seed gives the same data as variant 1): each epoch additionally, per satellite j,
+same seed gives the same data as variant 1): additionally, per satellite j and window,
 E_j = B_j(t) - B_j(t - W), B_j = pr_j - phase_j (= 2 I_j - lambda N_j + noise), W =
 cmc_window_s (90 s), modelled (eq 33) as 2 I_g k_j [m_I(eta_j(t)) - m_I(eta_j(t - W))],
 k_j = (f_ref/f_j)^2, H only in the I_g column. The m_I values are the filter's: geocentric
