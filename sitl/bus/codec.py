@@ -104,6 +104,21 @@ _TYPE_WORD = {F_FLOAT: "float", F_INT: "int", F_BOOL: "bool", F_STR: "str",
               F_STRS: "array of str", F_ARRAY: "bin (float64 bytes)"}
 
 
+def _plan(cls) -> tuple:
+    """(name, ftype, exact wire type or None, fixed shape or None) of each field of cls."""
+    _SHAPES[cls] = {sp.name: sp.shape for sp in cls.FIELDS if sp.ftype == F_ARRAY}
+    out = []
+    for sp in cls.FIELDS:
+        wire = {F_ARRAY: bytes, F_FLOAT: float, F_INT: int, F_BOOL: bool, F_STR: str}.get(sp.ftype)
+        fixed = sp.shape if sp.shape is not None and "n" not in sp.shape else None
+        out.append((sp.name, sp.ftype, wire, fixed))
+    return tuple(out)
+
+
+_PLANS: dict[type, tuple] = {}
+_SHAPES: dict[type, dict] = {}
+
+
 def decode(payload: bytes | bytearray | memoryview) -> Message:
     """Decode and fully validate a payload; raise `BusDecodeError` for anything invalid."""
     try:
@@ -149,43 +164,46 @@ def _decode(payload: Any) -> Message:
         raise BusDecodeError("header._kind: unknown message kind", repr(kind)[:40])
     name = cls.__name__
 
+    plan = _PLANS.get(cls)
+    if plan is None:
+        plan = _PLANS[cls] = _plan(cls)
     expected = len(cls.FIELDS) + len(_HEADER_KEYS)
     if len(obj) != expected:
         known = {s.name for s in cls.FIELDS}.union(_HEADER_KEYS)
         for k in obj:
             if k not in known:
                 raise BusDecodeError(f"{name}: unexpected field", repr(k)[:40])
+    # pass 1: every field present with its wire type (the first offender is reported)
     kwargs: dict[str, Any] = {}
-    for spec in cls.FIELDS:
-        where = f"{name}.{spec.name}"
-        if spec.name not in obj:
-            raise BusDecodeError(f"{where}: missing")
-        value = obj[spec.name]
-        ft = spec.ftype
-        if ft == F_ARRAY or ft == F_STRS:
-            if ft == F_STRS:
-                ok = type(value) is list and all(type(s) is str for s in value)
-            else:
-                ok = type(value) is bytes
-            if not ok:
-                raise BusDecodeError(f"{where}: expected {_TYPE_WORD[ft]}", type(value).__name__)
-        elif type(value) not in _WIRE_TYPES[ft]:
-            raise BusDecodeError(f"{where}: expected {_TYPE_WORD[ft]}", type(value).__name__)
-        kwargs[spec.name] = value
+    for fname, ft, wire, _ in plan:
+        if fname not in obj:
+            raise BusDecodeError(f"{name}.{fname}: missing")
+        value = obj[fname]
+        if wire is not None:
+            ok = type(value) is wire
+        elif ft == F_STRS:
+            ok = type(value) is list and all(type(s) is str for s in value)
+        else:
+            ok = type(value) in _WIRE_TYPES[ft]
+        if not ok:
+            raise BusDecodeError(f"{name}.{fname}: expected {_TYPE_WORD[ft]}", type(value).__name__)
+        kwargs[fname] = value
 
+    # pass 2: the arrays' sizes, then the arrays themselves
     n = len(kwargs[cls.N_FIELD]) if cls.N_FIELD is not None else None
-    for spec in cls.FIELDS:
-        if spec.ftype != F_ARRAY:
+    for fname, ft, _, shape in plan:
+        if ft != F_ARRAY:
             continue
-        raw = kwargs[spec.name]
-        shape = tuple(n if d == "n" else d for d in spec.shape)
+        raw = kwargs[fname]
+        if shape is None:  # n-dependent
+            shape = tuple(n if d == "n" else d for d in _SHAPES[cls][fname])
         count = 1
         for d in shape:
             count *= d
         if len(raw) != 8 * count:
-            raise BusDecodeError(f"{name}.{spec.name}: wrong size",
+            raise BusDecodeError(f"{name}.{fname}: wrong size",
                                  f"{len(raw)} bytes for shape {shape}")
-        kwargs[spec.name] = np.frombuffer(raw, dtype=_LE_F8).reshape(shape)
+        kwargs[fname] = np.frombuffer(raw, dtype=_LE_F8).reshape(shape)
     return cls(**kwargs)
 
 

@@ -35,12 +35,16 @@ from typing import Any, ClassVar
 
 import numpy as np
 
+from ._fastcheck import all_finite as _all_finite
+from ._fastcheck import cov_code as _cov_code
+
 SCHEMA_VERSION = 1
 
 ID_MAX_LEN = 64
 _ID_RE = re.compile(r"[A-Za-z0-9_.\-]{1,64}\Z")
 KINDS = ("uav", "beacon", "sonde")
 SEQ_LIMIT = 2**63
+_F8 = np.dtype(np.float64)
 
 # Wire/field types.
 F_FLOAT = "float"
@@ -199,6 +203,10 @@ def _coerce(cls_name: str, spec: FieldSpec, value: Any, n: int | None) -> Any:
 
 def _check_cov(where: str, c: np.ndarray) -> None:
     """Symmetric (relative 1e-9), non-negative diagonal, eigenvalues >= -1e-9 max diag."""
+    # the legal case in one compiled pass (sitl/bus/_fastcheck.py); anything else is decided
+    # (and reported) by the numpy reference below
+    if _cov_code is not None and _cov_code(c) == 0:
+        return
     # Comparisons are written so that a NaN (from an overflow) fails them.
     with np.errstate(over="ignore", invalid="ignore"):
         scale = np.abs(c).max()
@@ -256,17 +264,40 @@ class Message:
         name = cls.__name__
         if not cls.KIND:
             raise TypeError("Message is abstract; build one of its kinds")
+        d = self.__dict__  # frozen: fields are set here, as object.__setattr__ would
         n = None
         if cls.N_FIELD is not None:
             spec = next(s for s in cls.FIELDS if s.name == cls.N_FIELD)
-            v = _coerce(name, spec, getattr(self, spec.name), None)
-            object.__setattr__(self, spec.name, v)
+            v = _coerce(name, spec, d[spec.name], None)
+            d[spec.name] = v
             n = len(v)
-        for spec in cls.FIELDS:
-            if spec.name == cls.N_FIELD:
-                continue
-            object.__setattr__(self, spec.name, _coerce(name, spec, getattr(self, spec.name), n))
-        check_id(self.source_id, f"{name}.source_id")
+        # fast paths for the values components normally hand in (a finite float, an int, a
+        # str, a float64 array of the right shape); anything else goes through _coerce, which
+        # accepts or rejects it exactly as before
+        for spec, shape in cls._PLAN:
+            value = d[spec.name]
+            ft = spec.ftype
+            if ft == F_ARRAY:
+                if (shape is not None and type(value) is np.ndarray and value.dtype is _F8
+                        and value.shape == shape and _all_finite is not None):
+                    a = value.copy()
+                    if _all_finite(a):
+                        a.flags.writeable = False
+                        d[spec.name] = a
+                        continue
+            elif ft == F_FLOAT:
+                if type(value) is float and value - value == 0.0:
+                    continue
+            elif ft == F_INT:
+                if type(value) is int:
+                    continue
+            elif ft == F_STR:
+                if type(value) is str:
+                    continue
+            d[spec.name] = _coerce(name, spec, value, n)
+        sid = d["source_id"]
+        if not (type(sid) is str and _ID_RE.match(sid) is not None):
+            check_id(sid, f"{name}.source_id")
         if not 0 <= self.seq < SEQ_LIMIT:
             raise SchemaError(f"{name}.seq", "out of range [0, 2**63)", repr(self.seq))
         self._validate()
@@ -304,6 +335,9 @@ def _message(kind: str, key_template: str, n_field: str | None = None):
         cls.KEY_TEMPLATE = key_template
         cls.N_FIELD = n_field
         cls.FIELDS = _field_specs(cls)
+        # (spec, fixed shape or None) of every field but the n-field, for __post_init__
+        cls._PLAN = tuple((sp, sp.shape if sp.shape is not None and "n" not in sp.shape else None)
+                          for sp in cls.FIELDS if sp.name != n_field)
         cls.__hash__ = None
         if kind in MESSAGE_TYPES:
             raise TypeError(f"duplicate message kind {kind!r}")
