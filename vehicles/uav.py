@@ -615,36 +615,57 @@ if nb is not None:
         return (v_h * math.cos(psi) / (m + h), v_h * math.sin(psi) / ((n + h) * math.cos(lat)), climb, rate)
 
     @nb.njit(cache=True, nogil=True)
+    def _rk4_steps_nb(law, p, tri, wpi, cnti, sw, ts, j0, j1, lat, lon, h, psi, k_wp, a, e2):
+        """RK4 of one vehicle over the step boundaries ts[j0..j1]; returns the new state."""
+        for k in range(j0, j1):
+            ta = ts[k]
+            tb = ts[k + 1]
+            hh = tb - ta
+            seg = np.searchsorted(sw, 0.5 * (ta + tb), side="right")
+            g = wpi[min(k_wp, cnti - 1)]
+            a1, b1, c1, d1 = _rates_nb(law, p, seg, tri, g, ta, lat, lon, h, psi, a, e2)
+            a2, b2, c2, d2 = _rates_nb(law, p, seg, tri, g, ta + 0.5 * hh, lat + 0.5 * hh * a1,
+                                       lon + 0.5 * hh * b1, h + 0.5 * hh * c1, psi + 0.5 * hh * d1, a, e2)
+            a3, b3, c3, d3 = _rates_nb(law, p, seg, tri, g, ta + 0.5 * hh, lat + 0.5 * hh * a2,
+                                       lon + 0.5 * hh * b2, h + 0.5 * hh * c2, psi + 0.5 * hh * d2, a, e2)
+            a4, b4, c4, d4 = _rates_nb(law, p, seg, tri, g, tb, lat + hh * a3, lon + hh * b3, h + hh * c3,
+                                       psi + hh * d3, a, e2)
+            lat = lat + (hh / 6.0) * (a1 + 2.0 * a2 + 2.0 * a3 + a4)
+            lon = _wrap_nb(lon + (hh / 6.0) * (b1 + 2.0 * b2 + 2.0 * b3 + b4))
+            h = h + (hh / 6.0) * (c1 + 2.0 * c2 + 2.0 * c3 + c4)
+            psi = psi + (hh / 6.0) * (d1 + 2.0 * d2 + 2.0 * d3 + d4)
+            psi = psi - _TWO_PI * math.floor(psi / _TWO_PI)
+            if law == 3:
+                g = wpi[min(k_wp, cnti - 1)]
+                d_e, d_n = _offset_nb(lat, lon, h, g[0], g[1], a, e2)
+                if math.hypot(d_e, d_n) < p[3]:
+                    k_wp = min(k_wp + 1, cnti)
+        return lat, lon, h, psi, k_wp
+
+    @nb.njit(cache=True, nogil=True)
     def _integrate_nb(law, y, idx, params, sw, tr, wp, cnt, ts, a, e2):
         """RK4 over the step boundaries ts in place on y (N, 4) and idx (N,), one vehicle at a time."""
         for i in range(y.shape[0]):
-            p = params[i]
             tri = tr[i] if law == 1 else tr[0]
-            lat, lon, h, psi = y[i, 0], y[i, 1], y[i, 2], y[i, 3]
-            k_wp = idx[i]
-            for k in range(ts.size - 1):
-                ta = ts[k]
-                tb = ts[k + 1]
-                hh = tb - ta
-                seg = np.searchsorted(sw, 0.5 * (ta + tb), side="right")
-                g = wp[i, min(k_wp, cnt[i] - 1)]
-                a1, b1, c1, d1 = _rates_nb(law, p, seg, tri, g, ta, lat, lon, h, psi, a, e2)
-                a2, b2, c2, d2 = _rates_nb(law, p, seg, tri, g, ta + 0.5 * hh, lat + 0.5 * hh * a1,
-                                           lon + 0.5 * hh * b1, h + 0.5 * hh * c1, psi + 0.5 * hh * d1, a, e2)
-                a3, b3, c3, d3 = _rates_nb(law, p, seg, tri, g, ta + 0.5 * hh, lat + 0.5 * hh * a2,
-                                           lon + 0.5 * hh * b2, h + 0.5 * hh * c2, psi + 0.5 * hh * d2, a, e2)
-                a4, b4, c4, d4 = _rates_nb(law, p, seg, tri, g, tb, lat + hh * a3, lon + hh * b3, h + hh * c3,
-                                           psi + hh * d3, a, e2)
-                lat = lat + (hh / 6.0) * (a1 + 2.0 * a2 + 2.0 * a3 + a4)
-                lon = _wrap_nb(lon + (hh / 6.0) * (b1 + 2.0 * b2 + 2.0 * b3 + b4))
-                h = h + (hh / 6.0) * (c1 + 2.0 * c2 + 2.0 * c3 + c4)
-                psi = psi + (hh / 6.0) * (d1 + 2.0 * d2 + 2.0 * d3 + d4)
-                psi = psi - _TWO_PI * math.floor(psi / _TWO_PI)
-                if law == 3:
-                    g = wp[i, min(k_wp, cnt[i] - 1)]
-                    d_e, d_n = _offset_nb(lat, lon, h, g[0], g[1], a, e2)
-                    if math.hypot(d_e, d_n) < p[3]:
-                        k_wp = min(k_wp + 1, cnt[i])
+            lat, lon, h, psi, k_wp = _rk4_steps_nb(law, params[i], tri, wp[i], cnt[i], sw, ts, 0, ts.size - 1,
+                                                   y[i, 0], y[i, 1], y[i, 2], y[i, 3], idx[i], a, e2)
+            y[i, 0], y[i, 1], y[i, 2], y[i, 3] = lat, lon, h, psi
+            idx[i] = k_wp
+
+    @nb.njit(cache=True, nogil=True)
+    def _integrate_track_nb(law, y, idx, params, sw, tr, wp, cnt, ts, ends, ys, idxs, a, e2):
+        """As _integrate_nb over ts, recording the state at the boundaries ts[ends[k]] in
+        ys (K, N, 4) and idxs (K, N); y and idx end at the last one."""
+        for i in range(y.shape[0]):
+            tri = tr[i] if law == 1 else tr[0]
+            lat, lon, h, psi, k_wp = y[i, 0], y[i, 1], y[i, 2], y[i, 3], idx[i]
+            j = 0
+            for k in range(ends.size):
+                lat, lon, h, psi, k_wp = _rk4_steps_nb(law, params[i], tri, wp[i], cnt[i], sw, ts, j, ends[k],
+                                                       lat, lon, h, psi, k_wp, a, e2)
+                j = ends[k]
+                ys[k, i, 0], ys[k, i, 1], ys[k, i, 2], ys[k, i, 3] = lat, lon, h, psi
+                idxs[k, i] = k_wp
             y[i, 0], y[i, 1], y[i, 2], y[i, 3] = lat, lon, h, psi
             idx[i] = k_wp
 
@@ -660,6 +681,11 @@ def truth(state: KinematicState, guidance, ell: Ellipsoid | str | None = None) -
     pos = geodesy.geodetic_to_ecef(y[..., 0], y[..., 1], y[..., 2], e)
     return VehicleTruth(state.t_s, pos, vel, y[..., 0].copy(), y[..., 1].copy(), y[..., 2].copy(),
                         y[..., 3].copy(), np.broadcast_to(speed, y.shape[:-1]).copy())
+
+
+def _stack_truths(truths) -> VehicleTruth:
+    return VehicleTruth(np.array([v.t_s for v in truths], dtype=float),
+                        *(np.stack([v[i] for v in truths]) for i in range(1, len(VehicleTruth._fields))))
 
 
 # --------------------------------------------------------------------------- the stepped swarm
@@ -698,6 +724,52 @@ class KinematicSwarm:
 
     def truth(self) -> VehicleTruth:
         return truth(self.state, self.guidance, self.ell)
+
+    def track(self, times_s) -> VehicleTruth:
+        """``step(t)`` for each t of the increasing times_s (K,) in turn, the truths stacked
+        on a leading axis (t_s (K,), pos_ecef_m (K, ..., 3), ...): the same numbers.
+
+        With numba and a law the compiled integrator knows, every step runs in one compiled
+        call (the per-epoch step boundaries are those ``step`` would take), and for the laws
+        whose commands are plain functions of time (SinusoidalLaw, Hold) the truth is
+        evaluated for all epochs at once: the same element-wise formulas."""
+        ts_req = np.asarray(times_s, dtype=float).reshape(-1)
+        if ts_req.size == 0:
+            raise ValueError("times_s must hold at least one time")
+        if nb is None or not hasattr(self.guidance, "_kernel_args") or np.any(np.diff(ts_req) < 0) \
+                or ts_req[0] < self.state.t_s or not np.all(np.isfinite(ts_req)):
+            return _stack_truths([self.step(float(t)) for t in ts_req])
+        bp = getattr(self.guidance, "breakpoints_s", ())
+        parts, ends, t0, n = [np.array([self.state.t_s])], [], self.state.t_s, 0
+        for t in ts_req:
+            seg = _step_times(t0, float(t), self.dt_s, bp)
+            parts.append(seg[1:])
+            n += seg.size - 1
+            ends.append(n)
+            t0 = float(t)
+        law, params, extra = self.guidance._kernel_args()
+        shape = self.state.y.shape[:-1]
+        y = np.ascontiguousarray(self.state.y, dtype=float).reshape(-1, 4).copy()
+        idx = np.ascontiguousarray(self.state.wp_index, dtype=np.int64).reshape(-1).copy()
+        sw = np.asarray(extra.get("switch_times_s", np.zeros(0)), dtype=float)
+        tr = np.ascontiguousarray(extra.get("turn_rates_rad_s", np.zeros((y.shape[0], 1))), dtype=float)
+        wp = np.ascontiguousarray(extra.get("waypoints", np.zeros((y.shape[0], 1, 3))), dtype=float)
+        cnt = np.ascontiguousarray(extra.get("count", np.ones(y.shape[0])), dtype=np.int64)
+        K = ts_req.size
+        ys = np.empty((K,) + y.shape)
+        idxs = np.empty((K, y.shape[0]), dtype=np.int64)
+        _integrate_track_nb(law, y, idx, np.ascontiguousarray(params, dtype=float), sw, tr, wp, cnt,
+                            np.concatenate(parts), np.array(ends, dtype=np.int64), ys, idxs, self.ell.a_m,
+                            self.ell.e2)
+        ys = ys.reshape((K,) + shape + (4,))
+        idxs = idxs.reshape((K,) + shape)
+        self.state = KinematicState(float(ts_req[-1]), y.reshape(shape + (4,)), idx.reshape(shape))
+        if isinstance(self.guidance, (SinusoidalLaw, Hold)):
+            tk = ts_req.reshape((K,) + (1,) * len(shape))
+            out = truth(KinematicState(tk, ys, idxs), self.guidance, self.ell)
+            return out._replace(t_s=ts_req.copy())
+        return _stack_truths([truth(KinematicState(float(ts_req[k]), ys[k], idxs[k]), self.guidance, self.ell)
+                              for k in range(K)])
 
     def upload_mission(self, i: int, waypoints_rad_m) -> None:
         if not isinstance(self.guidance, WaypointMission):

@@ -94,14 +94,8 @@ def truth_tracks(n_uavs: int, duration_s: float):
         sw = uav.UavSwarm(law, lat, lon, s[:, 2])
     bc = beacon.seed002_beacon("seed")
     t = np.arange(0.0, float(duration_s) + 1e-9, DT_S)
-    U, V, B, VB = [], [], [], []
-    for tk in t:
-        tu, tb = sw.step(float(tk)), bc.step(float(tk))
-        U.append(tu.pos_ecef_m)
-        V.append(tu.vel_ecef_m_s)
-        B.append(tb.pos_ecef_m)
-        VB.append(tb.vel_ecef_m_s)
-    return t, np.array(U), np.array(V), np.array(B), np.array(VB)
+    tu, tb = sw.track(t), bc.track(t)  # = step(t) epoch by epoch, in one compiled call each
+    return t, tu.pos_ecef_m, tu.vel_ecef_m_s, tb.pos_ecef_m, tb.vel_ecef_m_s
 
 
 def constellation_for(case: str, U0, duration_s: float):
