@@ -268,6 +268,38 @@ def test_batched_filter_over_five_uavs_equals_five_single_runs():
     assert len(np.unique(est.n_tracked)) >= 1 and est.x.shape == (5, 6)
 
 
+@pytest.mark.parametrize("case", ["three", "gps", "gps_instantaneous"])
+def test_many_epochs_at_once_equal_one_epoch_at_a_time(seed_truth, case):
+    """truth_geometry / filter_sat_states over many epochs in one call (what batch runs use)
+    give gnss_measure's and the filters' numbers bitwise, with the same random draws."""
+    t, pos, vel, const3 = seed_truth
+    const = const3 if case == "three" else orbits.gps_constellation()
+    cfg = NavConfig(light_time=case != "gps_instantaneous")
+    K = 40
+    geo = uav_nav.truth_geometry(t[:K, None], pos[:K], vel[:K], const, cfg)
+    assert geo.range_m.shape == (K, 3, len(const))
+    ra, rb = np.random.default_rng(5), np.random.default_rng(5)
+    nav_a, nav_b = uav_nav.OnboardNav(const, cfg), uav_nav.OnboardNav(const, cfg)
+    eps_a, eps_b = [], []
+    for k in range(K):
+        eps_a.append(uav_nav.gnss_measure(ra, t[k], pos[k], vel[k], const, cfg, trials_shape=(2,)))
+        eps_b.append(uav_nav.gnss_measure(rb, t[k], pos[k], vel[k], const, cfg, trials_shape=(2,),
+                                          geometry=geo.at(k)))
+        for f in ("pseudorange_m", "pseudorange_rate_m_s", "tracked"):
+            assert np.array_equal(getattr(eps_a[k], f), getattr(eps_b[k], f), equal_nan=True), (k, f)
+    sp, sv = uav_nav.filter_sat_states(eps_b, const, cfg)
+    assert sp.shape == (K, 2, 3, len(const), 3)
+    for k in range(K):
+        model, _ = uav_nav.nav_measurement_model(eps_a[k], const, cfg)
+        mb, _ = uav_nav.nav_measurement_model(eps_b[k], const, cfg, (sp[k], sv[k]))
+        assert np.array_equal(model.sat_pos_ecef_m, mb.sat_pos_ecef_m)
+        assert np.array_equal(model.sat_vel_ecef_m_s, mb.sat_vel_ecef_m_s)
+        a, b = nav_a.update(eps_a[k]), nav_b.update(eps_b[k], (sp[k], sv[k]))
+        assert np.array_equal(a.x, b.x) and np.array_equal(a.P, b.P)
+    with pytest.raises(ValueError, match="geometry"):
+        uav_nav.gnss_measure(ra, t[0], pos[0], vel[0], const, cfg, geometry=(1.0, 2.0, 3.0))
+
+
 # ============================================================================ bad parameters
 
 

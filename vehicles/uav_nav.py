@@ -58,6 +58,7 @@ model, P0 = (H' R^-1 H)^-1).
 """
 from __future__ import annotations
 
+import functools
 import itertools
 import math
 from dataclasses import dataclass, field
@@ -87,7 +88,10 @@ __all__ = [
     "unperturbed",
     "pdop_clock_free",
     "seed002_three_satellites",
+    "TruthGeometry",
+    "truth_geometry",
     "gnss_measure",
+    "filter_sat_states",
     "nav_measurement_model",
     "ls_fix",
     "nav_init",
@@ -133,11 +137,12 @@ class GnssNoise:
         _positive("psd_prr_m2_s", self.psd_prr_m2_s)
         _positive("dt_s", self.dt_s)
 
-    @property
+    # computed once per (frozen) instance: read several times every epoch
+    @functools.cached_property
     def var_pr_m2(self) -> float:
         return float(psd_to_variance(self.psd_pr_m2_s, self.dt_s))
 
-    @property
+    @functools.cached_property
     def var_prr_m2_s2(self) -> float:
         return float(psd_to_variance(self.psd_prr_m2_s, self.dt_s))
 
@@ -174,6 +179,37 @@ class NavConfig:
 
     def transition(self) -> ConstantVelocity:
         return ConstantVelocity(3, q=self.q_m2_s3)
+
+
+@functools.lru_cache(maxsize=64)
+def _cv_matrices(q: float, dt: float):
+    """(F, Q) of ConstantVelocity(3, q) over dt, built once per (q, dt)."""
+    m = ConstantVelocity(3, q=q)
+    return np.asarray(m.F(None, dt), dtype=float), np.asarray(m.Q(dt), dtype=float)
+
+
+class _MemoTransition:
+    """NavConfig.transition() with F and Q memoised per step length (the same numbers,
+    without rebuilding them from Kronecker products every epoch); every other attribute
+    is the ConstantVelocity model's."""
+
+    def __init__(self, q: float):
+        self.q = float(q)
+        self._model = ConstantVelocity(3, q=self.q)
+
+    def F(self, x, dt):
+        return _cv_matrices(self.q, float(dt))[0].copy()
+
+    def Q(self, dt):
+        return _cv_matrices(self.q, float(dt))[1].copy()
+
+    def __getattr__(self, name):
+        return getattr(self._model, name)
+
+
+@functools.lru_cache(maxsize=16)
+def _transition(q: float) -> _MemoTransition:
+    return _MemoTransition(q)
 
 
 # --------------------------------------------------------------------------- satellites
@@ -248,14 +284,58 @@ class GnssEpoch(NamedTuple):
     tracked: np.ndarray
 
 
+class TruthGeometry(NamedTuple):
+    """What the receivers measure before noise, (..., S): true range, range rate and the
+    satellites' geodetic elevation at the true receiver position."""
+
+    range_m: np.ndarray
+    range_rate_m_s: np.ndarray
+    el_rad: np.ndarray
+
+    def at(self, k) -> "TruthGeometry":
+        """The k-th entry of a leading (epoch) axis."""
+        return TruthGeometry(self.range_m[k], self.range_rate_m_s[k], self.el_rad[k])
+
+
+def truth_geometry(t_gps_s, pos_ecef_m, vel_ecef_m_s, constellation: Constellation,
+                   config: NavConfig = NavConfig()) -> TruthGeometry:
+    """The receivers' noise-free geometry (truth side), batched: t_gps_s broadcast against
+    pos_ecef_m.shape[:-1], so many epochs go in one call (t (K, 1), positions (K, N, 3)).
+
+    The geometry of :func:`gnss_measure`; the same numbers epoch by epoch as one epoch per
+    call for epochs >= 1 s apart (one call then interpolates the ephemeris on the same
+    nodes; its light-time iteration may run one round more for some receivers, which moves
+    tau by less than one ulp once it has converged to 1e-12 s).
+    """
+    c = _check_constellation(constellation)
+    r = np.asarray(pos_ecef_m, dtype=float)
+    v = np.asarray(vel_ecef_m_s, dtype=float)
+    if r.ndim < 1 or r.shape[-1] != 3 or v.shape != r.shape:
+        raise ValueError(f"pos_ecef_m and vel_ecef_m_s must have the same shape (..., 3), got {r.shape}, {v.shape}")
+    if config.light_time:
+        geo = ranging.light_time_geometry(t_gps_s, r, v, c)
+        _, el = world.look_angles(r, geo)
+        return TruthGeometry(geo.range_m, geo.range_rate_m_s, el)
+    t = np.asarray(t_gps_s, dtype=float)
+    sp, sv = orbits.sat_state_ecef(c, float(t) if t.ndim == 0 else t)  # (S, 3) or (..., S, 3)
+    d = sp - r[..., None, :]
+    rho = np.linalg.norm(d, axis=-1)
+    rate = np.sum(d * (sv - v[..., None, :]), axis=-1) / rho
+    _, el, _ = geodesy.ecef_to_aer(r[..., None, :], sp)
+    return TruthGeometry(rho, rate, el)
+
+
 def gnss_measure(rng: np.random.Generator, t_gps_s: float, pos_ecef_m, vel_ecef_m_s, constellation: Constellation,
-                 config: NavConfig = NavConfig(), trials_shape: tuple = ()) -> GnssEpoch:
+                 config: NavConfig = NavConfig(), trials_shape: tuple = (),
+                 geometry: TruthGeometry | None = None) -> GnssEpoch:
     """The receivers' clock-free pseudoranges and Doppler range rates at t_gps_s (truth in).
 
     pos_ecef_m, vel_ecef_m_s (..., 3): the true receiver states (e.g. (n_uav, 3)).
     trials_shape prepends axes of independent noise on the same truth: output
     trials_shape + (..., S).  A satellite is tracked when its geodetic elevation at the true
-    receiver position is >= config.el_mask_rad.
+    receiver position is >= config.el_mask_rad.  geometry: this epoch's
+    :func:`truth_geometry` when already computed (batch runs compute many epochs at once);
+    the same random draws either way.
     """
     if not isinstance(rng, np.random.Generator):
         raise ValueError(f"rng must be a numpy.random.Generator, got {type(rng).__name__}")
@@ -263,20 +343,11 @@ def gnss_measure(rng: np.random.Generator, t_gps_s: float, pos_ecef_m, vel_ecef_
         raise ValueError(f"config must be a NavConfig, got {type(config).__name__}")
     c = _check_constellation(constellation)
     t = float(t_gps_s)
-    r = np.asarray(pos_ecef_m, dtype=float)
-    v = np.asarray(vel_ecef_m_s, dtype=float)
-    if r.ndim < 1 or r.shape[-1] != 3 or v.shape != r.shape:
-        raise ValueError(f"pos_ecef_m and vel_ecef_m_s must have the same shape (..., 3), got {r.shape}, {v.shape}")
-    if config.light_time:
-        geo = ranging.light_time_geometry(t, r, v, c)
-        rho, rate = geo.range_m, geo.range_rate_m_s
-        _, el = world.look_angles(r, geo)
-    else:
-        sp, sv = orbits.sat_state_ecef(c, t)
-        d = sp - r[..., None, :]
-        rho = np.linalg.norm(d, axis=-1)
-        rate = np.sum(d * (sv - v[..., None, :]), axis=-1) / rho
-        _, el, _ = geodesy.ecef_to_aer(r[..., None, :], sp)
+    if geometry is None:
+        geometry = truth_geometry(t, pos_ecef_m, vel_ecef_m_s, c, config)
+    elif not isinstance(geometry, TruthGeometry) or geometry.range_m.shape[-1] != len(c):
+        raise ValueError(f"geometry must be a TruthGeometry over the constellation's {len(c)} satellites")
+    rho, rate, el = geometry
     tracked = np.broadcast_to(el >= config.el_mask_rad, tuple(trials_shape) + rho.shape)
     shape = tracked.shape
     vr, vv = config.noise.var_pr_m2, config.noise.var_prr_m2_s2
@@ -379,18 +450,42 @@ class ClockFreePseudorangeDoppler:
         return d[..., None] * np.eye(d.shape[-1])
 
 
+def filter_sat_states(epochs, constellation: Constellation, config: NavConfig = NavConfig()):
+    """The satellite states the filters use, for many epochs at once: (sat_pos, sat_vel)
+    (K, ..., S, 3), entry k what :func:`nav_measurement_model` computes for epochs[k] from
+    the receiver output and the ephemeris alone (one call for all; the same numbers for
+    epochs >= 1 s apart, see :func:`truth_geometry`).  epochs: GnssEpochs of one shape."""
+    c = _check_constellation(constellation)
+    pr = np.stack([e.pseudorange_m for e in epochs])
+    if pr.shape[-1] != len(c):
+        raise ValueError(f"epochs have {pr.shape[-1]} satellite columns, constellation has {len(c)}")
+    t = np.array([e.t_gps_s for e in epochs], dtype=float).reshape((-1,) + (1,) * (pr.ndim - 2))
+    if config.light_time:
+        prr = np.stack([e.pseudorange_rate_m_s for e in epochs])
+        return world.ephemeris_for_filter(np.broadcast_to(t, pr.shape[:-1]), pr, c, pseudorange_rate_m_s=prr)
+    sp, sv = orbits.sat_state_ecef(c, t.reshape(-1))
+    shape = pr.shape + (3,)
+    return (np.broadcast_to(sp.reshape((-1,) + (1,) * (pr.ndim - 2) + sp.shape[-2:]), shape),
+            np.broadcast_to(sv.reshape((-1,) + (1,) * (pr.ndim - 2) + sv.shape[-2:]), shape))
+
+
 def nav_measurement_model(epoch: GnssEpoch, constellation: Constellation,
-                          config: NavConfig = NavConfig()) -> tuple[ClockFreePseudorangeDoppler, np.ndarray]:
+                          config: NavConfig = NavConfig(),
+                          sat_states=None) -> tuple[ClockFreePseudorangeDoppler, np.ndarray]:
     """(model, z) for the filter from one epoch of receiver output and the ephemeris only.
 
     Satellite states: the ephemeris at the transit time measured by the pseudorange
-    (light_time=True) or at t (light_time=False).  z = [pr, prr] with 0 where untracked.
-    The variances are the filter's own model (config.noise), not the receiver's report."""
+    (light_time=True) or at t (light_time=False); sat_states: those (sat_pos, sat_vel)
+    when already computed (:func:`filter_sat_states`).  z = [pr, prr] with 0 where
+    untracked.  The variances are the filter's own model (config.noise), not the receiver's
+    report."""
     c = _check_constellation(constellation)
     pr, prr, tr = epoch.pseudorange_m, epoch.pseudorange_rate_m_s, epoch.tracked
     if pr.shape[-1] != len(c):
         raise ValueError(f"epoch has {pr.shape[-1]} satellite columns, constellation has {len(c)}")
-    if config.light_time:
+    if sat_states is not None:
+        sp, sv = sat_states
+    elif config.light_time:
         sp, sv = world.ephemeris_for_filter(epoch.t_gps_s, pr, c, pseudorange_rate_m_s=prr)
     else:
         sp, sv = orbits.sat_state_ecef(c, epoch.t_gps_s)
@@ -455,13 +550,14 @@ def nav_init(epoch: GnssEpoch, constellation: Constellation, config: NavConfig =
 
 
 def nav_step(est: NavEstimate, epoch: GnssEpoch, constellation: Constellation,
-             config: NavConfig = NavConfig(), backend=None) -> NavEstimate:
-    """One EKF predict (to epoch.t_gps_s) + update with the epoch's measurements, batched."""
+             config: NavConfig = NavConfig(), backend=None, sat_states=None) -> NavEstimate:
+    """One EKF predict (to epoch.t_gps_s) + update with the epoch's measurements, batched.
+    sat_states: the epoch's :func:`filter_sat_states` when already computed."""
     dt = epoch.t_gps_s - est.t_gps_s
     if not dt > 0:
         raise ValueError(f"epoch.t_gps_s must be after the estimate's time {est.t_gps_s}, got {epoch.t_gps_s}")
-    model, z = nav_measurement_model(epoch, constellation, config)
-    res = ekf_step(est.x, est.P, z, config.transition(), model, dt, backend=backend)
+    model, z = nav_measurement_model(epoch, constellation, config, sat_states)
+    res = ekf_step(est.x, est.P, z, _transition(float(config.q_m2_s3)), model, dt, backend=backend)
     return NavEstimate(epoch.t_gps_s, res.x, res.P, res.nis, epoch.tracked.sum(axis=-1))
 
 
@@ -478,11 +574,13 @@ class OnboardNav:
         self.backend = backend
         self.estimate: NavEstimate | None = None
 
-    def update(self, epoch: GnssEpoch) -> NavEstimate:
+    def update(self, epoch: GnssEpoch, sat_states=None) -> NavEstimate:
+        """sat_states: the epoch's :func:`filter_sat_states` when already computed."""
         if self.estimate is None:
             self.estimate = nav_init(epoch, self.constellation, self.config)
         else:
-            self.estimate = nav_step(self.estimate, epoch, self.constellation, self.config, self.backend)
+            self.estimate = nav_step(self.estimate, epoch, self.constellation, self.config, self.backend,
+                                     sat_states)
         return self.estimate
 
 

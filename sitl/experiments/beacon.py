@@ -55,6 +55,7 @@ DT_S = 1.0
 BEACON_ID = "b1"
 FIGURES = ("beacon_errors.png", "beacon_rmse_vs_pcrb.png", "beacon_uav_count.png")
 # locators on the same messages: name -> LocatorConfig overrides
+_BLOCK = 64  # epochs whose world side (receiver geometry, filter ephemeris) is computed in one call
 LOCATORS = {
     "inflate": {},
     "inflate_white": {"uav_error_corr_s": 0.0},
@@ -203,17 +204,40 @@ def run_case(case, tracks, trials, seed, locators=("inflate",), progress=None, c
     uav_keys = [[key_for(r, UavNav, uav=i + 1) for i in range(N)] for r in run_ids]
     bm_keys = [[key_for(r, BeaconMeasurement, uav=i + 1, beacon=BEACON_ID) for i in range(N)] for r in run_ids]
     truth_base = base
+    truth_b_key = key_for(truth_base, Truth, kind="beacon", id=BEACON_ID)
+    truth_u_keys = [key_for(truth_base, Truth, kind="uav", id=i + 1) for i in range(N)]
+    block_eps, block_links, block_sat, k_block = [], [], None, 0
     for k in range(K):
         tk = float(t_gps[k])
-        # UAVs: receivers and onboard filters (all trials x UAVs as one batch)
+        if k == k_block:
+            # the world side of the next block of epochs: the receivers' geometry of all its
+            # epochs in one call, then the receivers' and links' noise epoch by epoch (the
+            # random draws in the same order as epoch-by-epoch stepping), then the
+            # ephemeris the onboard filters compute from those receiver outputs, again in
+            # one call: the same numbers as one epoch at a time (vehicles.uav_nav)
+            blk = slice(k, min(k + _BLOCK, K))
+            t0 = time.perf_counter()
+            geo = uav_nav.truth_geometry(t_gps[blk, None], U[blk], V[blk], const, nav_cfg)
+            block_eps, block_links = [], []
+            for j, kk in enumerate(range(blk.start, blk.stop)):
+                t1 = time.perf_counter()
+                block_eps.append(uav_nav.gnss_measure(rng, float(t_gps[kk]), U[kk], V[kk], const, nav_cfg,
+                                                      trials_shape=(T,), geometry=geo.at(j)))
+                t2 = time.perf_counter()
+                block_links.append(beacon_link.measure(rng, U[kk], V[kk], B[kk], VB[kk], link_cfg,
+                                                       trials_shape=(T,)))
+                clock("beacon_link", t2)
+                t0 += time.perf_counter() - t2
+            block_sat = uav_nav.filter_sat_states(block_eps, const, nav_cfg)
+            clock("uav_gnss_and_nav", t0)
+            k_block = blk.stop
+        j = k - (k_block - len(block_eps))
+        ep, meas = block_eps[j], block_links[j]
+        # UAVs: onboard filters (all trials x UAVs as one batch)
         t0 = time.perf_counter()
-        ep = uav_nav.gnss_measure(rng, tk, U[k], V[k], const, nav_cfg, trials_shape=(T,))
-        est = nav.update(ep)
+        est = nav.update(ep, (block_sat[0][j], block_sat[1][j]))
         nav_x[k], nav_P[k] = est.x, est.P
         clock("uav_gnss_and_nav", t0)
-        t0 = time.perf_counter()
-        meas = beacon_link.measure(rng, U[k], V[k], B[k], VB[k], link_cfg, trials_shape=(T,))
-        clock("beacon_link", t0)
         if central:
             epochs.append(ep)
             links.append(meas)
@@ -231,10 +255,10 @@ def run_case(case, tracks, trials, seed, locators=("inflate",), progress=None, c
                     range_rate_m_s=float(meas.range_rate_m_s[j, i]), var_range_m2=float(meas.var_range_m2[j, i]),
                     var_range_rate_m2_s2=float(meas.var_range_rate_m2_s2[j, i]), uav_pos_ecef_m=x[0:3],
                     uav_vel_ecef_m_s=x[3:6], uav_cov=C))
-        bus.publish(key_for(truth_base, Truth, kind="beacon", id=BEACON_ID),
+        bus.publish(truth_b_key,
                     Truth(t_gps_s=tk, source_id="truth", seq=k, kind="beacon", pos_ecef_m=B[k], vel_ecef_m_s=VB[k]))
         for i in range(N):
-            bus.publish(key_for(truth_base, Truth, kind="uav", id=i + 1),
+            bus.publish(truth_u_keys[i],
                         Truth(t_gps_s=tk, source_id="truth", seq=k, kind="uav", pos_ecef_m=U[k, i],
                               vel_ecef_m_s=V[k, i]))
         clock("bus_publish", t0)
