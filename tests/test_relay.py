@@ -12,7 +12,15 @@ from sitl.constants import C_M_S, WGS84
 from sitl.geodesy import ecef_to_aer, enu_to_ecef
 from sitl.gnss.orbits import DEFAULT_TOA_GPS_S, default_constellation
 from sitl.gnss.ranging import light_time_geometry
-from sitl.radio.relay import Relay, RelayParams, compact, oscillator_discretisation
+from sitl.radio.relay import (
+    Relay,
+    RelayErrorBudget,
+    RelayParams,
+    compact,
+    gauss_markov_step,
+    oscillator_discretisation,
+    pressure_ratio,
+)
 from vehicles.sonde import (
     DEFAULT_LAUNCH_H_M as H,
 )
@@ -54,11 +62,15 @@ def flight():
 
 
 def test_pseudorange_is_the_two_leg_path_plus_delta_d(flight):
+    # the default world has the error budget: dd varies about c (tau_ret + clock) by the path
+    # variation, and the per-satellite errors are reported; what is left is the white noise
     tr, k, rt = flight
     p = RelayParams()
     d = rt.delivered
-    assert d.sum() > 10_000 and np.all(rt.delta_d_m == pytest.approx(C_M_S * (1.5e-6 + 100e-9)))
-    resid = rt.pseudorange_m - (rt.true_path_m + rt.delta_d_m[..., None])
+    dd0 = C_M_S * (1.5e-6 + 100e-9)
+    assert d.sum() > 10_000 and np.std(rt.delta_d_m) > 0.5 and np.all(np.abs(rt.delta_d_m - dd0) < 6 * 1.5)
+    assert 1.0 < np.sqrt(np.mean(rt.pr_error_m[d] ** 2)) < 6.0  # metres, a single-frequency error budget
+    resid = rt.pseudorange_m - (rt.true_path_m + rt.delta_d_m[..., None] + rt.pr_error_m)
     assert np.all(np.isnan(resid[~d])) and np.all(np.isfinite(resid[d]))
     assert chi2_ok(resid[d], p.sigma_pr_m)
     assert abs(resid[d].mean()) < 4 * p.sigma_pr_m / math.sqrt(d.sum())
@@ -76,7 +88,7 @@ def test_pseudorange_is_the_two_leg_path_plus_delta_d(flight):
     expect = geo.range_m + (np.linalg.norm(p_out - G, axis=-1) + sagnac)[..., None]
     dj = d[j]
     np.testing.assert_allclose(rt.true_path_m[j][dj], expect[dj], rtol=0, atol=2e-3)
-    resid2 = rt.pseudorange_m[j] - expect - rt.delta_d_m[j][..., None]
+    resid2 = rt.pseudorange_m[j] - expect - rt.delta_d_m[j][..., None] - rt.pr_error_m[j]
     assert chi2_ok(resid2[dj], p.sigma_pr_m)
     assert np.abs(sagnac).max() < 0.5 and np.abs(sagnac).max() > 0.05
 
@@ -128,7 +140,7 @@ def test_pseudo_doppler_is_the_path_rate_with_the_stated_sign():
     f = SondeFlight(np.random.default_rng(1), params=p, dt_s=0.5)
     f.simulate(6000)  # 50 min into the ascent, ~100 km downwind
     tr = f.simulate(240)
-    rp = RelayParams(sigma_pr_m=0.0)
+    rp = RelayParams(sigma_pr_m=0.0, errors=None)
     rt = make(np.random.default_rng(2), rp).track(tr.t_gps_s, tr.pos_ecef_m, tr.vel_ecef_m_s)
     fd = (rt.true_path_m[2:] - rt.true_path_m[:-2]) / 1.0
     d = rt.delivered[1:-1]
@@ -263,3 +275,114 @@ def test_bad_arguments_raise_naming_them():
         r.step(DEFAULT_TOA_GPS_S, G + 1000.0, np.zeros(3))
     with pytest.raises(ValueError, match="t_gps_s"):
         r.track([DEFAULT_TOA_GPS_S + 2, DEFAULT_TOA_GPS_S + 1], np.zeros((2, 3)) + G, np.zeros((2, 3)))
+
+
+# ---------------------------------------------------------------- the error budget
+
+
+def test_white_world_is_reachable_and_its_errors_are_zero(flight):
+    tr, k, _ = flight
+    rt = make(spawn_rngs(405, 2), RelayParams(errors=None)).track(tr.t_gps_s[k[:200]], tr.pos_ecef_m[k[:200]],
+                                                                 tr.vel_ecef_m_s[k[:200]])
+    d = rt.delivered
+    assert np.all(rt.delta_d_m == pytest.approx(C_M_S * (1.5e-6 + 100e-9))) and np.all(rt.pr_error_m == 0.0)
+    assert chi2_ok((rt.pseudorange_m - rt.true_path_m - rt.delta_d_m[..., None])[d], RelayParams().sigma_pr_m)
+
+
+def test_gauss_markov_step_has_unit_variance_and_its_correlation_time():
+    rng = np.random.default_rng(7)
+    tau, dt, n, K = 20.0, 2.0, 4000, 60
+    u = rng.standard_normal(n)
+    u0 = u.copy()
+    for _ in range(K):
+        u = gauss_markov_step(u, rng.standard_normal(n), dt, tau)
+    assert abs(u.var() - 1.0) < 0.08  # stationary: unit variance after K steps
+    rho = np.corrcoef(u0, u)[0, 1]
+    assert abs(rho - math.exp(-K * dt / tau)) < 0.05  # e^-6 = 0.0025
+    v = gauss_markov_step(u0, rng.standard_normal(n), dt, tau)
+    assert abs(np.corrcoef(u0, v)[0, 1] - math.exp(-dt / tau)) < 0.02
+    assert not abs(np.corrcoef(u0, v)[0, 1] - math.exp(-dt / (2 * tau))) < 0.02  # a wrong tau is seen
+
+
+def _static_relay(budget, epochs=1500, n=6, seed=11):
+    """n sondes held still 20 km above G (zero velocity), 1 Hz."""
+    t = DEFAULT_TOA_GPS_S + np.arange(epochs, dtype=float)
+    p = enu_to_ecef(np.array([0.0, 0.0, 20_000.0]), LAT, LON, H)
+    pos = np.broadcast_to(p, (epochs, n, 3)).copy()
+    relay = make(spawn_rngs(seed, n), RelayParams(errors=budget))
+    return relay.track(t, pos, np.zeros_like(pos))
+
+
+def _lag_corr(x, lag):
+    """Pooled correlation of x (T, ...) with itself lag epochs later (finite entries)."""
+    a, b = x[:-lag].ravel(), x[lag:].ravel()
+    ok = np.isfinite(a) & np.isfinite(b)
+    return np.corrcoef(a[ok], b[ok])[0, 1]
+
+
+def test_relay_path_variation_is_gauss_markov_with_its_parameters():
+    zero = dict(sisre_gps_m=0.0, sisre_glonass_m=0.0, iono_zenith_m=0.0, tropo_zenith_m=0.0, multipath_a_m=0.0,
+                multipath_b_m=0.0)
+    rt = _static_relay(RelayErrorBudget(path_sigma_m=2.0, path_tau_s=40.0, **zero))
+    v = rt.delta_d_m - C_M_S * (1.5e-6 + 100e-9)
+    assert np.all(rt.pr_error_m == 0.0)
+    assert abs(v.std() / 2.0 - 1.0) < 0.12  # 6 sondes x 1500 s / 40 s: ~200 independent values
+    assert abs(_lag_corr(v, 1) - math.exp(-1 / 40)) < 0.01
+    assert abs(_lag_corr(v, 40) - math.exp(-1.0)) < 0.12
+
+
+def test_sisre_is_per_satellite_gauss_markov_with_the_system_std():
+    zero = dict(iono_zenith_m=0.0, tropo_zenith_m=0.0, multipath_a_m=0.0, multipath_b_m=0.0, path_sigma_m=0.0)
+    rt = _static_relay(RelayErrorBudget(sisre_gps_m=1.0, sisre_glonass_m=2.0, sisre_tau_s=30.0, **zero))
+    glo = np.char.startswith(CONST.sat_id.astype(str), "R")
+    e = rt.pr_error_m  # every satellite, delivered or not: the process runs regardless
+    assert abs(e[..., ~glo].std() - 1.0) < 0.05 and abs(e[..., glo].std() - 2.0) < 0.1
+    assert abs(_lag_corr(e, 1) - math.exp(-1 / 30)) < 0.01
+    assert abs(_lag_corr(e, 30) - math.exp(-1.0)) < 0.05
+    # independent between satellites
+    assert abs(np.corrcoef(e[:, :, 0].ravel(), e[:, :, 1].ravel())[0, 1]) < 0.1
+    np.testing.assert_array_equal(rt.delta_d_m, C_M_S * (1.5e-6 + 100e-9))
+
+
+def test_multipath_is_short_correlated_and_follows_elevation():
+    zero = dict(sisre_gps_m=0.0, sisre_glonass_m=0.0, iono_zenith_m=0.0, tropo_zenith_m=0.0, path_sigma_m=0.0)
+    b = RelayErrorBudget(multipath_tau_s=5.0, **zero)
+    rt = _static_relay(b, epochs=600)
+    sig = b.multipath_sigma_m(rt.sat_el_at_sonde_rad)
+    z = rt.pr_error_m / sig  # unit variance whatever the elevation
+    assert abs(z.std() - 1.0) < 0.05
+    assert abs(_lag_corr(z, 1) - math.exp(-1 / 5)) < 0.02 and abs(_lag_corr(z, 10) - math.exp(-2)) < 0.05
+    assert b.multipath_sigma_m(0.0) == pytest.approx(0.66) and b.multipath_sigma_m(math.pi / 2) == pytest.approx(
+        0.13, abs=1e-4)
+
+
+def test_scale_functions():
+    b = RelayErrorBudget()
+    assert b.iono_obliquity(math.pi / 2) == pytest.approx(1.0)
+    r = WGS84.a_m / (WGS84.a_m + 350e3)
+    assert b.iono_obliquity(0.0) == pytest.approx(1.0 / math.sqrt(1 - r * r)) and 3.0 < b.iono_obliquity(0.0) < 3.2
+    assert b.tropo_mapping(math.pi / 2) == pytest.approx(1.0, abs=1e-3) and 9.0 < b.tropo_mapping(math.radians(5)) < 12
+    s0 = b.slow_sigmas_m(np.array([False, True]), math.radians(30.0), 0.0)
+    s30 = b.slow_sigmas_m(np.array([False, True]), math.radians(30.0), 30_000.0)
+    np.testing.assert_allclose(s0[:, 0], [0.6, 1.5])
+    np.testing.assert_allclose(s0[:, 1], s30[:, 1])  # the ionosphere is above the sonde
+    assert s30[0, 2] / s0[0, 2] == pytest.approx(pressure_ratio(30_000.0)) and pressure_ratio(30_000.0) < 0.015
+    from sitl.atmosphere_std import P0_PA, us76
+    h = np.linspace(-400.0, 40_000.0, 301)
+    np.testing.assert_allclose(pressure_ratio(h), us76(h).pressure_pa / P0_PA, rtol=1e-5)
+
+
+def test_error_budget_draws_are_seeded_and_per_sonde():
+    a = _static_relay(RelayErrorBudget(), epochs=50, n=3, seed=5)
+    b = _static_relay(RelayErrorBudget(), epochs=50, n=3, seed=5)
+    c = _static_relay(RelayErrorBudget(), epochs=50, n=3, seed=6)
+    np.testing.assert_array_equal(a.pr_error_m, b.pr_error_m)
+    assert not np.allclose(a.pr_error_m, c.pr_error_m)
+
+
+@pytest.mark.parametrize("kwargs", [dict(sisre_tau_s=0.0), dict(iono_zenith_m=-1.0), dict(path_tau_s=float("nan"))])
+def test_bad_budget_raises(kwargs):
+    with pytest.raises(ValueError, match=next(iter(kwargs))):
+        RelayErrorBudget(**kwargs)
+    with pytest.raises(ValueError, match="errors"):
+        RelayParams(errors="white")

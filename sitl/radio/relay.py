@@ -60,13 +60,67 @@ elevation above G's horizon is >= ``ground_el_mask_rad`` and |P - G| <=
 an outage interval of ``outage_schedule`` ((t_start, t_end), closed-open), during
 which the relay delivers nothing.
 
-Noise: white, N(0, sigma_pr^2) and N(0, sigma_prr^2) per satellite and epoch; the
-seed gives no values, the defaults (5 m, 0.1 m/s) suit a relayed C/A-code signal.
+Noise: white, N(0, sigma_pr^2) and N(0, sigma_prr^2) per satellite and epoch (the ground
+receiver's code and frequency tracking noise on the weak relayed signal; the seed gives no
+values, the defaults (5 m, 0.1 m/s) suit a relayed C/A-code signal).  These are the only
+variances the receiver reports (``var_pr_m2``, ``var_prr_m2_s2``): it cannot know the
+propagation errors below.
+
+Error budget (``RelayParams.errors``, a :class:`RelayErrorBudget`; ``errors=None`` is the
+white-noise-only world of before, bitwise).  Seed eq 4 writes the pseudorange to a satellite
+as d = d_i + Dd_ion + Dd_trop + Dd_eph + Dd_phi + Dd_t (ionospheric and tropospheric delays,
+ephemeris error, random fluctuations of the satellite clock, time-scale offset); eq 7 adds
+for the relayed path the relay LO fluctuations, the GCPP clock offset and the relay delay
+c tau_ret; eqs 21-22 lump everything into ONE dd, common to all satellites and "constant over
+an interval [t_k, t_k + T]" (which "presupposes a sufficiently stable LO").  The seed gives
+no magnitudes.  The terms of eqs 4 and 7 that are not common to all satellites, or not
+constant, are modelled here with standard single-frequency GNSS values, each a first-order
+Gauss-Markov process of unit variance, u(k) = mu u(k-1) + sqrt(1 - mu^2) n(k), mu =
+e^{-T/tau}, stationary start u(0) = n(0), scaled by its standard deviation at the current
+geometry (so the variance follows the elevation and the sonde's height, the correlation
+time is tau):
+
+  * Dd_eph + Dd_phi, broadcast orbit and clock (signal-in-space range error, SISRE):
+    ``sisre_gps_m`` 0.6 m, ``sisre_glonass_m`` 1.5 m, ``sisre_tau_s`` 3600 s  [1, 2, 4];
+  * Dd_ion, the ionosphere left after the broadcast (Klobuchar) model: ``iono_zenith_m``
+    1.5 m x the thin-shell obliquity F(el) = 1/sqrt(1 - (R cos el/(R + h_I))^2), h_I =
+    ``iono_shell_h_m`` 350 km (F = 1 at zenith, 3.0 at 5 deg, 3.1 at the horizon), ``iono_tau_s`` 1800 s  [3, 4, 5];
+    the sonde (< 40 km) is below the ionosphere, so its satellite leg has the whole delay;
+  * Dd_trop, the troposphere left after a standard-atmosphere model: ``tropo_zenith_m``
+    0.05 m x p(h)/p0 (US-76 pressure at the sonde's height: the delay comes from the air
+    above it) x m(el) = 1.001/sqrt(0.002001 + sin^2 el), ``tropo_tau_s`` 3600 s  [4, 5];
+  * multipath at the sonde's antenna, the airborne model sigma(el) = ``multipath_a_m`` 0.13 m
+    + ``multipath_b_m`` 0.53 m e^{-el/``multipath_el0_deg`` 10 deg}, ``multipath_tau_s`` 5 s
+    (the sonde swings under the balloon with a period of ~10 s)  [5];
+  * relay-path variations, common to every satellite of a sonde (added to dd, which stops
+    being constant): the relay's group delay changes with its temperature (+20 to -60 C in
+    the ascent) and the GCPP clock wanders: ``path_sigma_m`` 1.5 m (5 ns), ``path_tau_s``
+    1200 s.  No published value exists for this relay: an assumption, stated as such.
+
+[1] GPS SPS Performance Standard, 5th ed. (2020), and the measured SISRE of ~0.5-0.6 m RMS
+(Montenbruck, Steigenberger, Hauschild, "Broadcast versus precise ephemerides", GPS Solutions
+19, 2015); [2] same paper: GLONASS broadcast SISRE ~1.5-2 m; [3] Klobuchar, IEEE Trans. AES
+23 (1987): the broadcast model removes ~50 % RMS of the delay; a mid-latitude L1 vertical
+delay of ~3 m (~20 TECU) leaves ~1.5 m; [4] Misra and Enge, "GPS: Signals, Measurements, and
+Performance", 2nd ed. (2006), ch. 5: error budget, residuals as first-order Gauss-Markov
+processes with correlation times of tens of minutes to hours; [5] RTCA DO-229 (WAAS MOPS),
+appendix J: thin-shell obliquity, tropospheric mapping function and residual (0.12 m zenith
+at sea level for a climatological model, 0.05 m here with the GCPP's surface weather),
+airborne multipath model.
+
+The propagation errors sit on the pseudoranges only: their rates (mm/s for real
+ionosphere, troposphere and orbit drift) are far below the pseudo-Doppler noise, and a
+first-order Gauss-Markov process has no rate to give.  The per-satellite sum (multipath
+included) is reported as ``pr_error_m`` and the common path variation is inside
+``delta_d_m``, among the truth fields.  Every process runs at every epoch, delivered or not
+(outages, satellites below the mask), so a satellite that returns keeps its error.
 
 Randomness: ``rng`` is one Generator for the batch, or one per sonde (then a sonde's
 numbers depend only on its own stream).  Per sonde and epoch the relay draws 2 S + 2
 normals (S pseudorange noises, S pseudo-Doppler noises, 2 oscillator innovations --
-the first epoch uses the first for Dw(0)), whatever is delivered.
+the first epoch uses the first for Dw(0)), then, with an error budget, 4 S + 1 more (S each
+for the SISRE, ionosphere, troposphere and multipath processes, then 1 for the path
+variation; the first epoch uses them for the stationary start), whatever is delivered.
 
 Stepping: :meth:`Relay.step` one epoch at a time, or :meth:`Relay.track` a whole
 trajectory (the same numbers, a block of epochs per light-time call: ~10x faster).
@@ -83,8 +137,9 @@ from typing import NamedTuple
 
 import numpy as np
 
+from sitl.atmosphere_std import P0_PA, us76
 from sitl.constants import C_M_S, F_GPS_L1_HZ, WGS84
-from sitl.geodesy import ecef_to_aer
+from sitl.geodesy import ecef_to_aer, ecef_to_geodetic
 from sitl.gnss.orbits import Constellation
 from sitl.gnss.ranging import light_time_geometry
 from sitl.gnss.world import ephemeris_for_filter, look_angles
@@ -101,7 +156,8 @@ from sitl.radio.radar import (
     _vec3,
 )
 
-__all__ = ["Relay", "RelayEpoch", "RelayParams", "RelayTrack", "compact", "oscillator_discretisation"]
+__all__ = ["Relay", "RelayEpoch", "RelayErrorBudget", "RelayParams", "RelayTrack", "compact", "gauss_markov_step",
+           "oscillator_discretisation"]
 
 
 def _phi_var_factor(x: float) -> float:
@@ -129,6 +185,85 @@ def _sqrt_psd(q: np.ndarray) -> np.ndarray:
     return v * np.sqrt(np.clip(w, 0.0, None))
 
 
+P_TABLE_H_M = np.arange(-500.0, 86_000.0 + 1.0, 50.0)
+LN_P_TABLE = np.log(us76(P_TABLE_H_M).pressure_pa / P0_PA)
+
+
+def pressure_ratio(h_m):
+    """p(h) / p0 of the US-76 atmosphere, tabulated every 50 m and interpolated in ln p (relative
+    error < 1e-5; ~100x faster than sitl.atmosphere_std.us76 on a few values)."""
+    return np.exp(np.interp(h_m, P_TABLE_H_M, LN_P_TABLE))
+
+
+def gauss_markov_step(u: np.ndarray, n: np.ndarray, dt_s: float, tau_s) -> np.ndarray:
+    """One step of unit-variance first-order Gauss-Markov processes: mu u + sqrt(1 - mu^2) n,
+    mu = e^{-dt/tau} (tau scalar or broadcasting against u)."""
+    mu = np.exp(-dt_s / np.asarray(tau_s, dtype=float))
+    return mu * u + np.sqrt(-np.expm1(-2.0 * dt_s / np.asarray(tau_s, dtype=float))) * n
+
+
+@dataclass(frozen=True)
+class RelayErrorBudget:
+    """The relayed pseudoranges' propagation and relay errors (see the module docstring for
+    the values and their sources). Standard deviations in m, correlation times in s."""
+
+    sisre_gps_m: float = 0.6
+    sisre_glonass_m: float = 1.5
+    sisre_tau_s: float = 3600.0
+    iono_zenith_m: float = 1.5
+    iono_shell_h_m: float = 350e3
+    iono_tau_s: float = 1800.0
+    tropo_zenith_m: float = 0.05
+    tropo_tau_s: float = 3600.0
+    multipath_a_m: float = 0.13
+    multipath_b_m: float = 0.53
+    multipath_el0_deg: float = 10.0
+    multipath_tau_s: float = 5.0
+    path_sigma_m: float = 1.5
+    path_tau_s: float = 1200.0
+
+    def __post_init__(self):
+        for n in ("sisre_gps_m", "sisre_glonass_m", "iono_zenith_m", "tropo_zenith_m", "multipath_a_m",
+                  "multipath_b_m", "path_sigma_m"):
+            _nonneg(n, getattr(self, n))
+        for n in ("sisre_tau_s", "iono_shell_h_m", "iono_tau_s", "tropo_tau_s", "multipath_el0_deg",
+                  "multipath_tau_s", "path_tau_s"):
+            _pos(n, getattr(self, n))
+
+    @property
+    def slow_tau_s(self) -> np.ndarray:
+        """(3,) correlation times of [SISRE, ionosphere, troposphere]."""
+        return np.array([self.sisre_tau_s, self.iono_tau_s, self.tropo_tau_s])
+
+    def iono_obliquity(self, el_rad):
+        """Thin-shell obliquity factor F(el) = 1/sqrt(1 - (R cos el / (R + h_I))^2)."""
+        r = WGS84.a_m / (WGS84.a_m + self.iono_shell_h_m)
+        c = r * np.cos(np.clip(el_rad, 0.0, None))
+        return 1.0 / np.sqrt(1.0 - c * c)
+
+    @staticmethod
+    def tropo_mapping(el_rad):
+        """m(el) = 1.001 / sqrt(0.002001 + sin^2 el) (RTCA DO-229)."""
+        s = np.sin(np.clip(el_rad, 0.0, None))
+        return 1.001 / np.sqrt(0.002001 + s * s)
+
+    def slow_sigmas_m(self, glonass, el_rad, h_m) -> np.ndarray:
+        """(..., 3) std of [SISRE, ionosphere, troposphere] for satellites seen at elevation
+        el_rad (...) from a sonde at height h_m (broadcasting against el_rad); glonass (...)
+        bool: the satellite is a GLONASS one."""
+        el = np.asarray(el_rad, dtype=float)
+        p_ratio = pressure_ratio(h_m)
+        sisre = np.where(glonass, self.sisre_glonass_m, self.sisre_gps_m) * np.ones_like(el)
+        iono = self.iono_zenith_m * self.iono_obliquity(el)
+        tropo = self.tropo_zenith_m * p_ratio * self.tropo_mapping(el)
+        return np.stack(np.broadcast_arrays(sisre, iono, tropo), axis=-1)
+
+    def multipath_sigma_m(self, el_rad):
+        """Airborne multipath std: a + b e^{-el / el0}."""
+        el_deg = np.degrees(np.clip(np.asarray(el_rad, dtype=float), 0.0, None))
+        return self.multipath_a_m + self.multipath_b_m * np.exp(-el_deg / self.multipath_el0_deg)
+
+
 @dataclass(frozen=True)
 class RelayParams:
     """Relay / ground-receiver parameters (SI units, angles in radians)."""
@@ -146,6 +281,7 @@ class RelayParams:
     carrier_hz: float = F_GPS_L1_HZ  # converts the LO offset to m/s
     outage_schedule: tuple = ()  # ((t_start, t_end), ...) GPS s: nothing delivered
     downlink_sagnac: bool = True
+    errors: RelayErrorBudget | None = RelayErrorBudget()  # None: white noise only (the old world)
 
     def __post_init__(self):
         for n in ("sigma_pr_m", "sigma_prr_m_s", "relay_delay_s", "osc_sigma_hz", "osc_phase_psd_rad2_s"):
@@ -162,6 +298,8 @@ class RelayParams:
         if not isinstance(self.downlink_sagnac, (bool, np.bool_)):
             raise ValueError(f"downlink_sagnac must be a bool, got {self.downlink_sagnac!r}")
         object.__setattr__(self, "outage_schedule", _intervals("outage_schedule", self.outage_schedule))
+        if self.errors is not None and not isinstance(self.errors, RelayErrorBudget):
+            raise ValueError(f"errors must be a RelayErrorBudget or None, got {self.errors!r}")
 
     @property
     def delta_d_m(self) -> float:
@@ -196,10 +334,11 @@ class RelayEpoch(NamedTuple):
     true_sat_vel_ecef_m_s: np.ndarray
     true_sonde_pos_ecef_m: np.ndarray  # (..., 3) P at t_in
     sat_el_at_sonde_rad: np.ndarray  # (..., S)
-    delta_d_m: np.ndarray  # (...) the constant dd
+    delta_d_m: np.ndarray  # (...) dd: the constant c (tau_ret + clock) + the path variation
     osc_freq_rad_s: np.ndarray  # (...) Dw
     osc_phase_rad: np.ndarray  # (...) phi
     osc_doppler_m_s: np.ndarray  # (...) (c/omega) Dw, in every pseudo-Doppler
+    pr_error_m: np.ndarray  # (..., S) per-satellite error budget (SISRE + iono + tropo + multipath)
 
 
 def compact(epoch: RelayEpoch, index=()) -> dict:
@@ -247,6 +386,11 @@ class Relay:
         self._t = None
         self._osc = np.zeros(batch_shape + (2,))  # [phi, Dw]
         self._sigma_w = 2.0 * math.pi * self.params.osc_sigma_hz
+        S = len(constellation)
+        self._glonass = np.char.startswith(constellation.sat_id.astype(str), "R")
+        self._u = np.zeros(batch_shape + (S, 4))  # unit GM: SISRE, iono, tropo, multipath
+        self._g = np.zeros(batch_shape)  # unit GM: relay path variation
+        self._t_err = None
 
     def step(self, t_gps_s, sonde_pos_ecef_m, sonde_vel_ecef_m_s) -> RelayEpoch:
         """The relayed measurements received at G at time t_gps_s (strictly increasing).
@@ -316,15 +460,38 @@ class Relay:
             out[k] = self._osc
         return out
 
+    def _errors(self, t: np.ndarray, n_err: np.ndarray, sig_slow: np.ndarray, sig_mp: np.ndarray):
+        """Per-satellite error (K, ..., S) and common path variation (K, ...) at the epochs t (K,)
+        from the innovations n_err (K, ..., 4 S + 1) and the current stds (K, ..., S, 3), (K, ..., S)."""
+        e = self.params.errors
+        S = sig_mp.shape[-1]
+        taus = np.array([e.sisre_tau_s, e.iono_tau_s, e.tropo_tau_s, e.multipath_tau_s])
+        pr_err = np.empty(sig_mp.shape)
+        path = np.empty(n_err.shape[:-1])
+        for k in range(t.size):
+            nu = np.moveaxis(n_err[k, ..., :4 * S].reshape(self.batch_shape + (4, S)), -2, -1)
+            ng = n_err[k, ..., 4 * S]
+            if self._t_err is None:
+                self._u, self._g = nu, ng
+            else:
+                dt = float(t[k] - self._t_err)
+                self._u = gauss_markov_step(self._u, nu, dt, taus)
+                self._g = gauss_markov_step(self._g, ng, dt, e.path_tau_s)
+            self._t_err = float(t[k])
+            pr_err[k] = np.sum(sig_slow[k] * self._u[..., :3], axis=-1) + sig_mp[k] * self._u[..., 3]
+            path[k] = e.path_sigma_m * self._g
+        return pr_err, path
+
     def _compute(self, t: np.ndarray, pos: np.ndarray, vel: np.ndarray) -> tuple:
         """RelayEpoch fields with a leading epoch axis K (t (K,), pos/vel (K, ..., 3))."""
         p, c = self.params, self.constellation
         S, K = len(c), t.size
         tb = t.reshape((K,) + (1,) * len(self.batch_shape))  # broadcasts against (K, ...)
-        normals = np.stack([self._streams.normal(2 * S + 2) for _ in range(K)]) if self._streams.single is None \
-            else self._streams.single.standard_normal((K, self._streams.n, 2 * S + 2)).reshape(
-                (K,) + self.batch_shape + (2 * S + 2,))
-        n_pr, n_prr, n_osc = normals[..., :S], normals[..., S:2 * S], normals[..., 2 * S:]
+        nd = 2 * S + 2 + (0 if p.errors is None else 4 * S + 1)
+        normals = np.stack([self._streams.normal(nd) for _ in range(K)]) if self._streams.single is None \
+            else self._streams.single.standard_normal((K, self._streams.n, nd)).reshape(
+                (K,) + self.batch_shape + (nd,))
+        n_pr, n_prr, n_osc = normals[..., :S], normals[..., S:2 * S], normals[..., 2 * S:2 * S + 2]
         osc = self._oscillator(t, n_osc)
         osc_dopp = p.osc_doppler_scale_m_s_per_rad_s * osc[..., 1]
 
@@ -359,14 +526,21 @@ class Relay:
                      & ~outage.reshape(tb.shape + (1,)))
 
         dd = np.full((K,) + self.batch_shape, p.delta_d_m)
-        pr = np.where(delivered, true_path + dd[..., None] + p.sigma_pr_m * n_pr, np.nan)
+        if p.errors is None:
+            pr_err = np.zeros(true_path.shape)
+        else:
+            _, _, h_son = ecef_to_geodetic(p_in)
+            sig_slow = p.errors.slow_sigmas_m(self._glonass, sat_el, h_son[..., None])
+            pr_err, path = self._errors(t, normals[..., 2 * S + 2:], sig_slow, p.errors.multipath_sigma_m(sat_el))
+            dd = dd + path
+        pr = np.where(delivered, true_path + dd[..., None] + pr_err + p.sigma_pr_m * n_pr, np.nan)
         prr = np.where(delivered, true_rate + osc_dopp[..., None] + p.sigma_prr_m_s * n_prr, np.nan)
         sat_pos, sat_vel = ephemeris_for_filter(tb, pr, c, pseudorange_rate_m_s=prr)
         var_pr = np.where(delivered, p.sigma_pr_m**2, np.nan)
         var_prr = np.where(delivered, p.sigma_prr_m_s**2, np.nan)
         return (t.copy(), c.sat_id, delivered, pr, prr, var_pr, var_prr, sat_pos, sat_vel, g.copy(), visible, outage,
                 true_path, true_rate, geo.sat_pos_ecef_m, geo.sat_vel_ecef_m_s, p_in, sat_el, dd,
-                osc[..., 1], osc[..., 0], osc_dopp)
+                osc[..., 1], osc[..., 0], osc_dopp, pr_err)
 
 
 class RelayTrack(NamedTuple):
@@ -395,6 +569,7 @@ class RelayTrack(NamedTuple):
     osc_freq_rad_s: np.ndarray
     osc_phase_rad: np.ndarray
     osc_doppler_m_s: np.ndarray
+    pr_error_m: np.ndarray
 
     def epoch(self, k: int) -> RelayEpoch:
         return RelayEpoch(*(v if f in ("sat_id", "ground_pos_ecef_m") else
