@@ -241,3 +241,25 @@ def test_bad_arguments_raise_naming_them():
     r.step(T0, enu_point(0.0, 1e4, 1e3))
     with pytest.raises(ValueError, match="t_gps_s"):
         r.step(T0, enu_point(0.0, 1e4, 1e3))
+
+
+def test_track_equals_step_bitwise_with_schedule_and_random_losses():
+    from sitl.radio.radar import Radar, RadarParams
+    from vehicles.sonde import DEFAULT_LAUNCH_H_M, DEFAULT_LAUNCH_LAT_RAD, DEFAULT_LAUNCH_LON_RAD, SondeFlight, spawn_rngs
+
+    tr = SondeFlight(spawn_rngs(4, 3)).simulate(400)
+    prm = RadarParams(loss_rate_1_s=0.01, loss_schedule=((tr.t_gps_s[30], tr.t_gps_s[90]),))
+    kw = dict(site_lat_rad=DEFAULT_LAUNCH_LAT_RAD, site_lon_rad=DEFAULT_LAUNCH_LON_RAD + 0.001,
+              site_h_m=DEFAULT_LAUNCH_H_M, params=prm)
+    a, b = Radar(spawn_rngs(9, 3), **kw), Radar(spawn_rngs(9, 3), **kw)
+    steps = [a.step(tr.t_gps_s[k], tr.pos_ecef_m[k], tr.vel_ecef_m_s[k]) for k in range(len(tr))]
+    parts = [b.track(tr.t_gps_s[s], tr.pos_ecef_m[s], tr.vel_ecef_m_s[s]) for s in (slice(0, 150), slice(150, None))]
+    for f in parts[0]._fields:
+        if f == "site_pos_ecef_m":
+            continue
+        got = np.concatenate([getattr(p, f) for p in parts])
+        want = np.stack([np.asarray(getattr(s, f)) for s in steps])
+        assert np.array_equal(got, want, equal_nan=True), f
+    assert parts[0].tracking_lost.any() and not parts[0].tracking_lost.all()
+    with pytest.raises(ValueError, match="increase"):
+        b.track(tr.t_gps_s[:5], tr.pos_ecef_m[:5], tr.vel_ecef_m_s[:5])  # not after the previous step

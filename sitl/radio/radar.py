@@ -368,3 +368,60 @@ class Radar:
             t, meas_d[()], meas_az[()], meas_el[()], ones * p.sigma_range_m**2, ones * p.sigma_az_rad**2,
             ones * p.sigma_el_rad**2, range_valid, angles_valid, in_range, np.broadcast_to(lost, self.batch_shape).copy(),
             self.site_pos_ecef_m.copy(), d, az, el, self._err.copy())
+
+    def track(self, t_gps_s, pos_ecef_m, vel_ecef_m_s=None) -> RadarMeasurement:
+        """Many steps at once: t (T,) strictly increasing (after the previous step), states
+        (T, ..., 3). The same numbers as T calls of :meth:`step` (the same draws in the same
+        order), as a RadarMeasurement whose fields carry a leading epoch axis (t_gps_s (T,);
+        site_pos_ecef_m shared); the geometry is computed for all epochs in one call."""
+        p = self.params
+        t = np.asarray(t_gps_s, dtype=float)
+        if t.ndim != 1 or t.size == 0 or not np.all(np.isfinite(t)):
+            raise ValueError(f"t_gps_s must be a non-empty 1-D array of finite GPS times, got shape {t.shape}")
+        if np.any(np.diff(t) <= 0.0) or (self._t is not None and not t[0] > self._t):
+            raise ValueError("t_gps_s must increase strictly (and follow the previous step)")
+        shape = (t.size,) + self.batch_shape + (3,)
+        pos = _vec3("pos_ecef_m", pos_ecef_m)
+        vel = np.zeros_like(pos) if vel_ecef_m_s is None else _vec3("vel_ecef_m_s", vel_ecef_m_s)
+        if pos.shape != shape or vel.shape != shape:
+            raise ValueError(f"pos_ecef_m and vel_ecef_m_s must have shape {shape}, got {pos.shape}, {vel.shape}")
+        K = t.size
+        az, el, d = ecef_to_aer(self.site_pos_ecef_m, pos)  # (T, ...)
+        in_range = d <= p.max_range_m
+        range_valid = in_range & (el >= p.el_mask_rad)
+        if p.loss_rate_1_s > 0.0:
+            los = (pos - self.site_pos_ecef_m) / d[..., None]
+            v_perp = vel - np.sum(vel * los, axis=-1, keepdims=True) * los
+            lam = p.loss_rate_1_s * (1.0 + (np.linalg.norm(v_perp, axis=-1) / d / p.loss_ang_rate_ref_rad_s) ** 2)
+        err = np.empty(shape)
+        lost = np.empty((K,) + self.batch_shape, dtype=bool)
+        sigma = p.sigma
+        coef = {}
+        for k in range(K):
+            n = self._streams.normal(3)
+            u = self._streams.uniform(1)[..., 0]
+            tk = float(t[k])
+            if self._t is None:
+                self._err = n * sigma
+            else:
+                dt = tk - self._t
+                c = coef.get(dt)
+                if c is None:
+                    c = coef[dt] = ar1_coefficients(sigma, p.gamma_1_s, dt)
+                self._err = c[0] * self._err + c[1] * n
+                if p.loss_rate_1_s > 0.0:
+                    start = ~self._lost & (u < -np.expm1(-lam[k] * dt))
+                    end = self._lost & (u < -np.expm1(-dt / p.loss_mean_duration_s))
+                    self._lost = (self._lost | start) & ~end
+            self._t = tk
+            err[k] = self._err
+            lost[k] = self._lost | _in_schedule(p.loss_schedule, tk)
+        angles_valid = range_valid & ~lost
+        meas_d = np.where(range_valid, d + err[..., 0], np.nan)
+        meas_az = np.where(angles_valid, np.mod(az + err[..., 1], 2.0 * math.pi), np.nan)
+        meas_el = np.where(angles_valid, el + err[..., 2], np.nan)
+        ones = np.ones(d.shape)
+        return RadarMeasurement(
+            t.copy(), meas_d, meas_az, meas_el, ones * p.sigma_range_m**2, ones * p.sigma_az_rad**2,
+            ones * p.sigma_el_rad**2, range_valid, angles_valid, in_range, lost, self.site_pos_ecef_m.copy(), d, az, el,
+            err)
