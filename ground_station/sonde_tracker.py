@@ -170,7 +170,8 @@ from sitl.radio.radar import (
     aer_to_ecef_jacobian,
     radar_aer_to_ecef,
 )
-from sitl.radio.relay import RelayParams
+from sitl.radio import relay as _relay
+from sitl.radio.relay import RelayErrorBudget, RelayParams
 
 __all__ = [
     "MODES",
@@ -243,6 +244,9 @@ class SondeTrackerParams:
     reacquire_after: int | None = 5  # re-initialise after this many rejected blocks in a row
     prior_sigma_vel_m_s: float = 20.0
     prior_sigma_delta_d_m: float = 3000.0
+    relay_errors: RelayErrorBudget | None = _RELAY_DEFAULT.errors  # the relay's error budget; None: white only
+    bias_slots: int = 24  # per-satellite error states (relay modes with relay_errors); >= satellites in view
+    bias_tau_s: float | None = None  # their correlation time; None: relay_errors' variance-weighted one
     label: str | None = None  # Estimate.mode; default: mode (+ "_white" for naive radar noise)
     backend: str | None = None  # filters.kernels backend (None: default)
 
@@ -280,8 +284,30 @@ class SondeTrackerParams:
                 raise ValueError(f"{name} must be an integer >= 1 or None, got {v!r}")
         if self.label is not None and not is_valid_id(self.label):
             raise ValueError(f"label must be 1..64 chars of [A-Za-z0-9_.-], got {self.label!r}")
+        if self.relay_errors is not None and not isinstance(self.relay_errors, RelayErrorBudget):
+            raise ValueError(f"relay_errors must be a RelayErrorBudget or None, got {self.relay_errors!r}")
+        if isinstance(self.bias_slots, bool) or not isinstance(self.bias_slots, int) or self.bias_slots < 1:
+            raise ValueError(f"bias_slots must be an integer >= 1, got {self.bias_slots!r}")
+        if self.bias_tau_s is not None:
+            _finite("bias_tau_s", self.bias_tau_s, 0.0, lo_open=True)
         if self.backend not in (None, "auto", "numpy", "numba"):
             raise ValueError(f"backend must be None, 'auto', 'numpy' or 'numba', got {self.backend!r}")
+
+    @property
+    def relay_bias_states(self) -> int:
+        """Per-satellite error states in the layout (0 without an error budget or relay)."""
+        return self.bias_slots if (self.relay_errors is not None and self.mode != "radar_only") else 0
+
+    @property
+    def slow_tau_s(self) -> float:
+        """The per-satellite error states' correlation time: ``bias_tau_s``, else the
+        relay_errors' components' times weighted by their variances for a GPS satellite at
+        30 deg seen from the ground (the ionosphere dominates)."""
+        if self.bias_tau_s is not None:
+            return float(self.bias_tau_s)
+        e = self.relay_errors or RelayErrorBudget()
+        v = e.slow_sigmas_m(False, math.radians(30.0), 0.0) ** 2
+        return float(np.sum(v * e.slow_tau_s) / np.sum(v))
 
     @property
     def mode_label(self) -> str:
@@ -300,9 +326,11 @@ class Layout(NamedTuple):
     err: int | None  # first of the three radar error states
     uses_relay: bool
     uses_radar: bool
+    bias: int | None = None  # first of the per-satellite relay error states
+    nb: int = 0  # how many
 
 
-def layout_for(mode: str, radar_noise: str = "colored") -> Layout:
+def layout_for(mode: str, radar_noise: str = "colored", bias_slots: int = 0) -> Layout:
     if mode not in MODES:
         raise ValueError(f"mode must be one of {MODES}, got {mode!r}")
     relay = mode != "radar_only"
@@ -313,7 +341,10 @@ def layout_for(mode: str, radar_noise: str = "colored") -> Layout:
         dd, osc, n = 9, 10, 11
     if radar and radar_noise == "colored":
         err, n = n, n + 3
-    return Layout(n, dd, osc, err, relay, radar)
+    bias, nb = None, 0
+    if relay and bias_slots:
+        bias, nb, n = n, int(bias_slots), n + int(bias_slots)
+    return Layout(n, dd, osc, err, relay, radar, bias, nb)
 
 
 # ---------------------------------------------------------------------------
@@ -343,6 +374,9 @@ class SondeTransition:
         if L.dd is not None:
             F[L.dd, L.dd] = 1.0
             Q[L.dd, L.dd] = p.delta_d_rw_psd_m2_s * dt
+            if p.relay_errors is not None:  # the relay path variation (GM) as a random walk of its PSD 2 s^2 / tau
+                e = p.relay_errors
+                Q[L.dd, L.dd] += 2.0 * e.path_sigma_m**2 / e.path_tau_s * dt
             e = math.exp(-p.osc_gamma_1_s * dt)
             F[L.osc, L.osc] = e
             Q[L.osc, L.osc] = p.osc_sigma_m_s**2 * -math.expm1(-2.0 * p.osc_gamma_1_s * dt)
@@ -350,6 +384,11 @@ class SondeTransition:
             for j, (s, g) in enumerate(zip(p.radar_sigma, p.radar_gamma_1_s)):
                 F[L.err + j, L.err + j] = math.exp(-g * dt)
                 Q[L.err + j, L.err + j] = s * s * -math.expm1(-2.0 * g * dt)
+        if L.nb:  # unit-variance Gauss-Markov per satellite slot
+            tau = p.slow_tau_s
+            b = np.arange(L.bias, L.bias + L.nb)
+            F[b, b] = math.exp(-dt / tau)
+            Q[b, b] = -math.expm1(-2.0 * dt / tau)
         Q = 0.5 * (Q + Q.T)
         F.flags.writeable = Q.flags.writeable = False
         return F, Q
@@ -406,10 +445,12 @@ def relay_frame_point(pos_ecef_m, vel_ecef_m_s, ground_pos_ecef_m):
     return np.stack([ct * o[..., 0] + st * o[..., 1], ct * o[..., 1] - st * o[..., 0], o[..., 2]], axis=-1)
 
 
-def _rows_py(x, sat_pos, sat_vel, ground, relay_mask, site, rot, z_az, radar_mask, dd, osc, err, h, H):
+def _rows_py(x, sat_pos, sat_vel, ground, relay_mask, site, rot, z_az, radar_mask, dd, osc, err, bias_col, bias_scale,
+            h, H):
     """h (N, m) and H (N, m, n) at states x (N, n), row by row (the compiled path; H must come
     in zeroed). Rows: U pseudoranges, U pseudo-Dopplers (if U > 0), then [range, az, el]
-    (if h has 2U + 3 columns). dd, osc, err: state indices, -1 when absent."""
+    (if h has 2U + 3 columns). dd, osc, err: state indices, -1 when absent; bias_col (N, U)
+    the state index of each satellite's error state (-1: none), bias_scale (N, U) its std."""
     N = x.shape[0]
     U = sat_pos.shape[1]
     radar = h.shape[1] == 2 * U + 3
@@ -437,7 +478,12 @@ def _rows_py(x, sat_pos, sat_vel, ground, relay_mask, site, rot, z_az, radar_mas
                 ix, iy, iz = dx / rho, dy / rho, dz / rho
                 wx, wy, wz = vx - sat_vel[b, u, 0], vy - sat_vel[b, u, 1], vz - sat_vel[b, u, 2]
                 uw = ix * wx + iy * wy + iz * wz
-                h[b, u] = rho + rg + x[b, dd]
+                bh = 0.0
+                j = bias_col[b, u]
+                if j >= 0:
+                    bh = bias_scale[b, u] * x[b, j]
+                    H[b, u, j] = bias_scale[b, u]
+                h[b, u] = rho + rg + x[b, dd] + bh
                 h[b, U + u] = uw + kv + x[b, osc]
                 H[b, u, 0], H[b, u, 1], H[b, u, 2] = ix + kx, iy + ky, iz + kz
                 H[b, u, dd] = 1.0
@@ -482,12 +528,47 @@ def _rows_py(x, sat_pos, sat_vel, ground, relay_mask, site, rot, z_az, radar_mas
 _rows_nb = None if _nb is None else _nb.njit(cache=True, nogil=True)(_rows_py)
 
 
+def _relay_err_py(pos, sat_pos, glonass, prm, h_tab, lnp_tab, scale, white):
+    """The relay error model's per-satellite numbers (SondeTracker._relay_error_model), loop by loop
+    for the compiled path: scale (Bs, U) the slow errors' std, white (Bs, U) the multipath's
+    PSD-equivalent variance. prm: [sisre GPS, sisre GLONASS, iono zenith, R/(R + h_I), tropo zenith,
+    mp a, mp b, mp el0 (rad), (1 + mu)/(1 - mu), 1/a^2, 1/b^2]; the pressure table of
+    sitl.radio.relay.pressure_ratio."""
+    Bs, U = scale.shape
+    for b in range(Bs):
+        x, y, z = pos[b, 0], pos[b, 1], pos[b, 2]
+        nx, ny, nz = x * prm[9], y * prm[9], z * prm[10]
+        nn = math.sqrt(nx * nx + ny * ny + nz * nz)
+        nx, ny, nz = nx / nn, ny / nn, nz / nn
+        r = math.sqrt(x * x + y * y + z * z)
+        h = r - r / math.sqrt((x * x + y * y) * prm[9] + z * z * prm[10])
+        pr = math.exp(np.interp(h, h_tab, lnp_tab))
+        for u in range(U):
+            dx, dy, dz = sat_pos[b, u, 0] - x, sat_pos[b, u, 1] - y, sat_pos[b, u, 2] - z
+            d = max(math.sqrt(dx * dx + dy * dy + dz * dz), 1.0)
+            se = min(max((dx * nx + dy * ny + dz * nz) / d, -1.0), 1.0)
+            el = max(math.asin(se), 0.0)
+            sp = math.sin(el)
+            c = prm[3] * math.cos(el)
+            iono = prm[2] / math.sqrt(1.0 - c * c)
+            tropo = prm[4] * pr * 1.001 / math.sqrt(0.002001 + sp * sp)
+            sis = prm[1] if glonass[u] else prm[0]
+            scale[b, u] = math.sqrt(sis * sis + iono * iono + tropo * tropo)
+            mp = prm[5] + prm[6] * math.exp(-el / prm[7])
+            white[b, u] = mp * mp * prm[8]
+
+
+_relay_err_nb = None if _nb is None else _nb.njit(cache=True, nogil=True)(_relay_err_py)
+
+
 class SondeMeasurement:
     """Relayed pseudoranges, pseudo-Dopplers (U satellite slots) and the radar's [range, az,
     el] for Bs sondes, as one measurement model (rows: U pr, U prr, then 3 radar rows; either
     part may be absent).
 
-    relay part: sat_pos, sat_vel (Bs, U, 3), relay_mask (Bs, U), ground (3,) G;
+    relay part: sat_pos, sat_vel (Bs, U, 3), relay_mask (Bs, U), ground (3,) G, and bias_col (Bs, U)
+    the state index of each satellite's error state (-1: none) with bias_scale (Bs, U) its std
+    (the pseudorange gets bias_scale x that unit state);
     radar part: site (3,), rot (3, 3) its ENU rotation, radar_mask (Bs, 3);
     z (Bs, m) the measurements (held for the azimuth unwrap), r (Bs, m) the variances.
     Padded rows (mask False) have h = 0 and H = 0; the caller sets z = 0 and r = 1 there.
@@ -496,7 +577,7 @@ class SondeMeasurement:
     """
 
     def __init__(self, layout: Layout, z, r, *, sat_pos=None, sat_vel=None, relay_mask=None, ground=None,
-                 site=None, rot=None, radar_mask=None):
+                 site=None, rot=None, radar_mask=None, bias_col=None, bias_scale=None):
         self.layout = layout
         self.z, self._r = z, r
         Bs = z.shape[0]
@@ -506,6 +587,10 @@ class SondeMeasurement:
             sat_pos = sat_vel = np.zeros((Bs, 0, 3))
             relay_mask = np.zeros((Bs, 0), dtype=bool)
             ground = np.zeros(3)
+        if bias_col is None:
+            bias_col = np.full(relay_mask.shape, -1, dtype=np.int64)
+            bias_scale = np.zeros(relay_mask.shape)
+        self.bias_col, self.bias_scale = bias_col, bias_scale
         if not self.radar:
             site, rot, radar_mask = np.zeros(3), np.eye(3), np.zeros((Bs, 0), dtype=bool)
         self.sat_pos, self.sat_vel, self.relay_mask, self.ground = sat_pos, sat_vel, relay_mask, ground
@@ -525,7 +610,7 @@ class SondeMeasurement:
         if relay:
             cols = slice(0, 2 * U)
             kw = {"sat_pos": self.sat_pos[idx], "sat_vel": self.sat_vel[idx], "relay_mask": self.relay_mask[idx],
-                  "ground": self.ground}
+                  "ground": self.ground, "bias_col": self.bias_col[idx], "bias_scale": self.bias_scale[idx]}
         else:
             cols = slice(2 * U, None)
             kw = {"site": self.site, "rot": self.rot, "radar_mask": self.radar_mask[idx]}
@@ -541,7 +626,7 @@ class SondeMeasurement:
         kw = {}
         if self.relay:
             kw.update(sat_pos=self.sat_pos[idx], sat_vel=self.sat_vel[idx], relay_mask=self.relay_mask[idx],
-                      ground=self.ground)
+                      ground=self.ground, bias_col=self.bias_col[idx], bias_scale=self.bias_scale[idx])
         if self.radar:
             kw.update(site=self.site, rot=self.rot, radar_mask=self.radar_mask[idx])
         return SondeMeasurement(self.layout, self.z[idx], self._r[idx], **kw)
@@ -560,7 +645,10 @@ class SondeMeasurement:
         w = V[..., None, :] - self.sat_vel
         uw = np.sum(Ki * w, axis=-1)
         KV = np.sum(K * V, axis=-1)
-        h = np.concatenate([rho + (rG + x[..., L.dd])[..., None], uw + (KV + x[..., L.osc])[..., None]], axis=-1)
+        col = np.broadcast_to(np.maximum(self.bias_col, 0), x.shape[:-1] + self.bias_col.shape[-1:])
+        bias = self.bias_scale * np.take_along_axis(x, col, axis=-1)  # scale 0 where there is no state
+        h = np.concatenate([rho + bias + (rG + x[..., L.dd])[..., None], uw + (KV + x[..., L.osc])[..., None]],
+                           axis=-1)
         return h, (Ki, K, rho, rG, w, uw, V, KV)
 
     def _radar_np(self, x):
@@ -604,6 +692,8 @@ class SondeMeasurement:
                                   + ((V - K * KV[:, None]) / rG[:, None])[:, None, :])
             H[:, U:2 * U, 3:6] = KiK
             H[:, U:2 * U, L.osc] = 1.0
+            bb, uu = np.nonzero(self.bias_col >= 0)
+            H[bb, uu, self.bias_col[bb, uu]] = self.bias_scale[bb, uu]
         if self.radar:
             hd, (e, n, u, rho, rho2, d2, d) = self._radar_np(x)
             h[:, 2 * U:] = hd
@@ -631,7 +721,7 @@ class SondeMeasurement:
         z_az = self.z[:, 2 * self.U + 1] if self.radar else np.zeros(Bs)
         _rows_nb(np.ascontiguousarray(x), self.sat_pos, self.sat_vel, self.ground, self.relay_mask, self.site,
                  self.rot, np.ascontiguousarray(z_az), self.radar_mask, -1 if L.dd is None else L.dd,
-                 -1 if L.osc is None else L.osc, -1 if L.err is None else L.err, h, H)
+                 -1 if L.osc is None else L.osc, -1 if L.err is None else L.err, self.bias_col, self.bias_scale, h, H)
         return h, H
 
     def H(self, x):
@@ -744,6 +834,8 @@ class TrackerCounters:
     reacquired: int = 0  # tracks re-initialised after reacquire_after rejections in a row
     window_manoeuvre: int = 0  # manoeuvres found by the sliding-window NIS test
     ukf_updates: int = 0  # sonde-epochs updated by the UKF (filter "ukf", or "auto" when needed)
+    bias_assigned: int = 0  # satellites given a (fresh) error state
+    bias_overflow: int = 0  # satellite-epochs with no free error state (their error taken as white)
     estimates: int = 0
 
     def as_dict(self) -> dict:
@@ -773,7 +865,7 @@ class SondeTracker:
             raise ValueError(f"source_id must be 1..64 chars of [A-Za-z0-9_.-], got {self.source_id!r}")
         self.sonde_ids = None if sonde_ids is None else tuple(str(s) for s in sonde_ids)
         self.radar_id = radar_id
-        self.layout = layout_for(p.mode, p.radar_noise)
+        self.layout = layout_for(p.mode, p.radar_noise, p.relay_bias_states)
         self.counters = TrackerCounters()
         self._seqtrack = SequenceTracker()
         self._transport = None
@@ -797,6 +889,12 @@ class SondeTracker:
         self._win_S, self._win_M = np.zeros(0), np.zeros(0, dtype=np.int64)
         self._pending: dict[float, dict[str, list]] = defaultdict(dict)
         self._gates: dict[int, float] = {}
+        # per-satellite error states, per sonde: sat_id -> slot, slot -> sat_id, last use, last epoch's columns
+        self._bias_map: list[dict] = []
+        self._bias_owner: list[list] = []
+        self._bias_last = np.zeros((0, self.layout.nb))
+        self._bias_prev: list = []
+        self._err_prm = None
 
     # -- bus ---------------------------------------------------------------
 
@@ -917,7 +1015,95 @@ class SondeTracker:
             self._win_k = np.append(self._win_k, 0)
             self._win_S = np.append(self._win_S, 0.0)
             self._win_M = np.append(self._win_M, 0)
+            self._bias_map.append({})
+            self._bias_owner.append([None] * self.layout.nb)
+            self._bias_last = np.concatenate([self._bias_last, np.full((1, self.layout.nb), -np.inf)])
+            self._bias_prev.append(None)
         return slot
+
+    # -- per-satellite relay error states -----------------------------------
+
+    def _bias_clear(self, slot: int) -> None:
+        self._bias_map[slot].clear()
+        self._bias_owner[slot] = [None] * self.layout.nb
+        self._bias_last[slot] = -np.inf
+        self._bias_prev[slot] = None
+
+    def _bias_cols(self, slot: int, sat_ids: tuple, t: float) -> np.ndarray:
+        """The state index of each satellite's error state for one sonde (-1: no free state).
+        A satellite keeps its state while it is tracked and after (a GNSS outage, a short
+        loss); a new one takes the least recently used state not needed now, reset to its
+        prior (0, unit variance, uncorrelated)."""
+        L = self.layout
+        prev = self._bias_prev[slot]
+        if prev is not None and prev[0] == sat_ids:
+            cols = prev[1]
+            self._bias_last[slot, cols[cols >= 0] - L.bias] = t
+            return cols
+        mp, owner, last = self._bias_map[slot], self._bias_owner[slot], self._bias_last[slot]
+        used = {mp[sid] for sid in sat_ids if sid in mp}
+        cols = np.empty(len(sat_ids), dtype=np.int64)
+        order = None
+        for i, sid in enumerate(sat_ids):
+            j = mp.get(sid)
+            if j is None:
+                if order is None:
+                    order = np.argsort(last, kind="stable").tolist()
+                free = [k for k in order if k not in used]
+                if not free:
+                    cols[i] = -1
+                    self.counters.bias_overflow += 1
+                    continue
+                j = free[0]
+                if owner[j] is not None:
+                    del mp[owner[j]]
+                mp[sid], owner[j] = j, sid
+                k = L.bias + j
+                self._x[slot, k] = 0.0
+                self._P[slot, k, :] = 0.0
+                self._P[slot, :, k] = 0.0
+                self._P[slot, k, k] = 1.0
+                used.add(j)
+                self.counters.bias_assigned += 1
+            cols[i] = L.bias + j
+            last[j] = t
+        self._bias_prev[slot] = (sat_ids, cols)
+        return cols
+
+    def _relay_error_model(self, pos, sat_pos, glonass, dt: float):
+        """(scale, white) (Bs, U): the per-satellite slow error's std (SISRE + ionosphere +
+        troposphere, at the satellites' elevations from the estimated sonde position and its
+        height) and the multipath's PSD-equivalent white variance sigma_mp^2 (1 + mu)/(1 - mu),
+        mu = e^{-dt/tau_mp} (its correlation time is short against the filter's memory, so it
+        goes into R, sized to the same low-frequency power)."""
+        e = self.params.relay_errors
+        mu = math.exp(-(dt if dt > 0.0 else 1.0) / e.multipath_tau_s)  # dt = 0: a fix's own epoch, 1 Hz
+        if _relay_err_nb is not None and np.ndim(pos) == 2 and self.params.backend != "numpy":
+            if self._err_prm is None:
+                a2, b2 = 1.0 / WGS84.a_m**2, 1.0 / (WGS84.a_m * (1.0 - WGS84.f)) ** 2
+                self._err_prm = np.array([e.sisre_gps_m, e.sisre_glonass_m, e.iono_zenith_m,
+                                          WGS84.a_m / (WGS84.a_m + e.iono_shell_h_m), e.tropo_zenith_m,
+                                          e.multipath_a_m, e.multipath_b_m, math.radians(e.multipath_el0_deg), 0.0,
+                                          a2, b2])
+            self._err_prm[8] = (1.0 + mu) / (1.0 - mu)
+            Bs, U = sat_pos.shape[:2]
+            scale, white = np.empty((Bs, U)), np.empty((Bs, U))
+            _relay_err_nb(np.ascontiguousarray(pos, dtype=float), np.ascontiguousarray(sat_pos, dtype=float),
+                          np.ascontiguousarray(glonass), self._err_prm, _relay.P_TABLE_H_M, _relay.LN_P_TABLE,
+                          scale, white)
+            return scale, white
+        # the geodetic vertical and height, to well below the model's needs for h < 100 km (the
+        # ellipsoid's normal at the point, and the distance above the ellipsoid along the radius)
+        ax2, bx2 = 1.0 / WGS84.a_m**2, 1.0 / (WGS84.a_m * (1.0 - WGS84.f)) ** 2
+        nrm = pos * np.array([ax2, ax2, bx2])
+        up = nrm / np.linalg.norm(nrm, axis=-1, keepdims=True)
+        r = np.linalg.norm(pos, axis=-1)
+        hgt = r - 1.0 / np.sqrt((pos[..., 0] ** 2 + pos[..., 1] ** 2) * ax2 + pos[..., 2] ** 2 * bx2) * r
+        d = sat_pos - pos[..., None, :]
+        el = np.arcsin(np.clip(np.sum(d * up[..., None, :], axis=-1)
+                               / np.maximum(np.linalg.norm(d, axis=-1), 1.0), -1.0, 1.0))
+        sig = e.slow_sigmas_m(glonass, el, np.asarray(hgt)[..., None])
+        return np.sqrt(np.sum(sig * sig, axis=-1)), e.multipath_sigma_m(el) ** 2 * ((1.0 + mu) / (1.0 - mu))
 
     def _ensure_transition(self, site_ecef) -> None:
         if self._transition is not None:
@@ -999,6 +1185,9 @@ class SondeTracker:
             P[L.osc, L.osc] = p.osc_sigma_m_s**2
         if L.err is not None:
             P[L.err:L.err + 3, L.err:L.err + 3] = np.diag(np.square(p.radar_sigma))
+        if L.nb:
+            b = np.arange(L.bias, L.bias + L.nb)
+            P[b, b] = 1.0
         return x, P
 
     def _init_from_radar(self, slot: int, m: RadarMeasurement, count: bool = True) -> bool:
@@ -1007,6 +1196,8 @@ class SondeTracker:
         self._ensure_transition(m.radar_pos_ecef_m)
         site = np.asarray(m.radar_pos_ecef_m)
         L = self.layout
+        if L.nb:
+            self._bias_clear(slot)
         x, P = self._prior()
         x[0:3] = radar_aer_to_ecef(m.az_rad, m.el_rad, m.slant_range_m, site)
         var = np.array([m.var_az_rad2, m.var_el_rad2, m.var_range_m2])  # radar.py's column order
@@ -1029,13 +1220,40 @@ class SondeTracker:
                         m.var_pseudorange_m2, m.var_pseudo_doppler_m2_s2, m.ground_pos_ecef_m)
         if fix is None:
             return False
-        self._ensure_transition(m.ground_pos_ecef_m)
         L = self.layout
+        cross = None
+        if L.nb:
+            # the fix again, weighted by the whole error budget; its error G (b + v) is correlated
+            # with the satellites' slow errors b = s u: cov(fix error, u error) = -G diag(s)
+            glon = np.fromiter((sid[:1] == "R" for sid in m.sat_ids), dtype=bool, count=m.n)
+            scale, white = self._relay_error_model(fix.pos_ecef_m, m.sat_pos_ecef_m, glon, 1.0)
+            var = m.var_pseudorange_m2 + white + scale * scale
+            fix2 = relay_fix(m.sat_pos_ecef_m, m.sat_vel_ecef_m_s, m.pseudorange_m, m.pseudo_doppler_m_s, var,
+                             m.var_pseudo_doppler_m2_s2, m.ground_pos_ecef_m)
+            if fix2 is None:
+                return False
+            fix = fix2
+            G = m.ground_pos_ecef_m
+            dS = fix.pos_ecef_m - m.sat_pos_ecef_m
+            A = np.empty((m.n, 4))
+            A[:, :3] = (dS / np.linalg.norm(dS, axis=1)[:, None]
+                        + (fix.pos_ecef_m - G) / max(float(np.linalg.norm(fix.pos_ecef_m - G)), 1e-3))
+            A[:, 3] = 1.0
+            gain = fix.cov_pos_dd @ (A.T / var)  # (4, n)
+            self._bias_clear(slot)
+            cols = self._bias_cols(slot, m.sat_ids, float(m.t_gps_s))
+            cross = (cols, -gain * np.where(cols >= 0, scale, 0.0))
+        self._ensure_transition(m.ground_pos_ecef_m)
         x, P = self._prior()
         x[0:3], x[3:6], x[L.dd], x[L.osc] = fix.pos_ecef_m, fix.vel_ecef_m_s, fix.delta_d_m, fix.osc_m_s
         ip, iv = [0, 1, 2, L.dd], [3, 4, 5, L.osc]
         P[np.ix_(ip, ip)] = fix.cov_pos_dd
         P[np.ix_(iv, iv)] = fix.cov_vel_osc
+        if cross is not None:
+            cols, c = cross
+            ok = cols >= 0
+            P[np.ix_(ip, cols[ok])] = c[:, ok]
+            P[np.ix_(cols[ok], ip)] = c[:, ok].T
         self._x[slot], self._P[slot] = x, P
         self.counters.init_relay += count
         return True
@@ -1080,7 +1298,7 @@ class SondeTracker:
             group = upd if len(dts) == 1 else [u for u, d in zip(upd, dts) if d == dt]
             self._epoch_update(group, dt, t)
 
-    def _measurement(self, group) -> SondeMeasurement:
+    def _measurement(self, group, dt: float = 1.0, t: float = 0.0) -> SondeMeasurement:
         """The joint measurement model of a group of sondes (padded to common rows)."""
         L, p = self.layout, self.params
         Bs = len(group)
@@ -1119,6 +1337,28 @@ class SondeTracker:
                 else:
                     zr[b, j], zr[b, U + j] = m.pseudorange_m, m.pseudo_doppler_m_s
                     rr[b, j], rr[b, U + j] = m.var_pseudorange_m2, m.var_pseudo_doppler_m2_s2
+            if L.nb and U:
+                glon = np.fromiter((sid[:1] == "R" for sid in union), dtype=bool, count=U)
+                slots = [g[1] for g in group]
+                scale, white = self._relay_error_model(self._x[slots, 0:3], sat_pos, glon, dt)
+                rr[:, :U] += np.where(mask, white, 0.0)
+                bcol = np.full((Bs, U), -1, dtype=np.int64)
+                for b, g in enumerate(group):
+                    m = g[2]
+                    if m is None or not m.n:
+                        continue
+                    c = self._bias_cols(g[1], m.sat_ids, t)
+                    if m.sat_ids == union:
+                        bcol[b] = c
+                    else:
+                        if col is None:
+                            col = {sid: k for k, sid in enumerate(union)}
+                        bcol[b, [col[sid] for sid in m.sat_ids]] = c
+                over = mask & (bcol < 0)
+                if over.any():  # no state left: the slow error taken as white
+                    rr[:, :U] += np.where(over, scale * scale, 0.0)
+                scale = np.where(bcol >= 0, scale, 0.0)
+                kw.update(bias_col=bcol, bias_scale=scale)
             kw.update(sat_pos=sat_pos, sat_vel=sat_vel, relay_mask=mask, ground=np.asarray(ground))
             cols.append((zr, rr))
         if L.uses_radar:
@@ -1184,7 +1424,7 @@ class SondeTracker:
     def _joint_update(self, group, dt: float, t: float, filt: str) -> None:
         c, p = self.counters, self.params
         try:
-            model = self._measurement(group)
+            model = self._measurement(group, dt, t)
         except _MixedSites:  # different ground receivers / radar sites: one sonde at a time
             for g in group:
                 self._joint_update([g], dt, t, filt)

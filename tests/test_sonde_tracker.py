@@ -235,7 +235,7 @@ def test_relay_only_initialises_from_a_least_squares_fix(world):
         est = trk.step(float(rt.t_gps_s[j]))
     assert trk.counters.init_relay == 1 and trk.counters.relay_updates == 29
     assert np.linalg.norm(est[0].pos_ecef_m - tr.pos_ecef_m[k + 29, 0]) < 5.0
-    assert trk.layout.n == 11 and trk.state("s1")[1].size == 11
+    assert trk.layout.n == 11 + 24 and trk.state("s1")[1].size == 35  # + one error state per satellite slot
 
 
 def test_measurement_model_matches_the_world_and_the_compiled_rows_match_numpy(world):
@@ -332,3 +332,85 @@ def test_tracker_rejects_bad_parameters():
         SondeTrackerParams(gate_prob=1.0)
     with pytest.raises(ValueError, match="run_id"):
         SondeTracker("bad run id")
+
+
+# ---------------------------------------------------------------- relay error states
+
+
+def test_satellite_error_states_persist_through_an_outage_and_new_satellites_get_a_fresh_one():
+    trk = SondeTracker(RUN, SondeTrackerParams(mode="relay_only", bias_slots=3))
+    L = trk.layout
+    assert L.nb == 3 and L.n == 11 + 3 and L.bias == 11
+    s = trk._slot("s1")
+    trk._x[s] = 1.0
+    trk._P[s] = np.full((L.n, L.n), 0.5) + np.eye(L.n)
+    c1 = trk._bias_cols(s, ("G01", "G02"), 0.0)
+    assert sorted(c1.tolist()) == [11, 12]
+    # a fresh state: zero, unit variance, uncorrelated
+    for k in c1:
+        assert trk._x[s, k] == 0.0 and trk._P[s, k, k] == 1.0
+        assert np.count_nonzero(trk._P[s, k]) == 1 and np.count_nonzero(trk._P[s, :, k]) == 1
+    trk._x[s, c1] = [0.3, -0.2]
+    trk._bias_cols(s, (), 5.0)  # a GNSS outage: nothing delivered
+    c2 = trk._bias_cols(s, ("G02", "G01"), 10.0)  # back, in another order: the same states, untouched
+    np.testing.assert_array_equal(c2, c1[::-1])
+    np.testing.assert_array_equal(trk._x[s, c1], [0.3, -0.2])
+    c3 = trk._bias_cols(s, ("G01", "R05", "R06"), 11.0)  # G02 set, two new ones: G02's state is reused
+    assert c3[0] == c1[0] and sorted(c3.tolist()) == [11, 12, 13]
+    assert trk._x[s, c3[1]] == 0.0 and trk._x[s, c3[2]] == 0.0 and trk.counters.bias_assigned == 4
+    c4 = trk._bias_cols(s, ("G01", "R05", "R06", "G07"), 12.0)  # more satellites than states
+    assert c4[-1] == -1 and trk.counters.bias_overflow == 1
+    np.testing.assert_array_equal(c4[:3], c3)
+
+
+def test_relay_error_model_compiled_matches_numpy_and_the_world_budget():
+    from sitl.geodesy import enu_to_ecef
+    from sitl.radio.relay import RelayErrorBudget
+
+    lat, lon, h, _ = _site()
+    trk = SondeTracker(RUN, SondeTrackerParams(mode="fused"))
+    ref = SondeTracker(RUN, SondeTrackerParams(mode="fused", backend="numpy"))
+    el = np.radians([5.0, 12.0, 30.0, 60.0, 89.0])
+    az = np.radians([10.0, 100.0, 200.0, 300.0, 45.0])
+    hs = np.array([100.0, 8_000.0, 31_000.0])
+    pos = np.stack([geodetic_to_ecef(lat, lon, hh) for hh in hs])
+    los = np.stack([np.sin(az) * np.cos(el), np.cos(az) * np.cos(el), np.sin(el)], -1)
+    sat = np.stack([np.stack([enu_to_ecef(2.2e7 * u, lat, lon, hh) for u in los]) for hh in hs])
+    glo = np.array([False, True, False, True, False])
+    a, b = trk._relay_error_model(pos, sat, glo, 1.0), ref._relay_error_model(pos, sat, glo, 1.0)
+    np.testing.assert_allclose(a[0], b[0], rtol=1e-12)
+    np.testing.assert_allclose(a[1], b[1], rtol=1e-12)
+    e = RelayErrorBudget()
+    want = np.sqrt(np.sum(e.slow_sigmas_m(glo, el, hs[:, None]) ** 2, axis=-1))
+    np.testing.assert_allclose(a[0], want, rtol=2e-3)  # the tracker's vertical and height are approximate
+    mu = math.exp(-1.0 / e.multipath_tau_s)
+    np.testing.assert_allclose(a[1], np.broadcast_to(e.multipath_sigma_m(el) ** 2 * (1 + mu) / (1 - mu), (3, 5)), rtol=2e-3)
+    assert SondeTrackerParams().slow_tau_s == pytest.approx(1800.0, rel=0.1)  # the ionosphere dominates
+
+
+def test_relay_only_with_the_error_budget_beats_a_tracker_that_ignores_it():
+    """On budget data, the same relay-only filter without the error states (white-noise model)
+    is over-confident: its NEES is far above that of the modelled one."""
+    raw = E.run_trials(E.SondeScenario(duration_s=900.0, white_baseline=False), 21, range(3), modes=("relay_only",))
+    ok = raw["count"][0] > 0
+    err = (raw["pos"][0] - raw["truth_pos"])[ok]
+    n_model = float(np.mean(nees(err, raw["cov"][0][ok][:, :3, :3])))
+    # the same data, a tracker that takes the relay errors as absent
+    t0, _, _, _, track, radar, relay = E.world(E.SondeScenario(duration_s=900.0), 21, [0])
+    assert 1.0 < n_model < 6.0
+    naive = SondeTracker(RUN, dataclasses.replace(E.tracker_params(E.SondeScenario(), "relay_only"), relay_errors=None))
+    assert naive.layout.nb == 0
+    rt = relay.track(track.t_gps_s, track.pos_ecef_m, track.vel_ecef_m_s)
+    e2 = []
+    for k in range(0, track.t_gps_s.size):
+        d = rt.delivered[k, 0]
+        naive.on_message(f"{RUN}/sonde/s0/relay", SondeRelay(
+            t_gps_s=float(rt.t_gps_s[k]), source_id="g", seq=k, sat_ids=rt.sat_id[d], pseudorange_m=rt.pseudorange_m[k, 0][d],
+            pseudo_doppler_m_s=rt.pseudo_doppler_m_s[k, 0][d], var_pseudorange_m2=rt.var_pr_m2[k, 0][d],
+            var_pseudo_doppler_m2_s2=rt.var_prr_m2_s2[k, 0][d], sat_pos_ecef_m=rt.sat_pos_ecef_m[k, 0][d],
+            sat_vel_ecef_m_s=rt.sat_vel_ecef_m_s[k, 0][d], ground_pos_ecef_m=rt.ground_pos_ecef_m))
+        est = naive.step(float(rt.t_gps_s[k]))
+        if est and k > 100:
+            pe = est[0].pos_ecef_m - track.pos_ecef_m[k, 0]
+            e2.append(float(nees(pe, est[0].cov[:3, :3])))
+    assert np.mean(e2) > 3 * n_model

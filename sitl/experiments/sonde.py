@@ -205,16 +205,9 @@ class _Scorer:
         self.count[m, b, k] += 1
 
 
-def run_trials(scn: SondeScenario, seed: int, trials, *, backend=None, progress=None, chunk: int = 300) -> dict:
-    """Simulate and track the given trial indices as one batch over the in-memory bus.
-
-    Returns the raw arrays (truth, estimates per mode, ground range, times) and timings.
-    """
-    # the world and the ground station are imported here, not at module import: sitl must
-    # not import vehicles or ground_station when it is itself imported
-    SondeTracker = component("ground_station.sonde_tracker").SondeTracker
-    from sitl.bus import InMemoryTransport, RadarMeasurement, SondeRelay, Truth
-    from sitl.geodesy import geodetic_to_ecef
+def world(scn: SondeScenario, seed: int, trials, *, backend=None):
+    """The world of the given trials: (t0, GCPP lat, lon, h, the simulated flights (SondeTrack),
+    the Radar and the Relay, not yet stepped)."""
     from sitl.gnss.orbits import DEFAULT_TOA_GPS_S, default_constellation
     from sitl.radio.radar import Radar, RadarParams
     from sitl.radio.relay import Relay, RelayParams
@@ -222,12 +215,9 @@ def run_trials(scn: SondeScenario, seed: int, trials, *, backend=None, progress=
 
     trials = list(trials)
     B, T = len(trials), scn.n_epochs
-    timing = dict.fromkeys(("world", "publish", "deliver", "trackers", "estimates_delivery"), 0.0)
-    wall0 = time.perf_counter()
     streams = _trial_streams(seed, trials)
     t0 = DEFAULT_TOA_GPS_S
     lat, lon, h = gcpp_site(scn)
-    w0 = time.perf_counter()
     flight = SondeFlight([s[0] for s in streams], params=_sonde_params(scn), t0_gps_s=t0, dt_s=scn.dt_s,
                          backend="numba" if backend == "numba" else ("numpy" if backend == "numpy" else "auto"))
     track = flight.simulate(T - 1)
@@ -238,12 +228,35 @@ def run_trials(scn: SondeScenario, seed: int, trials, *, backend=None, progress=
                   ground_h_m=h, params=RelayParams(outage_schedule=((t0 + scn.gnss_outage_s[0],
                                                                     t0 + scn.gnss_outage_s[1]),)),
                   batch_shape=(B,))
+    return t0, lat, lon, h, track, radar, relay
+
+
+def run_trials(scn: SondeScenario, seed: int, trials, *, backend=None, progress=None, chunk: int = 300,
+               modes=None) -> dict:
+    """Simulate and track the given trial indices as one batch over the in-memory bus.
+
+    modes: the trackers to run (default ``scn.modes``; a subset for timing -- ``score`` needs
+    the three main ones). Returns the raw arrays (truth, estimates per mode, ground range,
+    times) and timings.
+    """
+    # the world and the ground station are imported here, not at module import: sitl must
+    # not import vehicles or ground_station when it is itself imported
+    SondeTracker = component("ground_station.sonde_tracker").SondeTracker
+    from sitl.bus import InMemoryTransport, RadarMeasurement, SondeRelay, Truth
+    from sitl.geodesy import geodetic_to_ecef
+
+    trials = list(trials)
+    B, T = len(trials), scn.n_epochs
+    timing = dict.fromkeys(("world", "publish", "deliver", "trackers", "estimates_delivery"), 0.0)
+    wall0 = time.perf_counter()
+    w0 = time.perf_counter()
+    t0, lat, lon, h, track, radar, relay = world(scn, seed, trials, backend=backend)
     timing["world"] += time.perf_counter() - w0
 
     bus = InMemoryTransport(start_t_gps_s=t0)
     ids = [f"s{i:04d}" for i in trials]
     index = {s: b for b, s in enumerate(ids)}
-    modes = scn.modes
+    modes = scn.modes if modes is None else tuple(modes)
     scorer = _Scorer(modes, B, T, t0, scn.dt_s, index)
     bus.subscribe(f"{RUN_ID}/truth/sonde/*", scorer.on_truth)
     bus.subscribe(f"{RUN_ID}/gs/estimate/sonde/*", scorer.on_estimate)
@@ -263,13 +276,15 @@ def run_trials(scn: SondeScenario, seed: int, trials, *, backend=None, progress=
         c1 = min(T, c0 + chunk)
         w0 = time.perf_counter()
         rt = relay.track(track.t_gps_s[c0:c1], track.pos_ecef_m[c0:c1], track.vel_ecef_m_s[c0:c1])
-        rms = [radar.step(track.t_gps_s[k], track.pos_ecef_m[k], track.vel_ecef_m_s[k]) for k in range(c0, c1)]
+        rmt = radar.track(track.t_gps_s[c0:c1], track.pos_ecef_m[c0:c1], track.vel_ecef_m_s[c0:c1])
         timing["world"] += time.perf_counter() - w0
         sat_id = rt.sat_id
         for j, k in enumerate(range(c0, c1)):
             t = float(track.t_gps_s[k])
             w0 = time.perf_counter()
-            rm = rms[j]
+            rv, rd, raz, rel, ra = (rmt.range_valid[j], rmt.slant_range_m[j], rmt.az_rad[j], rmt.el_rad[j],
+                                    rmt.angles_valid[j])
+            vr, va, ve = rmt.var_range_m2[j], rmt.var_az_rad2[j], rmt.var_el_rad2[j]
             for b in range(B):
                 msg = Truth(t_gps_s=t, source_id="world", seq=seq["world"], kind="sonde",
                             pos_ecef_m=track.pos_ecef_m[k, b], vel_ecef_m_s=track.vel_ecef_m_s[k, b])
@@ -288,12 +303,11 @@ def run_trials(scn: SondeScenario, seed: int, trials, *, backend=None, progress=
                     examples["relay"] = msg
                 n_msgs["truth"] += 1
                 n_msgs["relay"] += 1
-                if rm.range_valid[b]:
+                if rv[b]:
                     msg = RadarMeasurement(t_gps_s=t, source_id=RADAR_ID, seq=seq[RADAR_ID],
-                                           slant_range_m=float(rm.slant_range_m[b]), az_rad=float(rm.az_rad[b]),
-                                           el_rad=float(rm.el_rad[b]), var_range_m2=float(rm.var_range_m2[b]),
-                                           var_az_rad2=float(rm.var_az_rad2[b]), var_el_rad2=float(rm.var_el_rad2[b]),
-                                           angles_valid=bool(rm.angles_valid[b]), radar_pos_ecef_m=rm.site_pos_ecef_m)
+                                           slant_range_m=float(rd[b]), az_rad=float(raz[b]), el_rad=float(rel[b]),
+                                           var_range_m2=float(vr[b]), var_az_rad2=float(va[b]), var_el_rad2=float(ve[b]),
+                                           angles_valid=bool(ra[b]), radar_pos_ecef_m=rmt.site_pos_ecef_m)
                     seq[RADAR_ID] += 1
                     bus.publish(k_radar[b], msg)
                     examples["radar"] = msg
