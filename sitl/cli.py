@@ -102,6 +102,7 @@ EXPERIMENTS = {
 BENCHES = {
     "filters": ("sitl.bench.filters", "batched EKF/UKF time per trial-step against FilterPy"),
     "iono-tropo": ("sitl.bench.iono_tropo", "a 1200 s seed 000 variant-3 run (12 satellites) against real time"),
+    "sonde": ("sitl.bench.sonde", "a 2 h seed 004 sonde flight at 1 Hz (fused tracker) against real time"),
     "beacon": ("sitl.bench.beacon", "one 1000 s seed 002 beacon trial (3 UAVs, bus and locator) against real time"),
 }
 
