@@ -182,3 +182,26 @@ def test_code_noise_states_settle_sooner_than_the_whitened_increments(runs):
     assert v2["final_error_m"]["iono_zenith"] < 0.5 * wh["final_error_m"]["iono_zenith"]
     lo, hi = _nees_band()
     assert lo < 2.0 * wh["anees"] < hi
+
+
+def test_code_noise_states_never_adapt_even_with_eq7_on_every_state(monkeypatch):
+    """The e_j states are samples of measurement noise, not part of the seed's state vector:
+    eq 7 on "all" states must adapt the 11 base states only."""
+    from filters.iono_tropo import N_BASE
+
+    seen = []
+    real = seed000.AdaptiveQ
+
+    def spy(*a, **k):
+        q = real(*a, **k)
+        seen.append(q.states)
+        return q
+
+    monkeypatch.setattr(seed000, "AdaptiveQ", spy)
+    r = run_streamed(IonoTropoScenario(duration_s=100.0, adaptive_q=True, adaptive_q_scope="all"), 2, seed=0,
+                     variant=2)
+    assert seen == [tuple(range(N_BASE))]
+    assert r["increments"]["used"] > 0
+    r1 = run_streamed(IonoTropoScenario(duration_s=1.0, adaptive_q=True, adaptive_q_scope="all"), 2, seed=0,
+                      variant=1)
+    assert seen[-1] is None and r1["variant"] == 1

@@ -533,8 +533,12 @@ def run_streamed(scn: IonoTropoScenario, trials: int, seed: int, variant: int = 
     report_every = max(1, T // 10)
 
     # adaptive process noise (eq 7): Q(i) = s_i Q_min + diag(q_i), see filters/adaptive.py
-    aq = (AdaptiveQ(scn.adaptive_q_decay, scn.adaptive_q_gain, ADAPTIVE_Q_SCOPES[scn.adaptive_q_scope])
-          if scn.adaptive_q else None)
+    # variant 2's code-noise states are samples of measurement noise, not part of the seed's
+    # state vector: they never adapt (a random walk on them would forget what pr_j(t - W) said)
+    scope = ADAPTIVE_Q_SCOPES[scn.adaptive_q_scope]
+    if scope is None and variant == 2 and scn.cmc_noise == "states":
+        scope = tuple(range(N_BASE))
+    aq = AdaptiveQ(scn.adaptive_q_decay, scn.adaptive_q_gain, scope) if scn.adaptive_q else None
     aqs = aq.init((trials,), N_BASE) if aq else None
 
     def predict(x, P, tr):
