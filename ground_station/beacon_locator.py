@@ -354,7 +354,11 @@ def _solve2(l11, l21, l22, v):
     """L^-1 v for lower-triangular 2x2 factors; v (..., 2, k)."""
     a = v[..., 0, :] / l11[..., None]
     b = (v[..., 1, :] - l21[..., None] * a) / l22[..., None]
-    return np.stack([a, b], axis=-2)
+    shape = np.broadcast_shapes(a.shape, b.shape)
+    out = np.empty(shape[:-1] + (2,) + shape[-1:])
+    out[..., 0, :] = a
+    out[..., 1, :] = b
+    return out
 
 
 def range_doppler_blocks(x, obs: ObserverEpoch, kappa: float):
@@ -404,14 +408,23 @@ class Frame(NamedTuple):
         return Frame(*(v[idx] for v in self))
 
 
+# The geometry below runs every epoch on small arrays, where numpy's per-call overhead is
+# the cost: reductions call np.add.reduce directly (what np.sum calls) and results are
+# written into preallocated arrays instead of np.stack -- the same operations on the same
+# numbers, so the same results bit for bit.
+_sum = np.add.reduce
+
+
 def _unit(v):
-    return v / np.sqrt(np.sum(v * v, axis=-1, keepdims=True))
+    return v / np.sqrt(_sum(v * v, axis=-1, keepdims=True))
 
 
 def _cross(a, b):
-    a, b = np.broadcast_arrays(a, b)
-    return np.stack([a[..., 1] * b[..., 2] - a[..., 2] * b[..., 1], a[..., 2] * b[..., 0] - a[..., 0] * b[..., 2],
-                     a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0]], axis=-1)
+    out = np.empty(np.broadcast_shapes(np.shape(a), np.shape(b)))
+    out[..., 0] = a[..., 1] * b[..., 2] - a[..., 2] * b[..., 1]
+    out[..., 1] = a[..., 2] * b[..., 0] - a[..., 0] * b[..., 2]
+    out[..., 2] = a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0]
+    return out
 
 
 def formation_frame(upos, mask, beacon_pos, prev: Frame | None = None, axis_ratio: float = 0.5) -> Frame:
@@ -426,33 +439,37 @@ def formation_frame(upos, mask, beacon_pos, prev: Frame | None = None, axis_rati
     formation, where the coordinates would be singular -- keep plain ECEF (cart True)."""
     m = mask[..., None]
     n = mask.sum(axis=-1)
-    c = (upos * m).sum(axis=-2) / np.maximum(n, 1)[:, None]
+    c = _sum(upos * m, axis=-2) / np.maximum(n, 1)[:, None]
     d = (upos - c[:, None, :]) * m
     w2, vec = np.linalg.eigh(np.swapaxes(d, -1, -2) @ d)  # ascending eigenvalues (singular values^2)
     a = vec[..., :, 2]
     line_like = w2[:, 1] <= axis_ratio ** 2 * w2[:, 2]
     if prev is not None:
-        a = np.where((np.sum(a * prev.a, axis=-1) < 0)[:, None], -a, a)
+        a = np.where((_sum(a * prev.a, axis=-1) < 0)[:, None], -a, a)
         keep_c = n < 2
         keep_a = keep_c | ~line_like
         c = np.where(keep_c[:, None], prev.c, c)
         a = np.where(keep_a[:, None], prev.a, a)
     w = beacon_pos - c
-    w = w - np.sum(w * a, axis=-1, keepdims=True) * a
-    rho = np.sqrt(np.sum(w * w, axis=-1))
+    w = w - _sum(w * a, axis=-1, keepdims=True) * a
+    rho = np.sqrt(_sum(w * w, axis=-1))
     if prev is None:
-        extent = np.max(np.sqrt(np.sum(d * d, axis=-1)), axis=-1)
+        extent = np.max(np.sqrt(_sum(d * d, axis=-1)), axis=-1)
         cart = ~(line_like & (rho > 3.0 * extent) & (n >= 2))
     else:
         cart = np.asarray(prev.cart, bool)
-    e1 = np.where((rho > 0)[:, None], w / np.where(rho > 0, rho, 1.0)[:, None], _any_normal(a))
+    pos = rho > 0
+    if pos.all():  # the usual case: _any_normal's values would all be discarded
+        e1 = w / rho[:, None]
+    else:
+        e1 = np.where(pos[:, None], w / np.where(pos, rho, 1.0)[:, None], _any_normal(a))
     return Frame(c, a, e1, _cross(a, e1), cart)
 
 
 def _any_normal(a):
     """A unit vector normal to each a (..., 3)."""
     t = np.where((np.abs(a[..., 0]) < 0.9)[..., None], np.array([1.0, 0.0, 0.0]), np.array([0.0, 1.0, 0.0]))
-    return _unit(t - np.sum(t * a, axis=-1, keepdims=True) * a)
+    return _unit(t - _sum(t * a, axis=-1, keepdims=True) * a)
 
 
 def _basis(phi, fr: Frame):
@@ -468,7 +485,9 @@ def cyl_to_ecef(y, fr: Frame, jacobian: bool = False):
     a = fr.a
     cart = fr.cart[..., None]
     x = np.concatenate([fr.c + s * a + rho * er, y[..., 3:4] * a + y[..., 4:5] * er + y[..., 5:6] * ep], axis=-1)
-    x = np.where(cart, y, x)
+    any_cart = bool(fr.cart.any())
+    if any_cart:
+        x = np.where(cart, y, x)
     if not jacobian:
         return x
     J = np.zeros(y.shape[:-1] + (6, 6))
@@ -479,23 +498,24 @@ def cyl_to_ecef(y, fr: Frame, jacobian: bool = False):
     J[..., 3:6, 3] = a
     J[..., 3:6, 4] = er
     J[..., 3:6, 5] = ep
-    return x, np.where(cart[..., None], np.eye(6), J)
+    return x, (np.where(cart[..., None], np.eye(6), J) if any_cart else J)
 
 
 def ecef_to_cyl(x, fr: Frame, jacobian: bool = False):
     """States (..., 6) of ECEF [B, V] (..., 6) (unchanged in rows with fr.cart); with
     ``jacobian`` also (d y / d x, d x / d y) (..., 6, 6) at that point (exact inverses)."""
     d = x[..., 0:3] - fr.c
-    s = np.sum(d * fr.a, axis=-1)
+    s = _sum(d * fr.a, axis=-1)
     w = d - s[..., None] * fr.a
-    rho = np.sqrt(np.sum(w * w, axis=-1))
+    rho = np.sqrt(_sum(w * w, axis=-1))
     rho_s = np.where(rho > 0, rho, 1.0)
-    phi = np.arctan2(np.sum(w * fr.e2, axis=-1), np.sum(w * fr.e1, axis=-1))
+    phi = np.arctan2(_sum(w * fr.e2, axis=-1), _sum(w * fr.e1, axis=-1))
     er = w / rho_s[..., None]
     ep = _cross(fr.a, er)
     v = x[..., 3:6]
-    vr, vp = np.sum(v * er, axis=-1), np.sum(v * ep, axis=-1)
-    y = np.stack([s, rho, phi, np.sum(v * fr.a, axis=-1), vr, vp], axis=-1)
+    vr, vp = _sum(v * er, axis=-1), _sum(v * ep, axis=-1)
+    y = np.empty(s.shape + (6,))
+    y[..., 0], y[..., 1], y[..., 2], y[..., 3], y[..., 4], y[..., 5] = s, rho, phi, _sum(v * fr.a, axis=-1), vr, vp
     cart = fr.cart[..., None]
     y = np.where(cart, x, y)
     if not jacobian:
@@ -520,7 +540,14 @@ def _sigma_points(y, P):
     n = y.shape[-1]
     L = np.linalg.cholesky(P) * math.sqrt(_UT_C2)
     Lt = np.moveaxis(L, -1, 0)  # (n, T, n): the columns
-    return np.concatenate([y[None], y[None] + Lt, y[None] - Lt]), np.r_[0.0, np.full(2 * n, 0.5 / _UT_C2)]
+    return np.concatenate([y[None], y[None] + Lt, y[None] - Lt]), _ut_weights(n)
+
+
+@functools.lru_cache(maxsize=8)
+def _ut_weights(n: int) -> np.ndarray:
+    w = np.r_[0.0, np.full(2 * n, 0.5 / _UT_C2)]
+    w.flags.writeable = False
+    return w
 
 
 def ut_to_ecef(y, P, fr: Frame):
@@ -853,6 +880,7 @@ class BeaconLocator:
         self._window: list[list] = [[] for _ in range(T)]
         self._pending: list[dict] = [dict() for _ in range(T)]  # per trial {(uav, t): msg}
         self._seq: dict[int, int] = {}
+        self._keys: dict[str, str] = {}  # run id -> the key its Estimates go out on
         self._report = None  # cached ECEF moments of the current state
         self.counters = Counter()
         self.rejected = Counter()
@@ -966,11 +994,16 @@ class BeaconLocator:
         self.n_used[:] = 0
         if on.size:
             n = on.size
-            rows = np.concatenate([on, alt])
-            sub = obs if (alt.size == 0 and n == self.n_trials) else obs.take(rows)
-            y0 = np.concatenate([self.y[on], self.alt_y[alt]])
-            P0 = np.concatenate([self.P[on], self.alt_P[alt]])
-            fr0 = Frame(*(np.concatenate([u[on], v[alt]]) for u, v in zip(self.frame, self.alt_frame)))
+            if alt.size == 0 and n == self.n_trials:  # every row, in order: plain copies
+                sub = obs
+                y0, P0 = self.y.copy(), self.P.copy()
+                fr0 = Frame(*(u.copy() for u in self.frame))
+            else:
+                rows = np.concatenate([on, alt])
+                sub = obs.take(rows)
+                y0 = np.concatenate([self.y[on], self.alt_y[alt]])
+                P0 = np.concatenate([self.P[on], self.alt_P[alt]])
+                fr0 = Frame(*(np.concatenate([u[on], v[alt]]) for u, v in zip(self.frame, self.alt_frame)))
             y, P, fr, nis, used, gated, m2ll, vel = self._filter(y0, P0, fr0, sub, dt, alt.size > 0)
             self.y[on], self.P[on], self.nis[on] = y[:n], P[:n], nis[:n]
             self.alt_y[alt], self.alt_P[alt] = y[n:], P[n:]
@@ -993,8 +1026,9 @@ class BeaconLocator:
             mode = np.where(n_used >= 3, "fused", np.where(n_used > 0, "degraded", "coast"))
             mode = np.where(self.coast_s[on] > c.max_coast_s, "lost", mode)
             self.mode[on] = mode
+            modes = mode.tolist()
             for name in ("fused", "degraded", "coast", "lost"):
-                self.counters[f"epochs_{name}"] += int(np.sum(mode == name))
+                self.counters[f"epochs_{name}"] += modes.count(name)
             # resolve the mirror hypotheses that are decided or whose time is up: keep the likelier
             done = (t >= self.resolve_at[alt] - 1e-9) | (np.abs(self.alt_score[alt] - self.score[alt])
                                                          >= c.init_resolve_llr)
@@ -1113,8 +1147,12 @@ class BeaconLocator:
 
     def publish(self) -> int:
         n = 0
+        keys = self._keys
         for run, est in self.estimates():
-            self.transport.publish(key_for(run, est, kind="beacon", id=self.beacon_id), est)
+            key = keys.get(run)
+            if key is None:
+                key = keys[run] = key_for(run, est, kind="beacon", id=self.beacon_id)
+            self.transport.publish(key, est)
             n += 1
         self.counters["published"] += n
         return n
