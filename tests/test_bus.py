@@ -879,3 +879,116 @@ def test_sequence_tracker_window_and_restart():
     assert tr.update("a", 100).gap == 98
     assert tr.update("a", 99).status == "late"
     assert tr.counters("a").restarts == 1
+
+
+# ----------------------------------------------------------------------------------------
+# The fast paths (compiled covariance check, plain-value shortcuts, caches) decide as the
+# reference does
+
+
+def _reference_cov_verdict(c):
+    from sitl.bus import schema
+
+    saved = schema._cov_code
+    schema._cov_code = None  # the numpy reference alone
+    try:
+        schema._check_cov("C", c)
+        return "ok"
+    except SchemaError as e:
+        return e.reason
+    finally:
+        schema._cov_code = saved
+
+
+def test_compiled_cov_check_agrees_with_the_reference():
+    from sitl.bus import schema
+    from sitl.bus._fastcheck import cov_code
+
+    if cov_code is None:
+        pytest.skip("numba not installed")
+    rng = np.random.default_rng(11)
+    cases = []
+    for k in range(300):
+        A = rng.standard_normal((6, 6)) * 10.0 ** rng.integers(-6, 7)
+        kind = k % 6
+        if kind == 0:
+            c = A @ A.T  # positive definite
+        elif kind == 1:
+            c = A[:, :3] @ A[:, :3].T  # singular: legal
+        elif kind == 2:
+            c = A + A.T  # indefinite in general
+        elif kind == 3:
+            c = A @ A.T
+            c[0, 1] += 1e-6 * abs(c).max()  # not symmetric
+        elif kind == 4:
+            c = A @ A.T
+            c[2, 2] = -abs(c[2, 2]) - 1.0  # negative diagonal
+        else:
+            v = rng.standard_normal(6)
+            c = np.outer(v, v) - 1e-12 * np.eye(6) * rng.integers(0, 2)  # rank one, maybe a hair below
+        cases.append(c)
+    cases += [np.zeros((6, 6)), np.eye(6), np.diag([1e300, 1e-300, 1, 1, 1, 1]),
+              np.full((6, 6), 1e308), np.diag([-0.0, 0, 0, 0, 0, 0])]
+    verdicts = set()
+    for c in cases:
+        ref = _reference_cov_verdict(c)
+        code = cov_code(c)
+        if code == 0:
+            assert ref == "ok", (ref, c)
+        try:
+            schema._check_cov("C", c)
+            fast = "ok"
+        except SchemaError as e:
+            fast = e.reason
+        assert fast == ref
+        verdicts.add(ref)
+    assert verdicts == {"ok", "C: not symmetric", "C: negative diagonal", "C: not positive semi-definite"}
+
+
+@pytest.mark.parametrize("value", [3, np.float64(3.5), np.float32(2.0), True, math.nan, math.inf, "1"])
+def test_float_fields_accept_and_reject_as_before(value):
+    ok = not isinstance(value, (bool, str)) and math.isfinite(float(value))
+    if ok:
+        m = nav(t_gps_s=value)
+        assert type(m.t_gps_s) is float and m.t_gps_s == float(value)
+    else:
+        with pytest.raises(SchemaError, match=r"UavNav\.t_gps_s"):
+            nav(t_gps_s=value)
+
+
+def test_array_fields_are_read_only_copies_from_any_input():
+    src = np.array([1.0, 2.0, 3.0])
+    for v in (src, [1, 2, 3], np.array([1, 2, 3]), src.astype(">f8"), np.ascontiguousarray(np.eye(3)[:, 0])):
+        m = nav(pos_ecef_m=v)
+        assert m.pos_ecef_m.dtype == np.float64 and not m.pos_ecef_m.flags.writeable
+        assert m.pos_ecef_m is not v
+    m = nav(pos_ecef_m=src)
+    src[0] = 99.0
+    assert m.pos_ecef_m[0] == 1.0
+    with pytest.raises(SchemaError, match="not finite"):
+        nav(pos_ecef_m=np.array([1.0, np.nan, 3.0]))
+    with pytest.raises(SchemaError, match="wrong shape"):
+        nav(pos_ecef_m=np.zeros(4))
+
+
+def test_parse_key_cache_hands_out_fresh_dicts():
+    a = parse_key("r1/uav/3/beacon/b7")
+    a[2]["uav"] = "mutated"
+    assert parse_key("r1/uav/3/beacon/b7")[2] == {"uav": "3", "beacon": "b7"}
+    assert parse_key("r1/nope") is None and parse_key("r1/nope") is None
+
+
+def test_subscriptions_made_or_closed_after_a_key_was_delivered():
+    bus = InMemoryTransport(synchronous=True)
+    got = []
+    key = key_for("r1", UavNav, uav=1)
+    bus.publish(key, nav())  # no subscriber yet: nothing delivered, the key's (empty) match is cached
+    s1 = bus.subscribe("r1/**", lambda k, m: got.append(("a", k)))
+    bus.publish(key, nav())
+    s2 = bus.subscribe("*/uav/*/nav", lambda k, m: got.append(("b", k)))
+    bus.publish(key, nav())
+    s1.close()
+    bus.publish(key, nav())
+    s2.close()
+    bus.publish(key, nav())
+    assert got == [("a", key), ("a", key), ("b", key), ("b", key)]

@@ -27,6 +27,7 @@ Equality (``==``) compares kind and every field, arrays element-wise, NaN equal 
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 import numbers
 import re
@@ -308,6 +309,12 @@ class Message:
     def _where(self, fname: str) -> str:
         return f"{type(self).__name__}.{fname}"
 
+    def _check_cov(self, fname: str) -> None:
+        """_check_cov on a field; the field's name is only formatted when it fails."""
+        c = getattr(self, fname)
+        if _cov_code is None or _cov_code(c) != 0:
+            _check_cov(self._where(fname), c)
+
     def __eq__(self, other: object) -> bool:
         if type(other) is not type(self):
             return NotImplemented
@@ -361,7 +368,7 @@ class UavNav(Message):
     fix_type: int  # MAVLink GPS_FIX_TYPE: 0 no GPS .. 6 RTK fixed
 
     def _validate(self) -> None:
-        _check_cov(self._where("cov"), self.cov)
+        self._check_cov("cov")
         if self.n_sats < 0:
             raise SchemaError(self._where("n_sats"), "must be >= 0", repr(self.n_sats))
         if not 0 <= self.fix_type <= 6:
@@ -384,8 +391,9 @@ class BeaconMeasurement(Message):
 
     def _validate(self) -> None:
         for f in ("range_m", "var_range_m2", "var_range_rate_m2_s2"):
-            _check_positive(self._where(f), getattr(self, f))
-        _check_cov(self._where("uav_cov"), self.uav_cov)
+            if not getattr(self, f) > 0:
+                _check_positive(self._where(f), getattr(self, f))
+        self._check_cov("uav_cov")
 
 
 PSEUDORANGE_MAX_M = 1e8
@@ -454,7 +462,8 @@ class RadarMeasurement(Message):
         if not 0 < r <= SLANT_RANGE_MAX_M:
             raise SchemaError(self._where("slant_range_m"), "out of range (0, 1e6] m", repr(r))
         for f in ("var_range_m2", "var_az_rad2", "var_el_rad2"):
-            _check_positive(self._where(f), getattr(self, f))
+            if not getattr(self, f) > 0:
+                _check_positive(self._where(f), getattr(self, f))
         az, el = self.az_rad, self.el_rad
         for f, v in (("az_rad", az), ("el_rad", el)):
             if math.isnan(v) and self.angles_valid:
@@ -496,7 +505,7 @@ class Estimate(Message):
 
     def _validate(self) -> None:
         _check_kind(self._where("kind"), self.kind)
-        _check_cov(self._where("cov"), self.cov)
+        self._check_cov("cov")
         if self.nis < 0:
             raise SchemaError(self._where("nis"), "must be >= 0 or NaN", repr(self.nis))
         _check_token(self._where("mode"), self.mode)
@@ -597,6 +606,18 @@ def parse_key(key: str) -> tuple[str, type[Message], dict[str, str]] | None:
 
     ``parse_key("r1/uav/3/beacon/b7")`` -> ``("r1", BeaconMeasurement, {"uav": "3",
     "beacon": "b7"})``."""
+    if type(key) is not str:
+        return _parse_key(key)
+    hit = _parse_key_cached(key)  # the same keys recur every epoch
+    return None if hit is None else (hit[0], hit[1], dict(hit[2]))
+
+
+@functools.lru_cache(maxsize=8192)
+def _parse_key_cached(key: str):
+    return _parse_key(key)
+
+
+def _parse_key(key):
     run_id, sep, rest = key.partition("/")
     if not sep or not is_valid_id(run_id):
         return None

@@ -197,6 +197,7 @@ class Transport(abc.ABC):
     def __init__(self) -> None:
         self.stats = TransportStats()
         self._subs: list[Subscription] = []
+        self._matching: dict[str, list[Subscription]] = {}  # key -> its subscriptions (cache)
         self._closed = False
         self._ratelog = _RateLimitedLog()
 
@@ -224,12 +225,14 @@ class Transport(abc.ABC):
             raise TypeError("callback must be callable")
         sub = Subscription(self, key_expr, callback)
         self._subs.append(sub)
+        self._matching.clear()
         self.stats.per_subscription[sub.id] = sub.stats
         return sub
 
     def _unsubscribe(self, sub: Subscription) -> None:
         if sub in self._subs:
             self._subs.remove(sub)
+        self._matching.clear()
 
     def close(self) -> None:
         """Close every subscription; later publish/subscribe calls raise RuntimeError."""
@@ -250,7 +253,12 @@ class Transport(abc.ABC):
     # -- the shared receive path (the Zenoh transport calls it from its handler)
     def _deliver(self, key: str, payload: bytes) -> None:
         """Decode once, then hand the message to every open matching subscription."""
-        subs = [s for s in self._subs if not s.closed and key_matches(s.key_expr, key)]
+        subs = self._matching.get(key)
+        if subs is None:
+            # which subscriptions a key reaches changes only with (un)subscribing
+            if len(self._matching) >= 65536:
+                self._matching.clear()
+            subs = self._matching[key] = [s for s in self._subs if not s.closed and key_matches(s.key_expr, key)]
         if not subs:
             return
         total = self.stats.total
