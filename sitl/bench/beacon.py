@@ -76,7 +76,7 @@ def _direct_trial(case, tracks, seed):
     from sitl.radio import beacon_link
 
     t0 = time.perf_counter()
-    t, U, V, B, VB = tracks
+    t, U = tracks[0], tracks[1]
     K, N = U.shape[:2]
     const = ex.constellation_for(case, U[0, 0], t[-1])
     nav_cfg = uav_nav.NavConfig()
@@ -89,10 +89,11 @@ def _direct_trial(case, tracks, seed):
     x_out = np.full((K, 1, 6), np.nan)
     P_out = np.full((K, 1, 6, 6), np.nan)
     ones = np.ones((1, N), bool)
+    world = ex.world_epochs(tracks, const, 1, rng, nav_cfg, link_cfg)
     for k in range(K):
         tk = float(t_gps[k])
-        est = nav.update(uav_nav.gnss_measure(rng, tk, U[k], V[k], const, nav_cfg, trials_shape=(1,)))
-        meas = beacon_link.measure(rng, U[k], V[k], B[k], VB[k], link_cfg, trials_shape=(1,))
+        ep, meas, sat = next(world)
+        est = nav.update(ep, sat)
         x, C = est.x[:, order], est.P[:, order]
         C = 0.5 * (C + np.swapaxes(C, -1, -2))  # as published
         obs = bl.ObserverEpoch(x[..., 0:3].copy(), x[..., 3:6].copy(), C, meas.range_m[:, order],
@@ -106,7 +107,8 @@ def _direct_trial(case, tracks, seed):
 
 
 def _world_only(case, tracks, seed):
-    """Truth is given; receivers and beacon links at every epoch (no filter, no bus)."""
+    """Truth is given; receivers and beacon links at every epoch, as run_case computes them
+    (no filter, no bus)."""
     import numpy as np
 
     from sitl.experiments._common import component
@@ -115,16 +117,13 @@ def _world_only(case, tracks, seed):
     from sitl.radio import beacon_link
 
     t0 = time.perf_counter()
-    t, U, V, B, VB = tracks
+    t, U = tracks[0], tracks[1]
     N = U.shape[1]
     const = ex.constellation_for(case, U[0, 0], t[-1])
-    nav_cfg = uav_nav.NavConfig()
-    link_cfg = beacon_link.BeaconLinkConfig()
-    t_gps = uav_nav.SEED002_T0_GPS_S + t
     rng = np.random.default_rng([seed, 99, N])
-    for k in range(t.size):
-        uav_nav.gnss_measure(rng, float(t_gps[k]), U[k], V[k], const, nav_cfg, trials_shape=(1,))
-        beacon_link.measure(rng, U[k], V[k], B[k], VB[k], link_cfg, trials_shape=(1,))
+    for _ in ex.world_epochs(tracks, const, 1, rng, uav_nav.NavConfig(), beacon_link.BeaconLinkConfig(),
+                             filter_states=False):
+        pass
     return time.perf_counter() - t0
 
 

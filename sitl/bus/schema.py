@@ -279,7 +279,7 @@ class Message:
             value = d[spec.name]
             ft = spec.ftype
             if ft == F_ARRAY:
-                if (shape is not None and type(value) is np.ndarray and value.dtype is _F8
+                if (shape is not None and type(value) is np.ndarray and value.dtype == _F8
                         and value.shape == shape and _all_finite is not None):
                     a = value.copy()
                     if _all_finite(a):

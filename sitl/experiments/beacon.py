@@ -206,36 +206,13 @@ def run_case(case, tracks, trials, seed, locators=("inflate",), progress=None, c
     truth_base = base
     truth_b_key = key_for(truth_base, Truth, kind="beacon", id=BEACON_ID)
     truth_u_keys = [key_for(truth_base, Truth, kind="uav", id=i + 1) for i in range(N)]
-    block_eps, block_links, block_sat, k_block = [], [], None, 0
+    world = world_epochs(tracks, const, T, rng, nav_cfg, link_cfg, clock=clock)
     for k in range(K):
         tk = float(t_gps[k])
-        if k == k_block:
-            # the world side of the next block of epochs: the receivers' geometry of all its
-            # epochs in one call, then the receivers' and links' noise epoch by epoch (the
-            # random draws in the same order as epoch-by-epoch stepping), then the
-            # ephemeris the onboard filters compute from those receiver outputs, again in
-            # one call: the same numbers as one epoch at a time (vehicles.uav_nav)
-            blk = slice(k, min(k + _BLOCK, K))
-            t0 = time.perf_counter()
-            geo = uav_nav.truth_geometry(t_gps[blk, None], U[blk], V[blk], const, nav_cfg)
-            block_eps, block_links = [], []
-            for j, kk in enumerate(range(blk.start, blk.stop)):
-                t1 = time.perf_counter()
-                block_eps.append(uav_nav.gnss_measure(rng, float(t_gps[kk]), U[kk], V[kk], const, nav_cfg,
-                                                      trials_shape=(T,), geometry=geo.at(j)))
-                t2 = time.perf_counter()
-                block_links.append(beacon_link.measure(rng, U[kk], V[kk], B[kk], VB[kk], link_cfg,
-                                                       trials_shape=(T,)))
-                clock("beacon_link", t2)
-                t0 += time.perf_counter() - t2
-            block_sat = uav_nav.filter_sat_states(block_eps, const, nav_cfg)
-            clock("uav_gnss_and_nav", t0)
-            k_block = blk.stop
-        j = k - (k_block - len(block_eps))
-        ep, meas = block_eps[j], block_links[j]
+        ep, meas, sat = next(world)
         # UAVs: onboard filters (all trials x UAVs as one batch)
         t0 = time.perf_counter()
-        est = nav.update(ep, (block_sat[0][j], block_sat[1][j]))
+        est = nav.update(ep, sat)
         nav_x[k], nav_P[k] = est.x, est.P
         clock("uav_gnss_and_nav", t0)
         if central:
@@ -293,6 +270,42 @@ def run_case(case, tracks, trials, seed, locators=("inflate",), progress=None, c
         clock("central_filter", t0)
     out["constellation"] = const
     return out
+
+
+def world_epochs(tracks, const, trials, rng, nav_cfg, link_cfg, filter_states=True, clock=None):
+    """The world side of run_case, epoch by epoch: yields (GnssEpoch, BeaconLinkMeasurement,
+    the onboard filters' satellite states or None) for trials x UAVs.
+
+    Computed in blocks of _BLOCK epochs: the receivers' geometry of a block's epochs in one
+    call, then the receivers' and links' noise epoch by epoch (the random draws in the same
+    order as stepping one epoch at a time), then the ephemeris the onboard filters compute
+    from those receiver outputs (``filter_states``), again in one call: the same numbers as
+    one epoch at a time (vehicles.uav_nav.truth_geometry, filter_sat_states).  clock(name,
+    t0) is told the time spent ("uav_gnss_and_nav", "beacon_link")."""
+    uav_nav = component("vehicles.uav_nav")
+    from sitl.radio import beacon_link
+
+    t, U, V, B, VB = tracks
+    K = t.size
+    t_gps = uav_nav.SEED002_T0_GPS_S + t
+    tick = clock or (lambda name, t0: None)
+    for k0 in range(0, K, _BLOCK):
+        blk = range(k0, min(k0 + _BLOCK, K))
+        t0 = time.perf_counter()
+        geo = uav_nav.truth_geometry(t_gps[blk.start:blk.stop, None], U[blk.start:blk.stop], V[blk.start:blk.stop],
+                                     const, nav_cfg)
+        eps, links = [], []
+        for j, k in enumerate(blk):
+            eps.append(uav_nav.gnss_measure(rng, float(t_gps[k]), U[k], V[k], const, nav_cfg, trials_shape=(trials,),
+                                            geometry=geo.at(j)))
+            t2 = time.perf_counter()
+            links.append(beacon_link.measure(rng, U[k], V[k], B[k], VB[k], link_cfg, trials_shape=(trials,)))
+            tick("beacon_link", t2)
+            t0 += time.perf_counter() - t2
+        sat = uav_nav.filter_sat_states(eps, const, nav_cfg) if filter_states else None
+        tick("uav_gnss_and_nav", t0)
+        for j in range(len(blk)):
+            yield eps[j], links[j], None if sat is None else (sat[0][j], sat[1][j])
 
 
 def _bus_stats(bus) -> dict:
