@@ -154,7 +154,7 @@ import numpy as np
 import scipy.stats
 
 from filters import kernels
-from filters.beacon import OBSERVER_UNCERTAINTY, ObserverRangeDoppler
+from filters.beacon import OBSERVER_UNCERTAINTY
 from filters.models import ConstantVelocity
 from sitl.bus import BeaconMeasurement, Estimate, key_for, parse_key
 from sitl.geodesy import ecef_to_geodetic
@@ -369,16 +369,34 @@ def range_doppler_blocks(x, obs: ObserverEpoch, kappa: float):
     -d r/dB, d rdot/dU = -d rdot/dB, d rdot/dV_i = u = -d rdot/dV_B): the same numbers as
     ``ObserverRangeDoppler.R`` with "inflate", without forming the full 2N x 2N matrix."""
     T, N = obs.mask.shape
-    model = ObserverRangeDoppler(obs.pos, obs.vel, obs.var_range_m2, obs.var_range_rate_m2_s2,
-                                 observer_uncertainty="ignore")
-    zhat, H = model.h_and_H(x)
-    H = H.reshape(T, N, 2, 6)
+    # ObserverRangeDoppler's checks and formulas (_geometry, _jac, h_and_H), written out
+    # here to spare building the model object every epoch: the same numbers
+    if not (np.isfinite(obs.pos).all() and np.isfinite(obs.vel).all()):
+        raise ValueError("observer_pos_ecef_m and observer_vel_ecef_m_s must be finite")
+    for name in ("var_range_m2", "var_range_rate_m2_s2"):
+        v = getattr(obs, name)
+        if not ((v > 0).all() and np.isfinite(v).all()):
+            raise ValueError(f"{name} must be finite and > 0")
+    x = np.asarray(x, dtype=float)
+    d_pos = obs.pos - x[..., None, 0:3]
+    r = np.sqrt(_sum(d_pos * d_pos, axis=-1))
+    u = d_pos / r[..., None]
+    dv = obs.vel - x[..., None, 3:6]
+    rdot = _sum(u * dv, axis=-1)
+    g = (dv - rdot[..., None] * u) / r[..., None]
+    zhat = np.empty(r.shape + (2,))
+    zhat[..., 0] = r
+    zhat[..., 1] = rdot
+    H = np.zeros(r.shape + (2, 6))
+    H[..., 0, 0:3] = -u
+    H[..., 1, 0:3] = -g
+    H[..., 1, 3:6] = -u
     R = np.zeros((T, N, 2, 2))
     if kappa > 0:
         R += kappa * np.einsum("tnai,tnij,tnbj->tnab", H, obs.cov, H)
     R[..., 0, 0] += obs.var_range_m2
     R[..., 1, 1] += obs.var_range_rate_m2_s2
-    return zhat.reshape(T, N, 2), H, R
+    return zhat, H, R
 
 
 def _m2ll(yw, Hw, P, logdet_r):
@@ -1097,6 +1115,8 @@ class BeaconLocator:
         T = y.shape[0]
         on = self.initialised if on is None else on
         if self.config.motion == "cv":
+            if on.all():  # every row (the steady state): no gather / scatter copies
+                return ut_to_ecef(y, P, fr)
             x = np.zeros((T, 6))
             Px = np.broadcast_to(np.eye(6), (T, 6, 6)).copy()
             rows = np.flatnonzero(on)

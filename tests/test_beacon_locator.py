@@ -151,6 +151,37 @@ def test_ignore_is_overconfident_when_uav_errors_dominate(white_uav_runs):
     assert sig_ig < 0.5 * sig_in
 
 
+def test_range_doppler_blocks_are_the_observer_model():
+    """The locator's inline range/Doppler blocks equal filters.beacon.ObserverRangeDoppler
+    (h_and_H, and R with "inflate" for kappa = 1) bit for bit, and refuse non-finite input."""
+    from filters.beacon import ObserverRangeDoppler
+    from ground_station.beacon_locator import range_doppler_blocks
+
+    rng = np.random.default_rng(3)
+    T, N = 4, 5
+    pos = geodetic_to_ecef(np.radians(30 + rng.random((T, N))), np.radians(45 + rng.random((T, N))), 3000.0)
+    vel = rng.normal(0.0, 100.0, (T, N, 3))
+    A = rng.normal(size=(T, N, 6, 6))
+    cov = A @ np.swapaxes(A, -1, -2) + np.eye(6)
+    var_r, var_v = rng.uniform(1, 50, (T, N)), rng.uniform(0.01, 1, (T, N))
+    obs = ObserverEpoch(pos, vel, cov, np.ones((T, N)), np.zeros((T, N)), var_r, var_v, np.ones((T, N), bool))
+    x = np.concatenate([geodetic_to_ecef(np.radians(31.0), np.radians(47.0), 3200.0) + rng.normal(0, 1e4, (T, 3)),
+                        rng.normal(0, 100.0, (T, 3))], axis=-1)
+    zhat, H, R = range_doppler_blocks(x, obs, 1.0)
+    model = ObserverRangeDoppler(pos, vel, var_r, var_v, cov, observer_uncertainty="inflate")
+    z_ref, H_ref = model.h_and_H(x)
+    assert np.array_equal(zhat.reshape(T, 2 * N), z_ref)
+    assert np.array_equal(H.reshape(T, 2 * N, 6), H_ref)
+    R_ref = model.R(x)
+    for i in range(N):
+        np.testing.assert_allclose(R[:, i], R_ref[:, 2 * i:2 * i + 2, 2 * i:2 * i + 2], rtol=1e-12)
+    bad = obs._replace(pos=np.where(np.arange(N) == 2, np.nan, 1.0)[None, :, None] * pos)
+    with pytest.raises(ValueError, match="finite"):
+        range_doppler_blocks(x, bad, 1.0)
+    with pytest.raises(ValueError, match="var_range_m2"):
+        range_doppler_blocks(x, obs._replace(var_range_m2=-var_r), 1.0)
+
+
 def test_batch_equals_loop():
     trials, K = 3, 40
     scene = _scene(K)
