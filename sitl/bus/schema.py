@@ -279,6 +279,8 @@ class Message:
             value = d[spec.name]
             ft = spec.ftype
             if ft == F_ARRAY:
+                if shape is None and n is not None:  # an "n"-long array: its shape for this message
+                    shape = tuple(n if dim == "n" else dim for dim in spec.shape)
                 if (shape is not None and type(value) is np.ndarray and value.dtype == _F8
                         and value.shape == shape and _all_finite is not None):
                     a = value.copy()
