@@ -56,6 +56,7 @@ BEACON_ID = "b1"
 FIGURES = ("beacon_errors.png", "beacon_rmse_vs_pcrb.png", "beacon_uav_count.png")
 # locators on the same messages: name -> LocatorConfig overrides
 _BLOCK = 64  # epochs whose world side (receiver geometry, filter ephemeris) is computed in one call
+_BLOCK_ROWS = 4096  # at most this many epochs x trials x UAVs in one block
 LOCATORS = {
     "inflate": {},
     "inflate_white": {"uav_error_corr_s": 0.0},
@@ -206,6 +207,7 @@ def run_case(case, tracks, trials, seed, locators=("inflate",), progress=None, c
     truth_base = base
     truth_b_key = key_for(truth_base, Truth, kind="beacon", id=BEACON_ID)
     truth_u_keys = [key_for(truth_base, Truth, kind="uav", id=i + 1) for i in range(N)]
+    src = [f"uav{i + 1}" for i in range(N)]
     world = world_epochs(tracks, const, T, rng, nav_cfg, link_cfg, clock=clock)
     for k in range(K):
         tk = float(t_gps[k])
@@ -220,17 +222,20 @@ def run_case(case, tracks, trials, seed, locators=("inflate",), progress=None, c
             links.append(meas)
         # publish: UavNav, BeaconMeasurement (with the nav snapshot), truth
         t0 = time.perf_counter()
-        ntr = est.n_tracked
+        # per-epoch conversions done once for the batch (the same numbers: C + C' element-wise,
+        # Python ints and floats from tolist)
+        ntr = est.n_tracked.tolist()
+        sym = 0.5 * (est.P + np.swapaxes(est.P, -1, -2))
+        r_l, rr_l = meas.range_m.tolist(), meas.range_rate_m_s.tolist()
+        vr_l, vv_l = meas.var_range_m2.tolist(), meas.var_range_rate_m2_s2.tolist()
         for j in range(T):
             for i in range(N):
-                x, C = est.x[j, i], est.P[j, i]
-                C = 0.5 * (C + C.T)
-                bus.publish(uav_keys[j][i], UavNav(t_gps_s=tk, source_id=f"uav{i + 1}", seq=k, pos_ecef_m=x[0:3],
-                                                   vel_ecef_m_s=x[3:6], cov=C, n_sats=int(ntr[j, i]), fix_type=3))
+                x, C = est.x[j, i], sym[j, i]
+                bus.publish(uav_keys[j][i], UavNav(t_gps_s=tk, source_id=src[i], seq=k, pos_ecef_m=x[0:3],
+                                                   vel_ecef_m_s=x[3:6], cov=C, n_sats=ntr[j][i], fix_type=3))
                 bus.publish(bm_keys[j][i], BeaconMeasurement(
-                    t_gps_s=tk, source_id=f"uav{i + 1}", seq=k, range_m=float(meas.range_m[j, i]),
-                    range_rate_m_s=float(meas.range_rate_m_s[j, i]), var_range_m2=float(meas.var_range_m2[j, i]),
-                    var_range_rate_m2_s2=float(meas.var_range_rate_m2_s2[j, i]), uav_pos_ecef_m=x[0:3],
+                    t_gps_s=tk, source_id=src[i], seq=k, range_m=r_l[j][i], range_rate_m_s=rr_l[j][i],
+                    var_range_m2=vr_l[j][i], var_range_rate_m2_s2=vv_l[j][i], uav_pos_ecef_m=x[0:3],
                     uav_vel_ecef_m_s=x[3:6], uav_cov=C))
         bus.publish(truth_b_key,
                     Truth(t_gps_s=tk, source_id="truth", seq=k, kind="beacon", pos_ecef_m=B[k], vel_ecef_m_s=VB[k]))
@@ -276,7 +281,7 @@ def world_epochs(tracks, const, trials, rng, nav_cfg, link_cfg, filter_states=Tr
     """The world side of run_case, epoch by epoch: yields (GnssEpoch, BeaconLinkMeasurement,
     the onboard filters' satellite states or None) for trials x UAVs.
 
-    Computed in blocks of _BLOCK epochs: the receivers' geometry of a block's epochs in one
+    Computed in blocks of up to _BLOCK epochs: the receivers' geometry of a block's epochs in one
     call, then the receivers' and links' noise epoch by epoch (the random draws in the same
     order as stepping one epoch at a time), then the ephemeris the onboard filters compute
     from those receiver outputs (``filter_states``), again in one call: the same numbers as
@@ -286,11 +291,14 @@ def world_epochs(tracks, const, trials, rng, nav_cfg, link_cfg, filter_states=Tr
     from sitl.radio import beacon_link
 
     t, U, V, B, VB = tracks
-    K = t.size
+    K, N = U.shape[:2]
     t_gps = uav_nav.SEED002_T0_GPS_S + t
     tick = clock or (lambda name, t0: None)
-    for k0 in range(0, K, _BLOCK):
-        blk = range(k0, min(k0 + _BLOCK, K))
+    # epochs per block: up to _BLOCK, fewer for large trials x UAVs batches so that a block's
+    # arrays stay small (<= _BLOCK_ROWS receivers x satellites x 3 doubles each)
+    block = max(1, min(_BLOCK, _BLOCK_ROWS // max(1, int(trials) * N)))
+    for k0 in range(0, K, block):
+        blk = range(k0, min(k0 + block, K))
         t0 = time.perf_counter()
         geo = uav_nav.truth_geometry(t_gps[blk.start:blk.stop, None], U[blk.start:blk.stop], V[blk.start:blk.stop],
                                      const, nav_cfg)
