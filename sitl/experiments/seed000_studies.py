@@ -179,6 +179,7 @@ def plot_ordering(study: dict, path) -> None:
         ax.plot(seeds, [np.nan if q is None else q for q in vals], "o-", label=label)
     ax.set_yscale("log")
     ax.set_xlabel("seed")
+    ax.set_xticks(seeds if len(seeds) <= 30 else ax.get_xticks())
     ax.set_ylabel(f"median time to 1 m over {study['trials_per_seed']} trials, s")
     pm = study["pooled_median_time_to_1m_s"]
     ax.set_title(f"Seed 000: median of each seed; 3 < 2 < 1 holds for {study['holds_for']} of {study['of']} seeds\n"
