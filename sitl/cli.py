@@ -97,6 +97,8 @@ EXPERIMENTS = {
                                         "vs each alone, over the in-memory bus, RMSE by ground range to 250 km"),
     "beacon": ("sitl.experiments.beacon", "seed 002: a moving radio beacon located from >= 3 UAVs' range and Doppler "
                                           "over the in-memory bus; decomposed vs centralised, against the PCRB"),
+    "integrity": ("sitl.experiments.integrity", "seed 003: fault detection/isolation on faulty GNSS data, plain vs "
+                                                "adaptive-robust EKF (+ bias estimation), Pd/Pfa, ROC"),
 }
 
 BENCHES = {
@@ -104,6 +106,7 @@ BENCHES = {
     "iono-tropo": ("sitl.bench.iono_tropo", "a 1200 s seed 000 variant-3 run (12 satellites) against real time"),
     "sonde": ("sitl.bench.sonde", "a 2 h seed 004 sonde flight at 1 Hz (fused tracker) against real time"),
     "beacon": ("sitl.bench.beacon", "one 1000 s seed 002 beacon trial (3 UAVs, bus and locator) against real time"),
+    "integrity": ("sitl.bench.integrity", "the seed 003 integrity monitor's cost on a 10,000-trial EKF step"),
 }
 
 
@@ -174,6 +177,9 @@ def _add_iono_tropo_args(p: argparse.ArgumentParser) -> None:
                         "exact (the code noise at the window start is a filter state, so E_j carries the "
                         "carrier-phase change); whitened = decorrelated from the same epoch's pseudorange only, "
                         "close to the seed's treatment (default states)")
+    p.add_argument("--phase-sats", type=nonnegative_int, default=0, metavar="N",
+                   help="variant 3: use the carrier phase of at most N satellites, the highest by the "
+                        "filter's elevation (the seed: 'even with a single phase measurement') (default 0: all)")
     p.add_argument("--truth-clock-psd-scale", type=positive_float, default=1.0, metavar="X",
                    help="simulated clock PSD / the filter's (default 1: correctly modelled)")
     p.add_argument("--study", choices=("none", "adaptive-q", "ordering"), default="none",
@@ -233,6 +239,33 @@ def _add_beacon_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--quiet", action="store_true", help="no progress lines")
 
 
+def _add_integrity_args(p: argparse.ArgumentParser) -> None:
+    # defaults: sitl.experiments.integrity.IntegrityScenario; its checks are usage errors before any run
+    p.add_argument("--trials", type=positive_int, default=200, help="Monte Carlo trials (default 200)")
+    p.add_argument("--seed", type=nonnegative_int, default=3, help="seed of the numpy SeedSequence (default 3)")
+    p.add_argument("--out", type=output_dir, default=Path("out/integrity"), metavar="DIR",
+                   help="output directory for result.json and PNG figures (default out/integrity)")
+    p.add_argument("--duration", type=positive_float, default=300.0, metavar="S",
+                   help="simulated time, s at 10 Hz; faults start between 60 s and 0.7 x this (default 300)")
+    p.add_argument("--sigma-pr", type=positive_float, default=None, metavar="M", help="pseudorange white noise (default 6)")
+    p.add_argument("--sigma-prr", type=positive_float, default=None, metavar="M_S", help="rate noise (default 0.064)")
+    p.add_argument("--el-mask-deg", type=finite_float, default=None, metavar="DEG",
+                   help="elevation mask in [5, 90); >= 7 satellites must stay in view (default 10)")
+    p.add_argument("--gm-sigma", type=nonnegative_float, default=None, metavar="M",
+                   help="Gauss-Markov pseudorange error sigma per satellite (default 2)")
+    p.add_argument("--gm-tau", type=positive_float, default=None, metavar="S", help="its correlation time (default 100)")
+    p.add_argument("--jump-sigma", type=positive_float, default=None, metavar="X", help="jump test threshold on |beta|")
+    p.add_argument("--window", type=positive_int, default=None, help="window of the drift tests, epochs")
+    p.add_argument("--window-alpha", type=positive_float, default=None, metavar="A", help="mean-square test alpha")
+    p.add_argument("--bias-alpha", type=positive_float, default=None, metavar="A", help="bias test alpha")
+    p.add_argument("--huber-c", type=positive_float, default=None, metavar="X", help="Huber threshold on |beta|")
+    p.add_argument("--outlier-prob", type=nonnegative_float, default=None, metavar="P",
+                   help="outlier probability per pseudorange-epoch (default 0.002)")
+    p.add_argument("--no-faults", action="store_true", help="the same world with no faults injected")
+    p.add_argument("--backend", choices=("auto", "numba", "numpy"), default="auto", help="filter kernels")
+    p.add_argument("--quiet", action="store_true", help="no progress lines")
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = _Parser(prog="skyfuse", description="GNSS-aided tracking software-in-the-loop: experiments, benchmarks and the live SITL.")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=_Parser)
@@ -259,6 +292,8 @@ def build_parser() -> argparse.ArgumentParser:
             _add_sonde_args(p)
         elif name == "beacon":
             _add_beacon_args(p)
+        elif name == "integrity":
+            _add_integrity_args(p)
 
     bench = sub.add_parser("bench", help="speed benchmarks, each against a peer measured in the same run",
                            description="Benchmarks report ratios against a peer measured in the same run.")

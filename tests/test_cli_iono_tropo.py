@@ -123,6 +123,7 @@ def test_never_settled_is_null_not_infinity(tmp_path):
         (["--adaptive-q-gain", "-0.5"], "--adaptive-q-gain"),
         (["--truth-clock-psd-scale", "0"], "--truth-clock-psd-scale"),
         (["--cmc-noise", "independent"], "invalid choice"),
+        (["--phase-sats", "-1"], "integer >= 0"),
     ],
 )
 def test_usage_errors_exit_2_with_one_line(extra, needle, tmp_path, capsys):

@@ -114,3 +114,25 @@ def test_bad_variant_and_amb_sigma_raise():
         run_streamed(IonoTropoScenario(duration_s=1.0), 1, seed=0, variant=4)
     with pytest.raises(ValueError, match="sigma0_amb_m"):
         IonoTropoScenario(duration_s=10.0, sigma0_amb_m=0.0)
+
+
+def test_phase_of_fewer_satellites(runs):
+    """phase_max_sats = N: N K states and N phase rows (the highest satellites by the filter's
+    elevation). One phase pins only one combination of the position/clock change, so it helps
+    less than twelve; four pin the whole relative trajectory."""
+    v1, v3 = runs
+    scn = IonoTropoScenario(duration_s=300.0, phase_max_sats=1)
+    one = run_carrier_phase(scn, TRIALS, seed=0)
+    four = run_carrier_phase(IonoTropoScenario(duration_s=300.0, phase_max_sats=4), TRIALS, seed=0)
+    assert one["n_state"].max() == seed000.N_BASE + 1 and four["n_state"].max() == seed000.N_BASE + 4
+    assert one["ambiguity"]["rises"] == 1
+    np.testing.assert_array_equal(one["n_visible"], v1["n_visible"])
+    e1, e_one, e_four, e_all = (r["final_error_m"]["iono_zenith"] for r in (v1, one, four, v3))
+    assert e_all < e_four < e1 and e_one < e1
+    lo, hi = _nees_band(TRIALS)
+    assert lo < 2.0 * one["anees"] < hi
+
+
+def test_phase_max_sats_is_validated():
+    with pytest.raises(ValueError, match="phase_max_sats"):
+        IonoTropoScenario(duration_s=1.0, phase_max_sats=-1)

@@ -50,7 +50,7 @@ FLAGS = {"duration_s": "--duration", "dt_s": "--duration", "sigma_pr_m": "--sigm
          "sigma_phase_m": "--sigma-phase", "el_mask_deg": "--el-mask-deg", "adaptive_q": "--adaptive-q", "adaptive_q_scope": "--adaptive-q",
          "adaptive_q_decay": "--adaptive-q-decay", "adaptive_q_gain": "--adaptive-q-gain",
          "truth_clock_psd_scale": "--truth-clock-psd-scale", "cycle_slip_rate_hz": "--slip-rate",
-         "cmc_noise": "--cmc-noise"}
+         "cmc_noise": "--cmc-noise", "phase_max_sats": "--phase-sats"}
 
 
 # ------------------------------------------------------------------ scenario and runs
@@ -59,7 +59,8 @@ def scenario_from_args(args) -> seed000.IonoTropoScenario:
     kw = {"duration_s": args.duration, "sigma_pr_m": args.sigma_pr, "sigma_prr_m_s": args.sigma_prr,
           "sigma_phase_m": args.sigma_phase, "el_mask_deg": args.el_mask_deg,
           "adaptive_q": args.adaptive_q != "off", "truth_clock_psd_scale": args.truth_clock_psd_scale,
-          "cycle_slip_rate_hz": getattr(args, "slip_rate", 0.0), "cmc_noise": getattr(args, "cmc_noise", "states")}
+          "cycle_slip_rate_hz": getattr(args, "slip_rate", 0.0), "cmc_noise": getattr(args, "cmc_noise", "states"),
+          "phase_max_sats": getattr(args, "phase_sats", 0)}
     if args.adaptive_q != "off":
         kw["adaptive_q_scope"] = args.adaptive_q
     if args.adaptive_q_decay is not None:

@@ -93,6 +93,9 @@ tracked set is common to the trials, so the state dimension is too; it changes w
   receiver's lock_count) resets K_j in that trial the same way (mean re-initialised, variance
   sigma0_amb_m^2, cross-covariances zeroed) before that epoch's update. A slip the detector
   misses would bias K_j (counted on the scoring side as `missed_true_slips`).
+* `phase_max_sats` = N > 0 (the seed's "even with a single phase measurement"): only N
+  satellites carry a K state and a phase row; free slots go to the highest satellites by the
+  filter's own elevation (mean over trials), a set satellite's slot to the next one.
 """
 from __future__ import annotations
 
@@ -188,6 +191,7 @@ class IonoTropoScenario:
     cmc_noise: str = "states"
     # variant 3: carrier-phase ambiguity states
     sigma0_amb_m: float = 1000.0  # prior / reset sigma of a new K_j, m (flat; see module docstring)
+    phase_max_sats: int = 0  # carrier phase of at most this many satellites (0: every tracked one)
     # adaptive process noise (eq 7): Q(i+1) = Q_min + decay Q(i) + gain diag((W nu)(W nu)')
     adaptive_q: bool = False
     adaptive_q_decay: float = 0.1
@@ -211,6 +215,9 @@ class IonoTropoScenario:
         for name in ("gps_glonass_offset_m", "lat_deg", "lon_deg", "h_m", "heading_deg", "t0_gps_s",
                      "iono_prior_m", "tropo_prior_m"):
             object.__setattr__(self, name, _num(name, getattr(self, name), positive=False))
+        if isinstance(self.phase_max_sats, bool) or not isinstance(self.phase_max_sats, (int, np.integer)) \
+                or self.phase_max_sats < 0:
+            raise ValueError(f"phase_max_sats must be an integer >= 0 (0: every satellite), got {self.phase_max_sats!r}")
         if self.cmc_noise not in CMC_NOISE:
             raise ValueError(f"cmc_noise must be one of {', '.join(CMC_NOISE)}, got {self.cmc_noise!r}")
         if not isinstance(self.adaptive_q, (bool, np.bool_)):
@@ -734,6 +741,14 @@ def run_streamed(scn: IonoTropoScenario, trials: int, seed: int, variant: int = 
             tracked = set(idx.tolist())
             gone = [i for i, s in enumerate(amb_sats) if s not in tracked]
             new = [s for s in idx.tolist() if s not in set(amb_sats)]
+            if scn.phase_max_sats and new:
+                # only phase_max_sats satellites carry a K state and a phase row: free slots go
+                # to the highest satellites by the filter's own elevation (mean over trials)
+                free = scn.phase_max_sats - (len(amb_sats) - len(gone))
+                pos_f = x[:, 0:3] + (dt * x[:, 4:7] if k > 0 else 0.0)
+                el_f = elevation_rad(pos_f[:, None, :], sp_v).mean(axis=0)
+                loc = {s_: j for j, s_ in enumerate(idx.tolist())}
+                new = sorted(new, key=lambda s_: -el_f[loc[s_]])[:max(free, 0)]
             # resets: detector slips on satellites that keep their K state (per trial)
             old_cols = np.array([N_BASE + i for i, s in enumerate(amb_sats) if s in tracked], dtype=int)
             old_sats = np.array([s for s in amb_sats if s in tracked], dtype=int)
@@ -764,17 +779,18 @@ def run_streamed(scn: IonoTropoScenario, trials: int, seed: int, variant: int = 
                 init[:, N_BASE + len(amb_sats) - len(new):] = True
                 if old_cols.size:
                     init[:, old_cols] = reset
-                kidx = np.array([N_BASE + amb_sats.index(s) for s in idx.tolist()])
+                kidx = np.array([N_BASE + amb_sats.index(s) if s in amb_sats else -1 for s in idx.tolist()])
+                has = kidx >= 0
                 m3 = IonoTropoGnss(sp_v, sv_v, carrier[idx], is_gps[idx], scn.sigma_pr_m,
                                    scn.sigma_prr_m_s, sigma_phase_m=scn.sigma_phase_m, phase_state_index=kidx,
                                    use_phase=True, n_state=x.shape[-1])
                 cols = np.flatnonzero(init.any(axis=0))
                 if cols.size:
                     hph = m3.h(x)[:, 2 * idx.size:]  # predicted phase incl. the current K
-                    kinit = phase[:, idx] - hph + x[:, kidx]  # phase - predicted phase without K
+                    kinit = phase[:, idx[has]] - hph + x[:, kidx[has]]  # phase - predicted phase without K
                 for c in cols:
                     tr = init[:, c]
-                    j = int(np.flatnonzero(kidx == c)[0])
+                    j = int(np.flatnonzero(kidx[has] == c)[0])
                     x[tr, c] = kinit[tr, j]
                     P[tr, c, :] = 0.0
                     P[tr, :, c] = 0.0
@@ -783,15 +799,16 @@ def run_streamed(scn: IonoTropoScenario, trials: int, seed: int, variant: int = 
                         aqs.q_diag[tr, c] = 0.0
                 if len(amb_sats) not in trans_cache:
                     trans_cache[len(amb_sats)] = scn.transition(n_amb=len(amb_sats))
-                z = np.concatenate([z, phase[:, idx]], axis=1)
+                z = np.concatenate([z, phase[:, idx[has]]], axis=1)
                 x_pred = x
                 res = ekf_update(x, P, z, m3, backend=backend)
             else:
-                kidx = np.array([N_BASE + amb_sats.index(s) for s in idx.tolist()])
+                kidx = np.array([N_BASE + amb_sats.index(s) if s in amb_sats else -1 for s in idx.tolist()])
+                has = kidx >= 0
                 m3 = IonoTropoGnss(sp_v, sv_v, carrier[idx], is_gps[idx], scn.sigma_pr_m,
                                    scn.sigma_prr_m_s, sigma_phase_m=scn.sigma_phase_m, phase_state_index=kidx,
                                    use_phase=True, n_state=x.shape[-1])
-                z = np.concatenate([z, phase[:, idx]], axis=1)
+                z = np.concatenate([z, phase[:, idx[has]]], axis=1)
                 res = ekf_step(x, P, z, trans_cache[len(amb_sats)], m3, dt, backend=backend)
             n_state[k] = res.x.shape[-1]
         elif variant == 2 and cmc_states and cmc_done:
