@@ -328,7 +328,17 @@ def _check_trials(trials):
     return int(trials)
 
 
-class _CmcIncrementModel:
+class _FromHandH:
+    """h and H of a measurement model that computes both at once (h_and_H)."""
+
+    def h(self, x):
+        return self.h_and_H(x)[0]
+
+    def H(self, x):
+        return self.h_and_H(x)[1]
+
+
+class _CmcIncrementModel(_FromHandH):
     """Seed 000 variant 2: the variant-1 model plus one code-minus-carrier increment row per
     satellite in ``rows`` (local indices into the base model's satellites).
 
@@ -359,12 +369,6 @@ class _CmcIncrementModel:
         HE[..., IDX_IONO] += self.coef
         return np.concatenate([z, hE], axis=-1), np.concatenate([H, HE], axis=-2)
 
-    def h(self, x):
-        return self.h_and_H(x)[0]
-
-    def H(self, x):
-        return self.h_and_H(x)[1]
-
     def R_diag(self):
         rb = self.base.R_diag()
         batch = self.used.shape[:-1]
@@ -373,7 +377,7 @@ class _CmcIncrementModel:
         return np.concatenate([rb, re], axis=-1)
 
 
-class _CodeNoiseStateModel:
+class _CodeNoiseStateModel(_FromHandH):
     """Seed 000 variant 2 with the code noise at the window start as states (cmc_noise="states").
 
     x = [11 base states, e_1 .. e_M]: e_i is the code noise eps_D of one satellite at the
@@ -417,12 +421,6 @@ class _CodeNoiseStateModel:
         HE[..., r, self.inc_new] = np.where(used, 1.0, 0.0)
         HE[..., r, self.inc_old] = np.where(used, -1.0, 0.0)
         return np.concatenate([z, hE], axis=-1), np.concatenate([H, HE], axis=-2)
-
-    def h(self, x):
-        return self.h_and_H(x)[0]
-
-    def H(self, x):
-        return self.h_and_H(x)[1]
 
     def R_diag(self):
         batch = self.used.shape[:-1]
