@@ -43,6 +43,7 @@ the linearised innovation variance, the update its own unscented one.
 """
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 from typing import NamedTuple
@@ -102,20 +103,42 @@ class IntegrityConfig:
                 raise ValueError(f"{name} must be true or false, got {getattr(self, name)!r}")
 
     def drift_thresholds(self) -> np.ndarray:
-        """(window,) tolerance on the mean of beta^2 over k = 1..window epochs."""
-        k = np.arange(1, self.window + 1)
-        return scipy.stats.chi2.isf(self.window_alpha, k) / k
+        """(window,) tolerance on the mean of beta^2 over k = 1..window epochs (read-only, cached)."""
+        return _drift_thresholds(float(self.window_alpha), int(self.window))
+
+    def bias_threshold(self) -> float:
+        """Tolerance of the bias test, chi2_{1-a}(1) (inf without the test)."""
+        return math.inf if self.bias_alpha is None else _chi2_isf_1(float(self.bias_alpha))
+
+
+@functools.lru_cache(maxsize=64)
+def _drift_thresholds(alpha, W):
+    k = np.arange(1, W + 1)
+    out = scipy.stats.chi2.isf(alpha, k) / k
+    out.flags.writeable = False
+    return out
+
+
+@functools.lru_cache(maxsize=64)
+def _chi2_isf_1(alpha):
+    return float(scipy.stats.chi2.isf(alpha, 1))
 
 
 class MonitorState(NamedTuple):
-    ring: np.ndarray  # (..., m, window) the last beta^2 per row (winsorised; missing: 1)
-    ring_b: np.ndarray  # (..., m, window) the last beta per row (winsorised; missing: 0)
+    ring: tuple  # ``window`` arrays (..., m): the last beta^2 per row (winsorised; missing: 1); never modified
+    ring_b: tuple  # the same for beta (winsorised; missing: 0)
+    sum_sq: np.ndarray  # (..., m) the sum of ``ring`` (running: + the new sample - the one leaving)
+    sum_b: np.ndarray  # (..., m) the sum of ``ring_b``
     pos: int  # next ring slot
-    count: int  # epochs seen, for the partial-window tolerance
+    count: int  # epochs seen, for the partial-window tolerance (saturates at window)
     jump_run: np.ndarray  # (..., C) consecutive epochs with a jump on the channel
     excluded: np.ndarray  # (..., C) bool
     clean_run: np.ndarray  # (..., C) consecutive clean epochs (for readmission)
     r_est: np.ndarray  # (..., m) innovation-based R estimate (NaN until the first sample)
+    steps: int = 0  # epochs processed (the running sums are recomputed exactly every RESUM epochs)
+
+
+RESUM = 4096  # epochs between exact recomputations of the running window sums
 
 
 class Report(NamedTuple):
@@ -137,26 +160,35 @@ class GuardedModel:
     ``r_floor`` (..., m). Works for the EKF (h_and_H) and for sigma points (h on (K, ..., n):
     the batch axes align on the right)."""
 
-    def __init__(self, base, z, inert, r_scale=None, r_floor=None):
+    def __init__(self, base, z, inert, r_scale=None, r_floor=None, prepared=None, r_diag=None):
         self.base = base
         self.z = np.asarray(z, dtype=float)
         self.inert = np.asarray(inert, dtype=bool)
         self.r_scale = r_scale
         self.r_floor = r_floor
         self.linear = getattr(base, "linear", False)
+        # (x, h, H) already guarded at x (the monitor linearised there): returned for that very x
+        self._prepared = prepared
+        self._r_diag = r_diag  # the R diagonal to use as it is (floor and scale already applied)
 
     def h(self, x):
+        if self._prepared is not None and x is self._prepared[0]:
+            return self._prepared[1]
         return np.where(self.inert, self.z, self.base.h(x))
 
     def H(self, x):
         return self.h_and_H(x)[1]
 
     def h_and_H(self, x):
+        if self._prepared is not None and x is self._prepared[0]:
+            return self._prepared[1], self._prepared[2]
         hx, H = measure(self.base, x)
         H = np.where(self.inert[..., None], 0.0, H)
         return np.where(self.inert, self.z, hx), H
 
     def _r(self):
+        if self._r_diag is not None:
+            return self._r_diag
         rd = self.base.R_diag()
         if rd is None:
             raise ValueError("the integrity monitor needs a measurement model with a diagonal R (R_diag)")
@@ -184,9 +216,13 @@ class IntegrityMonitor:
     def init(self, batch_shape, m: int, n_channels: int) -> MonitorState:
         b = tuple(batch_shape)
         W = self.config.window
-        return MonitorState(np.ones(b + (int(m), W)), np.zeros(b + (int(m), W)), 0, 0, np.zeros(b + (n_channels,), dtype=np.int64),
-                            np.zeros(b + (n_channels,), dtype=bool), np.zeros(b + (n_channels,), dtype=np.int64),
-                            np.full(b + (int(m),), np.nan))
+        ones = np.ones(b + (int(m),))
+        zeros = np.zeros(b + (int(m),))
+        ones.flags.writeable = False  # shared by every slot of the fresh rings
+        zeros.flags.writeable = False
+        return MonitorState((ones,) * W, (zeros,) * W, np.full(b + (int(m),), float(W)), np.zeros(b + (int(m),)), 0, 0,
+                            np.zeros(b + (n_channels,), dtype=np.int64), np.zeros(b + (n_channels,), dtype=bool),
+                            np.zeros(b + (n_channels,), dtype=np.int64), np.full(b + (int(m),), np.nan), 0)
 
     def innovations(self, x, P, z, model):
         """(nu, a^2, HPH'_jj) at the prior, (..., m) each, by linearisation."""
@@ -202,7 +238,9 @@ class IntegrityMonitor:
         """One monitored update: (UpdateResult, MonitorState, Report).
 
         channels: (m,) int in [0, C) with C = state.excluded.shape[-1]. NaN measurements are
-        treated as missing (inert this epoch, not counted as a fault)."""
+        treated as missing (inert this epoch, not counted as a fault). ``update_kw`` go to
+        ``update``; a ``backend`` among them also picks the monitor's own kernel ("numba":
+        filters/_nbintegrity.py, "numpy": the reference below; None/"auto": the filters' default)."""
         cfg = self.config
         x = np.asarray(x, dtype=float)
         P = np.asarray(P, dtype=float)
@@ -212,35 +250,89 @@ class IntegrityMonitor:
         C = state.excluded.shape[-1]
         if ch.shape != (m,) or not np.issubdtype(ch.dtype, np.integer) or ch.min() < 0 or ch.max() >= C:
             raise ValueError(f"channels must be ({m},) ints in [0, {C}), got {channels!r}")
-        if state.ring.shape[-2] != m:
-            raise ValueError(f"the monitor state has {state.ring.shape[-2]} rows, the measurement {m}")
-        missing = ~np.isfinite(z)
-        z_f = np.where(missing, 0.0, z)
-        nu, a2, hph = self.innovations(x, P, z_f, model)
-        r_nom = np.broadcast_to(np.asarray(model.R_diag(), dtype=float), nu.shape)
-        r_floor = None
-        if cfg.adapt_r:
-            r_floor = np.where(np.isfinite(state.r_est), np.maximum(state.r_est, r_nom), r_nom)
-            a2 = hph + r_floor
-        beta = np.where(missing, 0.0, nu / np.sqrt(a2))
-        jump = (np.abs(beta) >= cfg.jump_sigma) & ~missing
-
-        # sliding window of beta^2 (jump and missing epochs enter as the healthy mean 1)
-        ring = state.ring.copy()
+        if state.sum_sq.shape[-1] != m:
+            raise ValueError(f"the monitor state has {state.sum_sq.shape[-1]} rows, the measurement {m}")
         W = cfg.window
         J = cfg.jump_sigma
-        ring[..., state.pos] = np.where(missing, 1.0, np.minimum(beta * beta, J * J))
-        ring_b = state.ring_b.copy()
-        ring_b[..., state.pos] = np.where(missing, 0.0, np.clip(beta, -J, J))
         count = min(state.count + 1, W)
-        drift_stat = ring.sum(axis=-1) / W if count == W else \
-            (ring.sum(axis=-1) - (W - count)) / count  # unfilled slots hold 1
-        drift = drift_stat > cfg.drift_thresholds()[count - 1]
-        bias_stat = ring_b.sum(axis=-1) ** 2 / count  # unfilled slots hold 0
-        if cfg.bias_alpha is not None:
-            drift = drift | (bias_stat > scipy.stats.chi2.isf(cfg.bias_alpha, 1))
+        thr_ms = float(cfg.drift_thresholds()[count - 1])
+        thr_b = cfg.bias_threshold()
+        hx, H = measure(model, x)
+        rd = model.R_diag()
+        if rd is None:
+            raise ValueError("the integrity monitor needs a measurement model with a diagonal R (R_diag)")
+        batch = z.shape[:-1]
+        n = x.shape[-1]
+        old_sq, old_b = state.ring[state.pos], state.ring_b[state.pos]
+        if _use_kernel(update_kw.get("backend")):
+            from . import _nbintegrity
 
-        # channel logic
+            N = int(np.prod(batch, dtype=np.int64))
+
+            def flat(a, shape):
+                return np.ascontiguousarray(np.broadcast_to(np.asarray(a, dtype=float), batch + shape)).reshape(
+                    (N,) + shape)
+
+            # H is masked in place when it is the model's own fresh, writeable array of the full shape
+            # (a model must not hand out an H it keeps and reuses: filters/models.py's never do);
+            # a shared or read-only H (e.g. LinearGaussian's broadcast view) is copied
+            Ha = np.asarray(H)
+            inplace = bool(Ha.dtype == np.float64 and Ha.shape == batch + (m, n) and Ha.flags.c_contiguous
+                           and Ha.flags.writeable)
+            outs = _nbintegrity.monitor_epoch(
+                flat(z, (m,)), flat(hx, (m,)), Ha.reshape(N, m, n) if inplace else flat(H, (m, n)), flat(P, (n, n)), flat(rd, (m,)),
+                flat(state.r_est, (m,)), flat(old_sq, (m,)), flat(old_b, (m,)), flat(state.sum_sq, (m,)),
+                flat(state.sum_b, (m,)), np.ascontiguousarray(state.jump_run).reshape(N, C),
+                np.ascontiguousarray(state.excluded).reshape(N, C), np.ascontiguousarray(state.clean_run).reshape(N, C),
+                ch.astype(np.int64), float(J), count, W, thr_ms, thr_b, cfg.bias_alpha is not None, cfg.persist,
+                cfg.readmit_after, float(cfg.huber_c or 0.0), cfg.huber_c is not None, bool(cfg.adapt_r),
+                float(cfg.r_forget), bool(cfg.isolate), inplace)
+            (z_f, beta, jump, drift_stat, bias_stat, drift, inert, w, r_used, new_sq, new_b, sum_sq, sum_b, hx_g,
+             H_g, r_est, excluded, newly, readmit, jump_run, clean_run) = (
+                a.reshape(batch + a.shape[1:]) for a in outs)
+        else:
+            (z_f, beta, jump, drift_stat, bias_stat, drift, inert, w, r_used, new_sq, new_b, sum_sq, sum_b, hx_g,
+             H_g, r_est, excluded, newly, readmit, jump_run, clean_run) = self._epoch_numpy(
+                state, x, P, z, hx, H, rd, ch, C, count, thr_ms, thr_b, old_sq, old_b)
+        gm = GuardedModel(model, z_f, inert, prepared=(x, hx_g, H_g), r_diag=r_used)
+        res = update(x, P, z_f, gm, **update_kw)
+
+        pos = state.pos
+        ring = state.ring[:pos] + (new_sq,) + state.ring[pos + 1:]
+        ring_b = state.ring_b[:pos] + (new_b,) + state.ring_b[pos + 1:]
+        steps = state.steps + 1
+        if steps % RESUM == 0:  # the running sums, exactly again (rounding does not pile up)
+            sum_sq = np.add.reduce(np.stack(ring), axis=0)
+            sum_b = np.add.reduce(np.stack(ring_b), axis=0)
+        new_state = MonitorState(ring, ring_b, sum_sq, sum_b, (pos + 1) % W, count, jump_run, excluded, clean_run,
+                                 r_est, steps)
+        report = Report(beta, jump, drift_stat, bias_stat, drift, ~inert, w, excluded, newly, readmit)
+        return res, new_state, report
+
+    def _epoch_numpy(self, state, x, P, z, hx, H, rd, ch, C, count, thr_ms, thr_b, old_sq, old_b):
+        """The reference of filters/_nbintegrity.monitor_epoch (same outputs)."""
+        cfg = self.config
+        W, J = cfg.window, cfg.jump_sigma
+        missing = ~np.isfinite(z)
+        z_f = np.where(missing, 0.0, z)
+        H = np.asarray(H, dtype=float)
+        hph = np.einsum("...mi,...ij,...mj->...m", H, P, H)
+        nu = z_f - hx
+        r_nom = np.broadcast_to(np.asarray(rd, dtype=float), nu.shape)
+        r_floor = r_nom
+        if cfg.adapt_r:
+            r_floor = np.where(np.isfinite(state.r_est) & (state.r_est > r_nom), state.r_est, r_nom)
+        beta = np.where(missing, 0.0, nu / np.sqrt(hph + r_floor))
+        jump = (np.abs(beta) >= J) & ~missing
+        # window sums (jump epochs enter winsorised at J, missing ones as the healthy 1 and 0)
+        new_sq = np.where(missing, 1.0, np.minimum(beta * beta, J * J))
+        new_b = np.where(missing, 0.0, np.clip(beta, -J, J))
+        sum_sq = state.sum_sq + new_sq - old_sq
+        sum_b = state.sum_b + new_b - old_b
+        drift_stat = sum_sq / W if count == W else (sum_sq - (W - count)) / count  # unfilled slots hold 1
+        bias_stat = sum_b * sum_b / count  # unfilled slots hold 0
+        drift = (drift_stat > thr_ms) | (bias_stat > thr_b)
+
         onehot = ch[:, None] == np.arange(C)[None, :]  # (m, C)
 
         def any_ch(rows):
@@ -252,37 +344,40 @@ class IntegrityMonitor:
         fault_ch = drift_ch | (jump_run >= cfg.persist)
         clean = ~(jump_ch | drift_ch)
         clean_run = np.where(clean, state.clean_run + 1, 0)
-        excluded = state.excluded.copy()
+        excluded = state.excluded
         newly = fault_ch & ~excluded
-        readmit = excluded & (clean_run >= cfg.readmit_after)
         if cfg.isolate:
+            readmit = excluded & (clean_run >= cfg.readmit_after)
             excluded = (excluded | fault_ch) & ~readmit
+            inert = missing | jump | excluded[..., ch]
         else:
-            excluded[...] = False
-            readmit = np.zeros_like(readmit)
-
-        excl_rows = excluded[..., ch]
-        if cfg.isolate:
-            inert = missing | jump | excl_rows
-        else:
+            readmit = np.zeros_like(excluded)
+            excluded = np.zeros_like(excluded)
+            newly = fault_ch
             inert = missing
         w = np.ones_like(beta)
+        r_used = r_floor
         if cfg.huber_c is not None:
             ab = np.abs(beta)
             w = np.where(ab > cfg.huber_c, cfg.huber_c / np.maximum(ab, 1e-300), 1.0)
+            r_used = np.where(inert, r_floor, r_floor * (1.0 / np.where(inert, 1.0, w)))
         w = np.where(inert, 0.0, w)
-        r_scale = np.where(inert, 1.0, 1.0 / np.where(w > 0, w, 1.0)) if cfg.huber_c is not None else None
-        gm = GuardedModel(model, z_f, inert, r_scale=r_scale, r_floor=r_floor)
-        res = update(x, P, z_f, gm, **update_kw)
-
+        hx_g = np.where(inert, z_f, hx)
+        H_g = np.where(inert[..., None], 0.0, H)
         r_est = state.r_est
         if cfg.adapt_r:
             sample = nu * nu - hph
             lam = cfg.r_forget
             upd = np.where(np.isfinite(r_est), (1.0 - lam) * r_est + lam * sample, sample)
             r_est = np.where(inert, r_est, upd)
+        return (z_f, beta, jump, drift_stat, bias_stat, drift, inert, w, np.array(r_used, dtype=float), new_sq, new_b,
+                sum_sq, sum_b, hx_g, H_g, r_est, excluded, newly, readmit, jump_run, clean_run)
 
-        new_state = MonitorState(ring, ring_b, (state.pos + 1) % W, count, jump_run, excluded, clean_run, r_est)
-        report = Report(beta, jump, drift_stat, bias_stat, drift, ~inert, w, excluded, newly if cfg.isolate else fault_ch,
-                        readmit)
-        return res, new_state, report
+
+def _use_kernel(backend) -> bool:
+    """The compiled monitor kernel: numba installed and the backend (or the default) is numba."""
+    from . import kernels
+
+    if not kernels.HAVE_NUMBA:
+        return False
+    return kernels.resolve_backend(backend) == "numba"

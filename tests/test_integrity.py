@@ -250,3 +250,56 @@ def test_bad_channels_are_a_clear_error():
         mon.step(ms, x, P, z, model, np.array([0, 1, 2]))
     with pytest.raises(ValueError, match="channels"):
         mon.step(ms, x, P, z, model, np.array([0, 1]))
+
+
+def test_the_monitor_wraps_the_ud_filter_and_equals_the_ekf():
+    """The U-D (Bierman-Thornton) update under the monitor, through a small adapter with the EKF
+    update's signature, gives the monitored EKF's numbers (a linear model: both are exact)."""
+    from filters.ekf import UpdateResult
+    from filters.ud import ud_factor, ud_update
+
+    def ud_as_update(x, P, z, model, **kw):
+        U, d = ud_factor(P)
+        r = ud_update(x, U, d, z, model, **kw)
+        return UpdateResult(r.x, r.P, r.y, r.nis)
+
+    def fault(k):
+        f = np.zeros(S)
+        if k >= 15:
+            f[4] = 7 * SIGMA
+        if k == 25:
+            f[2] = np.nan
+        return f
+
+    cfg = IntegrityConfig(huber_c=2.0, adapt_r=True)
+    e_ekf, r_ekf, _ = _run(cfg, 6, 40, seed=21, fault=fault)
+    e_ud, r_ud, _ = _run(cfg, 6, 40, seed=21, fault=fault, update=ud_as_update)
+    np.testing.assert_allclose(e_ud, e_ekf, rtol=1e-7, atol=1e-8)
+    np.testing.assert_array_equal(r_ud[-1].excluded, r_ekf[-1].excluded)
+    assert r_ekf[-1].excluded[:, 4].all()
+
+
+def test_compiled_and_numpy_monitor_agree():
+    rng = np.random.default_rng(0)
+    N, n, m = 40, 4, 8
+    A = rng.normal(size=(N, n, n))
+    P = A @ A.transpose(0, 2, 1) + np.eye(n)
+    x = rng.normal(size=(N, n))
+    model = LinearGaussian(rng.normal(size=(m, n)), np.diag(rng.uniform(1, 2, m)))
+    z = rng.normal(size=(N, m)) * 3
+    z[3, 2] = np.nan
+    mon = IntegrityMonitor(IntegrityConfig(huber_c=1.5, adapt_r=True, window=4))
+    ch = np.arange(m) // 2
+    runs = {}
+    for be in ("numpy", "numba"):
+        ms = mon.init((N,), m, 4)
+        out = []
+        for k in range(9):
+            r, ms, rep = mon.step(ms, x, P, z + 0.4 * k, model, ch, backend=be)
+            out.append((r.x, r.P, rep))
+        runs[be] = out
+    for a, b in zip(runs["numpy"], runs["numba"]):
+        np.testing.assert_allclose(a[0], b[0], rtol=1e-10, atol=1e-10)
+        np.testing.assert_allclose(a[1], b[1], rtol=1e-10, atol=1e-10)
+        for u, v in zip(a[2], b[2]):
+            np.testing.assert_allclose(np.asarray(u, float), np.asarray(v, float), rtol=1e-10, atol=1e-10)
