@@ -236,6 +236,10 @@ def _add_beacon_args(p: argparse.ArgumentParser) -> None:
                    help="Monte Carlo trials of each by_uav_count run (default 5)")
     p.add_argument("--uav-counts", type=_uav_counts, default=[3, 5, 10, 30], metavar="N,N,...",
                    help="UAV counts of by_uav_count, GPS constellation (default 3,5,10,30)")
+    p.add_argument("--geometry", choices=("printed", "geodetic"), default="printed",
+                   help="printed (default): the paper's laws and common start point as printed, the beacon's "
+                        "start drawn about it and the locator started from that prior; geodetic: the prose's "
+                        "lat/lon start points, northward flight, blind start")
     p.add_argument("--quiet", action="store_true", help="no progress lines")
 
 
