@@ -1,6 +1,7 @@
 """Beacon (vehicles/beacon.py), beacon link and multilateration (sitl/radio/beacon_link.py).
 
-* the beacon's start point, speed band and modes (seed law, legs and turns, static);
+* the beacon's start point (geodetic: lat 47.3, lon 31), speed band and modes (seed law,
+  legs and turns, static, printed: the printed law from the printed point, one per trial);
 * link range and range rate against finite differences along RK4 trajectories (sign: > 0
   when the range grows), ranges below 300 km over the seed run (the light-time premise);
 * the noise: per-sample variance N / dt returned with the measurements, sample variances
@@ -45,9 +46,10 @@ def seed_truth():
 
 def test_beacon_start_speed_and_modes(seed_truth):
     b0 = seed_truth[0][1]
-    assert np.allclose(b0.pos_ecef_m, geodesy.geodetic_to_ecef(math.radians(31.0), math.radians(47.3), 3200.0))
+    assert np.allclose(b0.pos_ecef_m, geodesy.geodetic_to_ecef(math.radians(47.3), math.radians(31.0), 3200.0))
     speed = np.array([np.linalg.norm(bt.vel_ecef_m_s) for _, bt in seed_truth])
-    assert 110.0 - 1e-9 <= speed.min() < 110.01 and 119.99 < speed.max() <= 120.0 + 1e-9  # 115 +- 5
+    assert 105.0 - 1e-9 <= speed.min() < 105.01 and 124.99 < speed.max() <= 125.0 + 1e-9  # 115 +- 10
+    assert max(abs(uav.wrap_pi(bt.heading_rad)) for _, bt in seed_truth) < 1e-9  # north
     legs = beacon.seed002_beacon("legs", dt_s=0.05)
     psi0 = legs.truth().heading_rad
     tr = legs.step(200.0)
@@ -61,11 +63,28 @@ def test_beacon_start_speed_and_modes(seed_truth):
 
 def test_beacon_batched_equals_single():
     law = beacon.seed002_beacon_law()
-    lat, lon = math.radians(31.0), math.radians(47.3)
+    lat, lon = math.radians(47.3), math.radians(31.0)
     law2 = uav.SinusoidalLaw(**{f: np.full(2, float(getattr(law, f))) for f in law._FIELDS})
     both = uav.KinematicSwarm(law2, [lat, lat + 0.01], [lon, lon], [3200.0, 3300.0])
     one = beacon.BeaconSwarm(law, lat + 0.01, lon, 3300.0)
     assert np.allclose(both.step(123.0).pos_ecef_m[1], one.step(123.0).pos_ecef_m, rtol=0, atol=1e-9)
+
+
+def test_printed_beacon_law_start_and_one_per_trial():
+    m = uav.paper_to_ecef(uav.SEED002_PRINTED_START_PAPER_M)
+    one = beacon.seed002_beacon("printed")
+    assert np.array_equal(one.truth().pos_ecef_m[0], m)  # the UAVs' printed start point
+    law = beacon.seed002_printed_beacon_law(1)
+    assert np.allclose(law.params()[0], uav.SEED002_PRINTED_COEFFS["beacon"])
+    starts = m + np.array([[0.0, 0.0, 0.0], [30.0, -20.0, 50.0]])
+    two = beacon.seed002_printed_beacon(starts)
+    a = two.track([0.0, 100.0, 400.0])
+    b = one.track([0.0, 100.0, 400.0])
+    assert np.allclose(a.pos_ecef_m[:, 0], b.pos_ecef_m[:, 0], rtol=0, atol=1e-9)
+    # the law depends on eta only weakly: the offset is carried along within a metre in 400 s
+    d = a.pos_ecef_m[:, 1] - a.pos_ecef_m[:, 0]
+    assert np.max(np.abs(d - (starts[1] - starts[0]))) < 1.0
+    assert 80.0 < np.linalg.norm(b.vel_ecef_m_s[1, 0]) < 130.0  # ~ (115 + 10 sin) cos 45 along eta, + the climb
 
 
 # ============================================================================ the link
@@ -203,6 +222,7 @@ def test_multilateration_noisy_within_three_sigma_of_its_covariance(anchors):
     (lambda: bl.multilaterate([1e4, 1e4, 1e4], _enu_points(ANCHORS3), gauss_newton_iterations=-1),
      "gauss_newton_iterations"),
     (lambda: beacon.seed002_beacon("orbit"), "mode"),
+    (lambda: beacon.seed002_printed_beacon(np.zeros(3)), "pos0_ecef_m"),
     (lambda: beacon.legs_and_turns(0.0, leg_s=0.0), "leg_s"),
 ])
 def test_bad_parameters_raise_value_error_naming_them(make, name):

@@ -2,8 +2,12 @@
 
 * RK4 against scipy's solve_ivp (DOP853, tight tolerances) on the same ODE, and its 4th order;
 * the compiled integrator against the numpy reference, for every guidance law;
-* the seed law: geodetic start points, speed 100..110 m/s varying as 105 + 5 sin(0.02 t),
+* the seed law, geodetic reading: start points lat 45 / 45.1 / 45.3, lon 30 / 30.1 / 30.3
+  (the OCR's order), speed v0_i + 10 sin(0.02 t) with v0 = 100 / 110 / 110, heading north,
   altitude h0 + 1500 sin(0.01 t), ECEF velocity = derivative of the ECEF position;
+* the printed laws: RK4 (compiled and numpy) against solve_ivp, 4th order, the printed
+  formulas by hand, the printed start point and the paper-axes mapping (xi, eta, zeta) =
+  (ECEF y, z, x), track == step, the ~60 m/s climb the printed laws imply;
 * waypoint mode: reaches every waypoint in order with bounded turn and climb rates, and a
   mission upload restarts one vehicle's mission;
 * legs and turns, hold; bad parameters.
@@ -138,18 +142,20 @@ def test_seed_start_points_are_the_geodetic_values(seed_run):
     assert np.allclose(tr.pos_ecef_m, expected, atol=1e-6)
     # not the paper's copy error (one ECEF start value for every vehicle)
     assert np.min(np.linalg.norm(tr.pos_ecef_m[:, None] - tr.pos_ecef_m[None], axis=-1) + np.eye(3) * 1e9) > 10e3
-    assert np.allclose(np.degrees(tr.lat_rad), [30.0, 30.1, 30.3]) and np.allclose(tr.h_m, [3000, 3100, 3500])
+    assert np.allclose(np.degrees(tr.lat_rad), [45.0, 45.1, 45.3]) and np.allclose(tr.h_m, [3000, 3100, 3500])
+    assert np.allclose(np.degrees(tr.lon_rad), [30.0, 30.1, 30.3])
 
 
 def test_seed_speed_range_and_sinusoidal_variation(seed_run):
     t = np.array([tr.t_s for tr in seed_run])
     v = np.array([np.linalg.norm(tr.vel_ecef_m_s, axis=-1) for tr in seed_run])  # (T, 3)
-    assert v.min() >= 100.0 - 1e-9 and v.max() <= 110.0 + 1e-9
-    assert v.min() < 100.01 and v.max() > 109.99  # it really varies over the whole band
-    # least-squares fit a + b sin(0.02 t) + c cos(0.02 t): b = 5, c = 0, a = 105, no residual
+    v0 = np.array(uav.SEED002_UAV_SPEED_M_S)
+    assert np.all(v.min(axis=0) >= v0 - 10.0 - 1e-9) and np.all(v.max(axis=0) <= v0 + 10.0 + 1e-9)
+    assert np.all(v.min(axis=0) < v0 - 9.99) and np.all(v.max(axis=0) > v0 + 9.99)  # the whole band
+    # least-squares fit a + b sin(0.02 t) + c cos(0.02 t): b = 10, c = 0, a = v0, no residual
     A = np.stack([np.ones_like(t), np.sin(0.02 * t), np.cos(0.02 * t)], axis=1)
     coef, *_ = np.linalg.lstsq(A, v, rcond=None)
-    assert np.allclose(coef, [[105.0] * 3, [5.0] * 3, [0.0] * 3], atol=1e-9)
+    assert np.allclose(coef, [v0, [10.0] * 3, [0.0] * 3], atol=1e-9)
     assert np.max(np.abs(A @ coef - v)) < 1e-9
     period = 2 * math.pi / 0.02
     assert 300.0 < period < 600.0
@@ -161,8 +167,7 @@ def test_seed_altitude_and_heading_laws(seed_run):
     h0 = np.array(uav.SEED002_UAV_START)[:, 2]
     assert np.max(np.abs(h - (h0 + 1500.0 * np.sin(0.01 * t)[:, None]))) < 1e-6
     psi = np.array([tr.heading_rad for tr in seed_run])
-    law = uav.seed002_uav_law()
-    assert np.max(np.abs(uav.wrap_pi(psi - law.heading_at(t[:, None])))) < 1e-9
+    assert np.max(np.abs(uav.wrap_pi(psi))) < 1e-9  # north all along
 
 
 def test_ecef_velocity_is_the_derivative_of_ecef_position():
@@ -261,7 +266,11 @@ def test_legs_and_turns_and_hold():
     (lambda: uav.WaypointMission([np.array([[0.5, 0.5, 100.0]])], 10.0, max_climb_m_s=20.0), "max_climb_m_s"),
     (lambda: uav.LegsAndTurns(100.0, 0.0, [10.0, 5.0], [0.0, 0.1, 0.0]), "switch_times_s"),
     (lambda: uav.UavSwarm(uav.seed002_uav_law(), *seed_start(), dt_s=0.0), "dt_s"),
-    (lambda: uav.UavSwarm(uav.seed002_uav_law(), 30.0, 45.0, 3000.0), "lat0_rad"),
+    (lambda: uav.UavSwarm(uav.seed002_uav_law(), 45.0, 30.0, 3000.0), "lat0_rad"),
+    (lambda: uav.PrintedLaw.from_coeffs([[1.0, 2.0, 3.0]]), "rows"),
+    (lambda: uav.PrintedSwarm(uav.seed002_printed_uav_law(), np.zeros((2, 3))), "pos0_ecef_m"),
+    (lambda: uav.propagate_printed(np.zeros(3), 10.0, 5.0, uav.seed002_printed_uav_law(1)), "t1_s"),
+    (lambda: uav.seed002_printed_uav_law(0), "n"),
     (lambda: uav.seed002_uav_swarm().step(-1.0), "t1_s"),
     (lambda: uav.propagate(uav.initial_state(uav.Hold(1), 0.1, 0.1, 0.0), 1.0, uav.Hold(1), backend="gpu"),
      "backend"),
@@ -270,3 +279,85 @@ def test_legs_and_turns_and_hold():
 def test_bad_parameters_raise_value_error_naming_them(make, name):
     with pytest.raises(ValueError, match=name.replace("[", r"\[").replace("]", r"\]")):
         make()
+
+
+# ============================================================================ the printed laws
+
+
+PRINTED_M_ECEF = uav.paper_to_ecef(uav.SEED002_PRINTED_START_PAPER_M)
+
+
+def test_paper_axes_mapping_against_a_hand_computation():
+    """The printed start point is r (cos45 sin30, sin45, cos45 cos30), r = 6371 km + 3000 m:
+    xi = ECEF y, eta = ECEF z, zeta = ECEF x (lat 45, lon 30 on a sphere)."""
+    r = 6371e3 + 3000.0
+    xi, eta, zeta = r * math.cos(math.radians(45)) * math.sin(math.radians(30)), r * math.sin(math.radians(45)), \
+        r * math.cos(math.radians(45)) * math.cos(math.radians(30))
+    assert np.allclose(uav.SEED002_PRINTED_START_PAPER_M, [xi, eta, zeta], atol=1.0)  # printed to the metre
+    x_sphere = r * np.array([math.cos(math.radians(45)) * math.cos(math.radians(30)),
+                             math.cos(math.radians(45)) * math.sin(math.radians(30)), math.sin(math.radians(45))])
+    assert np.allclose(PRINTED_M_ECEF, x_sphere, atol=1.0)
+    assert np.array_equal(PRINTED_M_ECEF, [3903261.0, 2253549.0, 4507098.0])
+    v = np.array([1.0, 2.0, 3.0])  # (xi, eta, zeta)
+    assert np.array_equal(uav.paper_to_ecef(v), [3.0, 1.0, 2.0])
+    assert np.array_equal(uav.ecef_to_paper(uav.paper_to_ecef(v)), v)
+
+
+def test_printed_velocity_is_the_printed_formula():
+    """UAV-1's law evaluated by hand from the printed formulas, in the paper's axes."""
+    law = uav.seed002_printed_uav_law(1)
+    t = 123.4
+    xi, eta, zeta = 2.25e6, 4.52e6, 3.9e6
+    r = 6.374e6 + 1500.0 * math.sin(0.01 * t)
+    c = math.sqrt(1.0 - eta ** 2 / r ** 2)
+    v_xi = -(5.0 + 0.5 * math.sin(0.02 * t)) / r * eta + 7.5 * math.cos(0.01 * t) * c
+    v_eta = (100.0 + 10.0 * math.sin(0.02 * t)) * c + 15.0 * math.cos(0.01 * t) * eta / r
+    v_zeta = math.sqrt(3.0) / 2.0 * (-(10.0 + math.sin(0.02 * t)) / r * eta + 15.0 * math.cos(0.01 * t) * c)
+    got = uav.printed_velocity_ecef(t, uav.paper_to_ecef([xi, eta, zeta])[None], law)[0]
+    assert np.allclose(uav.ecef_to_paper(got), [v_xi, v_eta, v_zeta], rtol=1e-13, atol=1e-12)
+
+
+@pytest.mark.parametrize("backend", ["numba", "numpy"])
+def test_printed_rk4_matches_solve_ivp(backend):
+    law = uav.PrintedLaw.from_coeffs(list(uav.SEED002_PRINTED_COEFFS.values()))  # the 3 UAVs and the beacon
+    x0 = np.broadcast_to(PRINTED_M_ECEF, (4, 3))
+    t1 = 300.0 if backend == "numba" else 60.0
+    out = uav.propagate_printed(x0, 0.0, t1, law, dt_s=0.01, backend=backend)
+    f = lambda t, y: uav.printed_velocity_ecef(t, y.reshape(4, 3), law).ravel()
+    ref = solve_ivp(f, (0.0, t1), x0.ravel(), method="DOP853", rtol=1e-13, atol=1e-9)
+    assert ref.success
+    assert np.max(np.abs(out - ref.y[:, -1].reshape(4, 3))) < 1e-6  # m, after up to ~35 km
+
+
+def test_printed_rk4_is_fourth_order_and_compiled_equals_numpy():
+    law = uav.PrintedLaw(50.0, 40.0, 100.0, 60.0, 50.0, 0.2, 0.3)  # fast, to see the error
+    f = lambda t, y: uav.printed_velocity_ecef(t, y.reshape(1, 3), law).ravel()
+    ref = solve_ivp(f, (0.0, 60.0), PRINTED_M_ECEF, method="DOP853", rtol=1e-13, atol=1e-9).y[:, -1]
+    errs = [np.linalg.norm(uav.propagate_printed(PRINTED_M_ECEF, 0.0, 60.0, law, dt_s=dt, backend="numpy") - ref)
+            for dt in (4.0, 2.0, 1.0)]
+    ratios = errs[0] / errs[1], errs[1] / errs[2]
+    assert all(12.0 < r < 20.0 for r in ratios), (errs, ratios)
+    law3 = uav.seed002_printed_uav_law(5)
+    a = uav.propagate_printed(PRINTED_M_ECEF, 0.0, 25.0, law3, backend="numba")
+    b = uav.propagate_printed(PRINTED_M_ECEF, 0.0, 25.0, law3, backend="numpy")
+    assert np.max(np.abs(a - b)) < 1e-6
+
+
+def test_printed_swarm_track_equals_step_and_reads_as_printed():
+    a, b = uav.seed002_printed_uav_swarm(3), uav.seed002_printed_uav_swarm(3)
+    times = [0.0, 1.0, 2.5, 10.0, 10.005, 31.0]
+    tr = a.track(times)
+    for k, t in enumerate(times):
+        s = b.step(t)
+        assert np.allclose(tr.pos_ecef_m[k], s.pos_ecef_m, rtol=0, atol=1e-8)
+        assert np.allclose(tr.vel_ecef_m_s[k], s.vel_ecef_m_s, rtol=0, atol=1e-10)
+    assert np.array_equal(tr.pos_ecef_m[0], np.broadcast_to(PRINTED_M_ECEF, (3, 3)))  # one start for all
+    # velocity = derivative of position (central difference along the RK4 track)
+    c = uav.seed002_printed_uav_swarm(3)
+    p1 = c.step(499.99).pos_ecef_m
+    mid = c.step(500.0)
+    p2 = c.step(500.01).pos_ecef_m
+    assert np.max(np.abs((p2 - p1) / 0.02 - mid.vel_ecef_m_s)) < 1e-4
+    # as printed, the vehicles climb ~60 m/s (the doubt the module docstring states)
+    climb = (c.step(1000.0).h_m - mid.h_m) / 500.0
+    assert np.all((40.0 < climb) & (climb < 70.0))

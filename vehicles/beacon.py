@@ -1,20 +1,19 @@
 """Radio beacon (seed 002): moving or static, batched, RK4 truth like the UAVs.
 
-The beacon is a :class:`vehicles.uav.KinematicSwarm` with its own guidance law:
+Modes (see vehicles/uav.py for how the seed's laws are read):
 
-* ``mode="seed"`` -- :func:`seed002_beacon_law`, the character of the seed's beacon law
-  (seed 002, "Пример", the V_xi_p, V_eta_p, V_zeta_p formulas): the dominant ECEF-eta term
-  ``(115 + 10 sin 0.02t)`` and terms varying with 0.02t where the UAV laws have 0.01t.  As for
-  the UAVs (see vehicles/uav.py) the printed ECEF formulas are damaged and cannot be used
-  literally; the law of the same character is speed 115 + 5 sin(0.02 t) m/s, climb
-  10 cos(0.02 t) m/s (altitude h0 +- 500 m), heading psi0 + 0.1 sin(0.02 t), psi0 the
-  horizontal direction of the ECEF eta axis at the start point (119.2 deg at 31 N 47.3 E).
+* ``mode="printed"`` -- :func:`seed002_printed_beacon`: the beacon's velocity law exactly as
+  printed (V_xi_p, V_eta_p, V_zeta_p: a = 12, b = 8.5, v0 = 115, d = 25, e = 17,
+  w' = w_r = 0.02), a :class:`vehicles.uav.PrintedSwarm` integrated by RK4 at 0.01 s from
+  the printed start point (the same as the UAVs') or from given ECEF start points (one
+  beacon per Monte Carlo trial: the experiment draws each trial's start about the printed
+  point, see sitl/experiments/beacon.py).
+* ``mode="seed"`` -- the geodetic reading: start lat 47.3, lon 31, h 3200 m (the OCR:
+  longitude 31, latitude 47.3), heading north at 115 + 10 sin(0.02 t) m/s with climb
+  15 cos(0.01 t) (:func:`seed002_beacon_law`), a :class:`vehicles.uav.KinematicSwarm`.
 * ``mode="legs"`` -- straight legs and constant-rate turns at 115 m/s
-  (:func:`legs_and_turns`), level flight.
+  (:func:`legs_and_turns`), level flight, first leg north.
 * ``mode="static"`` -- a beacon that does not move (:class:`vehicles.uav.Hold`).
-
-Start point (the seed's geodetic values): lat 31 deg, lon 47.3 deg, h 3200 m; the paper's
-ECEF start values are a copy of the UAVs' (a copy error) and are not used.
 """
 from __future__ import annotations
 
@@ -22,26 +21,53 @@ import math
 
 import numpy as np
 
-from vehicles.uav import Hold, KinematicSwarm, LegsAndTurns, SinusoidalLaw, eta_axis_heading_rad
+from vehicles.uav import (
+    SEED002_PRINTED_COEFFS,
+    SEED002_PRINTED_START_PAPER_M,
+    Hold,
+    KinematicSwarm,
+    LegsAndTurns,
+    PrintedLaw,
+    PrintedSwarm,
+    SinusoidalLaw,
+    paper_to_ecef,
+)
 
-__all__ = ["SEED002_BEACON_START", "BeaconSwarm", "seed002_beacon_law", "legs_and_turns", "seed002_beacon"]
+__all__ = ["SEED002_BEACON_START", "SEED002_BEACON_SPEED_M_S", "BeaconSwarm", "seed002_beacon_law",
+           "seed002_printed_beacon_law", "seed002_printed_beacon", "legs_and_turns", "seed002_beacon"]
 
-#: Seed 002 beacon start: (lat deg, lon deg, h m).
-SEED002_BEACON_START = (31.0, 47.3, 3200.0)
+#: Seed 002 beacon start, geodetic reading: (lat deg, lon deg, h m) (OCR: longitude 31, latitude 47.3).
+SEED002_BEACON_START = (47.3, 31.0, 3200.0)
+#: Mean speed v0 of the printed V_eta_p law, m/s.
+SEED002_BEACON_SPEED_M_S = 115.0
 
-_MODES = ("seed", "legs", "static")
+_MODES = ("printed", "seed", "legs", "static")
 
 
 class BeaconSwarm(KinematicSwarm):
     """One or more beacons stepped together (a :class:`KinematicSwarm`)."""
 
 
-def seed002_beacon_law(lat0_rad=math.radians(SEED002_BEACON_START[0]), lon0_rad=math.radians(SEED002_BEACON_START[1]),
-                       heading_amp_rad: float = 0.1) -> SinusoidalLaw:
-    """Speed 115 + 5 sin(0.02 t), climb 10 cos(0.02 t), heading psi0 + heading_amp sin(0.02 t)."""
-    return SinusoidalLaw(speed_mean_m_s=115.0, speed_amp_m_s=5.0, speed_omega_rad_s=0.02,
-                         heading0_rad=eta_axis_heading_rad(lat0_rad, lon0_rad), heading_amp_rad=heading_amp_rad,
-                         heading_omega_rad_s=0.02, climb_amp_m_s=10.0, climb_omega_rad_s=0.02)
+def seed002_beacon_law() -> SinusoidalLaw:
+    """Geodetic reading: heading north, 3-D speed 115 + 10 sin(0.02 t), climb 15 cos(0.01 t)."""
+    return SinusoidalLaw(speed_mean_m_s=SEED002_BEACON_SPEED_M_S, speed_amp_m_s=10.0, speed_omega_rad_s=0.02,
+                         heading0_rad=0.0, climb_amp_m_s=15.0, climb_omega_rad_s=0.01)
+
+
+def seed002_printed_beacon_law(n: int = 1) -> PrintedLaw:
+    """The beacon's printed law, batch shape (n,) (one per trial)."""
+    return PrintedLaw.from_coeffs([SEED002_PRINTED_COEFFS["beacon"]]).repeat(n)
+
+
+def seed002_printed_beacon(pos0_ecef_m=None, dt_s: float = 0.01, t0_s: float = 0.0) -> PrintedSwarm:
+    """Beacons under the printed law from pos0_ecef_m (n, 3) (default: one, at the printed
+    start point), RK4 step dt_s."""
+    if pos0_ecef_m is None:
+        pos0_ecef_m = paper_to_ecef(SEED002_PRINTED_START_PAPER_M)[None]
+    p = np.asarray(pos0_ecef_m, dtype=float)
+    if p.ndim != 2 or p.shape[-1] != 3:
+        raise ValueError(f"pos0_ecef_m must have shape (n, 3), got {p.shape}")
+    return PrintedSwarm(seed002_printed_beacon_law(p.shape[0]), p, t0_s=t0_s, dt_s=dt_s)
 
 
 def legs_and_turns(heading0_rad, speed_m_s: float = 115.0, leg_s: float = 200.0, turn_rad: float = math.pi / 2,
@@ -69,15 +95,18 @@ def legs_and_turns(heading0_rad, speed_m_s: float = 115.0, leg_s: float = 200.0,
     return LegsAndTurns(speed_m_s, heading0_rad, np.array(switches), np.array(rates))
 
 
-def seed002_beacon(mode: str = "seed", dt_s: float = 0.01, t0_s: float = 0.0, start=SEED002_BEACON_START) -> BeaconSwarm:
-    """The seed 002 beacon (batch shape ()) in the given mode, RK4 step dt_s."""
+def seed002_beacon(mode: str = "seed", dt_s: float = 0.01, t0_s: float = 0.0, start=SEED002_BEACON_START):
+    """The seed 002 beacon (batch shape ()) in the given mode, RK4 step dt_s.  ``start`` is the
+    geodetic start of the geodetic modes; "printed" starts at the printed point (batch (1,))."""
     if mode not in _MODES:
         raise ValueError(f"mode must be one of {_MODES}, got {mode!r}")
+    if mode == "printed":
+        return seed002_printed_beacon(dt_s=dt_s, t0_s=t0_s)
     lat, lon, h = math.radians(start[0]), math.radians(start[1]), float(start[2])
     if mode == "seed":
-        law = seed002_beacon_law(lat, lon)
+        law = seed002_beacon_law()
     elif mode == "legs":
-        law = legs_and_turns(eta_axis_heading_rad(lat, lon))
+        law = legs_and_turns(0.0)
     else:
         law = Hold(())
     return BeaconSwarm(law, lat, lon, h, t0_s=t0_s, dt_s=dt_s)

@@ -28,22 +28,46 @@ Guidance laws
   bounded turn rate and climb rate (the mode a MAVLink mission upload drives).
 * :class:`LegsAndTurns` -- straight legs and constant-rate turns on a time schedule.
 * :class:`Hold` -- a static vehicle (speed 0).
+* :class:`PrintedLaw` -- the seed's velocity laws as printed, an ODE of the ECEF position
+  itself (state [x, y, z], no geodetic state), integrated by :func:`propagate_printed`
+  (RK4) and stepped by :class:`PrintedSwarm`.
 
-How the seed's laws are read (seed 002, the example section "Пример", the V_xi, V_eta, V_zeta formulas of
-UAV-1..3): the OCR gives the velocity *ECEF components* as functions of eta and t whose
-exponents and square-root arguments are damaged; taken literally at the start point they
-give a ~50 m/s vertical speed, so they cannot be used as printed.  What survives and is
-kept: the dominant component ``(100 + 10 sin 0.02t)`` / ``(110 + 10 sin 0.02t)`` along the
-ECEF eta axis (a speed with a 314 s sinusoid), a geocentric radius
-``6.374e6 + 1500 sin 0.01t`` (i.e. the altitude h0 + 1500 sin 0.01t, whose rate is the
-``15 cos 0.01t`` term present in every zeta formula) and small cross terms (~5 % of the
-speed) varying with 0.01t.  :func:`seed002_uav_law` is a law *of the same character*:
-speed 105 + 5 sin(0.02 t) m/s (100..110 m/s as MODELS.md summarises), climb
-15 cos(0.01 t) m/s (altitude h0 + 1500 sin(0.01 t)), heading psi0 + 0.1 sin(0.01 t) rad
-with psi0 the horizontal direction of the ECEF eta axis at the start point (116.6 deg at
-30 N 45 E).  The start points are the seed's geodetic values (lat 30.0/30.1/30.3 deg,
-lon 45.0/45.1/45.3 deg, h 3000/3100/3500 m); the paper's ECEF start values are the same
-for every vehicle (a copy error) and are not used.
+How the seed's laws are read (seed 002, the example section "Пример", OCR lines ~426-498)
+------------------------------------------------------------------------------------------
+The paper prints, for UAV-1..3 and the beacon, the velocity in its Earth-fixed frame
+(xi, eta, zeta) as a function of eta and t (r(t) = 6.374e6 + 1500 sin(w_r t),
+c = sqrt(1 - eta^2 / r^2)):
+
+    V_xi   = -(a + 0.5 sin 0.02t) eta / r + b cos(w' t) c
+    V_eta  = (v0 + 10 sin 0.02t) c + 15 cos(0.01t) eta / r
+    V_zeta = (sqrt 3 / 2) [ -(d + sin 0.02t) eta / r + e cos(w' t) c ]
+
+with (a, b, v0, d, e, w', w_r) = UAV-1 (5, 7.5, 100, 10, 15, 0.01, 0.01), UAV-2 (10, 5.5,
+110, 10, 15, 0.01, 0.01), UAV-3 (15, 6.5, 110, 20, 19, 0.01, 0.01), beacon (12, 8.5, 115,
+25, 17, 0.02, 0.02) (:data:`SEED002_PRINTED_COEFFS`; the OCR's 5.5, 6.5 and 19 are damaged
+digits).  The printed start point (xi0, eta0, zeta0) = (2253549, 4507098, 3903261) m is the
+SAME for the three UAVs and the beacon; it is r (cos45 sin30, sin45, cos45 cos30) with
+r = 6371 km + 3000 m, i.e. latitude 45, longitude 30 on a sphere, so that
+
+    xi = ECEF y,  eta = ECEF z (the polar axis),  zeta = ECEF x     (:func:`paper_to_ecef`).
+
+Two readings are provided:
+
+* "printed" (:class:`PrintedLaw`, :class:`PrintedSwarm`): the laws exactly as printed,
+  integrated by RK4 at 0.01 s in ECEF (the law evaluated in the paper's axes) from the
+  printed common start point.  Doubts, stated: the vehicles then climb ~60 m/s (45-51 km
+  of height at 1000 s) -- the eta component carries the speed v0 while the xi / zeta
+  components carry a tenth of it (a, d ~ v0 / 10), so the velocity is not horizontal;
+  all four vehicles (beacon included) leave the same point; some digits are damaged.
+  It is what is printed, and the only reading under which the paper's metre-level errors
+  are possible (every reading with separate start points leaves the beacon ~250 km away).
+* "geodetic" (:func:`seed002_uav_law`, :data:`SEED002_UAV_START`): the prose's geodetic
+  start points (the OCR says longitude 30 / 30.1 / 30.3, latitude 45 / 45.1 / 45.3,
+  heights 3000 / 3100 / 3500 m) and the laws' physical content: the V_eta law is exactly
+  the polar component of a northward flight at speed v0 + 10 sin(0.02 t) with climb
+  15 cos(0.01 t) (north = (.., .., cos lat), up = (.., .., sin lat)), and the printed r(t)
+  is the matching altitude h0 + 1500 sin(0.01 t).  So each vehicle flies north at its own
+  v0 (100 / 110 / 110 m/s; beacon 115): the formation is not rigid.
 
 SI units, radians inside; no randomness, no clocks: time is the simulation time t_s.
 """
@@ -84,11 +108,34 @@ __all__ = [
     "seed002_uav_law",
     "seed002_uav_swarm",
     "SEED002_UAV_START",
+    "SEED002_UAV_SPEED_M_S",
+    "SEED002_PRINTED_START_PAPER_M",
+    "SEED002_PRINTED_COEFFS",
+    "PrintedLaw",
+    "PrintedSwarm",
+    "paper_to_ecef",
+    "ecef_to_paper",
+    "printed_velocity_ecef",
+    "propagate_printed",
+    "seed002_printed_uav_law",
+    "seed002_printed_uav_swarm",
     "wrap_pi",
 ]
 
-#: Seed 002 start points of UAV-1..3: (lat deg, lon deg, h m) -- the paper's geodetic values.
-SEED002_UAV_START = ((30.0, 45.0, 3000.0), (30.1, 45.1, 3100.0), (30.3, 45.3, 3500.0))
+#: Seed 002 start points of UAV-1..3: (lat deg, lon deg, h m) -- the paper's geodetic values
+#: (the OCR: longitude 30 / 30.1 / 30.3, latitude 45 / 45.1 / 45.3).
+SEED002_UAV_START = ((45.0, 30.0, 3000.0), (45.1, 30.1, 3100.0), (45.3, 30.3, 3500.0))
+#: Mean speeds v0 of UAV-1..3 in the printed V_eta laws, m/s.
+SEED002_UAV_SPEED_M_S = (100.0, 110.0, 110.0)
+#: The printed start point (xi0, eta0, zeta0), m: the same for UAV-1..3 and the beacon.
+SEED002_PRINTED_START_PAPER_M = (2253549.0, 4507098.0, 3903261.0)
+#: Printed law coefficients (a, b, v0, d, e, w', w_r) (module docstring).
+SEED002_PRINTED_COEFFS = {
+    "uav1": (5.0, 7.5, 100.0, 10.0, 15.0, 0.01, 0.01),
+    "uav2": (10.0, 5.5, 110.0, 10.0, 15.0, 0.01, 0.01),
+    "uav3": (15.0, 6.5, 110.0, 20.0, 19.0, 0.01, 0.01),
+    "beacon": (12.0, 8.5, 115.0, 25.0, 17.0, 0.02, 0.02),
+}
 
 
 # --------------------------------------------------------------------------- helpers
@@ -785,21 +832,255 @@ class UavSwarm(KinematicSwarm):
     """A swarm of UAVs (a :class:`KinematicSwarm`); see :func:`seed002_uav_swarm`."""
 
 
-def seed002_uav_law(heading_amp_rad: float = 0.1) -> SinusoidalLaw:
-    """The three UAVs of the seed 002 example (module docstring: how the seed is read).
+def seed002_uav_law() -> SinusoidalLaw:
+    """The three UAVs of the seed 002 example, geodetic reading (module docstring).
 
-    speed 105 + 5 sin(0.02 t) m/s, climb 15 cos(0.01 t) m/s, heading
-    psi0_i + heading_amp sin(0.01 t), psi0_i the ECEF eta axis's horizontal direction at
-    UAV i's start point."""
-    start = np.radians(np.array(SEED002_UAV_START)[:, :2])
-    return SinusoidalLaw(
-        speed_mean_m_s=105.0, speed_amp_m_s=5.0, speed_omega_rad_s=0.02,
-        heading0_rad=eta_axis_heading_rad(start[:, 0], start[:, 1]), heading_amp_rad=heading_amp_rad,
-        heading_omega_rad_s=0.01, climb_amp_m_s=15.0, climb_omega_rad_s=0.01,
-    )
+    Heading north (0), 3-D speed v0_i + 10 sin(0.02 t) with v0 = 100 / 110 / 110 m/s (the
+    printed V_eta laws), climb 15 cos(0.01 t) (altitude h0 + 1500 sin(0.01 t), the printed
+    r(t)).  Each UAV keeps its own speed law: the formation is not a rigid line."""
+    return SinusoidalLaw(speed_mean_m_s=np.array(SEED002_UAV_SPEED_M_S), speed_amp_m_s=10.0,
+                         speed_omega_rad_s=0.02, heading0_rad=0.0, climb_amp_m_s=15.0, climb_omega_rad_s=0.01)
 
 
 def seed002_uav_swarm(dt_s: float = 0.01, t0_s: float = 0.0) -> UavSwarm:
     """The seed 002 UAV-1..3 at their geodetic start points, RK4 step dt_s (seed: 0.01 s)."""
     s = np.array(SEED002_UAV_START)
     return UavSwarm(seed002_uav_law(), np.radians(s[:, 0]), np.radians(s[:, 1]), s[:, 2], t0_s=t0_s, dt_s=dt_s)
+
+
+# --------------------------------------------------------------------------- the printed laws
+
+_R0_M, _R_AMP_M = 6.374e6, 1500.0
+_SQRT3_2 = math.sqrt(3.0) / 2.0
+
+
+def paper_to_ecef(v):
+    """The paper's (xi, eta, zeta) (..., 3) -> ECEF (x, y, z) = (zeta, xi, eta) (module docstring)."""
+    v = np.asarray(v, dtype=float)
+    return v[..., [2, 0, 1]]
+
+
+def ecef_to_paper(v):
+    """ECEF (x, y, z) (..., 3) -> the paper's (xi, eta, zeta) = (y, z, x)."""
+    v = np.asarray(v, dtype=float)
+    return v[..., [1, 2, 0]]
+
+
+@dataclass(frozen=True, eq=False)
+class PrintedLaw:
+    """The seed's velocity laws as printed (module docstring): a velocity field of time and
+    the ECEF z (= the paper's eta) coordinate.  Fields a, b, v0, d, e (m/s), cross_omega (w')
+    and radius_omega (w_r) (rad/s) broadcast to the batch shape (vehicles)."""
+
+    a_m_s: Any
+    b_m_s: Any
+    v0_m_s: Any
+    d_m_s: Any
+    e_m_s: Any
+    cross_omega_rad_s: Any = 0.01
+    radius_omega_rad_s: Any = 0.01
+    batch_shape: tuple = field(init=False)
+
+    _FIELDS = ("a_m_s", "b_m_s", "v0_m_s", "d_m_s", "e_m_s", "cross_omega_rad_s", "radius_omega_rad_s")
+
+    def __post_init__(self):
+        object.__setattr__(self, "batch_shape", _broadcast_fields(self, self._FIELDS))
+
+    @classmethod
+    def from_coeffs(cls, rows) -> "PrintedLaw":
+        """From rows (a, b, v0, d, e, w', w_r) (:data:`SEED002_PRINTED_COEFFS`' values)."""
+        c = _finite_array("rows", rows)
+        if c.ndim != 2 or c.shape[1] != 7:
+            raise ValueError(f"rows must have shape (n, 7) (a, b, v0, d, e, w', w_r), got {c.shape}")
+        return cls(*c.T)
+
+    def params(self) -> np.ndarray:
+        """(n, 7) parameter rows of the compiled integrator."""
+        return np.stack([np.ravel(getattr(self, f)) for f in self._FIELDS], axis=-1)
+
+    def repeat(self, n: int) -> "PrintedLaw":
+        """A batch of n copies of a one-vehicle law (e.g. one beacon per Monte Carlo trial)."""
+        if int(np.prod(self.batch_shape, dtype=np.int64)) != 1:
+            raise ValueError(f"repeat needs a one-vehicle law, got batch shape {self.batch_shape}")
+        return PrintedLaw(*(np.full(int(n), float(np.ravel(getattr(self, f))[0])) for f in self._FIELDS))
+
+
+def printed_velocity_ecef(t_s, pos_ecef_m, law: PrintedLaw) -> np.ndarray:
+    """ECEF velocity (..., 3) of the printed law at time t_s and ECEF positions (..., 3)."""
+    pos = np.asarray(pos_ecef_m, dtype=float)
+    t = float(t_s)
+    r = _R0_M + _R_AMP_M * np.sin(law.radius_omega_rad_s * t)
+    s = pos[..., 2] / r  # eta / r
+    c = np.sqrt(np.maximum(1.0 - s * s, 0.0))
+    s2 = math.sin(0.02 * t)
+    cw = np.cos(law.cross_omega_rad_s * t)
+    v_xi = -(law.a_m_s + 0.5 * s2) * s + law.b_m_s * cw * c
+    v_eta = (law.v0_m_s + 10.0 * s2) * c + 15.0 * math.cos(0.01 * t) * s
+    v_zeta = _SQRT3_2 * (-(law.d_m_s + s2) * s + law.e_m_s * cw * c)
+    out = np.empty(np.broadcast_shapes(pos.shape, np.shape(v_xi) + (3,)))
+    out[..., 0], out[..., 1], out[..., 2] = v_zeta, v_xi, v_eta
+    return out
+
+
+def propagate_printed(pos_ecef_m, t0_s: float, t1_s: float, law: PrintedLaw, dt_s: float = 0.01,
+                      backend: str | None = None) -> np.ndarray:
+    """ECEF positions (..., 3) at t1_s from pos_ecef_m at t0_s: RK4 with step dt_s on the grid
+    t0 + k dt_s (the last step shortened to land on t1_s).
+
+    backend 'numba' (default when installed: one compiled loop per vehicle) or 'numpy' (the
+    reference: :func:`rk4_step` on :func:`printed_velocity_ecef`, vectorised); both evaluate
+    the same formulas in the same order."""
+    dt = _positive_scalar("dt_s", dt_s)
+    t0, t1 = float(_finite_array("t0_s", t0_s)), float(_finite_array("t1_s", t1_s))
+    if t1 < t0:
+        raise ValueError(f"t1_s must be >= t0_s {t0}, got {t1_s!r}")
+    x = _finite_array("pos_ecef_m", pos_ecef_m)
+    shape = law.batch_shape
+    try:
+        x = np.broadcast_to(x, shape + (3,)).astype(float)
+    except ValueError:
+        raise ValueError(f"pos_ecef_m must broadcast to the law's batch shape {shape} + (3,), got {x.shape}") from None
+    if backend is None:
+        backend = "numba" if nb is not None else "numpy"
+    if backend not in ("numba", "numpy") or (backend == "numba" and nb is None):
+        raise ValueError(f"backend must be 'numba' (needs numba) or 'numpy', got {backend!r}")
+    ts = _step_times(t0, t1, dt, ())
+    if backend == "numba":
+        y = np.ascontiguousarray(x.reshape(-1, 3)).copy()
+        ys = np.empty((1,) + y.shape)
+        _printed_track_nb(law.params(), y, ts, np.array([ts.size - 1], dtype=np.int64), ys)
+        return y.reshape(shape + (3,))
+    for ta, tb in zip(ts[:-1], ts[1:]):
+        x = rk4_step(lambda t, xx: printed_velocity_ecef(t, xx, law), float(ta), x, float(tb - ta))
+    return x
+
+
+def _printed_truth(t_s, pos, law: PrintedLaw, ell) -> "VehicleTruth":
+    vel = printed_velocity_ecef(t_s, pos, law)
+    lat, lon, h = geodesy.ecef_to_geodetic(pos, ell)
+    v_enu = np.matmul(geodesy.enu_rotation(lat, lon), vel[..., None])[..., 0]
+    heading = np.mod(np.arctan2(v_enu[..., 0], v_enu[..., 1]), 2.0 * np.pi)
+    return VehicleTruth(t_s, pos.copy(), vel, np.asarray(lat, float), np.asarray(lon, float), np.asarray(h, float),
+                        heading, np.linalg.norm(vel, axis=-1))
+
+
+class PrintedSwarm:
+    """Vehicles under :class:`PrintedLaw`, stepped in simulation time like a
+    :class:`KinematicSwarm` (``step``, ``truth``, ``track``; state: ECEF positions)."""
+
+    def __init__(self, law: PrintedLaw, pos0_ecef_m, *, t0_s: float = 0.0, dt_s: float = 0.01,
+                 ell: Ellipsoid | str | None = None):
+        if not isinstance(law, PrintedLaw):
+            raise ValueError(f"law must be a PrintedLaw, got {law!r}")
+        self.law = law
+        self.dt_s = _positive_scalar("dt_s", dt_s)
+        self.ell = ellipsoid(ell)
+        x = _finite_array("pos0_ecef_m", pos0_ecef_m)
+        try:
+            self.pos = np.broadcast_to(x, law.batch_shape + (3,)).astype(float)
+        except ValueError:
+            raise ValueError(f"pos0_ecef_m must broadcast to {law.batch_shape} + (3,), got {x.shape}") from None
+        self._t = float(_finite_array("t0_s", t0_s))
+
+    @property
+    def n(self) -> int:
+        return int(np.prod(self.law.batch_shape, dtype=np.int64))
+
+    @property
+    def t_s(self) -> float:
+        return self._t
+
+    def step(self, t_s: float) -> VehicleTruth:
+        self.pos = propagate_printed(self.pos, self._t, t_s, self.law, self.dt_s)
+        self._t = float(t_s)
+        return self.truth()
+
+    def truth(self) -> VehicleTruth:
+        return _printed_truth(self._t, self.pos, self.law, self.ell)
+
+    def track(self, times_s) -> VehicleTruth:
+        """``step(t)`` for each of the increasing times_s (K,), stacked on a leading axis: the
+        same numbers (the same step boundaries), in one compiled call with numba."""
+        ts_req = np.asarray(times_s, dtype=float).reshape(-1)
+        if ts_req.size == 0:
+            raise ValueError("times_s must hold at least one time")
+        if nb is None or np.any(np.diff(ts_req) < 0) or ts_req[0] < self._t or not np.all(np.isfinite(ts_req)):
+            return _stack_truths([self.step(float(t)) for t in ts_req])
+        parts, ends, t0, n = [np.array([self._t])], [], self._t, 0
+        for t in ts_req:
+            seg = _step_times(t0, float(t), self.dt_s, ())
+            parts.append(seg[1:])
+            n += seg.size - 1
+            ends.append(n)
+            t0 = float(t)
+        shape = self.law.batch_shape
+        y = np.ascontiguousarray(self.pos.reshape(-1, 3)).copy()
+        K = ts_req.size
+        ys = np.empty((K,) + y.shape)
+        _printed_track_nb(self.law.params(), y, np.concatenate(parts), np.array(ends, dtype=np.int64), ys)
+        self.pos = y.reshape(shape + (3,))
+        self._t = float(ts_req[-1])
+        pos = ys.reshape((K,) + shape + (3,))
+        vel = np.stack([printed_velocity_ecef(float(ts_req[k]), pos[k], self.law) for k in range(K)])
+        lat, lon, h = geodesy.ecef_to_geodetic(pos, self.ell)
+        v_enu = np.matmul(geodesy.enu_rotation(lat, lon), vel[..., None])[..., 0]
+        heading = np.mod(np.arctan2(v_enu[..., 0], v_enu[..., 1]), 2.0 * np.pi)
+        return VehicleTruth(ts_req.copy(), pos, vel, np.asarray(lat, float), np.asarray(lon, float),
+                            np.asarray(h, float), heading, np.linalg.norm(vel, axis=-1))
+
+
+if nb is not None:
+    @nb.njit(cache=True, nogil=True)
+    def _printed_vel_nb(p, t, z):
+        r = 6.374e6 + 1500.0 * math.sin(p[6] * t)
+        s = z / r
+        c = math.sqrt(max(1.0 - s * s, 0.0))
+        s2 = math.sin(0.02 * t)
+        cw = math.cos(p[5] * t)
+        v_xi = -(p[0] + 0.5 * s2) * s + p[1] * cw * c
+        v_eta = (p[2] + 10.0 * s2) * c + 15.0 * math.cos(0.01 * t) * s
+        v_zeta = (math.sqrt(3.0) / 2.0) * (-(p[3] + s2) * s + p[4] * cw * c)
+        return v_zeta, v_xi, v_eta
+
+    @nb.njit(cache=True, nogil=True)
+    def _printed_track_nb(params, y, ts, ends, ys):
+        """RK4 of every vehicle over the step boundaries ts, recording ys[k] at ts[ends[k]];
+        y (N, 3) ends at the last boundary."""
+        for i in range(y.shape[0]):
+            p = params[i]
+            x0, x1, x2 = y[i, 0], y[i, 1], y[i, 2]
+            j = 0
+            for k in range(ends.size):
+                for m in range(j, ends[k]):
+                    ta = ts[m]
+                    hh = ts[m + 1] - ta
+                    a0, a1, a2 = _printed_vel_nb(p, ta, x2)
+                    b0, b1, b2 = _printed_vel_nb(p, ta + 0.5 * hh, x2 + 0.5 * hh * a2)
+                    c0, c1, c2 = _printed_vel_nb(p, ta + 0.5 * hh, x2 + 0.5 * hh * b2)
+                    d0, d1, d2 = _printed_vel_nb(p, ts[m + 1], x2 + hh * c2)
+                    x0 = x0 + (hh / 6.0) * (a0 + 2.0 * b0 + 2.0 * c0 + d0)
+                    x1 = x1 + (hh / 6.0) * (a1 + 2.0 * b1 + 2.0 * c1 + d1)
+                    x2 = x2 + (hh / 6.0) * (a2 + 2.0 * b2 + 2.0 * c2 + d2)
+                j = ends[k]
+                ys[k, i, 0], ys[k, i, 1], ys[k, i, 2] = x0, x1, x2
+            y[i, 0], y[i, 1], y[i, 2] = x0, x1, x2
+
+
+def seed002_printed_uav_law(n: int = 3) -> PrintedLaw:
+    """UAV-1..3's printed laws; for n > 3 further UAVs whose coefficients are spread over the
+    printed ranges by a low-discrepancy (golden-ratio) sequence: a in [5, 15], b in [5.5, 7.5],
+    v0 in [100, 110], d in [10, 20], e in [15, 19], w' = w_r = 0.01 (an extension, not the paper)."""
+    if isinstance(n, bool) or int(n) != n or n < 1:
+        raise ValueError(f"n must be an integer >= 1, got {n!r}")
+    rows = [SEED002_PRINTED_COEFFS[f"uav{i + 1}"] for i in range(min(int(n), 3))]
+    g = (math.sqrt(5.0) - 1.0) / 2.0
+    for j in range(int(n) - 3):
+        f1, f2, f3 = ((j + 1) * g) % 1.0, ((j + 1) * g * g * 1.7) % 1.0, ((j + 1) * 0.7548776662) % 1.0
+        rows.append((5.0 + 10.0 * f1, 5.5 + 2.0 * f2, 100.0 + 10.0 * f3, 10.0 + 10.0 * f2, 15.0 + 4.0 * f1, 0.01, 0.01))
+    return PrintedLaw.from_coeffs(rows)
+
+
+def seed002_printed_uav_swarm(n: int = 3, dt_s: float = 0.01, t0_s: float = 0.0) -> PrintedSwarm:
+    """n UAVs under the printed laws, all from the printed start point (ECEF)."""
+    return PrintedSwarm(seed002_printed_uav_law(n), paper_to_ecef(SEED002_PRINTED_START_PAPER_M), t0_s=t0_s,
+                        dt_s=dt_s)
