@@ -58,6 +58,7 @@ from .beacon_locator import (
     cyl_to_ecef,
     ecef_to_cyl,
     formation_frame,
+    second_order_var,
     ut_to_ecef,
 )
 
@@ -164,6 +165,12 @@ class CentralFilter:
         model = ObserverRangeDoppler(Ux[..., 0:3], Ux[..., 3:6], vr, vv, observer_uncertainty="ignore")
         zhat, HB = model.h_and_H(xb)  # (T, 2N), (T, 2N, 6) wrt ECEF [B, V_B]
         mask = np.ones((T, N), bool) if link.mask is None else np.asarray(link.mask, bool)
+        if getattr(self.config, "second_order_r", False):  # as the locator (LocatorConfig.second_order_r)
+            Pr = self.P[:, 0:6, 0:6]
+            Pb = (G @ Pr @ np.swapaxes(G, -1, -2))[:, 0:3, 0:3]
+            Pu = np.stack([self.P[:, 6 + 6 * i:9 + 6 * i, 6 + 6 * i:9 + 6 * i] for i in range(N)], axis=1)
+            v_r2, v_v2 = second_order_var(xb, Ux[..., 0:3], Ux[..., 3:6], Pb[:, None] + Pu)
+            vr, vv = vr + v_r2, vv + v_v2
         z = np.empty((T, 2 * N))
         z[:, 0::2], z[:, 1::2] = link.range_m, link.range_rate_m_s
         sr = np.sqrt(np.stack([vr, vv], axis=-1).reshape(T, 2 * N))
@@ -178,9 +185,29 @@ class CentralFilter:
         Hs.append(H * w[..., None])
         y = np.concatenate(ys, axis=-1)
         H = np.concatenate(Hs, axis=-2)
-        self.y, self.P, nis = kernels.joseph_update(np.ascontiguousarray(self.y), np.ascontiguousarray(self.P),
-                                                    np.ascontiguousarray(y), np.ascontiguousarray(H),
-                                                    r_diag=np.ones(y.shape), backend=self.backend)
+        y0, P0 = np.ascontiguousarray(self.y), np.ascontiguousarray(self.P)
+        yi, Pi, nis = kernels.joseph_update(y0, P0, np.ascontiguousarray(y), np.ascontiguousarray(H),
+                                            r_diag=np.ones(y.shape), backend=self.backend)
+        # iterated EKF (config.update_iterations > 1, as the locator's): the beacon links
+        # relinearised at the updated state (the GNSS rows are already linear enough: ~20000 km ranges)
+        ng = sum(a.shape[-1] for a in ys[:-1])
+        for _ in range(int(getattr(self.config, "update_iterations", 1)) - 1):
+            xb, G = cyl_to_ecef(yi[:, 0:6], self.frame, jacobian=True)
+            Ui = yi[:, 6:].reshape(T, N, 6)
+            zhat, HB = ObserverRangeDoppler(Ui[..., 0:3], Ui[..., 3:6], vr, vv,
+                                            observer_uncertainty="ignore").h_and_H(xb)
+            H2 = np.zeros((T, 2 * N, n))
+            H2[:, :, 0:6] = HB @ G
+            for i in range(N):
+                rows = slice(2 * i, 2 * i + 2)
+                H2[:, rows, 6 + 6 * i:12 + 6 * i] = -HB[:, rows, :]
+            # innovation z - h(x_i) - H_i (x_0 - x_i); for the GNSS rows, kept at their first
+            # linearisation, that is their first innovation
+            yl = np.concatenate([y[:, :ng], ((z - zhat) - np.einsum("tmi,ti->tm", H2, y0 - yi)) * w], axis=-1)
+            Hl = np.concatenate([H[:, :ng], H2 * w[..., None]], axis=-2)
+            yi, Pi, nis = kernels.joseph_update(y0, P0, np.ascontiguousarray(yl), np.ascontiguousarray(Hl),
+                                                r_diag=np.ones(yl.shape), backend=self.backend)
+        self.y, self.P = yi, Pi
         return self
 
     def beacon_ecef(self):

@@ -121,6 +121,19 @@ mirror (hence the high threshold); the largest excursion of any other trial towa
 wrong side was 16.  The start covariance
 is the window's inverse information times ``init_cov_scale``.
 
+Initialisation from a prior (``init="prior"``)
+-----------------------------------------------
+When the scenario gives the beacon's prior -- the seed's filter starts from
+X(0)^ = M[X(0)] with P(0) = M[(X(0) - X(0)^)(X(0) - X(0)^)'] -- every trial starts at the
+first epoch it sees from ``prior_mean`` (6,) [B, V_B] (ECEF) and ``prior_cov`` (6, 6), and
+that epoch's measurements are the first update: no window, no multilateration, no mirror
+hypothesis.  The state is then plain ECEF: the cylindrical coordinates serve the blind
+start (a km-wide banana far from a line-like formation); a prior of tens of metres needs
+none, and on the seed's printed geometry the beacon starts inside the formation, where
+those coordinates are singular.  Nothing else changes (gating, modes, UAVs joining and
+leaving).  The prior is the scenario's, never the truth: the experiment draws each trial's
+true start from it.  ``init="multilateration"`` (default) is the blind start above.
+
 Fewer than three UAVs
 ---------------------
 UAVs may join and leave: each epoch uses the observers present.  With fewer than 3 the
@@ -174,9 +187,11 @@ __all__ = [
     "position_only_step",
     "BeaconLocator",
     "MOTIONS",
+    "INITS",
 ]
 
 MOTIONS = ("cv", "position")
+INITS = ("multilateration", "prior")
 _EARTH_R_MIN_M, _EARTH_R_MAX_M = 6.2e6, 7.0e6  # a UAV position outside this shell is absurd
 _UT_C2 = 6.0  # n + lambda of the sigma points (alpha = 1, kappa = 0): +-sqrt(6) sigma, W0 = 0
 
@@ -236,6 +251,16 @@ class LocatorConfig:
         is not line-like; it keeps the previous axis.
     position_q_m2_s3: extra process noise PSD of the position-only filter (numerical floor).
     backend: covariance kernels (None: the default, numba when installed).
+    init: "multilateration" (blind start from a window of epochs) or "prior" (start from
+        prior_mean (6,) and prior_cov (6, 6) over ECEF [B, V_B] at the first epoch).
+    update_iterations: 1 (EKF) or more: an iterated EKF update (Gauss-Newton on the epoch's
+        ranges and Dopplers, relinearised at each iterate; the gate decided at the first).
+        For ranges comparable with the state's uncertainty (a beacon that starts among the
+        UAVs), where one linearisation at the prediction is poor.
+    second_order_r: add the variance of the ranges' and Dopplers' second-order terms
+        (:func:`second_order_var`, at the predicted state and covariance) to R -- for the
+        same case; off by default (in the cylindrical coordinates the curvature is the
+        coordinates' business).
     """
 
     q_m2_s3: float = 1.0
@@ -257,6 +282,11 @@ class LocatorConfig:
     axis_ratio: float = 0.5
     position_q_m2_s3: float = 1e-3
     backend: str | None = None
+    init: str = "multilateration"
+    update_iterations: int = 1
+    second_order_r: bool = False
+    prior_mean: tuple = ()
+    prior_cov: tuple = ()
 
     def __post_init__(self):
         _nonneg("q_m2_s3", self.q_m2_s3)
@@ -280,6 +310,26 @@ class LocatorConfig:
         if not 0.0 < float(self.axis_ratio) <= 1.0:
             raise ValueError(f"axis_ratio must lie in (0, 1], got {self.axis_ratio!r}")
         kernels.resolve_backend(self.backend)
+        if isinstance(self.update_iterations, bool) or int(self.update_iterations) != self.update_iterations \
+                or not 1 <= self.update_iterations <= 20:
+            raise ValueError(f"update_iterations must be an integer in 1..20, got {self.update_iterations!r}")
+        if self.init not in INITS:
+            raise ValueError(f"init must be one of {INITS}, got {self.init!r}")
+        if self.init == "prior":
+            m = np.asarray(self.prior_mean, dtype=float)
+            C = np.asarray(self.prior_cov, dtype=float)
+            if m.shape != (6,) or not np.all(np.isfinite(m)):
+                raise ValueError(f"prior_mean must be 6 finite numbers [B, V_B] (ECEF), got {self.prior_mean!r}")
+            if C.shape != (6, 6) or not np.all(np.isfinite(C)) or not np.allclose(C, C.T, rtol=1e-12, atol=0.0):
+                raise ValueError(f"prior_cov must be a finite symmetric 6 x 6 matrix, got shape {C.shape}")
+            try:
+                np.linalg.cholesky(C)
+            except np.linalg.LinAlgError:
+                raise ValueError("prior_cov must be positive definite") from None
+            object.__setattr__(self, "prior_mean", tuple(float(v) for v in m))
+            object.__setattr__(self, "prior_cov", tuple(tuple(float(v) for v in row) for row in C))
+        elif len(self.prior_mean) or len(self.prior_cov):
+            raise ValueError('prior_mean / prior_cov are used only with init="prior"')
 
     @property
     def n_state(self) -> int:
@@ -397,6 +447,30 @@ def range_doppler_blocks(x, obs: ObserverEpoch, kappa: float):
     R[..., 0, 0] += obs.var_range_m2
     R[..., 1, 1] += obs.var_range_rate_m2_s2
     return zhat, H, R
+
+
+def second_order_var(x, upos, uvel, P_rel):
+    """Variance of the second-order terms of each range and range rate, 0.5 tr((Hess P)^2),
+    with Hess the Hessian wrt the beacon's position and P_rel (T, N, 3, 3) the covariance of
+    the beacon-UAV relative position: (var_r, var_v) (T, N).  Added to R it keeps an EKF
+    honest where the ranges are comparable with that uncertainty (one linearisation is then
+    poor, the Doppler's most: its position Jacobian scales as 1 / r).
+
+        Hess r    = (I - u u') / r
+        Hess rdot = -(rdot (I - u u') / r^2 + (u g' + g u') / r),  g = (I - u u') dv / r
+    (u = (U - B) / r, dv = V - V_B, rdot = u . dv)."""
+    d = upos - x[..., None, 0:3]
+    r = np.sqrt(_sum(d * d, axis=-1))
+    u = d / r[..., None]
+    dv = uvel - x[..., None, 3:6]
+    rdot = _sum(u * dv, axis=-1)
+    g = (dv - rdot[..., None] * u) / r[..., None]
+    M = np.eye(3) - u[..., :, None] * u[..., None, :]
+    Hr = M / r[..., None, None]
+    Hv = -(rdot[..., None, None] * M / (r * r)[..., None, None]
+           + (u[..., :, None] * g[..., None, :] + g[..., :, None] * u[..., None, :]) / r[..., None, None])
+    A, B = Hr @ P_rel, Hv @ P_rel
+    return 0.5 * np.einsum("...ij,...ji->...", A, A), 0.5 * np.einsum("...ij,...ji->...", B, B)
 
 
 def _m2ll(yw, Hw, P, logdet_r):
@@ -605,6 +679,11 @@ def cyl_step(y, P, fr: Frame, obs: ObserverEpoch, config: LocatorConfig, dt_s: f
     T, N = obs.mask.shape
     kappa = config.kappa(dt_s)
     zhat, H, R = range_doppler_blocks(xp, obs, kappa)
+    if config.second_order_r:
+        Pb = (G2 @ P @ np.swapaxes(G2, -1, -2))[:, None, 0:3, 0:3]
+        var_r2, var_v2 = second_order_var(xp, obs.pos, obs.vel, Pb + obs.cov[..., 0:3, 0:3])
+        R[..., 0, 0] += var_r2
+        R[..., 1, 1] += var_v2
     H = H @ G2[:, None]  # wrt the cylindrical state
     nu = np.stack([obs.range_m, obs.range_rate_m_s], axis=-1) - zhat  # (T, N, 2)
     R_score = None
@@ -616,7 +695,19 @@ def cyl_step(y, P, fr: Frame, obs: ObserverEpoch, config: LocatorConfig, dt_s: f
         R0 = np.zeros_like(R)
         R0[..., 0, 0], R0[..., 1, 1] = obs.var_range_m2, obs.var_range_rate_m2_s2
         R_score = R0 + (R - R0) / kappa
-    return _update(y, P, nu, H, R, obs.mask, config, loglik, R_score) + (fr,)
+    out = _update(y, P, nu, H, R, obs.mask, config, loglik, R_score)
+    if config.update_iterations > 1:  # iterated EKF: relinearise at the updated state
+        z = np.stack([obs.range_m, obs.range_rate_m_s], axis=-1)
+        used0, yi = out[3], out[0]
+        for _ in range(int(config.update_iterations) - 1):
+            xi, Gi_ = cyl_to_ecef(yi, fr, jacobian=True)
+            zh, Hi, _ = range_doppler_blocks(xi, obs, kappa)  # (R kept at the prediction's)
+            Hi = Hi @ Gi_[:, None]
+            nui = z - zh - np.einsum("tnai,ti->tna", Hi, y - yi)
+            it = _update(y, P, nui, Hi, R, used0, config, False)
+            yi = it[0]
+        out = (it[0], it[1], it[2], it[3], obs.mask & ~it[3], out[5])
+    return out + (fr,)
 
 
 def _update(y, P, nu, H, R, mask, config, loglik, R_score=None):
@@ -877,6 +968,7 @@ class BeaconLocator:
         self.P = np.broadcast_to(np.eye(n), (T, n, n)).copy()
         self.frame = Frame(*(np.tile(v, (T, 1)) for v in np.eye(3)[[0, 0, 1, 2]]), np.ones(T, bool))
         self.initialised = np.zeros(T, bool)
+        self.init_t_gps_s = np.full(T, np.nan)  # when each trial's track started
         self.nis = np.full(T, np.nan)
         self.n_used = np.zeros(T, int)
         self.coast_s = np.zeros(T)
@@ -1006,6 +1098,9 @@ class BeaconLocator:
         dt = 0.0 if self.t_gps_s is None else t - self.t_gps_s
         c = self.config
         self._report = None
+        if c.init == "prior":  # start from the scenario's prior; this epoch is the first update
+            for k in np.flatnonzero(~self.initialised):
+                self._initialise(k, self._prior_fix(), t, obs.take(slice(k, k + 1)))
         on = np.flatnonzero(self.initialised)
         alt = np.flatnonzero(self.alt_active)
         self.nis[:] = np.nan
@@ -1061,7 +1156,7 @@ class BeaconLocator:
                     self.counters["mirror_chosen"] += 1
                 else:
                     self.counters["mirror_dropped"] += 1
-        for k in np.flatnonzero(~self.initialised):
+        for k in np.flatnonzero(~self.initialised):  # (none left with a prior)
             if obs.mask[k].sum() >= 3:
                 self._window[k].append((t, obs.take(slice(k, k + 1))))
             if len(self._window[k]) >= c.init_epochs:
@@ -1074,13 +1169,22 @@ class BeaconLocator:
         if self.config.motion == "position":
             return x[0:3].copy(), P[0:3, 0:3].copy(), None
         fr = formation_frame(ob.pos, ob.mask, x[None, 0:3], None, self.config.axis_ratio)
+        if self.config.init == "prior":  # plain ECEF (module docstring)
+            fr = fr._replace(cart=np.ones(1, bool))
         y, Gi, _ = ecef_to_cyl(x[None], fr, jacobian=True)
         Py = Gi[0] @ P @ Gi[0].T
         return y[0], 0.5 * (Py + Py.T), fr
 
-    def _initialise(self, k: int, fix: InitFix, t: float) -> None:
+    def _prior_fix(self) -> InitFix:
+        """The configured prior as an InitFix (no mirror)."""
+        m = np.array(self.config.prior_mean, dtype=float)
+        C = np.array(self.config.prior_cov, dtype=float)
+        return InitFix(m, C, m[0:3].copy(), 0, 0.0, 0, m.copy(), C.copy(), math.inf)
+
+    def _initialise(self, k: int, fix: InitFix, t: float, ob: ObserverEpoch | None = None) -> None:
         c = self.config
-        ob = self._window[k][-1][1]
+        ob = self._window[k][-1][1] if ob is None else ob
+        self.init_t_gps_s[k] = t
         self.init_info[k] = fix
         self.init_window_last[k] = ob
         self._window[k] = []
