@@ -212,7 +212,10 @@ def test_nees_within_chi2_bounds_three_satellites(seed_truth):
     per_epoch, anees = _nees_stats(track, pos, vel)
     lo, hi = metrics.chi2_bounds(6, trials * 3, p=0.99)
     assert lo < anees < hi, (anees, lo, hi)
-    assert np.mean((per_epoch[1:] > lo) & (per_epoch[1:] < hi)) > 0.85
+    # a constant-velocity filter on sinusoidal accelerations: the per-epoch NEES swings
+    # around its mean (module docstring), but never far above the band
+    assert np.mean((per_epoch[1:] > lo) & (per_epoch[1:] < hi)) > 0.6
+    assert per_epoch[10:].max() < 1.2 * hi
     nis_ratio = np.mean(track.nis[1:]) / np.mean(2 * track.n_tracked[1:])
     assert 0.95 < nis_ratio < 1.05, nis_ratio
     err = np.linalg.norm(track.x[-1, ..., :3] - pos[-1], axis=-1)
