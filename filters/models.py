@@ -496,6 +496,17 @@ def seed001_transition(
 # measurement models
 
 
+class JointMeasurement:
+    """Mixin for a measurement model that computes h and H in one pass (``h_and_H``):
+    h and H come from it."""
+
+    def h(self, x):
+        return self.h_and_H(x)[0]
+
+    def H(self, x):
+        return self.h_and_H(x)[1]
+
+
 @dataclass(frozen=True, eq=False)
 class LinearGaussian:
     """z = H x + v,  v ~ N(0, R).  H (m, n) or (..., m, n); R (m, m) or (..., m, m)."""

@@ -6,6 +6,8 @@ Angles in radians, lengths in metres.  Positions are arrays whose last axis has 
 """
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from .constants import Ellipsoid, ellipsoid
@@ -140,6 +142,24 @@ def aer_to_ecef(az_rad, el_rad, range_m, rx_pos_ecef_m, ell: Ellipsoid | str | N
                                        rng * np.sin(el)), axis=-1)
     rt = np.swapaxes(_enu_about_receiver(rx, ell), -1, -2)
     return rx + _rotate(rt, enu)
+
+
+def great_circle_track(lat_deg: float, lon_deg: float, h_m: float, speed_m_s: float, heading_deg: float,
+                       t_rel_s):
+    """ECEF position and velocity (..., 3) at t_rel_s of a point moving at constant speed on
+    the great circle of the geocentric sphere through the start (lat, lon, h), heading from
+    north: acceleration only v^2/r."""
+    lat, lon = math.radians(lat_deg), math.radians(lon_deg)
+    p0 = geodetic_to_ecef(lat, lon, h_m)
+    r0 = float(np.linalg.norm(p0))
+    u = p0 / r0
+    R = enu_rotation(lat, lon)
+    hd = math.radians(heading_deg)
+    d = math.sin(hd) * R[0] + math.cos(hd) * R[1]
+    w = d - (d @ u) * u
+    w /= np.linalg.norm(w)
+    th = np.asarray(t_rel_s, dtype=float)[..., None] * (speed_m_s / r0)
+    return r0 * (np.cos(th) * u + np.sin(th) * w), speed_m_s * (-np.sin(th) * u + np.cos(th) * w)
 
 
 def geocentric_elevation_rad(rx_pos_ecef_m, sat_pos_ecef_m):

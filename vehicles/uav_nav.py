@@ -71,7 +71,7 @@ from typing import Any, NamedTuple
 import numpy as np
 
 from filters.ekf import ekf_step
-from filters.models import ConstantVelocity
+from filters.models import ConstantVelocity, JointMeasurement
 from sitl import geodesy
 from sitl.checks import nonnegative as _nonnegative
 from sitl.checks import positive as _positive
@@ -364,7 +364,7 @@ def gnss_measure(rng: np.random.Generator, t_gps_s: float, pos_ecef_m, vel_ecef_
 
 
 @dataclass(frozen=True, eq=False)
-class ClockFreePseudorangeDoppler:
+class ClockFreePseudorangeDoppler(JointMeasurement):
     """Clock-free pseudoranges and range rates to S satellites, state x = [X (3), V (3)].
 
         z = [pr_1 .. pr_S, prr_1 .. prr_S],   pr_j = |S_j - X|,
@@ -435,12 +435,6 @@ class ClockFreePseudorangeDoppler:
         H[..., S:, 0:3] = np.where(t3, (uw[..., None] * u - w) / rho[..., None], 0.0)
         H[..., S:, 3:6] = np.where(t3, -u, 0.0)
         return hx, H
-
-    def h(self, x):
-        return self.h_and_H(x)[0]
-
-    def H(self, x):
-        return self.h_and_H(x)[1]
 
     def R_diag(self):
         S = self.n_sats

@@ -74,7 +74,13 @@ import scipy.stats
 from filters.adaptive import AdaptiveQ
 from filters.ekf import ekf_predict
 from filters.integrity import IntegrityConfig, IntegrityMonitor
-from filters.models import ClockRandomWalk, Composite, ConstantVelocity, PseudorangeDoppler
+from filters.models import (
+    ClockRandomWalk,
+    Composite,
+    ConstantVelocity,
+    JointMeasurement,
+    PseudorangeDoppler,
+)
 from sitl import geodesy
 from sitl.experiments._common import prepare_out, progress_printer, save_figure, strict
 from sitl.gnss import orbits
@@ -148,7 +154,7 @@ class GaussMarkovBank:
         return self.sigma**2 * -math.expm1(-2.0 * dt / self.tau_s) * np.eye(self.ndim)
 
 
-class BiasedPseudorangeDoppler:
+class BiasedPseudorangeDoppler(JointMeasurement):
     """PseudorangeDoppler with the pseudorange of satellite i biased by the state x[col0 + i]
     (h += b_i, dh/db_i = 1); R is the white noise only."""
 
@@ -164,12 +170,6 @@ class BiasedPseudorangeDoppler:
         hx[..., : self.S] += x[..., cols]
         H[..., np.arange(self.S), cols] = 1.0
         return hx, H
-
-    def h(self, x):
-        return self.h_and_H(x)[0]
-
-    def H(self, x):
-        return self.h_and_H(x)[1]
 
     def R_diag(self):
         return self.base.R_diag()
@@ -293,17 +293,8 @@ class IntegrityScenario:
 
     def trajectory(self, t_rel_s):
         """True ECEF position and velocity (..., 3): a great circle at constant speed."""
-        lat, lon = math.radians(self.lat_deg), math.radians(self.lon_deg)
-        p0 = geodesy.geodetic_to_ecef(lat, lon, self.h_m)
-        r0 = float(np.linalg.norm(p0))
-        u = p0 / r0
-        R = geodesy.enu_rotation(lat, lon)
-        hd = math.radians(self.heading_deg)
-        d = math.sin(hd) * R[0] + math.cos(hd) * R[1]
-        w = d - (d @ u) * u
-        w /= np.linalg.norm(w)
-        th = np.asarray(t_rel_s, dtype=float)[..., None] * (self.speed_m_s / r0)
-        return r0 * (np.cos(th) * u + np.sin(th) * w), self.speed_m_s * (-np.sin(th) * u + np.cos(th) * w)
+        return geodesy.great_circle_track(self.lat_deg, self.lon_deg, self.h_m, self.speed_m_s, self.heading_deg,
+                                          t_rel_s)
 
     def channel_sats(self) -> np.ndarray:
         """Constellation indices of the satellites above the mask all through the run (10 s grid)."""

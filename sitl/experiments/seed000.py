@@ -122,6 +122,7 @@ from filters.iono_tropo import (
     elevation_rad,
     iono_mapping,
 )
+from filters.models import JointMeasurement
 from sitl import geodesy
 from sitl.gnss import orbits
 from sitl.gnss.clock import ClockModel
@@ -277,19 +278,8 @@ class IonoTropoScenario:
     def trajectory(self, t_rel_s):
         """True ECEF position and velocity (..., 3) at t_rel_s: a great circle at constant
         speed on the geocentric sphere through the start point."""
-        lat, lon = math.radians(self.lat_deg), math.radians(self.lon_deg)
-        p0 = geodesy.geodetic_to_ecef(lat, lon, self.h_m)
-        r0 = float(np.linalg.norm(p0))
-        u = p0 / r0
-        R = geodesy.enu_rotation(lat, lon)
-        hd = math.radians(self.heading_deg)
-        d = math.sin(hd) * R[0] + math.cos(hd) * R[1]
-        w = d - (d @ u) * u
-        w /= np.linalg.norm(w)
-        th = np.asarray(t_rel_s, dtype=float)[..., None] * (self.speed_m_s / r0)
-        pos = r0 * (np.cos(th) * u + np.sin(th) * w)
-        vel = self.speed_m_s * (-np.sin(th) * u + np.cos(th) * w)
-        return pos, vel
+        return geodesy.great_circle_track(self.lat_deg, self.lon_deg, self.h_m, self.speed_m_s, self.heading_deg,
+                                          t_rel_s)
 
     def visible_counts(self, every_s: float = _CHECK_EVERY_S) -> np.ndarray:
         """Satellites above the mask (geodetic horizon, no light time) on a coarse grid."""
@@ -328,17 +318,7 @@ def _check_trials(trials):
     return int(trials)
 
 
-class _FromHandH:
-    """h and H of a measurement model that computes both at once (h_and_H)."""
-
-    def h(self, x):
-        return self.h_and_H(x)[0]
-
-    def H(self, x):
-        return self.h_and_H(x)[1]
-
-
-class _CmcIncrementModel(_FromHandH):
+class _CmcIncrementModel(JointMeasurement):
     """Seed 000 variant 2: the variant-1 model plus one code-minus-carrier increment row per
     satellite in ``rows`` (local indices into the base model's satellites).
 
@@ -377,7 +357,7 @@ class _CmcIncrementModel(_FromHandH):
         return np.concatenate([rb, re], axis=-1)
 
 
-class _CodeNoiseStateModel(_FromHandH):
+class _CodeNoiseStateModel(JointMeasurement):
     """Seed 000 variant 2 with the code noise at the window start as states (cmc_noise="states").
 
     x = [11 base states, e_1 .. e_M]: e_i is the code noise eps_D of one satellite at the
