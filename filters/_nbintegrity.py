@@ -111,10 +111,10 @@ def monitor_epoch(z, hx, H, P, r_nom, r_est, old_sq, old_b, sum_sq, sum_b, jump_
             jr = jump_run[t, c] + 1 if jump_ch[c] else 0
             jr2[t, c] = jr
             fault = drift_ch[c] or jr >= persist
-            clean = not (jump_ch[c] or drift_ch[c])
+            ex = excluded[t, c]
+            clean = not (jump_ch[c] or (drift_ch[c] and not ex))  # out: window tests do not apply
             cr = clean_run[t, c] + 1 if clean else 0
             cr2[t, c] = cr
-            ex = excluded[t, c]
             newly[t, c] = fault and not ex
             if isolate:
                 rd = ex and cr >= readmit_after

@@ -22,8 +22,13 @@ Isolation is per *channel*, a group of rows (a satellite's pseudorange and rate,
 range and Doppler, one radar axis), given by ``channels`` (m,) ints:
 * a row failing the jump test is not used this epoch (its channel's other rows still are);
 * a channel with a drift alarm, or with jumps on ``persist`` consecutive epochs (a step that
-  stays), is excluded until it passes every test for ``readmit_after`` consecutive epochs;
-  its innovations are still computed (against the prior) while it is out.
+  stays), is excluded until it shows no jump for ``readmit_after`` consecutive epochs; its
+  innovations are still computed (against the prior) while it is out. The window tests do
+  not judge an excluded channel: while it is out the filter does not track its slow errors
+  (bias states, correlated noise), so its innovations are not white and the window sums
+  would keep alarming on a healthy channel (a cascade seen on fault-free runs). A
+  readmitted channel starts a fresh window of healthy values, so a fault that is still
+  there trips the window tests again within their detection delay.
 Excluded rows are made inert (H row = 0, nu = 0: no information and no NIS) -- per batch
 member, so each trial or vehicle isolates its own channels.
 Robust update (Huber-type M-estimation): admitted rows with |beta_j| > ``huber_c`` get the
@@ -301,6 +306,13 @@ class IntegrityMonitor:
         ring = state.ring[:pos] + (new_sq,) + state.ring[pos + 1:]
         ring_b = state.ring_b[:pos] + (new_b,) + state.ring_b[pos + 1:]
         steps = state.steps + 1
+        fresh = readmit[..., ch] if cfg.isolate else None  # (..., m) rows of readmitted channels
+        if fresh is not None and fresh.any():
+            # a readmitted channel starts a fresh window of healthy values (beta^2 = 1, beta = 0)
+            ring = tuple(np.where(fresh, 1.0, r) for r in ring)
+            ring_b = tuple(np.where(fresh, 0.0, r) for r in ring_b)
+            sum_sq = np.where(fresh, float(W), sum_sq)
+            sum_b = np.where(fresh, 0.0, sum_b)
         if steps % RESUM == 0:  # the running sums, exactly again (rounding does not pile up)
             sum_sq = np.add.reduce(np.stack(ring), axis=0)
             sum_b = np.add.reduce(np.stack(ring_b), axis=0)
@@ -342,9 +354,9 @@ class IntegrityMonitor:
         drift_ch = any_ch(drift)
         jump_run = np.where(jump_ch, state.jump_run + 1, 0)
         fault_ch = drift_ch | (jump_run >= cfg.persist)
-        clean = ~(jump_ch | drift_ch)
-        clean_run = np.where(clean, state.clean_run + 1, 0)
         excluded = state.excluded
+        clean = ~(jump_ch | (drift_ch & ~excluded))  # out: the window tests do not apply
+        clean_run = np.where(clean, state.clean_run + 1, 0)
         newly = fault_ch & ~excluded
         if cfg.isolate:
             readmit = excluded & (clean_run >= cfg.readmit_after)
