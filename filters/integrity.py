@@ -141,6 +141,8 @@ class MonitorState(NamedTuple):
     clean_run: np.ndarray  # (..., C) consecutive clean epochs (for readmission)
     r_est: np.ndarray  # (..., m) innovation-based R estimate (NaN until the first sample)
     steps: int = 0  # epochs processed (the running sums are recomputed exactly every RESUM epochs)
+    stale: np.ndarray | None = None  # (..., m) how many of the oldest ring slots (from ``pos``) count as
+    #                                  healthy values: a readmitted channel's fresh window (None: none)
 
 
 RESUM = 4096  # epochs between exact recomputations of the running window sums
@@ -269,6 +271,9 @@ class IntegrityMonitor:
         batch = z.shape[:-1]
         n = x.shape[-1]
         old_sq, old_b = state.ring[state.pos], state.ring_b[state.pos]
+        if state.stale is not None:  # slots of a fresh window leave as the healthy values they stand for
+            gone = state.stale > 0
+            old_sq, old_b = np.where(gone, 1.0, old_sq), np.where(gone, 0.0, old_b)
         if _use_kernel(update_kw.get("backend")):
             from . import _nbintegrity
 
@@ -306,18 +311,26 @@ class IntegrityMonitor:
         ring = state.ring[:pos] + (new_sq,) + state.ring[pos + 1:]
         ring_b = state.ring_b[:pos] + (new_b,) + state.ring_b[pos + 1:]
         steps = state.steps + 1
+        stale = None if state.stale is None else np.maximum(state.stale - 1, 0)
         fresh = readmit[..., ch] if cfg.isolate else None  # (..., m) rows of readmitted channels
         if fresh is not None and fresh.any():
-            # a readmitted channel starts a fresh window of healthy values (beta^2 = 1, beta = 0)
-            ring = tuple(np.where(fresh, 1.0, r) for r in ring)
-            ring_b = tuple(np.where(fresh, 0.0, r) for r in ring_b)
+            # a readmitted channel starts a fresh window of healthy values (beta^2 = 1, beta = 0): its
+            # sums are reset and its W ring slots are marked stale (no copy of the ring)
             sum_sq = np.where(fresh, float(W), sum_sq)
             sum_b = np.where(fresh, 0.0, sum_b)
+            stale = np.where(fresh, W, 0 if stale is None else stale)
+        if stale is not None and not stale.any():
+            stale = None
         if steps % RESUM == 0:  # the running sums, exactly again (rounding does not pile up)
-            sum_sq = np.add.reduce(np.stack(ring), axis=0)
-            sum_b = np.add.reduce(np.stack(ring_b), axis=0)
+            rs, rb = np.stack(ring), np.stack(ring_b)
+            if stale is not None:  # slot i is stale when it leaves within the next ``stale`` epochs
+                rel = (np.arange(W) - (pos + 1)) % W
+                old = rel.reshape((W,) + (1,) * stale.ndim) < stale
+                rs, rb = np.where(old, 1.0, rs), np.where(old, 0.0, rb)
+            sum_sq = np.add.reduce(rs, axis=0)
+            sum_b = np.add.reduce(rb, axis=0)
         new_state = MonitorState(ring, ring_b, sum_sq, sum_b, (pos + 1) % W, count, jump_run, excluded, clean_run,
-                                 r_est, steps)
+                                 r_est, steps, stale)
         report = Report(beta, jump, drift_stat, bias_stat, drift, ~inert, w, excluded, newly, readmit)
         return res, new_state, report
 
