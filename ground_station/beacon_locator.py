@@ -77,6 +77,30 @@ ones -- treated as white with kappa = 1 the filter is over-confident by that fac
 223 (three satellites) and 5e4 (GPS constellation) at kappa = 1, 4.5 and 3.2 at kappa = 101).  ``uav_error_corr_s``
 = 0 gives the plain consider term R + J P J'.
 
+kappa = 1 + 2 tau / dt assumes the filter averages over much longer than tau.  On the printed
+geometry (a prior start, the beacon among the UAVs) its memory is short and the filter is
+over-cautious (ANEES 0.57 against the band 1.78-4.60, 20 trials).  A kappa from the filter's
+own memory along each measured direction (retention = posterior / predicted variance of H x)
+was tried and is not enough: the Doppler rows have a one-epoch memory (kappa ~1) but their
+correlated errors enter the position through the dynamics, and on the geodetic geometry the
+km-wide weak direction is built from many epochs while the radial one has a short memory
+(measured: 1 of 20 printed trials lost, geodetic ANEES 124 / 2131 against 9 / 112).
+``observer_uncertainty="consider"`` (opt-in) does it exactly for a Gauss-Markov model of the
+UAVs' errors: they are Schmidt states (correlation times ``uav_error_corr_s`` for position,
+``uav_vel_error_corr_s`` for velocity, covariance P_i from each message), the filter carries
+their cross-covariance with its state per UAV (:func:`_consider_step`; fixed observer slots
+per UAV id), so each direction of the state has its own memory.  With both times 0 it equals
+"inflate" with kappa = 1 (test).  Measured on the printed run (seed 1, 20 trials, tau 50 /
+50 s): ANEES 2.60 (three satellites) and 2.61 (constellation) on the trials that converge, but
+1-2 of 20 lock onto the reflection through the three UAVs' plane in the first ~20 s (as with
+kappa = 1; kappa = 101 is sluggish enough there to keep the prior's velocity), and on the
+geodetic geometry (5 trials) ANEES 24 / 114 against inflate's 9 / 112.  Hence not the
+default.  The UAVs' errors are not first-order Gauss-Markov (printed run, constellation:
+range-projected position error rho 0.93 at 10 s, 0.66 at 50 s, 0.39 at 100 s; Doppler-
+projected velocity error rho 0.4 at 1 s then ~0.1 up to 50 s); correlation times far from
+the UAVs' own filters' behaviour (tau_v = 1 s) can make the joint covariance inconsistent
+with the P_i the UAVs send and the update lose positive definiteness.
+
 Each observer's 2x2 R block is whitened by its Cholesky factor and the update runs as a
 scalar sequential Joseph update (``filters.kernels.joseph_update``) batched over trials;
 absent or rejected observers have zero rows (gain exactly 0), so every trial may have its
@@ -230,8 +254,11 @@ class LocatorConfig:
     """Settings of the beacon locator (module docstring).
 
     q_m2_s3: acceleration PSD of the beacon's constant-velocity model, m^2/s^3.
-    observer_uncertainty: "inflate" (R + kappa J P_i J') or "ignore" (R only).
-    uav_error_corr_s: correlation time tau of the UAVs' navigation errors; kappa = 1 + 2 tau / dt.
+    observer_uncertainty: "inflate" (R + kappa J P_i J'), "ignore" (R only) or "consider" (the
+        UAVs' errors as Schmidt states, motion "cv" only; module docstring).
+    uav_error_corr_s: correlation time tau of the UAVs' navigation errors; kappa = 1 + 2 tau / dt
+        ("consider": of their position errors).
+    uav_vel_error_corr_s: "consider" only: correlation time of the UAVs' velocity errors.
     motion: "cv" (the cylindrical [B, V_B] filter) or "position" (the seed's position-only filter).
     init_epochs: epochs with >= 3 observers accumulated before the first estimate.
     init_height_sigma_m: prior sigma of the beacon's height about the UAVs' mean height, m
@@ -266,6 +293,7 @@ class LocatorConfig:
     q_m2_s3: float = 1.0
     observer_uncertainty: str = "inflate"
     uav_error_corr_s: float = 50.0
+    uav_vel_error_corr_s: float = 50.0
     motion: str = "cv"
     init_epochs: int = 3
     init_height_sigma_m: float = 5000.0
@@ -290,8 +318,11 @@ class LocatorConfig:
 
     def __post_init__(self):
         _nonneg("q_m2_s3", self.q_m2_s3)
-        if self.observer_uncertainty not in OBSERVER_UNCERTAINTY:
-            raise ValueError(f"observer_uncertainty must be one of {OBSERVER_UNCERTAINTY}, "
+        _nonneg("uav_vel_error_corr_s", self.uav_vel_error_corr_s)
+        if self.observer_uncertainty == "consider" and self.motion != "cv":
+            raise ValueError('observer_uncertainty="consider" needs motion="cv"')
+        if self.observer_uncertainty not in OBSERVER_UNCERTAINTY + ("consider",):
+            raise ValueError(f"observer_uncertainty must be one of {OBSERVER_UNCERTAINTY + ('consider',)}, "
                              f"got {self.observer_uncertainty!r}")
         if self.motion not in MOTIONS:
             raise ValueError(f"motion must be one of {MOTIONS}, got {self.motion!r}")
@@ -341,7 +372,7 @@ class LocatorConfig:
 
     def kappa(self, dt_s: float) -> float:
         """Inflation of the UAVs' covariance for their errors' time correlation."""
-        if self.observer_uncertainty != "inflate":
+        if self.observer_uncertainty not in ("inflate", "consider"):
             return 0.0
         return 1.0 + 2.0 * float(self.uav_error_corr_s) / (dt_s if dt_s > 0 else 1.0)
 
@@ -656,7 +687,8 @@ def ut_to_ecef(y, P, fr: Frame):
 # --------------------------------------------------------------------------- filter steps
 
 
-def cyl_step(y, P, fr: Frame, obs: ObserverEpoch, config: LocatorConfig, dt_s: float, loglik: bool = False):
+def cyl_step(y, P, fr: Frame, obs: ObserverEpoch, config: LocatorConfig, dt_s: float, loglik: bool = False,
+             C=None):
     """One predict (over dt_s, skipped when 0) + update of the cylindrical filter, batched.
 
     y (T, 6), P (T, 6, 6) in the frames ``fr``; obs with T rows.  Returns (y, P, frame,
@@ -675,6 +707,8 @@ def cyl_step(y, P, fr: Frame, obs: ObserverEpoch, config: LocatorConfig, dt_s: f
         F = Gi @ F6 @ G
         P = F @ P @ np.swapaxes(F, -1, -2) + Gi @ Q @ np.swapaxes(Gi, -1, -2)
         P = 0.5 * (P + np.swapaxes(P, -1, -2))
+    if config.observer_uncertainty == "consider":
+        return _consider_step(y, P, C, fr, xp, Gi @ F6 @ G if dt_s > 0 else None, obs, config, dt_s, loglik)
     obs = _fill_absent(obs, xp)
     T, N = obs.mask.shape
     kappa = config.kappa(dt_s)
@@ -708,6 +742,107 @@ def cyl_step(y, P, fr: Frame, obs: ObserverEpoch, config: LocatorConfig, dt_s: f
             yi = it[0]
         out = (it[0], it[1], it[2], it[3], obs.mask & ~it[3], out[5])
     return out + (fr,)
+
+
+def _consider_step(y, P, C, fr, xp, F, obs, config, dt_s, loglik):
+    """observer_uncertainty="consider": the UAVs' navigation errors eps_i = U_i - U^_i as
+    Schmidt (consider) states, first-order Gauss-Markov with correlation times
+    uav_error_corr_s (position) and uav_vel_error_corr_s (velocity), covariance P_i (the
+    UAV's own, sent with each message).  The filter carries C_i = Cov(state error, eps_i)
+    (T, N, n, 6) per observer slot: predicted C_i <- F C_i A (A = diag(rho_p, rho_v)), the
+    update is one batched update of the epoch's 2N rows with S = H P H' + H X + X' H' +
+    blockdiag(J_i P_i J_i' + R_i), X_i = C_i J_i' (J_i = d z_i / d U_i = -H_i in ECEF),
+    gain K = (P H' + X) S^-1, P -= K S K', C_i -= K (H C_i + E_i J_i P_i): the memory of
+    the UAVs' errors in each direction of the state is the filter's own (no kappa).
+    Returns (y, P, nis, used, gated, m2ll, frame, C)."""
+    T = y.shape[0]
+    n = y.shape[-1]
+    obs = _fill_absent(obs, xp)
+    N = obs.mask.shape[1]
+    if C is None or C.shape[1] != N:
+        C0 = np.zeros((T, N, n, 6))
+        if C is not None:
+            C0[:, :C.shape[1]] = C[:, :N]
+        C = C0
+    if F is not None:
+        tp, tv = float(config.uav_error_corr_s), float(config.uav_vel_error_corr_s)
+        rp = math.exp(-dt_s / tp) if tp > 0 else 0.0
+        rv = math.exp(-dt_s / tv) if tv > 0 else 0.0
+        A = np.array([rp] * 3 + [rv] * 3)
+        C = np.einsum("tij,tnjb->tnib", F, C) * A
+    zhat, He, R0 = range_doppler_blocks(xp, obs, 0.0)
+    _, G2 = cyl_to_ecef(y, fr, jacobian=True)
+    if config.second_order_r:
+        var_r2, var_v2 = second_order_var(xp, obs.pos, obs.vel, (G2 @ P @ np.swapaxes(G2, -1, -2))[:, None, 0:3, 0:3]
+                                          + obs.cov[..., 0:3, 0:3])
+        R0[..., 0, 0] += var_r2
+        R0[..., 1, 1] += var_v2
+    z = np.stack([obs.range_m, obs.range_rate_m_s], axis=-1)
+    Hy = He @ G2[:, None]
+    J = -He  # d z / d U_i (wrt UAV i's [U, V])
+    out = _consider_update(y, P, C, z - zhat, Hy, J, obs.cov, R0, obs.mask, config, loglik, None)
+    if config.update_iterations > 1:
+        used0, yi = out[3], out[0]
+        for _ in range(int(config.update_iterations) - 1):
+            xi, Gi_ = cyl_to_ecef(yi, fr, jacobian=True)
+            zh, Hi, _ = range_doppler_blocks(xi, obs, 0.0)
+            Hyi = Hi @ Gi_[:, None]
+            nui = z - zh - np.einsum("tnai,ti->tna", Hyi, y - yi)
+            it = _consider_update(y, P, C, nui, Hyi, -Hi, obs.cov, R0, obs.mask, config, False, used0)
+            yi = it[0]
+        out = (it[0], it[1], it[2], it[3], obs.mask & ~it[3], out[5], it[6])
+    y1, P1, nis, used, gated, m2ll, C1 = out
+    return y1, P1, nis, used, gated, m2ll, fr, C1
+
+
+def _consider_update(y, P, C, nu, Hy, J, Pe, R0, mask, config, loglik, used_fixed=None):
+    """The batched Schmidt update of _consider_step; returns (y, P, nis, used, gated, m2ll, C)."""
+    T, N = mask.shape
+    n = y.shape[-1]
+    m = 2 * N
+    X = np.einsum("tnia,tnba->tinb", C, J).reshape(T, n, m)  # C_i J_i'
+    Hs = Hy.reshape(T, m, n)
+    D = np.einsum("tnai,tnij,tnbj->tnab", J, Pe, J) + R0
+    S = Hs @ P @ np.swapaxes(Hs, -1, -2) + Hs @ X
+    S = np.ascontiguousarray(S + np.swapaxes(Hs @ X, -1, -2))
+    idx = np.arange(N)
+    Sb = S.reshape(T, N, 2, N, 2)
+    Sb[:, idx, :, idx, :] += np.moveaxis(D, 1, 0)
+    Sjj = Sb[:, idx, :, idx, :]  # (N, T, 2, 2)
+    Sjj = np.moveaxis(Sjj, 0, 1)
+    s11, s21, s22 = _chol2(Sjj)
+    w = _solve2(s11, s21, s22, nu[..., None])[..., 0]
+    d = np.sum(w * w, axis=-1)
+    if used_fixed is None:
+        gated = mask & ~(d <= config.gate_chi2)
+        used = mask & ~gated
+    else:
+        used = used_fixed
+        gated = mask & ~used
+    m2ll = None
+    if loglik:
+        um = np.repeat(mask, 2, axis=1).astype(float)
+        Sm = S * um[:, :, None] * um[:, None, :] + np.eye(m) * (1.0 - um)[:, None, :]
+        num = nu.reshape(T, m) * um
+        L = np.linalg.cholesky(Sm)
+        wv = np.linalg.solve(L, num[..., None])[..., 0]
+        m2ll = np.sum(wv * wv, axis=-1) + 2.0 * np.sum(np.log(np.diagonal(L, axis1=-2, axis2=-1)), axis=-1)
+    u = np.repeat(used, 2, axis=1).astype(float)
+    Su = S * u[:, :, None] * u[:, None, :] + np.eye(m) * (1.0 - u)[:, None, :]
+    M = (P @ np.swapaxes(Hs, -1, -2) + X) * u[:, None, :]
+    nuu = nu.reshape(T, m) * u
+    Si_nu = np.linalg.solve(Su, nuu[..., None])[..., 0]
+    K = np.swapaxes(np.linalg.solve(Su, np.swapaxes(M, -1, -2)), -1, -2)  # M S^-1 (S symmetric)
+    y1 = y + np.einsum("tij,tj->ti", M, Si_nu)
+    P1 = P - K @ np.swapaxes(M, -1, -2)
+    P1 = 0.5 * (P1 + np.swapaxes(P1, -1, -2))
+    # Cov(nu, eps_i) (T, N, m, 6): H C_i, plus J_i P_i in observer i's own rows; used rows only
+    G = np.ascontiguousarray(np.einsum("tmk,tnkb->tnmb", Hs * u[..., None], C))
+    Gb = G.reshape(T, N, N, 2, 6)
+    Gb[:, idx, idx] += np.einsum("tnai,tnib->tnab", J, Pe) * used[..., None, None]
+    C1 = C - np.einsum("tkm,tnmb->tnkb", K, G)
+    nis = np.where(used.any(axis=-1), np.sum(nuu * Si_nu, axis=-1), np.nan)
+    return y1, P1, nis, used, gated, m2ll, C1
 
 
 def _update(y, P, nu, H, R, mask, config, loglik, R_score=None):
@@ -986,6 +1121,12 @@ class BeaconLocator:
         self.alt_vel = np.zeros((T, 3))
         self.score = np.zeros(T)
         self.alt_score = np.zeros(T)
+        # observer_uncertainty="consider": Cov(state error, UAV i's error) per observer slot;
+        # slots are fixed per UAV id (_collect), so that slot i is always the same UAV
+        self.C = np.zeros((T, 0, n, 6))
+        self.alt_C = np.zeros((T, 0, n, 6))
+        self._C_out = None
+        self._slot: dict = {}
         self.resolve_at = np.full(T, np.inf)
         self._window: list[list] = [[] for _ in range(T)]
         self._pending: list[dict] = [dict() for _ in range(T)]  # per trial {(uav, t): msg}
@@ -1054,10 +1195,16 @@ class BeaconLocator:
             self._pending[k] = keep
             now.sort(key=lambda a: a[0])
             per.append(now)
-        N = max(1, max(len(p) for p in per))
+        consider = self.config.observer_uncertainty == "consider"
+        if consider:  # one fixed slot per UAV id (the consider states follow the UAV)
+            for now in per:
+                for uid, _ in now:
+                    self._slot.setdefault(uid, len(self._slot))
+        N = max(1, len(self._slot) if consider else max(len(p) for p in per))
         obs = ObserverEpoch.empty(self.n_trials, N)
         for k, now in enumerate(per):
-            for i, (_, m) in enumerate(now):
+            for j, (uid, m) in enumerate(now):
+                i = self._slot[uid] if consider else j
                 obs.pos[k, i] = m.uav_pos_ecef_m
                 obs.vel[k, i] = m.uav_vel_ecef_m_s
                 obs.cov[k, i] = m.uav_cov
@@ -1077,11 +1224,15 @@ class BeaconLocator:
             self.publish()
         return self
 
-    def _filter(self, y, P, fr, obs, dt, loglik):
-        """One filter step on stacked rows; returns (y, P, frame, nis, used, gated, m2ll, V)."""
+    def _filter(self, y, P, fr, obs, dt, loglik, C=None):
+        """One filter step on stacked rows; returns (y, P, frame, nis, used, gated, m2ll, V)
+        (and sets self._C_out: the consider cross-covariances, "consider" only)."""
         c = self.config
         if c.motion == "cv":
-            y, P, nis, used, gated, m2ll, fr = cyl_step(y, P, fr, obs, c, dt, loglik)
+            if c.observer_uncertainty == "consider":
+                y, P, nis, used, gated, m2ll, fr, self._C_out = cyl_step(y, P, fr, obs, c, dt, loglik, C)
+            else:
+                y, P, nis, used, gated, m2ll, fr = cyl_step(y, P, fr, obs, c, dt, loglik)
             return y, P, fr, nis, used, gated, m2ll, None
         y, P, nis, used, gated, m2ll, V, CV = position_only_step(y, P, obs, c, dt, loglik)
         return y, P, fr, nis, used, gated, m2ll, (V, CV)
@@ -1111,15 +1262,20 @@ class BeaconLocator:
                 sub = obs
                 y0, P0 = self.y.copy(), self.P.copy()
                 fr0 = Frame(*(u.copy() for u in self.frame))
+                C0 = self._grow_C(obs.mask.shape[1])[0]
             else:
                 rows = np.concatenate([on, alt])
                 sub = obs.take(rows)
                 y0 = np.concatenate([self.y[on], self.alt_y[alt]])
                 P0 = np.concatenate([self.P[on], self.alt_P[alt]])
                 fr0 = Frame(*(np.concatenate([u[on], v[alt]]) for u, v in zip(self.frame, self.alt_frame)))
-            y, P, fr, nis, used, gated, m2ll, vel = self._filter(y0, P0, fr0, sub, dt, alt.size > 0)
+                Cm, Ca = self._grow_C(obs.mask.shape[1])
+                C0 = np.concatenate([Cm[on], Ca[alt]])
+            y, P, fr, nis, used, gated, m2ll, vel = self._filter(y0, P0, fr0, sub, dt, alt.size > 0, C0)
             self.y[on], self.P[on], self.nis[on] = y[:n], P[:n], nis[:n]
             self.alt_y[alt], self.alt_P[alt] = y[n:], P[n:]
+            if c.observer_uncertainty == "consider":
+                self.C[on], self.alt_C[alt] = self._C_out[:n], self._C_out[n:]
             for full, part, fa in zip(self.frame, fr, self.alt_frame):
                 full[on] = part[:n]
                 fa[alt] = part[n:]
@@ -1149,6 +1305,7 @@ class BeaconLocator:
                 self.alt_active[k] = False
                 if self.alt_score[k] < self.score[k]:
                     self.y[k], self.P[k] = self.alt_y[k], self.alt_P[k]
+                    self.C[k] = self.alt_C[k]
                     for full, fa in zip(self.frame, self.alt_frame):
                         full[k] = fa[k]
                     self.vel_doppler[k] = self.alt_vel[k]
@@ -1163,6 +1320,18 @@ class BeaconLocator:
                 self._initialise(k, init_fix(self._window[k], c), t)
         self.t_gps_s = t
         return self
+
+    def _grow_C(self, N: int):
+        """The consider cross-covariances (T, N, n, 6) of the tracks and of the mirror hypotheses,
+        grown to N observer slots (zeros for new ones)."""
+        if self.C.shape[1] < N:
+            T, n = self.y.shape
+            for name in ("C", "alt_C"):
+                old = getattr(self, name)
+                new = np.zeros((T, N, n, 6))
+                new[:, :old.shape[1]] = old
+                setattr(self, name, new)
+        return self.C[:, :N], self.alt_C[:, :N]
 
     def _to_state(self, x, P, ob: ObserverEpoch):
         """ECEF (x (6,), P (6, 6)) -> (state, covariance, frame) of this locator's model."""
@@ -1198,6 +1367,8 @@ class BeaconLocator:
         self.vel_doppler_cov[k] = fix.P[3:6, 3:6]
         self.mode[k] = "fused"
         self.coast_s[k] = 0.0
+        self.C[k] = 0.0
+        self.alt_C[k] = 0.0
         self.counters["initialised"] += 1
         d = fix.mirror_x[0:3] - fix.x[0:3]
         if c.init_resolve_s > 0 and d @ np.linalg.solve(fix.P[0:3, 0:3], d) > 9.0:

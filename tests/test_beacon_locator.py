@@ -523,3 +523,29 @@ def test_printed_sweep_trials_that_diverged_with_one_linearisation():
         E.PRIOR_UPDATE_ITERATIONS = saved
     err1 = np.linalg.norm(res["x"]["inflate"][-1, :, 0:3] - res["truth"][-1, :, 0:3], axis=-1)
     assert err1[2] > 300.0, err1
+
+
+def test_consider_states_white_limit_equals_inflate_and_correlation_widens():
+    """observer_uncertainty="consider" (the UAVs' errors as Schmidt states): with zero
+    correlation times it is the white consider term (inflate with kappa = 1) -- the same
+    estimates and covariances up to rounding (one batched update against the sequential
+    scalar one); with correlated errors (50 s) the filter carries Cov(state, UAV errors) and
+    its covariance is wider than the white one's."""
+    K, T = 60, 4
+    scene = _scene(K)
+    t, B, VB = scene[0], scene[1], scene[2]
+    eps = _epochs(np.random.default_rng(5), scene, T)
+    x0 = np.concatenate([B[0], VB[0]]) + np.array([30.0, -20.0, 10.0, 1.0, -1.0, 0.5])
+    xw, Pw, _ = _run(_prior_config(x0, uav_error_corr_s=0.0), eps, t, T)
+    xc, Pc, _ = _run(_prior_config(x0, observer_uncertainty="consider", uav_error_corr_s=0.0,
+                                   uav_vel_error_corr_s=0.0), eps, t, T)
+    assert np.allclose(xc, xw, rtol=0, atol=1e-6)
+    assert np.allclose(Pc, Pw, rtol=1e-6, atol=1e-9)
+    x5, P5, loc = _run(_prior_config(x0, observer_uncertainty="consider", uav_error_corr_s=50.0,
+                                     uav_vel_error_corr_s=50.0), eps, t, T)
+    assert np.abs(loc.C).max() > 0
+    tr5 = np.trace(P5[-1, :, 0:3, 0:3], axis1=-2, axis2=-1)
+    trw = np.trace(Pw[-1, :, 0:3, 0:3], axis1=-2, axis2=-1)
+    assert np.all(tr5 > 1.5 * trw), (tr5, trw)
+    with pytest.raises(ValueError, match="consider"):
+        LocatorConfig(observer_uncertainty="consider", motion="position")
