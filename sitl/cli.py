@@ -265,6 +265,9 @@ def _add_integrity_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--huber-c", type=positive_float, default=None, metavar="X", help="Huber threshold on |beta|")
     p.add_argument("--outlier-prob", type=nonnegative_float, default=None, metavar="P",
                    help="outlier probability per pseudorange-epoch (default 0.002)")
+    p.add_argument("--ramp-kind", choices=("code", "clock"), default=None,
+                   help="code: the pseudorange alone drifts (no Doppler trace; default); clock: a satellite clock "
+                        "frequency fault, the pseudorange rate carries the ramp's rate too")
     p.add_argument("--no-faults", action="store_true", help="the same world with no faults injected")
     p.add_argument("--backend", choices=("auto", "numba", "numpy"), default="auto", help="filter kernels")
     p.add_argument("--quiet", action="store_true", help="no progress lines")

@@ -81,6 +81,7 @@ def test_same_seed_same_numbers(tiny_run, tmp_path):
     (["--window-alpha", "2"], "--window-alpha"),
     (["--outlier-prob", "1.5"], "--outlier-prob"),
     (["--backend", "gpu"], "invalid choice"),
+    (["--ramp-kind", "slow"], "invalid choice"),
 ])
 def test_usage_errors_exit_2_with_one_line(extra, needle, tmp_path, capsys):
     out = tmp_path / "never"
@@ -129,3 +130,22 @@ def test_bench_bad_flags_exit_2(extra, needle, capsys):
     assert main(["bench", "integrity", *extra]) == 2
     err = capsys.readouterr().err
     assert needle in err and len(err.strip().splitlines()) == 1
+
+
+def test_a_clock_ramp_also_shows_in_the_pseudorange_rate():
+    """ramp_kind="clock": a satellite clock frequency fault, so the ramp's channel gets the rate as a
+    step on its pseudorange-rate column, from the same onset; "code" leaves the rate alone."""
+    rng_kw = {"trials": 6, "S": 8}
+    for kind in ("code", "clock"):
+        scn = ex.IntegrityScenario(duration_s=150.0, ramp_kind=kind)
+        faults, truth = ex._faults(scn, np.random.default_rng(5), **rng_kw)
+        ramps = [f for f in faults if f.kind == "ramp"]
+        rate_steps = [f for f in faults if f.kind == "step" and f.channel >= 8]
+        assert len(ramps) == 6
+        if kind == "code":
+            assert rate_steps == []
+        else:
+            assert [(f.channel - 8, f.t_start_s, f.magnitude, f.trial) for f in rate_steps] == \
+                [(r.channel, r.t_start_s, r.rate, r.trial) for r in ramps]
+    with pytest.raises(ValueError, match="ramp_kind"):
+        ex.IntegrityScenario(duration_s=150.0, ramp_kind="slow")

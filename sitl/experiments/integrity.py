@@ -107,6 +107,7 @@ DYNAMIC = tuple(range(N_BASE))
 # adaptive-robust filter's monitor is reported beside it (detection_by_filter)
 DETECTION_FILTER = "adaptive_robust_with_bias_estimation"
 FIGURES = ("integrity_roc.png", "integrity_position_error.png")
+RAMP_KINDS = ("code", "clock")
 K_STEP, K_RAMP, K_OUT, K_DROP = (FAULT_KINDS.index(k) + 1 for k in ("step", "ramp", "outlier", "dropout"))
 
 # scenario field -> command-line flag, to name the flag in a usage error
@@ -203,6 +204,9 @@ class IntegrityScenario:
     step_sigma: tuple = (5.0, 20.0)  # |step| / sigma_ref
     step_duration_s: tuple = (30.0, 120.0)
     ramp_rate_m_s: tuple = (0.5, 2.0)
+    # "code": the pseudorange alone drifts (code multipath / signal distortion: no Doppler trace);
+    # "clock": a satellite clock frequency fault, so the pseudorange rate carries the rate too
+    ramp_kind: str = "code"
     outlier_prob: float = 0.002
     outlier_dof: float = 2.0
     dropout_s: tuple = (1.0, 5.0)
@@ -245,6 +249,8 @@ class IntegrityScenario:
             object.__setattr__(self, name, _range(name, getattr(self, name), lo))
         if self.step_duration_s[0] <= 0 or self.dropout_s[0] <= 0:
             raise ValueError("step_duration_s and dropout_s must be > 0")
+        if self.ramp_kind not in RAMP_KINDS:
+            raise ValueError(f"ramp_kind must be one of {', '.join(RAMP_KINDS)}, got {self.ramp_kind!r}")
         if not 0.0 <= self.outlier_prob <= 1.0:
             raise ValueError(f"outlier_prob must be in [0, 1], got {self.outlier_prob!r}")
         if not 0.0 < self.onset_max_frac <= 1.0:
@@ -345,6 +351,9 @@ def _faults(scn: IntegrityScenario, rng, trials: int, S: int):
         faults.append(Fault("step", int(step_ch[i]), float(step_t0[i]), float(step_t0[i] + step_len[i]),
                             magnitude=float(step_mag[i]), trial=i))
         faults.append(Fault("ramp", int(ramp_ch[i]), float(ramp_t0[i]), rate=float(ramp_rate[i]), trial=i))
+        if scn.ramp_kind == "clock":  # the clock's frequency error shows in the pseudorange rate
+            faults.append(Fault("step", S + int(ramp_ch[i]), float(ramp_t0[i]), magnitude=float(ramp_rate[i]),
+                                trial=i))
     for c in range(S):
         if scn.outlier_prob > 0:
             faults.append(Fault("outlier", c, 0.0, prob=scn.outlier_prob, scale=scn.sigma_pr_m,
@@ -826,7 +835,7 @@ def scenario_from_args(args) -> IntegrityScenario:
     for flag, field in (("sigma_pr", "sigma_pr_m"), ("sigma_prr", "sigma_prr_m_s"), ("el_mask_deg", "el_mask_deg"),
                         ("gm_sigma", "gm_sigma_m"), ("gm_tau", "gm_tau_s"), ("jump_sigma", "jump_sigma"),
                         ("window", "window"), ("window_alpha", "window_alpha"), ("bias_alpha", "bias_alpha"),
-                        ("huber_c", "huber_c"), ("outlier_prob", "outlier_prob")):
+                        ("huber_c", "huber_c"), ("outlier_prob", "outlier_prob"), ("ramp_kind", "ramp_kind")):
         v = getattr(args, flag, None)
         if v is not None:
             kw[field] = v
