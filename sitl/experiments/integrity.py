@@ -86,7 +86,7 @@ from sitl.experiments._common import prepare_out, progress_printer, save_figure,
 from sitl.gnss import orbits
 from sitl.gnss.clock import ClockModel
 from sitl.gnss.receiver import Receiver, ReceiverConfig
-from sitl.gnss.world import ephemeris_for_filter, geometry_track
+from sitl.gnss.world import elevation_grid, ephemeris_for_filter, geometry_track
 from sitl.measfault import FAULT_KINDS, Fault, FaultInjector, GaussMarkov
 
 __all__ = ["IntegrityScenario", "run", "FILTERS", "MIN_CHANNELS", "main"]
@@ -310,14 +310,9 @@ class IntegrityScenario:
         """Constellation indices of the satellites above the mask all through the run (10 s grid)."""
         t = np.unique(np.append(np.arange(0.0, self.duration_s, 10.0), self.duration_s))
         pos, _ = self.trajectory(t)
-        const = self.constellation()
-        ok = np.ones(len(const), dtype=bool)
-        mask = math.radians(self.el_mask_deg)
-        for i, ti in enumerate(t):
-            sp, _ = orbits.sat_state_ecef(const, self.t0_gps_s + ti)
-            _, el, _ = geodesy.ecef_to_aer(pos[i], sp)
-            ok &= el >= mask + math.radians(0.5)  # a margin: the receiver masks on the light-time geometry
-        return np.flatnonzero(ok)
+        el = elevation_grid(self.constellation(), self.t0_gps_s + t, pos)
+        # a margin: the receiver masks on the light-time geometry
+        return np.flatnonzero(np.all(el >= math.radians(self.el_mask_deg) + math.radians(0.5), axis=0))
 
     # ------------------------------------------------------------------ filter models
     def transition(self, n_bias: int = 0):

@@ -127,7 +127,7 @@ from sitl import geodesy
 from sitl.gnss import orbits
 from sitl.gnss.clock import ClockModel
 from sitl.gnss.receiver import Receiver, ReceiverConfig
-from sitl.gnss.world import ephemeris_for_filter, geometry_track
+from sitl.gnss.world import elevation_grid, ephemeris_for_filter, geometry_track
 
 __all__ = ["MIN_SATS", "IonoTropoScenario", "run_carrier_phase", "run_cmc_increments", "run_code_doppler",
            "run_streamed"]
@@ -285,14 +285,8 @@ class IonoTropoScenario:
         """Satellites above the mask (geodetic horizon, no light time) on a coarse grid."""
         t = np.unique(np.append(np.arange(0.0, self.duration_s, every_s), self.duration_s))
         pos, _ = self.trajectory(t)
-        const = self.constellation()
-        out = np.empty(t.size, dtype=int)
-        mask = math.radians(self.el_mask_deg)
-        for i, ti in enumerate(t):
-            sp, _ = orbits.sat_state_ecef(const, self.t0_gps_s + ti)
-            _, el, _ = geodesy.ecef_to_aer(pos[i], sp)
-            out[i] = int(np.sum(el >= mask))
-        return out
+        el = elevation_grid(self.constellation(), self.t0_gps_s + t, pos)
+        return np.sum(el >= math.radians(self.el_mask_deg), axis=1)
 
     # ------------------------------------------------------------------ the filter
     def transition(self, n_amb: int = 0) -> IonoTropoTransition:

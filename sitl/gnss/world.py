@@ -50,6 +50,7 @@ from sitl.gnss.receiver import Observation, Receiver, ReceiverConfig
 
 __all__ = [
     "EpochGeometry",
+    "elevation_grid",
     "geometry_track",
     "look_angles",
     "observe",
@@ -113,6 +114,20 @@ def look_angles(rx_pos_ecef_m, geometry: Geometry, ell=None) -> tuple[np.ndarray
     rx = _vec3("rx_pos_ecef_m", rx_pos_ecef_m)
     az, el, _ = ecef_to_aer(rx[..., None, :], geometry.sat_pos_ecef_m, ell)
     return az, el
+
+
+def elevation_grid(constellation: Constellation, t_gps_s, rx_pos_ecef_m) -> np.ndarray:
+    """Geodetic elevation (T, S), rad, of every satellite at T epochs seen from rx_pos_ecef_m
+    (T, 3): instantaneous geometry, no light time -- for visibility checks on a coarse grid."""
+    from sitl.gnss import orbits
+
+    t = np.atleast_1d(np.asarray(t_gps_s, dtype=float))
+    rx = np.asarray(rx_pos_ecef_m, dtype=float).reshape(t.size, 3)
+    el = np.empty((t.size, len(constellation)))
+    for i, ti in enumerate(t):
+        sp, _ = orbits.sat_state_ecef(constellation, float(ti))
+        el[i] = ecef_to_aer(rx[i], sp)[1]
+    return el
 
 
 class EpochGeometry(NamedTuple):
