@@ -1,13 +1,14 @@
 """`skyfuse experiment iono-tropo` (seed 000): help, usage errors, result.json, figures, determinism."""
 from __future__ import annotations
 
-import json
 import subprocess
 import sys
 
 import numpy as np
 import pytest
 
+from outputs import is_png as _is_png
+from outputs import strict_json as _strict_json
 from sitl.cli import build_parser, main
 
 VARIANTS = ("code_doppler", "phase_increments", "carrier_phase")
@@ -15,18 +16,6 @@ FIGURES = ("iono_tropo_estimates.png", "iono_tropo_errors.png", "iono_tropo_time
 VARIANT_KEYS = ("time_to_1m_s", "time_to_1m_s_per_trial", "final_error_m", "final_bias_m", "anees",
                 "anees_bounds_99_one_epoch", "wall_s")
 SHORT = ["experiment", "iono-tropo", "--duration", "20", "--trials", "2", "--seed", "7", "--quiet"]
-
-
-def _strict_json(text: str):
-    def no_constants(name):
-        raise AssertionError(f"non-strict JSON constant {name}")
-
-    return json.loads(text, parse_constant=no_constants)
-
-
-def _is_png(path) -> bool:
-    data = path.read_bytes()
-    return len(data) > 1000 and data[:8] == b"\x89PNG\r\n\x1a\n"
 
 
 @pytest.fixture(scope="module")

@@ -2,27 +2,16 @@
 figures, usage errors, determinism, the monitor's harmlessness on fault-free data."""
 from __future__ import annotations
 
-import json
 
 import numpy as np
 import pytest
 
+from outputs import is_png as _is_png
+from outputs import strict_json as _strict_json
 from sitl.cli import main
 from sitl.experiments import integrity as ex
 
 SHORT = ["experiment", "integrity", "--duration", "100", "--trials", "4", "--seed", "5", "--quiet"]
-
-
-def _strict_json(text: str):
-    def no_constants(name):
-        raise AssertionError(f"non-strict JSON constant {name}")
-
-    return json.loads(text, parse_constant=no_constants)
-
-
-def _is_png(path) -> bool:
-    data = path.read_bytes()
-    return len(data) > 1000 and data[:8] == b"\x89PNG\r\n\x1a\n"
 
 
 @pytest.fixture(scope="module")
