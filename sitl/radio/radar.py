@@ -134,6 +134,17 @@ class _Streams:
         if self.gens is not None and len(self.gens) != self.n:
             raise ValueError(f"rng: expected one Generator per target ({self.n}), got {len(self.gens)}")
 
+    @classmethod
+    def for_batch(cls, rng, batch_shape=None) -> "_Streams":
+        """Streams for ``batch_shape``; None: () for one Generator, (len(rng),) for a sequence."""
+        if batch_shape is None:
+            batch_shape = () if isinstance(rng, np.random.Generator) else (len(_check_rng(rng)[1]),)
+        try:
+            batch_shape = tuple(int(n) for n in batch_shape)
+        except (TypeError, ValueError):
+            raise ValueError(f"batch_shape must be a tuple of ints, got {batch_shape!r}") from None
+        return cls(rng, batch_shape)
+
     def normal(self, k: int) -> np.ndarray:
         if self.single is not None:
             return self.single.standard_normal((self.n, k)).reshape(self.batch_shape + (k,))
@@ -304,14 +315,8 @@ class Radar:
         if not isinstance(self.params, RadarParams):
             raise ValueError(f"params: expected a RadarParams, got {type(self.params).__name__}")
         self.site_geodetic, self.site_pos_ecef_m = _site(site_lat_rad, site_lon_rad, site_h_m, "site")
-        if batch_shape is None:
-            batch_shape = () if isinstance(rng, np.random.Generator) else (len(_check_rng(rng)[1]),)
-        try:
-            batch_shape = tuple(int(n) for n in batch_shape)
-        except (TypeError, ValueError):
-            raise ValueError(f"batch_shape must be a tuple of ints, got {batch_shape!r}") from None
-        self._streams = _Streams(rng, batch_shape)
-        self.batch_shape = batch_shape
+        self._streams = _Streams.for_batch(rng, batch_shape)
+        self.batch_shape = batch_shape = self._streams.batch_shape
         self._t = None
         self._err = np.zeros(batch_shape + (3,))
         self._lost = np.zeros(batch_shape, dtype=bool)

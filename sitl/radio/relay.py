@@ -375,14 +375,8 @@ class Relay:
             raise ValueError(f"constellation: expected a Constellation, got {type(constellation).__name__}")
         self.constellation = constellation
         self.ground_geodetic, self.ground_pos_ecef_m = _site(ground_lat_rad, ground_lon_rad, ground_h_m, "ground")
-        if batch_shape is None:
-            batch_shape = () if isinstance(rng, np.random.Generator) else (len(_check_rng(rng)[1]),)
-        try:
-            batch_shape = tuple(int(n) for n in batch_shape)
-        except (TypeError, ValueError):
-            raise ValueError(f"batch_shape must be a tuple of ints, got {batch_shape!r}") from None
-        self.batch_shape = batch_shape
-        self._streams = _Streams(rng, batch_shape)
+        self._streams = _Streams.for_batch(rng, batch_shape)
+        self.batch_shape = batch_shape = self._streams.batch_shape
         self._t = None
         self._osc = np.zeros(batch_shape + (2,))  # [phi, Dw]
         self._sigma_w = 2.0 * math.pi * self.params.osc_sigma_hz
