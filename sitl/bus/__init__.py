@@ -8,7 +8,17 @@ runs here; Zenoh for live runs).
     bus.drain(t_gps_s)
 """
 
+from .buslog import (
+    BusLogError,
+    BusLogStats,
+    BusLogWriter,
+    BusRecord,
+    BusRecorder,
+    read_bus_log,
+    read_bus_log_records,
+)
 from .codec import MAX_PAYLOAD_BYTES, BusDecodeError, decode, encode
+from .router import Router, RouterError
 from .schema import (
     KEY_TEMPLATES,
     KINDS,
@@ -43,6 +53,7 @@ from .transport import (
     validate_key,
     validate_key_expr,
 )
+from .zenoh_transport import ZenohConfigError, ZenohTransport, ZenohTransportError
 
 __all__ = [
     "KEY_TEMPLATES",
@@ -52,6 +63,11 @@ __all__ = [
     "SCHEMA_VERSION",
     "BeaconMeasurement",
     "BusDecodeError",
+    "BusLogError",
+    "BusLogStats",
+    "BusLogWriter",
+    "BusRecord",
+    "BusRecorder",
     "Estimate",
     "InMemoryTransport",
     "IntegrityEvent",
@@ -59,6 +75,8 @@ __all__ = [
     "LinkCounters",
     "Message",
     "RadarMeasurement",
+    "Router",
+    "RouterError",
     "SchemaError",
     "SeqCounters",
     "SeqResult",
@@ -69,6 +87,9 @@ __all__ = [
     "TransportStats",
     "Truth",
     "UavNav",
+    "ZenohConfigError",
+    "ZenohTransport",
+    "ZenohTransportError",
     "check_id",
     "decode",
     "encode",
@@ -77,6 +98,8 @@ __all__ = [
     "key_matches",
     "key_pattern",
     "parse_key",
+    "read_bus_log",
+    "read_bus_log_records",
     "validate_key",
     "validate_key_expr",
 ]

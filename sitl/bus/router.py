@@ -1,0 +1,122 @@
+"""An embedded Zenoh router: eclipse-zenoh opened in mode "router" inside this process.
+
+There is no zenohd binary here; a router is a Zenoh session in router mode, which routes
+between every client session connected to it (the launcher's vehicle and ground-station
+processes). Port 0 asks the OS for a free port; `Router.endpoints` gives the endpoints
+actually bound, read back from the router's own admin space (read-only; written to never).
+
+    with Router(listen=["tcp/127.0.0.1:0"]) as r:
+        print(r.endpoints)          # ['tcp/127.0.0.1:40123']
+        ... ZenohTransport(connect=r.endpoints) in other processes ...
+
+Multicast scouting is off by default (runs meet through explicit endpoints; two test runs on
+one machine must not find each other). Open it before starting worker processes with
+`subprocess` (never fork a process that holds an open Zenoh session).
+
+``python -m sitl.bus.router [ENDPOINT ...]`` runs a router in the foreground: it prints its
+endpoints as one JSON line, then routes until SIGINT/SIGTERM.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import threading
+from collections.abc import Iterable, Mapping
+from typing import Any
+
+import zenoh
+
+from ._zconfig import ZenohConfigError, make_config
+
+log = logging.getLogger("sitl.bus.router")
+
+DEFAULT_LISTEN = ("tcp/127.0.0.1:0",)
+
+
+class RouterError(RuntimeError):
+    """The router could not start (port taken, bad endpoint): one line."""
+
+
+class Router:
+    """An embedded Zenoh router. ``listen``: endpoints to bind (port 0 = a free port);
+    ``lease_ms``: link lease (default Zenoh's 10 s; lower it in partition tests);
+    ``extra``: further Zenoh config keys ``{"path/of/key": value}``."""
+
+    def __init__(self, listen: Iterable[str] | str = DEFAULT_LISTEN, *,
+                 multicast_scouting: bool = False, lease_ms: int | None = None,
+                 extra: Mapping[str, Any] | None = None, timeout_s: float = 5.0):
+        cfg = make_config("router", listen=listen, multicast_scouting=multicast_scouting,
+                          lease_ms=lease_ms, adminspace_read=True, extra=extra)
+        try:
+            self._session = zenoh.open(cfg)
+        except Exception as e:
+            raise RouterError(f"zenoh router on {listen!r} did not start: "
+                              f"{' '.join(str(e).split())}") from None
+        self._lock = threading.Lock()
+        self.zid = str(self._session.zid())
+        try:
+            self.endpoints: list[str] = self._read_locators(timeout_s)
+        except Exception:
+            self._session.close()
+            raise
+        log.info("zenoh router %s listening on %s", self.zid, ", ".join(self.endpoints))
+
+    def _read_locators(self, timeout_s: float) -> list[str]:
+        for reply in self._session.get(f"@/{self.zid}/router", timeout=timeout_s):
+            if reply.ok is not None:
+                return list(json.loads(reply.ok.payload.to_string())["locators"])
+        raise RouterError("zenoh router: its admin space did not report its endpoints")
+
+    @property
+    def closed(self) -> bool:
+        return self._session.is_closed()
+
+    def sessions(self) -> list[str]:
+        """Zenoh ids of the sessions connected to this router right now."""
+        return [str(t.zid) for t in self._session.info.transports()]
+
+    def close(self) -> None:
+        """Close the router (idempotent); connected clients lose their link."""
+        with self._lock:
+            if not self._session.is_closed():
+                self._session.close()
+
+    def __enter__(self) -> Router:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def __repr__(self) -> str:
+        state = "closed" if self.closed else ", ".join(self.endpoints)
+        return f"Router({self.zid[:8]} {state})"
+
+
+def main(argv: list[str] | None = None) -> int:
+    import signal
+    import sys
+
+    args = sys.argv[1:] if argv is None else argv
+    if any(a.startswith("-") for a in args):
+        print("usage: python -m sitl.bus.router [ENDPOINT ...]   (default tcp/127.0.0.1:0)",
+              file=sys.stderr)
+        return 2
+    signals = {signal.SIGINT, signal.SIGTERM}
+    signal.pthread_sigmask(signal.SIG_BLOCK, signals)  # before zenoh starts its threads
+    try:
+        router = Router(args or DEFAULT_LISTEN)
+    except (RouterError, ZenohConfigError) as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+    with router:
+        print(json.dumps({"zid": router.zid, "endpoints": router.endpoints}), flush=True)
+        signal.sigwait(signals)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
+
+
+__all__ = ["DEFAULT_LISTEN", "Router", "RouterError"]
