@@ -1,0 +1,206 @@
+"""MAVLink framing of UDP datagrams, MAVLink 2 signing checks, signing keys and .tlog files.
+
+Pure byte-level helpers of the endpoint (no sockets), each testable alone.
+
+Framing: a datagram may carry several packets back to back.  :func:`split_datagram` walks
+it: a MAVLink 2 frame starts with 0xFD (10-byte header, payload, 2-byte CRC, 13-byte
+signature when incompat flag 0x01 is set), a MAVLink 1 frame with 0xFE (6-byte header,
+payload, CRC).  Bytes that are not a frame start are skipped up to the next start byte and
+counted once per run as ``garbage``; a frame that runs past the datagram's end is
+``truncated``.  The CRC (with the message's CRC_EXTRA) is checked later, by pymavlink's
+decode, on each frame.
+
+Signing (mavlink.io "Message Signing"): signature = first 6 bytes of
+SHA-256(secret_key + frame[:-6]) (the frame up to and including link id and the 48-bit
+timestamp in units of 10 us since 2015-01-01).  :class:`SignatureChecker` verifies the
+signature BEFORE it records the stream's timestamp, so that a forged frame cannot move a
+stream's timestamp forward and lock out the real sender (pymavlink 2.4's check_signature
+records it first); a stream (link id, sysid, compid) must then rise strictly
+(``replayed`` otherwise), and a new stream is accepted if its timestamp is at most one
+minute behind ours.
+
+Key files (:func:`load_signing_key`): 32 raw bytes, or 64 hex characters, or else a
+passphrase whose SHA-256 is the key (what MAVProxy's ``signing setup PASSPHRASE`` uses).
+
+.tlog (pymavlink's telemetry log): each record is an 8-byte big-endian unix time in
+microseconds followed by the raw packet; mavutil.mavlink_connection(path) and
+mavlogdump.py read it.
+"""
+from __future__ import annotations
+
+import hashlib
+import os
+import struct
+from typing import NamedTuple
+
+STX_V2 = 0xFD
+STX_V1 = 0xFE
+HEADER_LEN_V2 = 10
+HEADER_LEN_V1 = 6
+CRC_LEN = 2
+SIGNATURE_LEN = 13
+IFLAG_SIGNED = 0x01
+#: a new stream's timestamp may lag ours by at most one minute (10 us units)
+NEW_STREAM_MAX_LAG = 60 * 100_000
+
+_TLOG_TIME = struct.Struct(">Q")
+
+
+class Frame(NamedTuple):
+    """One framed packet: raw bytes, MAVLink version (1/2), incompat flags, msgid, sender."""
+
+    buf: bytes
+    version: int
+    incompat_flags: int
+    msgid: int
+    sysid: int
+    compid: int
+
+    @property
+    def signed(self) -> bool:
+        return bool(self.incompat_flags & IFLAG_SIGNED)
+
+
+def split_datagram(data: bytes) -> tuple[list[Frame], list[str]]:
+    """Frames found in a datagram and the reasons of what was rejected on the way.
+
+    Never raises on any bytes. Reasons: 'garbage' (one per run of non-frame bytes),
+    'truncated' (a frame running past the end: the rest of the datagram).
+    """
+    frames: list[Frame] = []
+    rejects: list[str] = []
+    n = len(data)
+    i = 0
+    while i < n:
+        b = data[i]
+        if b == STX_V2:
+            if n - i < HEADER_LEN_V2 + CRC_LEN:
+                rejects.append("truncated")
+                break
+            plen, flags = data[i + 1], data[i + 2]
+            total = HEADER_LEN_V2 + plen + CRC_LEN + (SIGNATURE_LEN if flags & IFLAG_SIGNED else 0)
+            if n - i < total:
+                rejects.append("truncated")
+                break
+            msgid = data[i + 7] | (data[i + 8] << 8) | (data[i + 9] << 16)
+            frames.append(Frame(bytes(data[i:i + total]), 2, flags, msgid, data[i + 5], data[i + 6]))
+            i += total
+        elif b == STX_V1:
+            if n - i < HEADER_LEN_V1 + CRC_LEN:
+                rejects.append("truncated")
+                break
+            total = HEADER_LEN_V1 + data[i + 1] + CRC_LEN
+            if n - i < total:
+                rejects.append("truncated")
+                break
+            frames.append(Frame(bytes(data[i:i + total]), 1, 0, data[i + 5], data[i + 3], data[i + 4]))
+            i += total
+        else:
+            j2, j1 = data.find(b"\xfd", i + 1), data.find(b"\xfe", i + 1)
+            nxt = min(j for j in (j2, j1, n) if j >= 0)
+            rejects.append("garbage")
+            i = nxt
+    return frames, rejects
+
+
+def signature_ok(buf: bytes, key: bytes) -> bool:
+    """True if the 6-byte signature at the end of a signed MAVLink 2 frame matches key."""
+    return hashlib.sha256(key + buf[:-6]).digest()[:6] == buf[-6:]
+
+
+def signature_timestamp(buf: bytes) -> int:
+    """The 48-bit signing timestamp (10 us since 2015-01-01) of a signed frame."""
+    return int.from_bytes(buf[-12:-6], "little")
+
+
+class SignatureChecker:
+    """Accept/reject incoming frames when signing is on (see the module docstring)."""
+
+    def __init__(self, key: bytes):
+        if not isinstance(key, (bytes, bytearray)) or len(key) != 32:
+            raise ValueError(f"signing key must be 32 bytes, got {type(key).__name__} of length "
+                             f"{len(key) if hasattr(key, '__len__') else '?'}")
+        self.key = bytes(key)
+        self._streams: dict[tuple[int, int, int], int] = {}
+
+    def check(self, frame: Frame, our_timestamp: int) -> str | None:
+        """None if accepted, else the reject reason ('unsigned', 'bad_signature', 'replayed')."""
+        if frame.version != 2 or not frame.signed:
+            return "unsigned"
+        buf = frame.buf
+        if not signature_ok(buf, self.key):
+            return "bad_signature"
+        ts = signature_timestamp(buf)
+        stream = (buf[-13], frame.sysid, frame.compid)
+        last = self._streams.get(stream)
+        if last is not None:
+            if ts <= last:
+                return "replayed"
+        elif ts + NEW_STREAM_MAX_LAG < our_timestamp:
+            return "replayed"
+        self._streams[stream] = ts
+        return None
+
+
+def load_signing_key(path: str | os.PathLike) -> bytes:
+    """A 32-byte signing key from a key file (raw 32 bytes, 64 hex chars, or a passphrase)."""
+    try:
+        with open(path, "rb") as f:
+            data = f.read(4096)
+    except OSError as e:
+        raise ValueError(f"cannot read signing key file {os.fspath(path)!r}: {e.strerror}") from None
+    if len(data) == 32:
+        return data
+    text = data.strip()
+    if not text:
+        raise ValueError(f"signing key file {os.fspath(path)!r} is empty")
+    if len(text) == 64:
+        try:
+            return bytes.fromhex(text.decode("ascii"))
+        except (UnicodeDecodeError, ValueError):
+            pass
+    return hashlib.sha256(text).digest()
+
+
+class TlogWriter:
+    """Append MAVLink packets to a .tlog: 8-byte big-endian unix us, then the raw packet.
+
+    Several endpoints may share one writer (mavlogdump separates them by system id).
+    ``flush_interval_s`` of simulated time between flushes to the OS (and at close).
+    """
+
+    def __init__(self, path: str | os.PathLike, flush_interval_s: float = 1.0):
+        try:
+            self._f = open(path, "wb")
+        except OSError as e:
+            raise ValueError(f"cannot open tlog {os.fspath(path)!r}: {e.strerror}") from None
+        self.path = os.fspath(path)
+        self._flush_interval_s = float(flush_interval_s)
+        self._next_flush_s = None
+        self.records = 0
+
+    def write(self, unix_s: float, packet: bytes) -> None:
+        if self._f is None:
+            return
+        self._f.write(_TLOG_TIME.pack(max(0, int(unix_s * 1e6))) + packet)
+        self.records += 1
+        if self._next_flush_s is None:
+            self._next_flush_s = unix_s + self._flush_interval_s
+        elif unix_s >= self._next_flush_s:
+            self._f.flush()
+            self._next_flush_s = unix_s + self._flush_interval_s
+
+    def flush(self) -> None:
+        if self._f is not None:
+            self._f.flush()
+
+    def close(self) -> None:
+        if self._f is not None:
+            self._f.close()
+            self._f = None
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()

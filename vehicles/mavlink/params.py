@@ -1,0 +1,206 @@
+"""A vehicle's parameter store, as the MAVLink parameter protocol sees it.
+
+The store holds the values of a vehicle's real simulation parameters (SI units, the unit in
+the doc), each declared once by a :class:`ParamSpec` (name <= 16 characters, as PARAM_VALUE's
+``param_id`` allows; bounds; doc).  ``store.set(name, value)`` validates (known name, finite,
+inside the bounds), stores and calls the change callbacks, so the simulation picks the new
+value up; a callback that raises ``ValueError`` vetoes the change (the old value is kept).
+
+Every value travels as MAV_PARAM_TYPE_REAL32 (a float32): the store keeps the float32 the
+GCS sees, so that a PARAM_SET of a value read back is always an exact round trip.
+
+:func:`uav_param_specs` and :func:`sonde_param_specs` declare the parameters of a UAV
+(its waypoint guidance and onboard GNSS navigation) and of a radiosonde (its flight model),
+with the defaults read from the simulation objects themselves.
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+from collections.abc import Mapping
+from dataclasses import dataclass
+from typing import Callable, Iterable, Iterator
+
+import numpy as np
+
+PARAM_ID_LEN = 16
+
+
+class ParamError(ValueError):
+    """A rejected parameter read/write (unknown name, NaN, out of bounds, vetoed)."""
+
+    def __init__(self, reason: str, message: str):
+        super().__init__(message)
+        self.reason = reason
+
+
+def _f32(x: float) -> float:
+    return float(np.float32(x))
+
+
+@dataclass(frozen=True)
+class ParamSpec:
+    """One parameter: MAVLink name (<= 16 chars, A-Z 0-9 _), default, bounds, doc (with unit).
+
+    ``field``: the attribute of the simulation object it mirrors (see ParamStore.replace_into).
+    """
+
+    name: str
+    default: float
+    min: float = -math.inf
+    max: float = math.inf
+    doc: str = ""
+    field: str | None = None
+
+    def __post_init__(self):
+        if not isinstance(self.name, str) or not 1 <= len(self.name) <= PARAM_ID_LEN:
+            raise ValueError(f"param name must be 1..{PARAM_ID_LEN} characters, got {self.name!r}")
+        if not all(c.isascii() and (c.isupper() or c.isdigit() or c == "_") for c in self.name):
+            raise ValueError(f"param name must use A-Z, 0-9 and _, got {self.name!r}")
+        lo, hi, d = float(self.min), float(self.max), float(self.default)
+        if math.isnan(lo) or math.isnan(hi) or lo > hi:
+            raise ValueError(f"param {self.name}: bounds must satisfy min <= max, got [{self.min}, {self.max}]")
+        if not (math.isfinite(d) and lo <= d <= hi):
+            raise ValueError(f"param {self.name}: default {self.default!r} must be finite and in [{lo}, {hi}]")
+
+
+class ParamStore(Mapping):
+    """Mapping name -> float (read-only as a Mapping; write with :meth:`set`).
+
+    Index order is the order of the specs (PARAM_VALUE.param_index).
+    """
+
+    def __init__(self, specs: Iterable[ParamSpec], values: Mapping[str, float] | None = None):
+        self._specs: dict[str, ParamSpec] = {}
+        for s in specs:
+            if not isinstance(s, ParamSpec):
+                raise ValueError(f"specs must be ParamSpec objects, got {type(s).__name__}")
+            if s.name in self._specs:
+                raise ValueError(f"duplicate param name {s.name!r}")
+            self._specs[s.name] = s
+        self._names = list(self._specs)
+        self._index = {n: i for i, n in enumerate(self._names)}
+        self._values = {n: _f32(s.default) for n, s in self._specs.items()}
+        self._callbacks: list[Callable[[str, float], None]] = []
+        for name, v in (values or {}).items():
+            self.set(name, v)
+
+    # Mapping
+    def __getitem__(self, name: str) -> float:
+        return self._values[name]
+
+    def __iter__(self) -> Iterator[str]:
+        return iter(self._names)
+
+    def __len__(self) -> int:
+        return len(self._names)
+
+    def spec(self, name: str) -> ParamSpec:
+        return self._specs[name]
+
+    def index(self, name: str) -> int:
+        return self._index[name]
+
+    def name_at(self, index: int) -> str:
+        if not 0 <= int(index) < len(self._names):
+            raise ParamError("param_unknown", f"param index {index} out of range [0, {len(self._names)})")
+        return self._names[int(index)]
+
+    def on_change(self, callback: Callable[[str, float], None]) -> None:
+        """Call ``callback(name, value)`` after every accepted change; raise ValueError to veto."""
+        self._callbacks.append(callback)
+
+    def set(self, name: str, value) -> float:
+        """Validate and store; returns the stored float32 value. Raises ParamError."""
+        spec = self._specs.get(name)
+        if spec is None:
+            raise ParamError("param_unknown", f"unknown parameter {name!r}")
+        try:
+            v = float(value)
+        except (TypeError, ValueError):
+            raise ParamError("param_rejected", f"{name}: value {value!r} is not a number") from None
+        if not math.isfinite(v):
+            raise ParamError("param_rejected", f"{name}: value {v!r} is not finite")
+        v = _f32(v)
+        if not spec.min <= v <= spec.max:
+            raise ParamError("param_rejected", f"{name}: value {v} outside [{spec.min}, {spec.max}]")
+        old = self._values[name]
+        if v == old:
+            return v
+        self._values[name] = v
+        try:
+            for cb in self._callbacks:
+                cb(name, v)
+        except ValueError as e:
+            self._values[name] = old
+            for cb in self._callbacks:  # put the simulation back on the old value
+                try:
+                    cb(name, old)
+                except ValueError:
+                    pass
+            raise ParamError("param_rejected", f"{name}: value {v} vetoed by the simulation: {e}") from None
+        return v
+
+    def replace_into(self, obj):
+        """``dataclasses.replace(obj, field=value, ...)`` for every spec mirroring a field of obj."""
+        names = {f.name for f in dataclasses.fields(obj)}
+        changes = {s.field: self._values[s.name] for s in self._specs.values() if s.field in names}
+        return dataclasses.replace(obj, **changes)
+
+
+def _scalar(x, i: int = 0) -> float:
+    a = np.asarray(x, dtype=float)
+    return float(a.reshape(-1)[i] if a.ndim else a)
+
+
+def uav_param_specs(mission=None, nav=None, i: int = 0) -> list[ParamSpec]:
+    """Parameters of UAV i: its waypoint guidance (a vehicles.uav.WaypointMission, per-vehicle
+    values at index i) and its onboard GNSS navigation (a vehicles.uav_nav.NavConfig).
+
+    Defaults are read from the given objects (their class defaults when None).
+    """
+    from vehicles.uav_nav import GnssNoise, NavConfig
+
+    specs = []
+    if mission is not None:
+        specs += [
+            ParamSpec("WP_SPEED", _scalar(mission.speed_m_s, i), 1.0, 400.0,
+                      "commanded airspeed on a mission, m/s", "speed_m_s"),
+            ParamSpec("WP_RADIUS", _scalar(mission.accept_radius_m, i), 1.0, 1.0e5,
+                      "waypoint acceptance radius, m", "accept_radius_m"),
+            ParamSpec("WP_TURN_RATE", _scalar(mission.max_turn_rate_rad_s, i), 1e-4, 2.0,
+                      "maximum turn rate, rad/s", "max_turn_rate_rad_s"),
+            ParamSpec("WP_CLIMB_MAX", _scalar(mission.max_climb_m_s, i), 0.01, 100.0,
+                      "maximum climb/sink rate, m/s (< WP_SPEED)", "max_climb_m_s"),
+        ]
+    nav = nav if nav is not None else NavConfig()
+    noise = nav.noise if nav.noise is not None else GnssNoise()
+    specs += [
+        ParamSpec("GNSS_PSD_PR", noise.psd_pr_m2_s, 1e-6, 1e8,
+                  "pseudorange noise PSD, m^2 s", "psd_pr_m2_s"),
+        ParamSpec("GNSS_PSD_PRR", noise.psd_prr_m2_s, 1e-9, 1e4,
+                  "Doppler (range-rate) noise PSD, m^2/s", "psd_prr_m2_s"),
+        ParamSpec("GNSS_EL_MASK", nav.el_mask_rad, -math.pi / 2, 1.5,
+                  "satellite elevation mask, rad", "el_mask_rad"),
+        ParamSpec("NAV_Q", nav.q_m2_s3, 0.0, 1e4,
+                  "onboard filter acceleration PSD, m^2/s^3", "q_m2_s3"),
+    ]
+    return specs
+
+
+def sonde_param_specs(params=None) -> list[ParamSpec]:
+    """Parameters of a radiosonde: its flight model (a vehicles.sonde.SondeParams)."""
+    from vehicles.sonde import SondeParams
+
+    p = params if params is not None else SondeParams()
+    return [
+        ParamSpec("SND_ASCENT", p.ascent_rate_m_s, 0.1, 50.0, "balloon ascent rate, m/s", "ascent_rate_m_s"),
+        ParamSpec("SND_DESCENT_SL", p.descent_rate_sl_m_s, 0.1, 100.0,
+                  "parachute terminal speed at sea level, m/s", "descent_rate_sl_m_s"),
+        ParamSpec("SND_P1", p.p1_1_s, 1e-4, 10.0, "aerodynamic response rate p1, 1/s", "p1_1_s"),
+        ParamSpec("SND_P2", p.p2_1_s, 1e-5, 10.0, "wind-fluctuation spectrum width p2, 1/s", "p2_1_s"),
+        ParamSpec("SND_SIGMA_A", p.sigma_a_m_s2, 0.0, 10.0,
+                  "horizontal gust acceleration std, m/s^2", "sigma_a_m_s2"),
+        ParamSpec("SND_SIGMA_AV", p.sigma_a_vertical_m_s2, 0.0, 10.0,
+                  "vertical gust acceleration std, m/s^2", "sigma_a_vertical_m_s2"),
+    ]
