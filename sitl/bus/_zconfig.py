@@ -8,6 +8,7 @@ each other's sessions), the link lease, and free-form extra keys for anything el
 from __future__ import annotations
 
 import json
+import re
 from collections.abc import Iterable, Mapping
 from typing import Any
 
@@ -18,6 +19,14 @@ MODES = ("router", "peer", "client")
 
 class ZenohConfigError(ValueError):
     """A bad Zenoh setting (mode, endpoint, lease, extra key): one line, names the setting."""
+
+
+_RUST_WHERE = re.compile(r"\s+at\s+\S+\.rs:\d+\.?")
+
+
+def zenoh_error_text(err: BaseException) -> str:
+    """A Zenoh error on one line, without the Rust source locations it carries."""
+    return _RUST_WHERE.sub("", " ".join(str(err).split())).strip() or type(err).__name__
 
 
 def _endpoints(value: Iterable[str] | str | None, what: str) -> list[str]:
@@ -69,8 +78,8 @@ def make_config(mode: str, *, listen: Iterable[str] | str | None = None,
             cfg.insert_json5(k, json.dumps(v))
         except Exception as e:  # zenoh.ZError, with a multi-line text
             raise ZenohConfigError(f"zenoh config {k}={json.dumps(v)}: "
-                                   f"{' '.join(str(e).split())}") from None
+                                   f"{zenoh_error_text(e)}") from None
     return cfg
 
 
-__all__ = ["MODES", "ZenohConfigError", "make_config"]
+__all__ = ["MODES", "ZenohConfigError", "make_config", "zenoh_error_text"]

@@ -22,16 +22,32 @@ from __future__ import annotations
 import json
 import logging
 import threading
+import weakref
 from collections.abc import Iterable, Mapping
 from typing import Any
 
 import zenoh
 
-from ._zconfig import ZenohConfigError, make_config
+from ._zconfig import ZenohConfigError, make_config, zenoh_error_text
 
 log = logging.getLogger("sitl.bus.router")
 
 DEFAULT_LISTEN = ("tcp/127.0.0.1:0",)
+
+
+_OPEN: weakref.WeakSet = weakref.WeakSet()  # routers to close at interpreter exit
+
+
+def _close_all_at_exit() -> None:
+    for r in list(_OPEN):
+        try:
+            r.close()
+        except Exception as e:
+            log.debug("closing %r at exit: %s", r, e)
+
+
+# before the interpreter joins its threads (see sitl.bus.zenoh_transport)
+getattr(threading, "_register_atexit", __import__("atexit").register)(_close_all_at_exit)
 
 
 class RouterError(RuntimeError):
@@ -52,7 +68,7 @@ class Router:
             self._session = zenoh.open(cfg)
         except Exception as e:
             raise RouterError(f"zenoh router on {listen!r} did not start: "
-                              f"{' '.join(str(e).split())}") from None
+                              f"{zenoh_error_text(e)}") from None
         self._lock = threading.Lock()
         self.zid = str(self._session.zid())
         try:
@@ -60,6 +76,7 @@ class Router:
         except Exception:
             self._session.close()
             raise
+        _OPEN.add(self)
         log.info("zenoh router %s listening on %s", self.zid, ", ".join(self.endpoints))
 
     def _read_locators(self, timeout_s: float) -> list[str]:
@@ -79,6 +96,7 @@ class Router:
     def close(self) -> None:
         """Close the router (idempotent); connected clients lose their link."""
         with self._lock:
+            _OPEN.discard(self)
             if not self._session.is_closed():
                 self._session.close()
 

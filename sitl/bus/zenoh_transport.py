@@ -15,50 +15,60 @@ are not used.
 
 Delivery modes (``delivery=``)
 ------------------------------
-Zenoh calls its subscriber handlers on its own threads.
+* ``"queue"`` (default, like `InMemoryTransport`): received samples wait in Zenoh's own
+  FIFO channel (no Python code runs on Zenoh's threads); `drain` takes everything received
+  so far and decodes and delivers it **on the caller's thread**. This is what a
+  step-function node wants: ``bus.drain(t); node.step(t)`` as in batch mode, with no
+  locking in the node. ``drain(until_t_gps_s)`` takes the time argument for parity with
+  `InMemoryTransport` and ignores it: on a live bus a message is due when it has arrived.
+  Order: arrival order per subscribed key expression (so per publisher and key); the
+  expressions are drained one after the other. The channel holds ``queue_capacity``
+  samples per expression; when it is full Zenoh waits (back-pressure, nothing is dropped),
+  and a publisher blocked more than 5 s (Zenoh's ``wait_before_close``) loses its link: call
+  `drain` at least every few hundred milliseconds.
+* ``"callback"``: callbacks run as soon as a sample arrives, on a Python thread that Zenoh
+  starts per subscription. Deliveries are serialised by a lock (two callbacks never run at
+  once) but run concurrently with the rest of the program: the consumer guards its state.
 
-* ``"queue"`` (default, like `InMemoryTransport`): the handler only appends
-  ``(key, payload)`` to a thread-safe queue; `drain` decodes and delivers everything
-  received so far **on the caller's thread**, in arrival order. This is what a step-function
-  node wants: ``bus.drain(t); node.step(t)`` as in batch mode, with no locking in the node.
-  ``drain(until_t_gps_s)`` takes the time argument for interface parity and ignores it: on
-  a live bus a message is due when it has arrived. ``max_queue`` bounds the queue; beyond
-  it the oldest entry is dropped and counted under the rejection reason ``"queue:
-  overflow"`` (default: unbounded, nothing dropped).
-* ``"callback"``: callbacks run on Zenoh's threads as soon as a sample arrives. Deliveries
-  are serialised by a lock (two callbacks never run at once), but they run concurrently
-  with the rest of the program: the consumer must guard its own state.
+`subscribe_raw` (recorders) gets the payload bytes before decoding, valid or not, in the
+same mode.
 
 Reliability
 -----------
 Publications are RELIABLE with congestion control BLOCK (a full transmit queue waits rather
-than silently dropping, see FAULTS_REFERENCE.md section 3) and not express (express was
-measured ~10x slower in throughput); both are settable. Reliability is hop to hop over TCP:
-a sample published while a link is down (partition, router restart) is lost, the sequence
-numbers in the payload show the gap (`SequenceTracker`).
+than silently dropping, see FAULTS_REFERENCE.md section 3) and not express (express batches
+nothing and was measured ~10x slower in throughput); both are settable. Reliability is hop
+to hop over TCP: a sample published while a link is down (partition, router restart) is
+lost, and the sequence numbers in the payload show the gap (`SequenceTracker`).
 
 Overlapping subscriptions
 -------------------------
 One Zenoh subscriber is declared per distinct key expression. Zenoh hands a sample to every
 subscriber it matches, so when two expressions of one transport overlap, the sample is
-delivered (decoded, counted) only through the first-declared expression that matches its
-key: ``stats.total`` counts each payload once, as `InMemoryTransport` does. While a
-subscription whose expression overlaps another is being closed, a sample in flight in that
-instant may be missed by the other subscription.
+taken (decoded, counted, delivered to every matching subscription) only through the
+first-declared expression that matches its key: ``stats.total`` counts each payload once,
+as `InMemoryTransport` does. While a subscription whose expression overlaps another one is
+being closed, a sample in flight in that instant may be missed by the other one.
+
+Exit
+----
+A process that exits with a Zenoh callback subscriber still declared hangs (Zenoh's callback
+thread is never joined). `close` undeclares everything; transports still open when the
+interpreter shuts down are closed by a hook that runs before Python joins its threads.
 """
 
 from __future__ import annotations
 
-import collections
 import logging
 import threading
 import time
+import weakref
 from collections.abc import Callable, Iterable, Mapping
 from typing import Any
 
 import zenoh
 
-from ._zconfig import ZenohConfigError, make_config
+from ._zconfig import ZenohConfigError, make_config, zenoh_error_text
 from .transport import (
     Callback,
     KeyExprError,
@@ -72,9 +82,31 @@ from .transport import (
 log = logging.getLogger("sitl.bus")
 
 DELIVERY_MODES = ("queue", "callback")
-MAX_PUBLISHERS = 4096  # declared publishers kept (per key); further keys use session.put
+MAX_PUBLISHERS = 4096  # declared publishers kept (one per key); further keys use session.put
+DEFAULT_QUEUE_CAPACITY = 1 << 16
 
 RawCallback = Callable[[str, bytes], None]
+
+_OPEN: weakref.WeakSet = weakref.WeakSet()  # transports to close at interpreter exit
+
+
+def _close_all_at_exit() -> None:
+    for t in list(_OPEN):
+        try:
+            t.close()
+        except Exception as e:
+            log.debug("bus: closing %r at exit: %s", t, e)
+
+
+# threading._register_atexit runs before the interpreter joins non-daemon threads (which is
+# where an open Zenoh callback subscriber hangs the exit); atexit would run too late.
+_register = getattr(threading, "_register_atexit", None)
+if _register is not None:
+    _register(_close_all_at_exit)
+else:  # pragma: no cover
+    import atexit
+
+    atexit.register(_close_all_at_exit)
 
 
 class ZenohTransportError(RuntimeError):
@@ -99,13 +131,14 @@ class ZenohTransport(Transport):
     ``connect``: router endpoints (``Router.endpoints``); ``mode``: "client" (default: all
     traffic through the router), "peer" or "router"; ``listen``: endpoints to listen on
     (peer/router); ``lease_ms``: link lease (Zenoh default 10 s when None); ``delivery``:
-    "queue" or "callback"; ``congestion_control``: "block" (default) or "drop";
-    ``express``: send without batching; ``multicast_scouting``: off by default;
-    ``extra``: more Zenoh config keys ``{"path/of/key": value}``."""
+    "queue" or "callback"; ``queue_capacity``: samples held per subscribed expression in
+    queue mode; ``congestion_control``: "block" (default) or "drop"; ``express``: send
+    without batching; ``multicast_scouting``: off by default; ``extra``: more Zenoh config
+    keys ``{"path/of/key": value}``."""
 
     def __init__(self, connect: Iterable[str] | str | None = None, *, mode: str = "client",
                  listen: Iterable[str] | str | None = None, lease_ms: int | None = None,
-                 delivery: str = "queue", max_queue: int | None = None,
+                 delivery: str = "queue", queue_capacity: int = DEFAULT_QUEUE_CAPACITY,
                  congestion_control: str = "block", express: bool = False,
                  multicast_scouting: bool = False, extra: Mapping[str, Any] | None = None):
         super().__init__()
@@ -116,23 +149,22 @@ class ZenohTransport(Transport):
         if congestion_control not in cc:
             raise ZenohConfigError(f"congestion_control: {congestion_control!r} is not "
                                    "'block' or 'drop'")
-        if max_queue is not None and (isinstance(max_queue, bool) or not isinstance(max_queue, int)
-                                      or max_queue < 1):
-            raise ZenohConfigError(f"max_queue: expected an int >= 1 or None, got {max_queue!r}")
+        if (isinstance(queue_capacity, bool) or not isinstance(queue_capacity, int)
+                or queue_capacity < 1):
+            raise ZenohConfigError(f"queue_capacity: expected an int >= 1, got {queue_capacity!r}")
         cfg = make_config(mode, listen=listen, connect=connect,
                           multicast_scouting=multicast_scouting, lease_ms=lease_ms, extra=extra)
         self.delivery = delivery
+        self.queue_capacity = queue_capacity
         self.express = bool(express)
         self._cc = cc[congestion_control]
-        self.max_queue = max_queue
-        # _lock guards subscriptions, delivery and stats (RLock: a callback may subscribe,
-        # unsubscribe or publish); _pub_lock guards the publisher cache and publish stats
+        # _lock guards subscriptions, delivery and receive stats (an RLock: a callback may
+        # subscribe, unsubscribe or publish); _pub_lock guards publishers and publish stats
         self._lock = threading.RLock()
         self._pub_lock = threading.Lock()
-        self._queue: collections.deque[tuple[str, bytes]] = collections.deque()
         self._zsubs: dict[str, _ZSub] = {}
         self._zorder = 0
-        self._owner: dict[str, str | None] = {}  # key -> expression that delivers it
+        self._owner: dict[str, str | None] = {}  # key -> expression that takes it
         self._publishers: dict[str, Any] = {}
         self._raw: dict[int, Subscription] = {}  # raw (undecoded) subscriptions by id
         self._draining = False
@@ -140,25 +172,33 @@ class ZenohTransport(Transport):
             self._session = zenoh.open(cfg)
         except Exception as e:
             raise ZenohTransportError(f"zenoh session ({mode}, connect={connect!r}) did not "
-                                      f"open: {' '.join(str(e).split())}") from None
+                                      f"open: {zenoh_error_text(e)}") from None
         self.zid = str(self._session.zid())
+        _OPEN.add(self)
 
     # ------------------------------------------------------------------ publishing
-    def _publish_bytes(self, key: str, payload: bytes, t_gps_s: float | None) -> None:
-        self._check_open()
-        validate_key(key)
+    def _publisher(self, key: str) -> Any:
         with self._pub_lock:
             pub = self._publishers.get(key)
             if pub is None and len(self._publishers) < MAX_PUBLISHERS:
                 pub = self._publishers[key] = self._session.declare_publisher(
                     key, congestion_control=self._cc, express=self.express,
                     reliability=zenoh.Reliability.RELIABLE)
-            self.stats.published += 1
-            self.stats.published_bytes += len(payload)
+            return pub
+
+    def _publish_bytes(self, key: str, payload: bytes, t_gps_s: float | None) -> None:
+        self._check_open()
+        validate_key(key)
+        pub = self._publishers.get(key)
+        if pub is None:
+            pub = self._publisher(key)
         if pub is not None:
             pub.put(payload)
         else:
             self._session.put(key, payload, congestion_control=self._cc, express=self.express)
+        with self._pub_lock:
+            self.stats.published += 1
+            self.stats.published_bytes += len(payload)
 
     # ------------------------------------------------------------------ subscribing
     def subscribe(self, key_expr: str, callback: Callback) -> Subscription:
@@ -175,8 +215,9 @@ class ZenohTransport(Transport):
 
     def subscribe_raw(self, key_expr: str, callback: RawCallback) -> Subscription:
         """Call ``callback(key, payload_bytes)`` for every payload on matching keys, valid or
-        not, before and without decoding (recorders). Not counted in ``stats``. Raw
-        callbacks run on Zenoh's thread in both delivery modes (under the delivery lock)."""
+        not, before and without decoding (recorders); in queue mode from `drain`, in
+        callback mode from Zenoh's thread. Not counted in ``stats`` (an exception it raises
+        is, under ``callback_errors``)."""
         self._check_open()
         validate_key_expr(key_expr)
         if not callable(callback):
@@ -193,7 +234,15 @@ class ZenohTransport(Transport):
         if z is None:
             z = _ZSub(expr, self._zorder)
             self._zorder += 1
-            z.zsub = self._session.declare_subscriber(expr, self._make_handler(expr))
+            if self.delivery == "queue":
+                handler: Any = zenoh.handlers.FifoChannel(self.queue_capacity)
+            else:
+                handler = self._make_handler(expr)
+            try:
+                z.zsub = self._session.declare_subscriber(expr, handler)
+            except Exception as e:
+                raise KeyExprError(f"zenoh refused key expression {expr!r}: "
+                                   f"{zenoh_error_text(e)}") from None
             self._zsubs[expr] = z
             self._owner.clear()
         z.users += 1
@@ -226,12 +275,9 @@ class ZenohTransport(Transport):
     def _make_handler(self, expr: str) -> Callable[[zenoh.Sample], None]:
         def handler(sample: zenoh.Sample) -> None:
             try:
-                key = str(sample.key_expr)
-                if sample.kind != zenoh.SampleKind.PUT:
-                    payload = b""  # a DELETE carries no message: rejected as empty
-                else:
-                    payload = sample.payload.to_bytes()
-                self._on_sample(expr, key, payload)
+                with self._lock:
+                    if not self._closed:
+                        self._on_sample(expr, sample)
             except Exception as e:  # never raise into Zenoh's thread
                 self._ratelog(logging.ERROR, f"handler:{type(e).__name__}",
                               f"bus: zenoh handler on {expr!r}: {type(e).__name__}: {e}")
@@ -250,85 +296,71 @@ class ZenohTransport(Transport):
             self._owner[key] = owner
         return owner
 
-    def _on_sample(self, expr: str, key: str, payload: bytes) -> None:
-        with self._lock:
-            if self._closed:
-                return
-            try:
-                owner = self._owner_of(key)
-            except KeyExprError as e:
-                self.stats.total.rejected["key: invalid"] += 1
-                self._ratelog(logging.WARNING, "reject:key", f"bus: rejected key {key!r}: {e}")
-                return
-            if owner != expr:  # another declared expression delivers this key
-                return
-            for rsub in list(self._raw.values()):
-                if key_matches(rsub.key_expr, key):
-                    try:
-                        rsub.raw_callback(key, payload)
-                    except Exception as e:
-                        self.stats.total.callback_errors += 1
-                        self._ratelog(logging.ERROR, f"rawcb:{type(e).__name__}",
-                                      f"bus: raw callback raised on {key!r}: "
-                                      f"{type(e).__name__}: {e}")
-            if not self._subs:
-                return
-            if self.delivery == "callback":
-                self._deliver(key, payload)
-                return
-            if self.max_queue is not None and len(self._queue) >= self.max_queue:
-                self._queue.popleft()
-                self.stats.total.rejected["queue: overflow"] += 1
-                self._ratelog(logging.WARNING, "reject:overflow",
-                              f"bus: receive queue full ({self.max_queue}); oldest dropped")
-            self._queue.append((key, payload))
-
-    @property
-    def pending(self) -> int:
-        """Payloads received and waiting for `drain` (queue mode)."""
-        return len(self._queue)
+    def _on_sample(self, expr: str, sample: zenoh.Sample) -> None:
+        """One sample that reached the Zenoh subscriber of ``expr`` (lock held)."""
+        key = str(sample.key_expr)
+        try:
+            owner = self._owner_of(key)
+        except KeyExprError as e:
+            self.stats.total.rejected["key: invalid"] += 1
+            self._ratelog(logging.WARNING, "reject:key", f"bus: rejected key {key!r}: {e}")
+            return
+        if owner != expr:  # another declared expression takes this key
+            return
+        # a DELETE carries no message: it is rejected as an empty payload
+        payload = sample.payload.to_bytes() if sample.kind == zenoh.SampleKind.PUT else b""
+        for rsub in list(self._raw.values()):
+            if not rsub.closed and key_matches(rsub.key_expr, key):
+                try:
+                    rsub.raw_callback(key, payload)  # type: ignore[attr-defined]
+                except Exception as e:
+                    self.stats.total.callback_errors += 1
+                    self._ratelog(logging.ERROR, f"rawcb:{rsub.id}:{type(e).__name__}",
+                                  f"bus: raw callback of {rsub!r} raised on {key!r}: "
+                                  f"{type(e).__name__}: {e}")
+        self._deliver(key, payload)
 
     def drain(self, until_t_gps_s: float | None = None, max_items: int | None = None) -> int:
-        """Queue mode: decode and deliver, on this thread, everything received so far (at
-        most ``max_items``). ``until_t_gps_s`` is accepted for parity with
+        """Queue mode: take what has been received so far (at most ``max_items`` samples) and
+        decode and deliver it on this thread. ``until_t_gps_s`` is accepted for parity with
         `InMemoryTransport.drain` and ignored (live: a message is due when it arrives).
-        Returns the number of payloads handed to the receive path. In callback mode: 0."""
+        Returns the number of samples taken. In callback mode, or when called from one of
+        this transport's callbacks: 0."""
+        if self.delivery != "queue":
+            return 0
         count = 0
+        limit = float("inf") if max_items is None else max_items
         with self._lock:
-            if self._draining:
+            if self._draining or self._closed:
                 return 0
             self._draining = True
             try:
-                limit = len(self._queue) if max_items is None else min(max_items, len(self._queue))
-                while count < limit and not self._closed:
-                    key, payload = self._queue.popleft()
-                    self._deliver(key, payload)
-                    count += 1
+                for z in sorted(self._zsubs.values(), key=lambda z: z.order):
+                    while count < limit and not self._closed and z.expr in self._zsubs:
+                        sample = z.zsub.try_recv()
+                        if sample is None:
+                            break
+                        count += 1
+                        self._on_sample(z.expr, sample)
             finally:
                 self._draining = False
         return count
 
     # ------------------------------------------------------------------ helpers
     def wait_for_subscribers(self, key: str, timeout_s: float = 5.0) -> bool:
-        """Block (wall clock; launcher and tests only, never in a step function) until a
-        subscriber somewhere matches ``key``; return whether one did before the timeout."""
+        """Block (wall clock: launcher and tests only, never in a step function) until some
+        subscriber on the bus matches ``key``; return whether one did before the timeout."""
         self._check_open()
         validate_key(key)
-        with self._pub_lock:
-            pub = self._publishers.get(key)
-            if pub is None and len(self._publishers) < MAX_PUBLISHERS:
-                pub = self._publishers[key] = self._session.declare_publisher(
-                    key, congestion_control=self._cc, express=self.express,
-                    reliability=zenoh.Reliability.RELIABLE)
+        pub = self._publisher(key)
         if pub is None:
             raise RuntimeError("too many publishers declared to watch one more key")
         deadline = time.monotonic() + timeout_s
-        while True:
-            if pub.matching_status.matching:
-                return True
+        while not pub.matching_status.matching:
             if time.monotonic() >= deadline:
                 return False
             time.sleep(0.005)
+        return True
 
     def routers(self) -> list[str]:
         """Zenoh ids of the routers this session is connected to now."""
@@ -339,39 +371,31 @@ class ZenohTransport(Transport):
         return self._closed
 
     def close(self) -> None:
-        """Undeclare every subscriber and publisher, then close the session (idempotent).
-        A process whose session still has a callback subscriber can hang at exit: close."""
+        """Undeclare every subscriber and publisher, then close the session (idempotent)."""
         with self._lock:
             if self._closed:
                 return
-            super().close()  # closes every subscription -> undeclares the zenoh subscribers
+            _OPEN.discard(self)
+            super().close()  # closes every subscription -> undeclares its zenoh subscriber
             for rsub in list(self._raw.values()):
                 rsub.close()
             for z in list(self._zsubs.values()):
                 try:
                     z.zsub.undeclare()
-                except Exception:
-                    pass
+                except Exception as e:
+                    log.debug("zenoh undeclare of %r: %s", z.expr, e)
             self._zsubs.clear()
-            self._queue.clear()
         with self._pub_lock:
             for pub in self._publishers.values():
                 try:
                     pub.undeclare()
-                except Exception:
-                    pass
+                except Exception as e:
+                    log.debug("zenoh publisher undeclare: %s", e)
             self._publishers.clear()
         try:
             self._session.close()
         except Exception as e:  # e.g. "close operation timed out" (zenoh#2675)
-            log.warning("bus: zenoh session close: %s", " ".join(str(e).split()))
-
-    def __del__(self) -> None:
-        try:
-            if not self._closed and not self._session.is_closed():
-                self.close()
-        except Exception:
-            pass
+            log.warning("bus: zenoh session close: %s", zenoh_error_text(e))
 
     def __repr__(self) -> str:
         return (f"ZenohTransport({self.zid[:8]} {self.delivery}"
