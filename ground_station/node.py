@@ -1,0 +1,180 @@
+"""The ground-station node: the batch ground-station components on any bus, stepped by epoch.
+
+``GroundStationNode(transport, run_id, config)`` runs the SAME objects as batch mode -- the
+beacon locator (ground_station.beacon_locator.BeaconLocator) and the fused sonde tracker
+(ground_station.sonde_tracker.SondeTracker, parameters from the sonde experiment) -- and
+publishes their Estimates on ``<run>/gs/estimate/{beacon,sonde}/<id>``.
+
+The components subscribe and publish through a small deferred bus (`_DeferredBus`): what
+the real transport delivers (on its own threads, for Zenoh) is queued, and handed to the
+components in the caller's thread by `pump` / `advance`, so the components never run
+concurrently with themselves. ``advance(t)`` processes every epoch seen up to t (in time
+order): the live process calls it with its paced clock minus a hold time (how long an
+epoch's messages may take to arrive); replay calls it with the recorded messages' times.
+Messages for an epoch already processed are counted (``late``) and passed on (the
+components count them as stale).
+"""
+from __future__ import annotations
+
+import math
+import threading
+from collections import Counter, deque
+from dataclasses import dataclass
+
+from sitl.bus import Estimate, key_matches
+
+
+@dataclass(frozen=True)
+class GsConfig:
+    beacon_id: str = "b1"
+    beacon_init_epochs: int = 3
+    sonde: bool = True
+    radar_id: str | None = "arls1"
+    sonde_dt_s: float = 1.0
+    gcpp_offset_m: float = 300.0
+    gcpp_bearing_deg: float = 140.0
+
+    @classmethod
+    def from_scenario(cls, scn) -> "GsConfig":
+        return cls(beacon_id=scn.beacon.id, beacon_init_epochs=scn.ground_station.beacon_init_epochs,
+                   sonde=scn.sonde.enabled, radar_id=scn.sonde.radar_id, sonde_dt_s=1.0 / scn.run.rate_hz,
+                   gcpp_offset_m=scn.sonde.gcpp_offset_m, gcpp_bearing_deg=scn.sonde.gcpp_bearing_deg)
+
+
+class _Sub:
+    def __init__(self, bus, expr, cb):
+        self.bus, self.key_expr, self.callback, self.closed = bus, expr, cb, False
+
+    def close(self):
+        self.closed = True
+
+
+class _DeferredBus:
+    """What the components see as their transport: subscribe / publish; deliveries queued."""
+
+    def __init__(self, transport, on_input):
+        self.transport = transport
+        self._subs: list[_Sub] = []
+        self._real = []
+        self._queue: deque = deque()
+        self._on_input = on_input
+        self.published: list = []  # (key, Estimate) published since the last take_published()
+
+    def subscribe(self, key_expr, callback):
+        sub = _Sub(self, key_expr, callback)
+        self._subs.append(sub)
+        if self.transport is not None:
+            self._real.append(self.transport.subscribe(key_expr, self._enqueue))
+        return sub
+
+    def _enqueue(self, key, msg):  # any thread
+        self._queue.append((key, msg))
+
+    def feed(self, key, msg):
+        """Deliver a message directly (no transport: replay and tests)."""
+        self._queue.append((key, msg))
+
+    def pump(self) -> int:
+        n = 0
+        q = self._queue
+        while q:
+            key, msg = q.popleft()
+            self._on_input(key, msg)
+            for s in self._subs:
+                if not s.closed and key_matches(s.key_expr, key):
+                    s.callback(key, msg)
+            n += 1
+        return n
+
+    def publish(self, key, msg):
+        self.published.append((key, msg))
+        if self.transport is not None:
+            self.transport.publish(key, msg)
+
+    def close(self):
+        for s in self._real:
+            s.close()
+        self._real.clear()
+
+
+class GroundStationNode:
+    """Beacon locator + sonde tracker on a bus (module docstring).
+
+    transport: a sitl.bus Transport (None: feed messages with ``feed``); run_id: the run's
+    key prefix; config: GsConfig. ``estimates``: the latest Estimate per (kind, id)."""
+
+    def __init__(self, transport, run_id: str, config: GsConfig | None = None):
+        from ground_station.beacon_locator import BeaconLocator, LocatorConfig
+        from ground_station.sonde_tracker import SondeTracker
+
+        self.config = c = config or GsConfig()
+        self.run_id = run_id
+        self.counters = Counter()
+        self._epochs: set[float] = set()
+        self.t_done = -math.inf
+        self._lock = threading.Lock()
+        self.bus = _DeferredBus(transport, self._on_input)
+        self.locator = BeaconLocator(self.bus, run_ids=[run_id], beacon_id=c.beacon_id,
+                                     config=LocatorConfig(init_epochs=c.beacon_init_epochs), source_id="gs")
+        self.tracker = None
+        if c.sonde:
+            from sitl.experiments.sonde import SondeScenario, tracker_params
+            scn = SondeScenario(dt_s=c.sonde_dt_s, gcpp_offset_m=c.gcpp_offset_m,
+                                gcpp_bearing_deg=c.gcpp_bearing_deg)
+            self.tracker = SondeTracker(run_id, tracker_params(scn, "fused"), radar_id=c.radar_id, source_id="gs")
+            self.tracker.attach(self.bus)
+        self.estimates: dict[tuple[str, str], Estimate] = {}
+
+    def _on_input(self, key, msg) -> None:
+        t = float(msg.t_gps_s)
+        self.counters["inputs"] += 1
+        if t <= self.t_done:
+            self.counters["late"] += 1
+        else:
+            self._epochs.add(round(t, 6))
+
+    def feed(self, key: str, msg) -> None:
+        self.bus.feed(key, msg)
+
+    def pending_epochs(self) -> int:
+        return len(self._epochs)
+
+    def advance(self, t_until_gps_s: float) -> list:
+        """Take in what has arrived and process every epoch <= t_until; returns the
+        (key, Estimate) published meanwhile."""
+        with self._lock:
+            self.bus.pump()
+            due = sorted(e for e in self._epochs if e <= t_until_gps_s)
+            for tau in due:
+                self._epochs.discard(tau)
+                self._step(tau)
+            out, self.bus.published = self.bus.published, []
+            for key, est in out:
+                parts = key.rsplit("/", 2)
+                self.estimates[(parts[-2], parts[-1])] = est
+            self.counters["estimates"] += len(out)
+            return out
+
+    def _step(self, tau: float) -> None:
+        self.locator.step(tau)  # publishes through self.bus
+        if self.tracker is not None:
+            self.tracker.step(tau)
+        self.t_done = max(self.t_done, tau)
+        self.counters["epochs"] += 1
+
+    def flush(self) -> list:
+        """Process every epoch still pending (end of a replay)."""
+        return self.advance(math.inf)
+
+    def stats(self) -> dict:
+        d = {"node": dict(self.counters), "beacon_locator": dict(self.locator.counters),
+             "beacon_rejected": dict(self.locator.rejected)}
+        if self.tracker is not None:
+            d["sonde_tracker"] = self.tracker.counters.as_dict()
+        return d
+
+    def close(self) -> None:
+        self.locator.close()
+        if self.tracker is not None:
+            self.tracker.close()
+        self.bus.close()

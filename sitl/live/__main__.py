@@ -1,0 +1,25 @@
+"""``python -m sitl.live {run,demo,replay} ...``: the live commands before (and besides) their
+registration in `skyfuse` (sitl/cli.py)."""
+import sys
+
+
+def main(argv=None) -> int:
+    from sitl.cli import UsageError, _Parser
+    from sitl.live import launcher
+
+    p = _Parser(prog="python -m sitl.live")
+    sub = p.add_subparsers(dest="command", required=True)
+    launcher.add_run_args(sub.add_parser("run", help="run a scenario live"))
+    launcher.add_demo_args(sub.add_parser("demo", help="run the built-in default scenario live"))
+    launcher.add_replay_args(sub.add_parser("replay", help="replay a bus log through the ground station"))
+    try:
+        args = p.parse_args(argv)
+        fn = {"run": launcher.run_main, "demo": launcher.demo_main, "replay": launcher.replay_main}[args.command]
+        return int(fn(args) or 0)
+    except UsageError as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,82 @@
+"""A scenario in batch mode: the live run's components (vehicles.process.VehicleGroup,
+ground_station.node.GroundStationNode) stepped in one process in simulation time over an
+InMemoryTransport -- deterministic for a seed, as fast as the machine goes. The reference the
+live run is compared with (the same scenario and seed give the same statistics).
+
+vehicles / ground_station are loaded by module name (sitl never imports them statically)."""
+from __future__ import annotations
+
+import importlib
+import math
+
+import numpy as np
+
+from sitl.live.scoring import ErrorTracker
+
+
+def run_batch(scn, *, settle_s: float = 0.0, progress=None) -> dict:
+    from sitl.bus import InMemoryTransport
+
+    vp = importlib.import_module("vehicles.process")
+    gn = importlib.import_module("ground_station.node")
+    run = scn.run
+    bus = InMemoryTransport(start_t_gps_s=run.t0_gps_s)
+    scorer = ErrorTracker(keep_s=1e9, settle_s=settle_s, t0_gps_s=run.t0_gps_s)
+    scorer.subscribe(bus, run.id)
+    node = gn.GroundStationNode(bus, run.id, gn.GsConfig.from_scenario(scn))
+    groups = []
+    per = scn.uavs.per_process
+    for g in range(scn.n_uav_processes):
+        idx = list(range(g * per, min(scn.uavs.count, (g + 1) * per)))
+        groups.append(vp.VehicleGroup(scn, idx, bus, np.random.SeedSequence([run.seed, 1000 + g]),
+                                      with_beacon_truth=g == 0, with_sonde=g == 0 and scn.sonde.enabled))
+    dt = 1.0 / run.rate_hz
+    K = int(math.floor(run.duration_s * run.rate_hz + 1e-9)) + 1
+    for k in range(K):
+        t = run.t0_gps_s + k * dt
+        for g in groups:
+            g.step(t)
+        bus.drain(t)
+        node.advance(t)
+        bus.drain(t)
+        if progress and k % 100 == 0:
+            progress(f"[batch] t = {k * dt:.0f} s of {run.duration_s:.0f}")
+    out = {"errors": scorer.summary(), "gs": node.stats(), "published": bus.stats.published,
+           "series": {f"{a}/{b}": v for (a, b), v in scorer.series.items()}}
+    node.close()
+    bus.close()
+    return out
+
+
+def warm_up(scn, epochs: int = 5) -> None:
+    """Step the scenario's components for a few epochs (batch), so that every compiled kernel
+    they use is in numba's on-disk cache before the live workers start (a kernel compiled
+    in the middle of a live run stalls that worker for seconds)."""
+    d = scn.to_dict()
+    short = scn.replace(run={"duration_s": max(1.0, (epochs - 1) / scn.run.rate_hz)},
+                        uavs={"count": min(scn.uavs.count, 3) if scn.uavs.count else 0,
+                              "per_process": 100,
+                              "starts": tuple(tuple(s) for s in scn.uavs.start_points()[:3]) if d["uavs"]["starts"]
+                              else ()})
+    run_batch(short)
+
+
+def main(argv=None) -> int:
+    """``python -m sitl.live.batch SCENARIO.json --warm-up``: warm the compiled kernels."""
+    import json
+    import sys
+
+    from sitl.scenario import _to_toml_like, scenario_from_dict
+    argv = sys.argv[1:] if argv is None else argv
+    if len(argv) != 2 or argv[1] != "--warm-up":
+        print("usage: python -m sitl.live.batch SCENARIO.json --warm-up", file=sys.stderr)
+        return 2
+    with open(argv[0], encoding="utf-8") as f:
+        scn = scenario_from_dict(_to_toml_like(json.load(f)), argv[0])
+    warm_up(scn)
+    return 0
+
+
+if __name__ == "__main__":
+    import sys
+    sys.exit(main())

@@ -1,0 +1,451 @@
+"""`skyfuse run SCENARIO.toml`, `skyfuse demo`, `skyfuse replay LOG`: the live SITL launcher.
+
+run / demo:
+  1. the scenario (TOML, validated; `demo`: the built-in default), with the command line's
+     overrides (--speed, --duration, --seed, --zenoh, --gcs, --no-mavlink);
+  2. an embedded Zenoh router (sitl.bus.router.Router), unless --zenoh names external ones;
+  3. the launcher's own bus session: the bus log (every ``<run>/**`` payload, crash-safe,
+     OUT/bus.log) and the errors of the ground station's estimates against the truth;
+  4. the workers (sitl.live.supervisor): the vehicle groups and the ground station, each a
+     ``python -m MODULE SPEC.json`` (OUT/specs/); once every one is ready, the common start
+     time; a worker that dies is reported and restarted;
+  5. a status line every wall second (stderr): simulated time, vehicles, messages per
+     second, rejected inputs, the latest beacon and sonde errors;
+  6. at the end of ``duration_s`` (simulated) everything stops by itself; Ctrl-C or SIGTERM
+     stop it early; in both cases every worker is stopped (process groups, SIGTERM then
+     SIGKILL) and every session and port closed. OUT/report.json and a printed summary.
+
+replay LOG: the recorded bus log through the batch ground station (GroundStationNode on the
+in-memory transport), epoch by epoch as the live ground station did; prints the replayed
+estimates' errors against the recorded truth and their difference from the estimates the
+live ground station published (recorded in the same log).
+
+vehicles / ground_station are started by module name (sitl never imports them statically).
+"""
+from __future__ import annotations
+
+import argparse
+import importlib
+import json
+import math
+import signal
+import sys
+import threading
+from pathlib import Path
+
+from sitl.live.pacer import Pacer, perf_now, wall_now
+
+READY_TIMEOUT_S = 240.0  # first start compiles / loads the numba kernels
+END_GRACE_WALL_S = 20.0  # after the last epoch: how long workers may take to finish
+
+
+# ---------------------------------------------------------------------- arguments
+
+
+def _usage():
+    from sitl.cli import UsageError
+    return UsageError
+
+
+def _common_args(p: argparse.ArgumentParser, default_out: str) -> None:
+    from sitl.cli import nonnegative_int, positive_float
+    p.add_argument("--speed", type=positive_float, default=None, help="x real time (default: the scenario's)")
+    p.add_argument("--duration", type=positive_float, default=None, metavar="S",
+                   help="simulated seconds, then everything stops (default: the scenario's)")
+    p.add_argument("--seed", type=nonnegative_int, default=None, help="random seed (default: the scenario's)")
+    p.add_argument("--out", type=Path, default=Path(default_out), metavar="DIR",
+                   help=f"report, bus log, tlogs, worker logs (default {default_out})")
+    p.add_argument("--zenoh", action="append", default=None, metavar="tcp/HOST:PORT",
+                   help="connect to this Zenoh router instead of starting one (repeatable)")
+    p.add_argument("--gcs", default=None, metavar="HOST:PORT", help="ground-control endpoint (default 127.0.0.1:14550)")
+    p.add_argument("--no-mavlink", action="store_true", help="no MAVLink endpoints")
+    p.add_argument("--batch", action="store_true",
+                   help="batch mode: the same components in one process, simulated time, in-memory bus")
+    p.add_argument("--quiet", action="store_true", help="no status line")
+
+
+def add_run_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument("scenario", type=Path, help="scenario file (TOML)")
+    _common_args(p, "out/run")
+
+
+def add_demo_args(p: argparse.ArgumentParser) -> None:
+    _common_args(p, "out/demo")
+
+
+def add_replay_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument("log", type=Path, help="a bus log written by `skyfuse run` / `demo` (OUT/bus.log)")
+    p.add_argument("--scenario", type=Path, default=None,
+                   help="the run's scenario (default: scenario.json beside the log, else the built-in default)")
+    p.add_argument("--json", type=Path, default=None, metavar="FILE", help="also write the result as JSON")
+
+
+def _scenario_with_overrides(scn, args):
+    from sitl.scenario import ScenarioError, scenario_from_dict
+    d = scn.to_dict()
+    if args.speed is not None:
+        d["run"]["speed"] = args.speed
+    if args.duration is not None:
+        d["run"]["duration_s"] = args.duration
+    if args.seed is not None:
+        d["run"]["seed"] = args.seed
+    if args.zenoh:
+        d["bus"]["zenoh"] = list(args.zenoh)
+    if args.gcs is not None:
+        d["mavlink"]["gcs"] = args.gcs
+    if args.no_mavlink:
+        d["mavlink"]["enabled"] = False
+    from sitl.scenario import _to_toml_like
+    try:
+        return scenario_from_dict(_to_toml_like(d), scn.source + " + command line")
+    except ScenarioError as e:
+        raise _usage()(str(e).replace("scenario: bus.zenoh", "--zenoh").replace("scenario: mavlink.gcs", "--gcs")
+                       ) from None
+
+
+def run_main(args) -> int:
+    from sitl.scenario import ScenarioError, load_scenario
+    try:
+        scn = load_scenario(args.scenario)
+    except ScenarioError as e:
+        raise _usage()(str(e)) from None
+    return _main(_scenario_with_overrides(scn, args), args)
+
+
+def demo_main(args) -> int:
+    from sitl.scenario import default_scenario
+    return _main(_scenario_with_overrides(default_scenario(), args), args)
+
+
+def _main(scn, args) -> int:
+    from sitl.experiments._common import prepare_out
+    out = prepare_out(Path(args.out))
+    if args.batch:
+        return _batch(scn, out, args)
+    report = launch(scn, out, quiet=args.quiet)
+    print(summary_text(report))
+    return 0 if report["ok"] else 1
+
+
+def _batch(scn, out: Path, args) -> int:
+    from sitl.experiments._common import strict
+    from sitl.live.batch import run_batch
+    t0 = perf_now()
+    res = run_batch(scn, progress=None if args.quiet else (lambda m: print(m, file=sys.stderr)))
+    doc = {"mode": "batch", "scenario": scn.to_dict(), "wall_s": perf_now() - t0, "errors": res["errors"],
+           "ground_station": res["gs"], "published": res["published"], "ok": True}
+    (out / "report.json").write_text(json.dumps(strict(doc), indent=1, allow_nan=False))
+    print(summary_text(doc))
+    return 0
+
+
+# ---------------------------------------------------------------------- the live run
+
+
+def launch(scn, out: Path, *, quiet: bool = False, stop: threading.Event | None = None,
+           status_stream=None, ready_timeout_s: float = READY_TIMEOUT_S, on_started=None,
+           warm_up: bool = True) -> dict:
+    """Run the scenario live (module docstring); returns the report (also OUT/report.json).
+
+    stop: set it to stop early (the CLI sets it on SIGINT / SIGTERM). on_started(supervisor):
+    called once the workers have started their run (tests use it to inject faults)."""
+    from sitl.bus.buslog import BusRecorder
+    from sitl.bus.zenoh_transport import ZenohTransport
+    from sitl.experiments._common import strict
+    from sitl.live.scoring import ErrorTracker
+    from sitl.live.status import StatusBoard, format_status
+    from sitl.live.supervisor import Supervisor
+    from sitl.scenario import worker_specs
+
+    stop = stop if stop is not None else threading.Event()
+    status_stream = status_stream if status_stream is not None else sys.stderr
+    tty = hasattr(status_stream, "isatty") and status_stream.isatty()
+    restore = _install_signals(stop)
+    run = scn.run
+    t_wall0 = perf_now()
+    router = bus = recorder = sup = None
+    report: dict = {"mode": "live", "scenario": scn.to_dict(), "ok": False, "events": []}
+    shutdown = {}
+    try:
+        if scn.bus.zenoh:
+            endpoints = list(scn.bus.zenoh)
+        else:
+            from sitl.bus.router import Router
+            router = Router(listen=[scn.bus.listen], lease_ms=scn.bus.lease_ms)
+            endpoints = router.endpoints
+        report["zenoh"] = endpoints
+        bus = ZenohTransport(connect=endpoints, mode="client", lease_ms=scn.bus.lease_ms)
+        scorer = ErrorTracker(t0_gps_s=run.t0_gps_s)
+        scorer.subscribe(bus, run.id)
+        if scn.bus.log:
+            recorder = BusRecorder(bus, out / "bus.log", key_expr=f"{run.id}/**", append=False)
+        (out / "scenario.json").write_text(json.dumps(scn.to_dict(), indent=1))
+        if warm_up:
+            _warm_up(out / "scenario.json", out / "logs", stop)
+        spec_dir = out / "specs"
+        spec_dir.mkdir(exist_ok=True)
+        sup = Supervisor(out / "logs")
+        for spec in worker_specs(scn, endpoints, out):
+            path = spec.write(spec_dir / f"{spec.name}.json")
+            sup.add_module(spec.name, spec.module, str(path), restart=True)
+        sup.start_all()
+        if not sup.wait_ready(ready_timeout_s, stop):
+            sup.poll()
+            report["error"] = ("stopped before the workers were ready" if stop.is_set() else
+                               f"workers not ready after {ready_timeout_s:.0f} s: " +
+                               ", ".join(c.name for c in sup.children.values() if not c.ready.is_set()))
+            return report
+        wall_start = wall_now() + 0.2
+        sup.broadcast_start(wall_start)
+        pacer = Pacer(run.speed, run.t0_gps_s, wall_start, stop=stop)
+        t_end = run.t0_gps_s + run.duration_s
+        if on_started is not None:
+            on_started(sup)
+        board = StatusBoard()
+        next_status = perf_now()
+        last_line = ""
+        while not stop.is_set():
+            bus.drain()
+            for ev in sup.poll():
+                if ev["event"] in ("restart", "gave_up") or (ev["event"] == "exit" and not ev.get("clean")):
+                    _say(status_stream, tty, f"[launcher] {ev['worker']}: {_event_text(ev)}")
+            if sup.all_finished():
+                break
+            if pacer.sim_now() > t_end + END_GRACE_WALL_S * run.speed:
+                report["error"] = "workers did not finish in time"
+                break
+            if perf_now() >= next_status:
+                next_status += 1.0
+                last_line = format_status(board.snapshot(sup, scorer, bus), run.t0_gps_s, run.duration_s)
+                if not quiet:
+                    _status(status_stream, tty, last_line)
+            stop.wait(0.05)
+        bus.drain()
+        report["stopped_early"] = stop.is_set()
+        report["last_status"] = last_line
+    finally:
+        if sup is not None:
+            shutdown = sup.stop()
+        if recorder is not None:
+            recorder.close()
+        if bus is not None:
+            bus.drain()
+            bus.close()
+        if router is not None:
+            router.close()
+        _restore_signals(restore)
+        if tty and not quiet:
+            status_stream.write("\n")
+        report["wall_s"] = perf_now() - t_wall0
+        report["shutdown"] = shutdown
+        if sup is not None:
+            _fill_report(report, sup, scorer if bus is not None else None, bus, recorder)
+        (out / "report.json").write_text(json.dumps(strict(report), indent=1, allow_nan=False))
+    return report
+
+
+def _warm_up(scenario_json: Path, log_dir: Path, stop: threading.Event) -> None:
+    """A few batch epochs of the scenario in a subprocess: numba's on-disk caches are filled
+    (compiled if a kernel's source changed) before the workers need them."""
+    import subprocess
+    log_dir.mkdir(parents=True, exist_ok=True)
+    with open(log_dir / "warm_up.stderr.log", "ab") as err:
+        p = subprocess.Popen([sys.executable, "-m", "sitl.live.batch", str(scenario_json), "--warm-up"],
+                             stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=err)
+        try:
+            while p.poll() is None:
+                if stop.wait(0.1):
+                    break
+        finally:
+            if p.poll() is None:
+                p.kill()
+            p.wait()
+
+
+def _fill_report(report, sup, scorer, bus, recorder) -> None:
+    from sitl.live.status import _rejected_total
+    from collections import Counter
+    workers = {}
+    rejected = Counter()
+    sent = 0
+    for c in sup.children.values():
+        statuses = c.history + ([c.status] if c.status and c.status not in c.history else [])
+        for st in statuses:
+            rejected.update(_rejected_total(st))
+            sent += int(st.get("sent", 0))
+        workers[c.name] = {"restarts": c.restarts, "exits": c.exits, "done": c.done, "last": c.status,
+                           "stderr": str(c.stderr_path) if c.stderr_path else None, "bad_lines": c.bad_lines}
+    if bus is not None:
+        for reason, n in bus.stats.total.rejected.items():
+            rejected[f"launcher-bus:{reason}"] += int(n)
+    report["workers"] = workers
+    report["events"] = sup.events
+    report["messages_sent"] = sent
+    report["rejected"] = dict(rejected)
+    report["restarts"] = int(sup.counters.get("restarts", 0))
+    report["errors"] = scorer.summary() if scorer is not None else {}
+    report["bus_log"] = {"records": recorder.records, "errors": recorder.errors} if recorder is not None else None
+    clean = all(c.done and c.exits and c.exits[-1] == 0 for c in sup.children.values())
+    report["orphans"] = sup.alive()
+    report["ok"] = (clean or report.get("stopped_early", False)) and not report["orphans"] and "error" not in report
+
+
+def _event_text(ev) -> str:
+    if ev["event"] == "restart":
+        return f"died (exit {ev.get('after_returncode')}), restarted (#{ev.get('incarnation')})"
+    if ev["event"] == "gave_up":
+        return f"died again; not restarted after {ev.get('restarts')} restarts"
+    return f"exited with {ev.get('returncode')}"
+
+
+def _status(stream, tty, line) -> None:
+    try:
+        stream.write(("\r" + line + "\x1b[K") if tty else line + "\n")
+        stream.flush()
+    except (OSError, ValueError):
+        pass
+
+
+def _say(stream, tty, line) -> None:
+    _status(stream, False, ("\n" + line) if tty else line)
+
+
+def _install_signals(stop: threading.Event):
+    if threading.current_thread() is not threading.main_thread():
+        return None
+    old = {}
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        old[sig] = signal.signal(sig, lambda *_: stop.set())
+    return old
+
+
+def _restore_signals(old) -> None:
+    if old:
+        for sig, h in old.items():
+            signal.signal(sig, h)
+
+
+def summary_text(report: dict) -> str:
+    lines = [f"skyfuse {report.get('mode', 'live')} run: {'ok' if report.get('ok') else 'NOT ok'}"
+             + (f" ({report['error']})" if report.get("error") else "")
+             + (" (stopped early)" if report.get("stopped_early") else "")]
+    if "wall_s" in report:
+        lines.append(f"  wall time {report['wall_s']:.1f} s")
+    for name, e in sorted((report.get("errors") or {}).items()):
+        rm = e.get("rmse_m")
+        lines.append(f"  {name:14s} estimates {e.get('estimates', 0):6d}  RMSE "
+                     + (f"{rm:10.2f} m" if rm is not None else "        -- m"))
+    if "messages_sent" in report:
+        lines.append(f"  bus messages sent {report['messages_sent']}, restarts {report.get('restarts', 0)}, "
+                     f"rejected inputs {sum((report.get('rejected') or {}).values())}")
+        for reason, n in sorted((report.get("rejected") or {}).items()):
+            lines.append(f"    rejected {reason}: {n}")
+    if report.get("bus_log"):
+        lines.append(f"  bus log: {report['bus_log']['records']} records")
+    if report.get("orphans"):
+        lines.append(f"  ORPHANS: {report['orphans']}")
+    return "\n".join(lines)
+
+
+# ---------------------------------------------------------------------- replay
+
+
+def replay(log_path, scn) -> dict:
+    """The recorded bus log through GroundStationNode on the in-memory transport (module doc)."""
+    import numpy as np
+
+    from sitl.bus import BusDecodeError, InMemoryTransport, decode, key_matches
+    from sitl.bus.buslog import BusLogStats, read_bus_log_records
+    from sitl.live.scoring import ErrorTracker
+
+    gn = importlib.import_module("ground_station.node")
+    run_id = scn.run.id
+    bus = InMemoryTransport(synchronous=True, start_t_gps_s=scn.run.t0_gps_s)
+    scorer = ErrorTracker(keep_s=1e9, t0_gps_s=scn.run.t0_gps_s)
+    bus.subscribe(f"{run_id}/truth/**", scorer.on_truth)
+    node = gn.GroundStationNode(bus, run_id, gn.GsConfig.from_scenario(scn))
+    replayed = {}
+    bus.subscribe(f"{run_id}/gs/estimate/**", lambda k, m: replayed.__setitem__((k, round(m.t_gps_s, 6)), m))
+    bus.subscribe(f"{run_id}/gs/estimate/**", scorer.on_estimate)
+    recorded = {}
+    stats = BusLogStats()
+    hold_sim = scn.ground_station.hold_wall_s * scn.run.speed
+    n = bad = other = 0
+    inputs = (f"{run_id}/uav/*/beacon/*", f"{run_id}/sonde/*/relay", f"{run_id}/radar/*/sonde/*")
+    for rec in read_bus_log_records(log_path, stats=stats):
+        n += 1
+        key, payload = rec.key, rec.payload
+        try:
+            msg = decode(payload)
+        except BusDecodeError:
+            bad += 1
+            bus.publish_raw(key, payload)  # rejected and counted by the transport, as live
+            continue
+        if key_matches(f"{run_id}/gs/estimate/**", key):
+            recorded[(key, round(msg.t_gps_s, 6))] = msg
+            continue
+        if key_matches(f"{run_id}/truth/**", key):
+            bus.publish_raw(key, payload, msg.t_gps_s)
+            continue
+        if not any(key_matches(e, key) for e in inputs):
+            other += 1
+            continue
+        node.advance(msg.t_gps_s - hold_sim - 1e-6)
+        bus.publish_raw(key, payload, msg.t_gps_s)
+    node.flush()
+    diffs = {}
+    for (key, t), est in replayed.items():
+        rec_est = recorded.get((key, t))
+        if rec_est is None:
+            continue
+        kind = key.rsplit("/", 2)[-2]
+        diffs.setdefault(kind, []).append(float(np.linalg.norm(est.pos_ecef_m - rec_est.pos_ecef_m)))
+    cmp = {}
+    for kind in sorted({k.rsplit("/", 2)[-2] for k, _ in set(replayed) | set(recorded)}):
+        d = np.array(diffs.get(kind, []))
+        cmp[kind] = {"replayed": sum(1 for k, _ in replayed if k.rsplit("/", 2)[-2] == kind),
+                     "recorded": sum(1 for k, _ in recorded if k.rsplit("/", 2)[-2] == kind),
+                     "matched": int(d.size),
+                     "max_pos_diff_m": float(d.max()) if d.size else None,
+                     "median_pos_diff_m": float(np.median(d)) if d.size else None}
+    out = {"mode": "replay", "log": str(log_path), "records": n, "undecodable": bad, "other_keys": other,
+           "torn_tail": {"dropped_bytes": stats.dropped_bytes, "reason": stats.reason},
+           "errors": scorer.summary(), "vs_live": cmp, "ground_station": node.stats(),
+           "bus_rejected": dict(bus.stats.total.rejected), "ok": True}
+    node.close()
+    bus.close()
+    return out
+
+
+def replay_main(args) -> int:
+    from sitl.experiments._common import strict
+    from sitl.scenario import ScenarioError, default_scenario, load_scenario, scenario_from_dict
+    log = Path(args.log)
+    if not log.is_file():
+        raise _usage()(f"replay: {str(log)!r}: no such file")
+    try:
+        if args.scenario is not None:
+            scn = load_scenario(args.scenario)
+        elif (log.parent / "scenario.json").is_file():
+            scn = scenario_from_dict(json.loads((log.parent / "scenario.json").read_text()), "scenario.json")
+        else:
+            scn = default_scenario()
+    except (ScenarioError, ValueError) as e:
+        raise _usage()(str(e)) from None
+    from sitl.bus.buslog import BusLogError
+    try:
+        res = replay(log, scn)
+    except BusLogError as e:
+        raise _usage()(f"replay: {e}") from None
+    lines = [f"replay of {log}: {res['records']} records ({res['undecodable']} undecodable)"]
+    for name, e in sorted(res["errors"].items()):
+        rm = e.get("rmse_m")
+        lines.append(f"  {name:14s} estimates {e['estimates']:6d}  RMSE " + (f"{rm:.2f} m" if rm is not None else "--"))
+    for kind, c in res["vs_live"].items():
+        md = c["max_pos_diff_m"]
+        lines.append(f"  {kind:14s} vs live: {c['matched']} of {c['recorded']} recorded estimates matched, "
+                     f"max |diff| " + (f"{md:.3g} m" if md is not None else "--"))
+    print("\n".join(lines))
+    if args.json is not None:
+        Path(args.json).write_text(json.dumps(strict(res), indent=1, allow_nan=False))
+    return 0

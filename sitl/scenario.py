@@ -1,0 +1,527 @@
+"""Scenario files (TOML) for the live SITL: parsing, validation, the built-in default, and the
+per-worker spec JSON the launcher hands to each worker process.
+
+    scn = load_scenario("my.toml")        # or default_scenario(), or parse_scenario(text)
+    specs = worker_specs(scn, router_endpoints, out_dir)   # [WorkerSpec]; spec.write(path)
+
+Every validation error is a `ScenarioError` whose message is ONE line naming the key (dotted,
+e.g. ``uavs.count``) and saying what was expected; the CLI turns it into exit status 2.
+Unknown keys are errors too (a typo must not be silently ignored).
+
+Layout of a scenario (every key optional; the defaults are those of `DEFAULT_SCENARIO_TOML`):
+
+    [run]          id, seed, duration_s (simulated), speed (x real time), rate_hz (epochs / s of
+                   simulated time), t0_gps_s (start, GPS seconds)
+    [bus]          zenoh (list of external router endpoints; empty: an embedded router),
+                   listen (the embedded router's endpoint), log (record the bus), lease_ms
+    [mavlink]      enabled, gcs ("HOST:PORT"), base_port (vehicle i listens on base_port + 10 i),
+                   signing_key_file, tlog
+    [uavs]         count, per_process, center (lat deg, lon deg), radius_m, alt_m, alt_step_m, speed_m_s,
+                   starts (optional list of [lat deg, lon deg, h m], one per UAV)
+    [beacon]       id, mode (seed | legs | static), start ([lat deg, lon deg, h m])
+    [sonde]        enabled, id, radar_id, launch ([lat deg, lon deg, h m]), gcpp_offset_m,
+                   gcpp_bearing_deg, radar_loss_s ([start, end] after launch), gnss_outage_s
+    [ground_station] hold_wall_s (how long after an epoch's time the GS waits for its
+                   messages, wall seconds), beacon_init_epochs
+"""
+from __future__ import annotations
+
+import json
+import math
+import tomllib
+from dataclasses import asdict, dataclass, field, fields
+from pathlib import Path
+from typing import Any
+
+# GPS time of the built-in almanac's epoch + 1 h (the seed 002 start; vehicles.uav_nav
+# .SEED002_T0_GPS_S, which sitl may not import)
+from sitl.gnss.orbits import DEFAULT_TOA_GPS_S
+
+DEFAULT_T0_GPS_S = DEFAULT_TOA_GPS_S + 3600.0
+SPEC_VERSION = 1
+
+DEFAULT_SCENARIO_TOML = """\
+# skyfuse built-in default scenario: 3 UAVs around a moving radio beacon, one radiosonde
+# tracked by its relayed GNSS and an aerological radar.
+[run]
+id = "demo"
+seed = 1
+duration_s = 600.0
+speed = 1.0
+rate_hz = 1.0
+
+[bus]
+zenoh = []
+listen = "tcp/127.0.0.1:0"
+log = true
+
+[mavlink]
+enabled = true
+gcs = "127.0.0.1:14550"
+base_port = 5760
+signing_key_file = ""
+tlog = true
+
+[uavs]
+count = 3
+per_process = 100
+center = [45.15, 30.15]
+radius_m = 15000.0
+alt_m = 2000.0
+alt_step_m = 2000.0
+speed_m_s = 100.0
+
+[beacon]
+id = "b1"
+mode = "legs"
+start = [45.15, 30.15, 300.0]
+
+[sonde]
+enabled = true
+id = "s0000"
+radar_id = "arls1"
+launch = [55.93, 37.52, 190.0]
+gcpp_offset_m = 300.0
+gcpp_bearing_deg = 140.0
+radar_loss_s = [30.0, 330.0]
+gnss_outage_s = [3600.0, 3720.0]
+
+[ground_station]
+hold_wall_s = 0.3
+"""
+
+
+class ScenarioError(ValueError):
+    """A scenario key with a bad value (one line: ``scenario: <key>: <what was expected>``)."""
+
+
+def _err(key: str, expected: str, got: Any = None, *, show_got: bool = True) -> ScenarioError:
+    if not show_got:
+        return ScenarioError(f"scenario: {key}: {expected}")
+    g = repr(got)
+    if len(g) > 60:
+        g = g[:57] + "..."
+    return ScenarioError(f"scenario: {key}: expected {expected}, got {g}")
+
+
+# ---------------------------------------------------------------- value checks
+
+
+def _number(key, v, *, lo=None, hi=None, lo_open=False, allow_int=True) -> float:
+    if isinstance(v, bool) or not isinstance(v, (int, float)) or (isinstance(v, int) and not allow_int):
+        raise _err(key, "a number", v)
+    v = float(v)
+    what = "a finite number"
+    if lo is not None:
+        what += f" {'>' if lo_open else '>='} {lo:g}"
+    if hi is not None:
+        what += f" <= {hi:g}"
+    if not math.isfinite(v) or (lo is not None and (v <= lo if lo_open else v < lo)) or (hi is not None and v > hi):
+        raise _err(key, what, v)
+    return v
+
+
+def _int(key, v, *, lo=None, hi=None) -> int:
+    if isinstance(v, bool) or not isinstance(v, int):
+        raise _err(key, "an integer", v)
+    if (lo is not None and v < lo) or (hi is not None and v > hi):
+        rng = f">= {lo}" if hi is None else f"in {lo}..{hi}"
+        raise _err(key, f"an integer {rng}", v)
+    return v
+
+
+def _bool(key, v) -> bool:
+    if not isinstance(v, bool):
+        raise _err(key, "true or false", v)
+    return v
+
+
+def _str(key, v, *, choices=None, ident=False, allow_empty=True) -> str:
+    if not isinstance(v, str):
+        raise _err(key, "a string", v)
+    if choices is not None and v not in choices:
+        raise _err(key, f"one of {', '.join(choices)}", v)
+    if ident:
+        from sitl.bus import is_valid_id
+        if not is_valid_id(v):
+            raise _err(key, "1..64 characters of [A-Za-z0-9_.-]", v)
+    if not allow_empty and not v:
+        raise _err(key, "a non-empty string", v)
+    return v
+
+
+def _geo(key, v, n=3) -> tuple:
+    names = "[lat deg, lon deg, h m]" if n == 3 else "[lat deg, lon deg]"
+    if not isinstance(v, list) or len(v) != n:
+        raise _err(key, f"a list {names}", v)
+    lat = _number(f"{key}[0]", v[0], lo=-90, hi=90)
+    lon = _number(f"{key}[1]", v[1], lo=-180, hi=180)
+    if n == 2:
+        return (lat, lon)
+    h = _number(f"{key}[2]", v[2], lo=-500, hi=100000)
+    return (lat, lon, h)
+
+
+def _interval(key, v) -> tuple:
+    if not isinstance(v, list) or len(v) != 2:
+        raise _err(key, "a list [start s, end s]", v)
+    a = _number(f"{key}[0]", v[0], lo=0)
+    b = _number(f"{key}[1]", v[1], lo=0)
+    if not a < b:
+        raise _err(key, "start < end", v)
+    return (a, b)
+
+
+def _hostport(key, v) -> tuple:
+    s = _str(key, v)
+    host, sep, port = s.rpartition(":")
+    if not sep or not host or not port.isdigit() or not 1 <= int(port) <= 65535:
+        raise _err(key, '"HOST:PORT" with a port in 1..65535', v)
+    return s
+
+
+def _endpoint(key, v) -> str:
+    s = _str(key, v)
+    proto, sep, rest = s.partition("/")
+    host, sep2, port = rest.rpartition(":")
+    if proto not in ("tcp", "udp", "quic", "tls") or not sep or not sep2 or not host or not port.isdigit() \
+            or not 0 <= int(port) <= 65535:
+        raise _err(key, 'a Zenoh endpoint "tcp/HOST:PORT"', v)
+    return s
+
+
+# ---------------------------------------------------------------- the dataclasses
+
+
+@dataclass(frozen=True)
+class RunSection:
+    id: str = "demo"
+    seed: int = 1
+    duration_s: float = 600.0
+    speed: float = 1.0
+    rate_hz: float = 1.0
+    t0_gps_s: float = DEFAULT_T0_GPS_S
+
+
+@dataclass(frozen=True)
+class BusSection:
+    zenoh: tuple = ()
+    listen: str = "tcp/127.0.0.1:0"
+    log: bool = True
+    lease_ms: int = 10000
+
+
+@dataclass(frozen=True)
+class MavlinkSection:
+    enabled: bool = True
+    gcs: str = "127.0.0.1:14550"
+    base_port: int = 5760
+    signing_key_file: str = ""
+    tlog: bool = True
+
+
+@dataclass(frozen=True)
+class UavSection:
+    count: int = 3
+    per_process: int = 100
+    center: tuple = (45.15, 30.15)
+    radius_m: float = 15000.0
+    alt_m: float = 2000.0
+    alt_step_m: float = 2000.0
+    speed_m_s: float = 100.0
+    starts: tuple = ()  # ((lat deg, lon deg, h m), ...) or () for a ring about center
+
+    def start_points(self) -> list[tuple]:
+        """(lat deg, lon deg, h m) of every UAV: ``starts``, or a ring of radius_m about center
+        (heights alt_m + 0 / 1 / 2 x alt_step_m in turn: a formation whose plane is tilted, so
+        that the mirror image of a low beacon through it is far from any plausible beacon)."""
+        if self.starts:
+            return [tuple(s) for s in self.starts]
+        lat0, lon0 = self.center
+        out = []
+        for i in range(self.count):
+            a = 2.0 * math.pi * i / self.count + 0.3
+            dn, de = self.radius_m * math.cos(a), self.radius_m * math.sin(a)
+            lat = lat0 + math.degrees(dn / 6_371_000.0)
+            lon = lon0 + math.degrees(de / (6_371_000.0 * math.cos(math.radians(lat0))))
+            out.append((lat, lon, self.alt_m + self.alt_step_m * (i % 3)))
+        return out
+
+
+@dataclass(frozen=True)
+class BeaconSection:
+    id: str = "b1"
+    mode: str = "legs"
+    start: tuple = (45.15, 30.15, 300.0)
+
+
+@dataclass(frozen=True)
+class SondeSection:
+    enabled: bool = True
+    id: str = "s0000"
+    radar_id: str = "arls1"
+    launch: tuple = (55.93, 37.52, 190.0)
+    gcpp_offset_m: float = 300.0
+    gcpp_bearing_deg: float = 140.0
+    radar_loss_s: tuple = (30.0, 330.0)
+    gnss_outage_s: tuple = (3600.0, 3720.0)
+
+
+@dataclass(frozen=True)
+class GroundStationSection:
+    hold_wall_s: float = 0.3
+    beacon_init_epochs: int = 3
+
+
+@dataclass(frozen=True)
+class Scenario:
+    run: RunSection = field(default_factory=RunSection)
+    bus: BusSection = field(default_factory=BusSection)
+    mavlink: MavlinkSection = field(default_factory=MavlinkSection)
+    uavs: UavSection = field(default_factory=UavSection)
+    beacon: BeaconSection = field(default_factory=BeaconSection)
+    sonde: SondeSection = field(default_factory=SondeSection)
+    ground_station: GroundStationSection = field(default_factory=GroundStationSection)
+    source: str = "<default>"
+
+    @property
+    def n_uav_processes(self) -> int:
+        return max(1, math.ceil(self.uavs.count / self.uavs.per_process))
+
+    def replace(self, **sections) -> "Scenario":
+        """A copy with some sections' fields replaced: ``replace(run={"speed": 10})``."""
+        import dataclasses
+        kw = {}
+        for name, changes in sections.items():
+            kw[name] = dataclasses.replace(getattr(self, name), **changes)
+        return dataclasses.replace(self, **kw)
+
+    def to_dict(self) -> dict:
+        d = asdict(self)
+        d.pop("source")
+        return d
+
+
+# per section: key -> checker(key, value) -> stored value
+_SECTIONS: dict[str, tuple[type, dict]] = {
+    "run": (RunSection, {
+        "id": lambda k, v: _str(k, v, ident=True),
+        "seed": lambda k, v: _int(k, v, lo=0, hi=2**63 - 1),
+        "duration_s": lambda k, v: _number(k, v, lo=0, lo_open=True, hi=10 * 86400),
+        "speed": lambda k, v: _number(k, v, lo=0, lo_open=True, hi=1000),
+        "rate_hz": lambda k, v: _number(k, v, lo=0, lo_open=True, hi=100),
+        "t0_gps_s": lambda k, v: _number(k, v, lo=0),
+    }),
+    "bus": (BusSection, {
+        "zenoh": lambda k, v: tuple(_endpoint(f"{k}[{i}]", e) for i, e in enumerate(_list(k, v))),
+        "listen": _endpoint,
+        "log": _bool,
+        "lease_ms": lambda k, v: _int(k, v, lo=100, hi=600000),
+    }),
+    "mavlink": (MavlinkSection, {
+        "enabled": _bool,
+        "gcs": _hostport,
+        "base_port": lambda k, v: _int(k, v, lo=1024, hi=65000),
+        "signing_key_file": _str,
+        "tlog": _bool,
+    }),
+    "uavs": (UavSection, {
+        "count": lambda k, v: _int(k, v, lo=0, hi=100000),
+        "per_process": lambda k, v: _int(k, v, lo=1, hi=100000),
+        "center": lambda k, v: _geo(k, v, 2),
+        "radius_m": lambda k, v: _number(k, v, lo=0, hi=2e6),
+        "alt_m": lambda k, v: _number(k, v, lo=-500, hi=100000),
+        "alt_step_m": lambda k, v: _number(k, v, lo=0, hi=20000),
+        "speed_m_s": lambda k, v: _number(k, v, lo=0, hi=2000),
+        "starts": lambda k, v: tuple(_geo(f"{k}[{i}]", s) for i, s in enumerate(_list(k, v))),
+    }),
+    "beacon": (BeaconSection, {
+        "id": lambda k, v: _str(k, v, ident=True),
+        "mode": lambda k, v: _str(k, v, choices=("seed", "legs", "static")),
+        "start": _geo,
+    }),
+    "sonde": (SondeSection, {
+        "enabled": _bool,
+        "id": lambda k, v: _str(k, v, ident=True),
+        "radar_id": lambda k, v: _str(k, v, ident=True),
+        "launch": _geo,
+        "gcpp_offset_m": lambda k, v: _number(k, v, lo=0, lo_open=True, hi=1e5),
+        "gcpp_bearing_deg": lambda k, v: _number(k, v, lo=0, hi=360),
+        "radar_loss_s": _interval,
+        "gnss_outage_s": _interval,
+    }),
+    "ground_station": (GroundStationSection, {
+        "hold_wall_s": lambda k, v: _number(k, v, lo=0, hi=60),
+        "beacon_init_epochs": lambda k, v: _int(k, v, lo=1, hi=100),
+    }),
+}
+
+
+def _list(key, v) -> list:
+    if not isinstance(v, list):
+        raise _err(key, "a list", v)
+    return v
+
+
+def _near(name: str, options) -> str:
+    import difflib
+    close = difflib.get_close_matches(name, list(options), n=1)
+    return f" (did you mean {close[0]!r}?)" if close else ""
+
+
+def scenario_from_dict(doc: dict, source: str = "<dict>") -> Scenario:
+    """Validate a parsed TOML document (every key checked; unknown keys are errors)."""
+    if not isinstance(doc, dict):
+        raise ScenarioError("scenario: expected a table at the top level")
+    sections = {}
+    for name, value in doc.items():
+        if name not in _SECTIONS:
+            raise ScenarioError(f"scenario: unknown section [{name}]{_near(name, _SECTIONS)}; expected one of "
+                                f"{', '.join(_SECTIONS)}")
+        cls, checks = _SECTIONS[name]
+        if not isinstance(value, dict):
+            raise _err(name, "a table [" + name + "]", value)
+        kw = {}
+        for key, v in value.items():
+            full = f"{name}.{key}"
+            if key not in checks:
+                raise ScenarioError(f"scenario: unknown key {full}{_near(key, checks)}; expected one of "
+                                    f"{', '.join(checks)}")
+            kw[key] = checks[key](full, v)
+        sections[name] = cls(**kw)
+    scn = Scenario(**sections, source=source)
+    _cross_checks(scn)
+    return scn
+
+
+def _cross_checks(scn: Scenario) -> None:
+    u = scn.uavs
+    if u.starts and len(u.starts) != u.count:
+        raise ScenarioError(f"scenario: uavs.starts: expected one start per UAV (uavs.count = {u.count}), "
+                            f"got {len(u.starts)}")
+    if u.count and u.count < 3:
+        raise ScenarioError(f"scenario: uavs.count: expected 0 or >= 3 (the beacon locator needs 3 UAVs), "
+                            f"got {u.count}")
+    if scn.mavlink.enabled:
+        top = scn.mavlink.base_port + 10 * max(u.count + (1 if scn.sonde.enabled else 0), 1)
+        if top > 65535:
+            raise ScenarioError(f"scenario: mavlink.base_port: expected base_port + 10 x vehicles <= 65535, "
+                                f"got {top}")
+    if scn.run.duration_s * scn.run.rate_hz < 1:
+        raise ScenarioError("scenario: run.duration_s: expected at least one epoch (duration_s x rate_hz >= 1), "
+                            f"got {scn.run.duration_s}")
+
+
+def parse_scenario(text: str, source: str = "<text>") -> Scenario:
+    """Parse and validate a scenario TOML text."""
+    try:
+        doc = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise ScenarioError(f"scenario: {source}: not valid TOML: {exc}") from None
+    return scenario_from_dict(doc, source)
+
+
+def load_scenario(path) -> Scenario:
+    """Read, parse and validate a scenario file (missing / unreadable file: ScenarioError)."""
+    p = Path(path)
+    try:
+        text = p.read_text(encoding="utf-8")
+    except FileNotFoundError:
+        raise ScenarioError(f"scenario: {str(p)!r}: no such file") from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise ScenarioError(f"scenario: {str(p)!r}: cannot read: {exc}") from None
+    return parse_scenario(text, str(p))
+
+
+def default_scenario() -> Scenario:
+    """The built-in default (DEFAULT_SCENARIO_TOML)."""
+    return parse_scenario(DEFAULT_SCENARIO_TOML, "<built-in default>")
+
+
+# ---------------------------------------------------------------- worker specs
+
+
+@dataclass
+class WorkerSpec:
+    """What one worker process needs, written as JSON and passed as its only argument."""
+
+    name: str  # "vehicles0", "vehicles1", ..., "gs"
+    module: str  # "vehicles.process" | "ground_station.process"
+    role: str  # "vehicles" | "ground_station"
+    scenario: dict
+    zenoh_connect: list
+    run_id: str
+    out_dir: str
+    group_index: int = 0
+    n_groups: int = 1
+    uav_indices: list = field(default_factory=list)  # global UAV indices (0-based) of this group
+    with_beacon_truth: bool = False  # this group publishes the beacon's truth
+    with_sonde: bool = False
+    status_interval_wall_s: float = 1.0
+    spec_version: int = SPEC_VERSION
+
+    def to_json(self) -> str:
+        return json.dumps(asdict(self), indent=1, sort_keys=True)
+
+    def write(self, path) -> Path:
+        p = Path(path)
+        p.write_text(self.to_json(), encoding="utf-8")
+        return p
+
+    @classmethod
+    def read(cls, path) -> "WorkerSpec":
+        d = json.loads(Path(path).read_text(encoding="utf-8"))
+        if not isinstance(d, dict) or d.get("spec_version") != SPEC_VERSION:
+            raise ValueError(f"{path}: not a skyfuse worker spec of version {SPEC_VERSION}")
+        names = {f.name for f in fields(cls)}
+        unknown = set(d) - names
+        if unknown:
+            raise ValueError(f"{path}: unknown spec keys {sorted(unknown)}")
+        return cls(**d)
+
+    def scenario_obj(self) -> Scenario:
+        return scenario_from_dict(_to_toml_like(self.scenario), f"spec {self.name}")
+
+
+def _to_toml_like(d: dict) -> dict:
+    """asdict() output back to what TOML would give (tuples -> lists)."""
+    def conv(v):
+        if isinstance(v, (tuple, list)):
+            return [conv(x) for x in v]
+        if isinstance(v, dict):
+            return {k: conv(x) for k, x in v.items()}
+        return v
+    return conv(d)
+
+
+def worker_specs(scn: Scenario, zenoh_connect, out_dir) -> list[WorkerSpec]:
+    """One spec per vehicle group (uavs.per_process UAVs each; the first also carries the
+    beacon's truth and the sonde) and one for the ground station."""
+    doc = scn.to_dict()
+    n = scn.uavs.count
+    groups = scn.n_uav_processes
+    per = scn.uavs.per_process
+    specs = []
+    for g in range(groups):
+        idx = list(range(g * per, min(n, (g + 1) * per)))
+        specs.append(WorkerSpec(name=f"vehicles{g}", module="vehicles.process", role="vehicles", scenario=doc,
+                                zenoh_connect=list(zenoh_connect), run_id=scn.run.id, out_dir=str(out_dir),
+                                group_index=g, n_groups=groups, uav_indices=idx, with_beacon_truth=g == 0,
+                                with_sonde=g == 0 and scn.sonde.enabled))
+    specs.append(WorkerSpec(name="gs", module="ground_station.process", role="ground_station", scenario=doc,
+                            zenoh_connect=list(zenoh_connect), run_id=scn.run.id, out_dir=str(out_dir)))
+    return specs
+
+
+__all__ = [
+    "DEFAULT_SCENARIO_TOML",
+    "DEFAULT_T0_GPS_S",
+    "Scenario",
+    "ScenarioError",
+    "WorkerSpec",
+    "default_scenario",
+    "load_scenario",
+    "parse_scenario",
+    "scenario_from_dict",
+    "worker_specs",
+]

@@ -1,0 +1,402 @@
+"""The vehicle-group worker of a live run: ``python -m vehicles.process SPEC.json``.
+
+One process steps a group of UAVs as arrays (vehicles.uav swarm, GNSS receivers and onboard
+EKFs of vehicles.uav_nav), the beacon (vehicles.beacon) and the beacon links
+(sitl.radio.beacon_link) at each of its UAVs; the first group also flies the radiosonde
+(vehicles.sonde) with its relay and radar (sitl.radio). Every epoch (1 / run.rate_hz of
+simulated time) it publishes on the bus what the batch experiments publish on the in-memory
+bus (sitl/experiments/beacon.py and sonde.py build the same objects):
+
+    <run>/uav/<i>/nav               UavNav               each UAV's onboard estimate
+    <run>/uav/<i>/beacon/<b>        BeaconMeasurement    range / Doppler + the UAV's nav snapshot
+    <run>/sonde/<s>/relay           SondeRelay           relayed GNSS at the ground receiver
+    <run>/radar/<r>/sonde/<s>       RadarMeasurement     when the radar has a valid range
+    <run>/truth/{uav,beacon,sonde}/<id>  Truth           for scoring only
+
+and drives each vehicle's MAVLink endpoint (vehicles.mavlink) with its telemetry.
+
+`VehicleGroup` is the step function (simulation time in, messages out, no clock, no sleep);
+the worker main paces it with sitl.live.pacer. A batch run steps the same object over an
+InMemoryTransport (tests, ``skyfuse run --batch``).
+
+The beacon's motion is deterministic, so every group flies its own copy (a group's links
+need the beacon); only the first group publishes its truth. Each group draws from its own
+SeedSequence child of run.seed (a restarted group draws a new child: it is a new process).
+"""
+from __future__ import annotations
+
+import math
+import sys
+from dataclasses import dataclass
+
+import numpy as np
+
+from sitl.bus import BeaconMeasurement, RadarMeasurement, SondeRelay, Truth, UavNav, key_for
+from sitl.radio import beacon_link
+
+SONDE_WORLD_KEYS = ("flight", "radar", "relay")
+
+
+@dataclass
+class Telemetry:
+    """One vehicle's state for its MAVLink endpoint (SI; the endpoint converts)."""
+
+    kind: str  # "uav" | "sonde"
+    index: int  # global vehicle index (sysid - 1)
+    t_gps_s: float
+    lat_rad: float
+    lon_rad: float
+    alt_msl_m: float
+    vel_ned_m_s: tuple
+    roll_rad: float
+    pitch_rad: float
+    yaw_rad: float
+    fix_type: int
+    satellites_visible: int
+    eph_m: float
+    epv_m: float
+
+
+def _ecef_to_ned(vel_ecef, lat, lon):
+    sl, cl, so, co = math.sin(lat), math.cos(lat), math.sin(lon), math.cos(lon)
+    vx, vy, vz = vel_ecef
+    e = -so * vx + co * vy
+    n = -sl * co * vx - sl * so * vy + cl * vz
+    u = cl * co * vx + cl * so * vy + sl * vz
+    return (n, e, -u)
+
+
+class VehicleGroup:
+    """A group of UAVs (+ the beacon, + optionally the sonde), stepped epoch by epoch.
+
+    scn: sitl.scenario.Scenario; uav_indices: the global indices of this group's UAVs;
+    transport: a sitl.bus Transport; rng_seq: this group's numpy SeedSequence."""
+
+    def __init__(self, scn, uav_indices, transport, rng_seq: np.random.SeedSequence, *,
+                 with_beacon_truth: bool = True, with_sonde: bool = True, with_truth: bool = True):
+        from sitl.gnss import orbits
+        from vehicles import beacon as beacon_mod
+        from vehicles import uav as uav_mod
+        from vehicles import uav_nav
+
+        self.scn = scn
+        self.run_id = scn.run.id
+        self.bus = transport
+        self.t0 = scn.run.t0_gps_s
+        self.idx = list(uav_indices)
+        self.n = len(self.idx)
+        self.with_beacon_truth = with_beacon_truth
+        self.with_truth = with_truth
+        streams = rng_seq.spawn(2)
+        self.rng = np.random.default_rng(streams[0])
+        self.epoch = 0
+        self.sent = 0
+        self.t_last: float | None = None
+        self.links_nonpositive = 0
+        self.b_id = scn.beacon.id
+        run = self.run_id
+        # UAVs: the seed 002 sinusoidal law (speed +- 10 m/s, climb 15 cos(0.01 t)) heading north
+        self.swarm = None
+        if self.n:
+            pts = np.array(scn.uavs.start_points())[self.idx]
+            law = uav_mod.SinusoidalLaw(speed_mean_m_s=np.full(self.n, scn.uavs.speed_m_s), speed_amp_m_s=10.0,
+                                        speed_omega_rad_s=0.02, heading0_rad=0.0, climb_amp_m_s=15.0,
+                                        climb_omega_rad_s=0.01)
+            self.swarm = uav_mod.UavSwarm(law, np.radians(pts[:, 0]), np.radians(pts[:, 1]), pts[:, 2])
+            self.const = orbits.gps_constellation()
+            self.nav_cfg = uav_nav.NavConfig()
+            self.nav = uav_nav.OnboardNav(self.const, self.nav_cfg)
+            self._uav_nav = uav_nav
+            self.link_cfg = beacon_link.BeaconLinkConfig()
+        b = scn.beacon
+        self.beacon = beacon_mod.seed002_beacon(b.mode, start=b.start)
+        self.k_nav = [key_for(run, UavNav, uav=i + 1) for i in self.idx]
+        self.k_bm = [key_for(run, BeaconMeasurement, uav=i + 1, beacon=self.b_id) for i in self.idx]
+        self.k_tu = [key_for(run, Truth, kind="uav", id=i + 1) for i in self.idx]
+        self.k_tb = key_for(run, Truth, kind="beacon", id=self.b_id)
+        self.src = [f"uav{i + 1}" for i in self.idx]
+        self.last_uav_truth = None
+        self.last_nav = None
+        self.sonde = None
+        if with_sonde:
+            self._build_sonde(streams[1])
+
+    # ------------------------------------------------------------------ sonde
+    def _build_sonde(self, seq: np.random.SeedSequence) -> None:
+        from sitl.experiments.sonde import SondeScenario, _sonde_params
+        from sitl.geodesy import ecef_to_geodetic, enu_to_ecef
+        from sitl.gnss.orbits import default_constellation
+        from sitl.radio.radar import Radar, RadarParams
+        from sitl.radio.relay import Relay, RelayParams
+        from vehicles.sonde import SondeFlight
+
+        s = self.scn.sonde
+        dt = 1.0 / self.scn.run.rate_hz
+        sscn = SondeScenario(dt_s=dt, gcpp_offset_m=s.gcpp_offset_m, gcpp_bearing_deg=s.gcpp_bearing_deg,
+                             radar_loss_s=s.radar_loss_s, gnss_outage_s=s.gnss_outage_s)
+        rngs = [np.random.default_rng(c) for c in seq.spawn(3)]
+        lat0, lon0, h0 = math.radians(s.launch[0]), math.radians(s.launch[1]), s.launch[2]
+        b = math.radians(s.gcpp_bearing_deg)
+        enu = np.array([s.gcpp_offset_m * math.sin(b), s.gcpp_offset_m * math.cos(b), 0.0])
+        lat, lon, h = (float(v) for v in ecef_to_geodetic(enu_to_ecef(enu, lat0, lon0, h0)))
+        t0 = self.t0
+        self.flight = SondeFlight([rngs[0]], launch_lat_rad=lat0, launch_lon_rad=lon0, launch_h_m=h0, t0_gps_s=t0,
+                                  params=_sonde_params(sscn), dt_s=dt)
+        self.radar = Radar([rngs[1]], site_lat_rad=lat, site_lon_rad=lon, site_h_m=h,
+                           params=RadarParams(loss_schedule=((t0 + s.radar_loss_s[0], t0 + s.radar_loss_s[1]),)),
+                           batch_shape=(1,))
+        self.relay = Relay([rngs[2]], default_constellation("GR"), ground_lat_rad=lat, ground_lon_rad=lon,
+                           ground_h_m=h, params=RelayParams(outage_schedule=((t0 + s.gnss_outage_s[0],
+                                                                             t0 + s.gnss_outage_s[1]),)),
+                           batch_shape=(1,))
+        run = self.run_id
+        self.sonde = s
+        self.k_relay = key_for(run, SondeRelay, sonde=s.id)
+        self.k_radar = key_for(run, RadarMeasurement, radar=s.radar_id, sonde=s.id)
+        self.k_ts = key_for(run, Truth, kind="sonde", id=s.id)
+        self.last_sonde = None
+        self.last_relay = None
+
+    # ------------------------------------------------------------------ one epoch
+    def _publish(self, key, msg) -> None:
+        self.bus.publish(key, msg)
+        self.sent += 1
+
+    def step(self, t_gps_s: float) -> None:
+        """Advance the world to t_gps_s (> the previous epoch) and publish the epoch."""
+        t = float(t_gps_s)
+        if self.t_last is not None and not t > self.t_last:
+            raise ValueError(f"t_gps_s must increase: {t} after {self.t_last}")
+        k = self.epoch
+        trel = t - self.t0
+        tb = self.beacon.step(trel)
+        B, VB = np.asarray(tb.pos_ecef_m).reshape(3), np.asarray(tb.vel_ecef_m_s).reshape(3)
+        if self.with_beacon_truth and self.with_truth:
+            self._publish(self.k_tb, Truth(t_gps_s=t, source_id="truth", seq=k, kind="beacon", pos_ecef_m=B,
+                                           vel_ecef_m_s=VB))
+        if self.n:
+            self._step_uavs(t, k, trel, B, VB)
+        if self.sonde is not None:
+            self._step_sonde(t, k)
+        self.epoch += 1
+        self.t_last = t
+
+    def _step_uavs(self, t, k, trel, B, VB) -> None:
+        un = self._uav_nav
+        tu = self.swarm.step(trel)
+        U, V = tu.pos_ecef_m, tu.vel_ecef_m_s
+        self.last_uav_truth = tu
+        ep = un.gnss_measure(self.rng, t, U, V, self.const, self.nav_cfg)
+        est = self.nav.update(ep)
+        self.last_nav = est
+        meas = beacon_link.measure(self.rng, U, V, B, VB, self.link_cfg)
+        sym = 0.5 * (est.P + np.swapaxes(est.P, -1, -2))
+        ntr = est.n_tracked.tolist()
+        r_l, rr_l = meas.range_m.tolist(), meas.range_rate_m_s.tolist()
+        vr_l, vv_l = meas.var_range_m2.tolist(), meas.var_range_rate_m2_s2.tolist()
+        for i in range(self.n):
+            x, C = est.x[i], sym[i]
+            fix = 3 if ntr[i] >= 4 else (2 if ntr[i] >= 3 else 0)
+            self._publish(self.k_nav[i], UavNav(t_gps_s=t, source_id=self.src[i], seq=k, pos_ecef_m=x[0:3],
+                                                vel_ecef_m_s=x[3:6], cov=C, n_sats=ntr[i], fix_type=fix))
+            if not r_l[i] > 0:
+                self.links_nonpositive += 1
+            else:
+                self._publish(self.k_bm[i], BeaconMeasurement(
+                    t_gps_s=t, source_id=self.src[i], seq=k, range_m=r_l[i], range_rate_m_s=rr_l[i],
+                    var_range_m2=vr_l[i], var_range_rate_m2_s2=vv_l[i], uav_pos_ecef_m=x[0:3],
+                    uav_vel_ecef_m_s=x[3:6], uav_cov=C))
+            if self.with_truth:
+                self._publish(self.k_tu[i], Truth(t_gps_s=t, source_id="truth", seq=k, kind="uav",
+                                                  pos_ecef_m=U[i], vel_ecef_m_s=V[i]))
+
+    def _step_sonde(self, t, k) -> None:
+        fl = self.flight
+        st = fl.state()
+        while fl.t_gps_s < t - 1e-6:
+            st = fl.step()
+        self.last_sonde = st
+        pos, vel = st.pos_ecef_m, st.vel_ecef_m_s  # (1, 3)
+        if self.with_truth:
+            self._publish(self.k_ts, Truth(t_gps_s=t, source_id="truth", seq=k, kind="sonde", pos_ecef_m=pos[0],
+                                           vel_ecef_m_s=vel[0]))
+        rt = self.relay.step(t, pos, vel)
+        d = rt.delivered[0]
+        self.last_relay = int(d.sum())
+        self._publish(self.k_relay, SondeRelay(
+            t_gps_s=t, source_id="gcpp", seq=k, sat_ids=rt.sat_id[d], pseudorange_m=rt.pseudorange_m[0][d],
+            pseudo_doppler_m_s=rt.pseudo_doppler_m_s[0][d], var_pseudorange_m2=rt.var_pr_m2[0][d],
+            var_pseudo_doppler_m2_s2=rt.var_prr_m2_s2[0][d], sat_pos_ecef_m=rt.sat_pos_ecef_m[0][d],
+            sat_vel_ecef_m_s=rt.sat_vel_ecef_m_s[0][d], ground_pos_ecef_m=rt.ground_pos_ecef_m))
+        rm = self.radar.step(t, pos, vel)
+        if bool(rm.range_valid[0]):
+            self._publish(self.k_radar, RadarMeasurement(
+                t_gps_s=t, source_id=self.sonde.radar_id, seq=k, slant_range_m=float(rm.slant_range_m[0]),
+                az_rad=float(rm.az_rad[0]), el_rad=float(rm.el_rad[0]), var_range_m2=float(rm.var_range_m2[0]),
+                var_az_rad2=float(rm.var_az_rad2[0]), var_el_rad2=float(rm.var_el_rad2[0]),
+                angles_valid=bool(rm.angles_valid[0]), radar_pos_ecef_m=rm.site_pos_ecef_m))
+
+    # ------------------------------------------------------------------ MAVLink side
+    def on_mission(self, i: int):
+        """The callback of UAV i's mission upload: this group flies the scenario's laws, so
+        a mission is refused (ValueError: the endpoint answers MAV_MISSION_DENIED) rather
+        than accepted and not flown."""
+        def refuse(waypoints):
+            if waypoints:
+                raise ValueError(f"uav{i + 1} flies the scenario's law; missions are not flown in this build")
+        return refuse
+
+    def telemetry(self) -> list[Telemetry]:
+        """Each vehicle's state as its autopilot would report it: the onboard estimate (the
+        UAVs' EKF; the sonde's relayed fix is the ground's business, so the truth with the
+        receiver's nominal accuracy), attitude from the flight path."""
+        out = []
+        from sitl.geodesy import ecef_to_geodetic
+        if self.n and self.last_nav is not None:
+            est, tu = self.last_nav, self.last_uav_truth
+            lat, lon, h = ecef_to_geodetic(est.x[:, 0:3])
+            lat, lon, h = np.atleast_1d(lat), np.atleast_1d(lon), np.atleast_1d(h)
+            P = est.P
+            for i in range(self.n):
+                vn = _ecef_to_ned(est.x[i, 3:6], lat[i], lon[i])
+                ntr = int(est.n_tracked[i])
+                out.append(Telemetry("uav", self.idx[i], est.t_gps_s, float(lat[i]), float(lon[i]), float(h[i]), vn,
+                                     0.0, math.atan2(-vn[2], math.hypot(vn[0], vn[1])),
+                                     float(np.asarray(tu.heading_rad)[i]), 3 if ntr >= 4 else 2, ntr,
+                                     float(math.sqrt(max(P[i, 0, 0] + P[i, 1, 1], 0.0) / 2)),
+                                     float(math.sqrt(max(P[i, 2, 2], 0.0)))))
+        if self.sonde is not None and self.last_sonde is not None:
+            st = self.last_sonde
+            vn = tuple(float(v) for v in (st.vel_enu_m_s[0][1], st.vel_enu_m_s[0][0], -st.vel_enu_m_s[0][2]))
+            sats = self.last_relay or 0
+            out.append(Telemetry("sonde", self.scn.uavs.count, float(st.t_gps_s), float(st.lat_rad[0]),
+                                 float(st.lon_rad[0]), float(st.alt_m[0]), vn, 0.0, 0.0,
+                                 math.atan2(vn[1], vn[0]), 3 if sats >= 4 else 0, sats, 5.0, 8.0))
+        return out
+
+
+# ---------------------------------------------------------------------- MAVLink glue
+
+
+def build_endpoints(group: VehicleGroup, scn, out_dir):
+    """vehicles.mavlink endpoints for this group's vehicles: UAV i (global index) has sysid
+    i + 1 and listens on udp base_port + 10 i; the sonde comes after the UAVs. Parameters:
+    the UAV's onboard navigation settings and the sonde's flight model (their real values).
+    None if MAVLink is off."""
+    from pathlib import Path
+
+    from vehicles.mavlink import EndpointGroup, ParamStore, VehicleEndpoint, load_signing_key
+    from vehicles.mavlink.params import sonde_param_specs, uav_param_specs
+
+    m = scn.mavlink
+    if not m.enabled:
+        return None
+    host, port = m.gcs.rsplit(":", 1)
+    key = load_signing_key(m.signing_key_file) if m.signing_key_file else None
+    vehicles = [("uav", i) for i in group.idx]
+    if group.sonde is not None:
+        vehicles.append(("sonde", scn.uavs.count))
+    eps = []
+    try:
+        for kind, i in vehicles:
+            if kind == "uav":
+                params = ParamStore(uav_param_specs(None, group.nav_cfg, 0))
+            else:
+                params = ParamStore(sonde_param_specs(group.flight.params))
+            tlog = str(Path(out_dir) / f"mav_{kind}{i + 1}.tlog") if m.tlog else None
+            eps.append(VehicleEndpoint(sysid=i + 1, kind=kind, gcs=(host, int(port)),
+                                       listen=("127.0.0.1", m.base_port + 10 * i), params=params,
+                                       on_mission=group.on_mission(i) if kind == "uav" else None,
+                                       signing_key=key, tlog=tlog))
+    except Exception:
+        for ep in eps:
+            ep.close()
+        raise
+    return EndpointGroup(eps)
+
+
+def _mav_telemetry(tel: list[Telemetry], n_endpoints: int):
+    from vehicles.mavlink import VehicleTelemetry
+    out = []
+    for v in tel:
+        out.append(VehicleTelemetry(lat_rad=v.lat_rad, lon_rad=v.lon_rad, alt_msl_m=v.alt_msl_m,
+                                    vel_ned_m_s=tuple(v.vel_ned_m_s), roll_rad=v.roll_rad, pitch_rad=v.pitch_rad,
+                                    yaw_rad=v.yaw_rad, fix_type=v.fix_type, satellites_visible=v.satellites_visible,
+                                    eph_m=v.eph_m, epv_m=v.epv_m))
+    return (out + [None] * n_endpoints)[:n_endpoints]
+
+
+# ---------------------------------------------------------------------- worker main
+
+
+def main(argv=None) -> int:
+    from sitl.live.worker import WorkerRuntime, bus_counters, open_bus
+
+    argv = sys.argv[1:] if argv is None else argv
+    if len(argv) != 1:
+        print("usage: python -m vehicles.process SPEC.json", file=sys.stderr)
+        return 2
+    rt = WorkerRuntime(argv[0])
+    spec, scn = rt.spec, rt.scenario
+    bus = open_bus(spec, scn.bus.lease_ms)
+    endpoints = None
+    try:
+        seq = np.random.SeedSequence([scn.run.seed, 1000 + spec.group_index])
+        group = VehicleGroup(scn, spec.uav_indices, bus, seq, with_beacon_truth=spec.with_beacon_truth,
+                             with_sonde=spec.with_sonde)
+        _warm_up(scn, spec)
+        endpoints = build_endpoints(group, scn, spec.out_dir)
+        if not rt.wait_start():
+            return 0
+        pacer = rt.pacer()
+        dt = 1.0 / scn.run.rate_hz
+        t_end = scn.run.t0_gps_s + scn.run.duration_s
+        # a (re)started group joins at the current epoch
+        k0 = max(0, math.ceil((pacer.sim_now() - scn.run.t0_gps_s) / dt - 1e-9))
+        t_first = scn.run.t0_gps_s + k0 * dt
+        errors = 0
+        for t in pacer.epochs(t_first, dt, t_end, max_lag_s=5 * dt):
+            try:
+                group.step(t)
+            except Exception as e:  # one bad epoch must not end the run: counted, reported
+                errors += 1
+                print(f"{spec.name}: epoch {t:.3f} failed: {type(e).__name__}: {e}", file=sys.stderr)
+            if endpoints is not None:
+                try:
+                    endpoints.step(t, _mav_telemetry(group.telemetry(), len(endpoints)))
+                except Exception as e:
+                    errors += 1
+                    print(f"{spec.name}: MAVLink step failed: {type(e).__name__}: {e}", file=sys.stderr)
+            if rt.status_due():
+                rt.emit(_status(group, bus, pacer, endpoints, errors, t))
+        rt.emit({**_status(group, bus, pacer, endpoints, errors, group.t_last), "event": "done"})
+        return 0
+    finally:
+        if endpoints is not None:
+            endpoints.close()
+        bus.close()
+
+
+def _warm_up(scn, spec) -> None:
+    """Two epochs of a throwaway copy on an in-memory bus: the first epoch's one-off costs
+    (kernel loading, ephemeris tables) are paid before the run starts, not in its first epochs."""
+    from sitl.bus import InMemoryTransport
+    bus = InMemoryTransport()
+    g = VehicleGroup(scn, spec.uav_indices[:3], bus, np.random.SeedSequence(0), with_sonde=spec.with_sonde)
+    for k in range(2):
+        g.step(scn.run.t0_gps_s + k / scn.run.rate_hz)
+    bus.close()
+
+
+def _status(group, bus, pacer, endpoints, errors, t) -> dict:
+    from sitl.live.worker import bus_counters
+    d = {"event": "status", "t_sim_s": t, "epochs": group.epoch, "vehicles": group.n + (group.sonde is not None),
+         "uavs": group.n, "lag_s": max(0.0, pacer.sim_now() - (t or 0.0)), "late_epochs": pacer.late_epochs,
+         "skipped_epochs": pacer.skipped_epochs, "step_errors": errors, **bus_counters(bus)}
+    if endpoints is not None:
+        d["mavlink"] = dict(endpoints.counters)
+    return d
+
+
+if __name__ == "__main__":
+    sys.exit(main())
