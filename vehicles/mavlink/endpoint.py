@@ -85,6 +85,8 @@ _MAX_PARAMS_PER_STEP = 64
 _MAX_PEERS = 8
 _PEER_TIMEOUT_S = 60.0
 _RECV_SIZE = 65535
+# GPS seconds ~1.4e9 carry ~2.4e-7 s of float rounding: a stream is due 1 us early
+_DUE_TOL_S = 1e-6
 
 
 def listen_port(instance: int, base_port: int = BASE_PORT) -> int:
@@ -267,8 +269,8 @@ class VehicleEndpoint:
         self._advance(telemetry)
 
     def _advance(self, telemetry) -> None:
+        self.telemetry = telemetry  # None: nothing to report now (never a stale position)
         if telemetry is not None:
-            self.telemetry = telemetry
             if self.home_alt_msl_m is None:
                 self.home_alt_msl_m = float(telemetry.alt_msl_m)
         t = self._t
@@ -352,7 +354,7 @@ class VehicleEndpoint:
             if iv is None:
                 continue
             due = self._due.get(msgid)
-            if due is not None and t < due - 1e-9:
+            if due is not None and t < due - _DUE_TOL_S:
                 continue
             if self._send_message(msgid):
                 # keep the phase; if we fell more than an interval behind, restart from now
@@ -375,6 +377,9 @@ class VehicleEndpoint:
             errors = sum(self.counters[r] for r in REJECT_REASONS[:9])
             mav.sys_status_send(_SENSORS, _SENSORS, _SENSORS if gps_ok else 0, 0, mv, -1, pct, 0,
                                 min(errors, tm.UINT16_MAX), 0, 0, 0, 0)
+        elif msgid == AUTOPILOT_VERSION:
+            mav.autopilot_version_send(CAPABILITIES, FLIGHT_SW_VERSION, 0, 0, 0, list(b"skyfuse\x00"), [0] * 8,
+                                       [0] * 8, 0, 0, 0x534B_5946_0000_0000 | self.sysid)
         elif tel is None:
             return False
         elif msgid == GPS_RAW_INT:
@@ -384,9 +389,6 @@ class VehicleEndpoint:
                                                                          self.home_alt_msl_m or 0.0))
         elif msgid == ATTITUDE:
             mav.attitude_send(*tm.attitude_fields(tel, self.time_boot_ms))
-        elif msgid == AUTOPILOT_VERSION:
-            mav.autopilot_version_send(CAPABILITIES, FLIGHT_SW_VERSION, 0, 0, 0, list(b"skyfuse\x00"), [0] * 8,
-                                       [0] * 8, 0, 0, 0x534B_5946_0000_0000 | self.sysid)
         else:
             return False
         return True

@@ -24,6 +24,7 @@ from typing import Callable, Iterable, Iterator
 import numpy as np
 
 PARAM_ID_LEN = 16
+_F32_MAX = float(np.finfo(np.float32).max)
 
 
 class ParamError(ValueError):
@@ -119,8 +120,8 @@ class ParamStore(Mapping):
             v = float(value)
         except (TypeError, ValueError):
             raise ParamError("param_rejected", f"{name}: value {value!r} is not a number") from None
-        if not math.isfinite(v):
-            raise ParamError("param_rejected", f"{name}: value {v!r} is not finite")
+        if not math.isfinite(v) or abs(v) > _F32_MAX:
+            raise ParamError("param_rejected", f"{name}: value {v!r} is not a finite float32")
         v = _f32(v)
         if not spec.min <= v <= spec.max:
             raise ParamError("param_rejected", f"{name}: value {v} outside [{spec.min}, {spec.max}]")
