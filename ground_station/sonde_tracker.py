@@ -150,6 +150,7 @@ except ImportError:  # pragma: no cover
 
 from filters import kernels
 from filters.ekf import ekf_update
+from filters.integrity import IntegrityConfig, IntegrityMonitor
 from filters.models import Singer
 from filters.ukf import SigmaPoints, ukf_update
 from sitl.bus import (
@@ -163,6 +164,7 @@ from sitl.bus import (
     parse_key,
 )
 from sitl.constants import C_M_S, WGS84
+from sitl.integrity_events import IntegrityEventPublisher
 from sitl.geodesy import ecef_to_geodetic, enu_rotation
 from sitl.radio.radar import (
     RadarParams,
@@ -249,6 +251,10 @@ class SondeTrackerParams:
     bias_tau_s: float | None = None  # their correlation time; None: relay_errors' variance-weighted one
     label: str | None = None  # Estimate.mode; default: mode (+ "_white" for naive radar noise)
     backend: str | None = None  # filters.kernels backend (None: default)
+    integrity: IntegrityConfig | None = None  # the integrity monitor (filters.integrity) around the updates; None: off
+    integrity_sat_channels: int = 48  # relayed-satellite channels of the monitor (>= satellites seen in its memory)
+    integrity_warmup_s: float = 10.0  # a track is not judged this long after its (re)initialisation
+    integrity_common_fraction: float = 0.5  # jumps on more than this fraction of a sonde's rows: a manoeuvre
 
     def __post_init__(self):
         if self.mode not in MODES:
@@ -292,6 +298,15 @@ class SondeTrackerParams:
             _finite("bias_tau_s", self.bias_tau_s, 0.0, lo_open=True)
         if self.backend not in (None, "auto", "numpy", "numba"):
             raise ValueError(f"backend must be None, 'auto', 'numpy' or 'numba', got {self.backend!r}")
+        if self.integrity is not None and not isinstance(self.integrity, IntegrityConfig):
+            raise ValueError(f"integrity must be a filters.integrity.IntegrityConfig or None, got {self.integrity!r}")
+        v = self.integrity_sat_channels
+        if isinstance(v, bool) or not isinstance(v, int) or v < 1:
+            raise ValueError(f"integrity_sat_channels must be an integer >= 1, got {v!r}")
+        _finite("integrity_warmup_s", self.integrity_warmup_s, 0.0)
+        f = _finite("integrity_common_fraction", self.integrity_common_fraction, 0.0, lo_open=True)
+        if f > 1.0:
+            raise ValueError(f"integrity_common_fraction must lie in (0, 1], got {self.integrity_common_fraction!r}")
 
     @property
     def relay_bias_states(self) -> int:
@@ -577,8 +592,10 @@ class SondeMeasurement:
     """
 
     def __init__(self, layout: Layout, z, r, *, sat_pos=None, sat_vel=None, relay_mask=None, ground=None,
-                 site=None, rot=None, radar_mask=None, bias_col=None, bias_scale=None):
+                 site=None, rot=None, radar_mask=None, bias_col=None, bias_scale=None, row_mask=None, sat_ids=None):
         self.layout = layout
+        self.row_mask = row_mask  # (Bs, m) bool: rows left out (the integrity monitor's), None: none
+        self.sat_ids = sat_ids  # the satellite of each relay slot (the union), when known
         self.z, self._r = z, r
         Bs = z.shape[0]
         self.relay = sat_pos is not None
@@ -597,6 +614,8 @@ class SondeMeasurement:
         self.site, self.rot, self.radar_mask = site, rot, radar_mask
         self.U = sat_pos.shape[1]
         self.mask = np.concatenate([relay_mask, relay_mask, radar_mask], axis=-1)
+        if row_mask is not None:
+            self.mask = self.mask & row_mask
         if self.mask.shape != z.shape or r.shape != z.shape:
             raise ValueError(f"z {z.shape} and r {r.shape} must have the rows of the mask {self.mask.shape}")
 
@@ -610,10 +629,13 @@ class SondeMeasurement:
         if relay:
             cols = slice(0, 2 * U)
             kw = {"sat_pos": self.sat_pos[idx], "sat_vel": self.sat_vel[idx], "relay_mask": self.relay_mask[idx],
-                  "ground": self.ground, "bias_col": self.bias_col[idx], "bias_scale": self.bias_scale[idx]}
+                  "ground": self.ground, "bias_col": self.bias_col[idx], "bias_scale": self.bias_scale[idx],
+                  "sat_ids": self.sat_ids}
         else:
             cols = slice(2 * U, None)
             kw = {"site": self.site, "rot": self.rot, "radar_mask": self.radar_mask[idx]}
+        if self.row_mask is not None:
+            kw["row_mask"] = self.row_mask[idx][:, cols]
         return SondeMeasurement(self.layout, self.z[idx][:, cols], self._r[idx][:, cols], **kw)
 
     def relay_part(self, idx=slice(None)) -> SondeMeasurement | None:
@@ -624,9 +646,12 @@ class SondeMeasurement:
 
     def subset(self, idx) -> SondeMeasurement:
         kw = {}
+        if self.row_mask is not None:
+            kw["row_mask"] = self.row_mask[idx]
         if self.relay:
             kw.update(sat_pos=self.sat_pos[idx], sat_vel=self.sat_vel[idx], relay_mask=self.relay_mask[idx],
-                      ground=self.ground, bias_col=self.bias_col[idx], bias_scale=self.bias_scale[idx])
+                      ground=self.ground, bias_col=self.bias_col[idx], bias_scale=self.bias_scale[idx],
+                      sat_ids=self.sat_ids)
         if self.radar:
             kw.update(site=self.site, rot=self.rot, radar_mask=self.radar_mask[idx])
         return SondeMeasurement(self.layout, self.z[idx], self._r[idx], **kw)
@@ -722,6 +747,9 @@ class SondeMeasurement:
         _rows_nb(np.ascontiguousarray(x), self.sat_pos, self.sat_vel, self.ground, self.relay_mask, self.site,
                  self.rot, np.ascontiguousarray(z_az), self.radar_mask, -1 if L.dd is None else L.dd,
                  -1 if L.osc is None else L.osc, -1 if L.err is None else L.err, self.bias_col, self.bias_scale, h, H)
+        if self.row_mask is not None:
+            h *= self.mask
+            H *= self.mask[..., None]
         return h, H
 
     def H(self, x):
@@ -837,6 +865,14 @@ class TrackerCounters:
     bias_assigned: int = 0  # satellites given a (fresh) error state
     bias_overflow: int = 0  # satellite-epochs with no free error state (their error taken as white)
     estimates: int = 0
+    integrity_epochs: int = 0  # epochs judged by the integrity monitor (params.integrity)
+    integrity_rows_left_out: int = 0  # measurement rows the monitor kept out of an update (jump or excluded channel)
+    integrity_exclusions: int = 0  # channels excluded (a step that stays, or a drift)
+    integrity_readmissions: int = 0
+    integrity_events: int = 0  # IntegrityEvents built (and published when attached)
+    integrity_unmonitored: int = 0  # satellite-epochs with no free monitor channel (used unjudged)
+    integrity_common_mode: int = 0  # sonde-epochs not judged: jumps on most rows at once (a manoeuvre, not a channel)
+    integrity_warmup: int = 0  # sonde-epochs not judged: the track was (re)initialised less than the warm-up ago
 
     def as_dict(self) -> dict:
         return {f.name: getattr(self, f.name) for f in fields(self)}
@@ -881,6 +917,7 @@ class SondeTracker:
         self._x = np.zeros((0, n))
         self._P = np.zeros((0, n, n))
         self._t = np.zeros(0)  # filter time per sonde (NaN before initialisation)
+        self._t_init = np.zeros(0)  # time of the track's last (re)initialisation
         self._nis = np.zeros(0)  # summed block NIS of the last processed epoch
         self._rejects = np.zeros((0, 2), dtype=np.int64)  # consecutive rejections [relay, radar]
         W = p.manoeuvre_window or 1
@@ -895,12 +932,32 @@ class SondeTracker:
         self._bias_last = np.zeros((0, self.layout.nb))
         self._bias_prev: list = []
         self._err_prm = None
+        # the integrity monitor: rows [pr of S satellite channels, their prr, radar range, az, el]
+        self._mon = None if p.integrity is None else IntegrityMonitor(p.integrity)
+        self._events = None
+        if self._mon is not None:
+            S = p.integrity_sat_channels if self.layout.uses_relay else 0
+            R = 3 if self.layout.uses_radar else 0
+            a = np.arange(S)
+            self._mon_S, self._mon_R = S, R
+            self._mon_ch = np.concatenate([a, a, S + np.arange(R)]).astype(np.int64)
+            self._chan_of: dict = {}  # satellite id -> channel
+            self._chan_sat: list = [None] * S
+            self._chan_last = np.full(S, -(10**9), dtype=np.int64)  # monitor epoch of each channel's last use
+            self._mon_k = 0  # monitor epochs so far
+            self._cohorts: list = []  # [first slot, end slot, MonitorState]: sondes that joined together
+            self._guard: dict = {}  # slot -> (inert (m_mon,), r used (m_mon,)) of the current epoch
+            self._events = IntegrityEventPublisher(run_id, f"{self.source_id}.integrity")
+            # a readmitted or long-unused channel has a fresh window: reuse after this many epochs
+            self._chan_age = p.integrity.window + p.integrity.readmit_after + 1
 
     # -- bus ---------------------------------------------------------------
 
     def attach(self, transport) -> list:
         """Subscribe to the relay and radar messages of the run (and publish Estimates there)."""
         self._transport = transport
+        if self._events is not None:
+            self._events.transport = transport
         sondes = self.sonde_ids or ("*",)
         for s in sondes:
             ids = {} if s == "*" else {"sonde": s}
@@ -1007,6 +1064,7 @@ class SondeTracker:
             self._x = np.concatenate([self._x, np.zeros((1, n))])
             self._P = np.concatenate([self._P, np.zeros((1, n, n))])
             self._t = np.append(self._t, np.nan)
+            self._t_init = np.append(self._t_init, np.nan)
             self._nis = np.append(self._nis, np.nan)
             self._rejects = np.concatenate([self._rejects, np.zeros((1, 2), dtype=np.int64)])
             W = self.params.manoeuvre_window or 1
@@ -1280,6 +1338,7 @@ class SondeTracker:
                     c.init_waiting += 1
                     continue
                 self._t[slot] = t
+                self._t_init[slot] = t
                 self._nis[slot] = np.nan
             if rel is not None and rel.n == 0:
                 c.relay_empty += 1
@@ -1293,6 +1352,8 @@ class SondeTracker:
             self._nis[idle] = np.nan
         if not upd:
             return
+        if self._mon is not None:
+            self._integrity(upd, t)
         dts = [t - float(self._t[u[1]]) for u in upd]
         for dt in sorted(set(dts)):
             group = upd if len(dts) == 1 else [u for u, d in zip(upd, dts) if d == dt]
@@ -1359,7 +1420,7 @@ class SondeTracker:
                     rr[:, :U] += np.where(over, scale * scale, 0.0)
                 scale = np.where(bcol >= 0, scale, 0.0)
                 kw.update(bias_col=bcol, bias_scale=scale)
-            kw.update(sat_pos=sat_pos, sat_vel=sat_vel, relay_mask=mask, ground=np.asarray(ground))
+            kw.update(sat_pos=sat_pos, sat_vel=sat_vel, relay_mask=mask, ground=np.asarray(ground), sat_ids=tuple(union))
             cols.append((zr, rr))
         if L.uses_radar:
             rads = [g[3] for g in group if g[3] is not None]
@@ -1429,6 +1490,8 @@ class SondeTracker:
             for g in group:
                 self._joint_update([g], dt, t, filt)
             return
+        if self._mon is not None:
+            model = self._guarded(model, group)
         if filt == "ukf":
             c.ukf_updates += len(group)
         slots = np.array([g[1] for g in group])
@@ -1487,6 +1550,159 @@ class SondeTracker:
         nis_all[bad] = total
         self._window_test(slots, nis_all, m_all, dt)
         self._reacquire(bs, [group[i] for i in bad])
+
+    # -- the integrity monitor (params.integrity) ------------------------------
+
+    def _channel(self, sat_id: str) -> int:
+        """The monitor channel of a relayed satellite (-1: none free). A new satellite takes the
+        least recently used channel that has been unused for ``window + readmit_after`` epochs
+        (its window then holds only healthy values and it is not excluded any more)."""
+        c = self._chan_of.get(sat_id)
+        if c is not None:
+            return c
+        c = int(np.argmin(self._chan_last))
+        if self._mon_k - self._chan_last[c] < self._chan_age:
+            return -1
+        old = self._chan_sat[c]
+        if old is not None:
+            del self._chan_of[old]
+        self._chan_of[sat_id], self._chan_sat[c] = c, sat_id
+        return c
+
+    def _channel_name(self, c: int) -> str:
+        S = self._mon_S
+        if c < S:
+            return f"relay.{self._chan_sat[c]}"
+        return f"{self.radar_id or 'radar'}.{('range', 'az', 'el')[c - S]}"
+
+    def _integrity(self, upd, t: float) -> None:
+        """Judge the epoch's measurements of the sondes in ``upd`` with the integrity monitor
+        (at their predicted state), publish its events and keep, per sonde, which rows it
+        leaves out and the variances it uses (applied by _guarded to every update of the epoch)."""
+        L, c = self.layout, self.counters
+        S, R = self._mon_S, self._mon_R
+        m, n = 2 * S + R, L.n
+        N = len(self._ids)
+        end = self._cohorts[-1][1] if self._cohorts else 0
+        if end < N:  # sondes seen for the first time: a cohort of their own (the monitor steps a batch together)
+            self._cohorts.append([end, N, self._mon.init((N - end,), m, S + R)])
+        self._mon_k += 1
+        Z = np.full((N, m), np.nan)
+        Hm = np.zeros((N, m, n))
+        hm = np.zeros((N, m))
+        rm = np.ones((N, m))
+        X = np.where(np.isfinite(self._x), self._x, 0.0)
+        P = np.where(np.isfinite(self._P), self._P, 0.0)
+        dts = np.array([t - float(self._t[u[1]]) for u in upd])
+        for dt in np.unique(dts):
+            group = [u for u, d in zip(upd, dts) if d == dt]
+            try:
+                models = [(group, self._measurement(group, float(dt), t))]
+            except _MixedSites:
+                models = [([g], self._measurement([g], float(dt), t)) for g in group]
+            F, Q = self._transition.F(None, dt), self._transition.Q(dt)
+            slots = np.array([g[1] for g in group])
+            X[slots] = self._x[slots] @ F.T  # after _measurement: a new satellite's error state is reset
+            P[slots] = kernels.cov_predict(F, self._P[slots], Q, backend=self.params.backend)
+            for grp, model in models:
+                sl = np.array([g[1] for g in grp])
+                h, H = model.h_and_H(X[sl])
+                U = model.U
+                rows = np.full(model.z.shape[1], -1, dtype=np.int64)
+                if U:
+                    for u, sid in enumerate(model.sat_ids):
+                        if not model.relay_mask[:, u].any():
+                            continue
+                        ch = self._channel(sid)
+                        if ch < 0:
+                            c.integrity_unmonitored += int(model.relay_mask[:, u].sum())
+                            continue
+                        self._chan_last[ch] = self._mon_k
+                        rows[u], rows[U + u] = ch, S + ch
+                if R:
+                    rows[2 * U:] = 2 * S + np.arange(R)
+                ok = rows >= 0
+                src, dst = np.flatnonzero(ok), rows[ok]
+                mk = model.mask[:, src]
+                zz = np.where(mk, model.z[:, src], np.nan)
+                Z[sl[:, None], dst[None, :]] = zz
+                hm[sl[:, None], dst[None, :]] = np.where(mk, h[:, src], 0.0)
+                Hm[sl[:, None], dst[None, :]] = np.where(mk[..., None], H[:, src], 0.0)
+                rm[sl[:, None], dst[None, :]] = np.where(mk, model.R_diag()[:, src], 1.0)
+        # not judged (their rows enter the monitor as missing, the tracker's own gating and manoeuvre
+        # logic handles them): a track in its warm-up, and a sonde whose rows mostly jump at once -- a
+        # manoeuvre (the burst) or a track error moves every channel, a channel fault only its own
+        p = self.params
+        cfg = p.integrity
+        sl = np.array([u[1] for u in upd])
+        young = (t - self._t_init[sl]) < p.integrity_warmup_s
+        has = np.isfinite(Z[sl])
+        nu = np.where(has, Z[sl] - hm[sl], 0.0)
+        hph = np.einsum("bmi,bij,bmj->bm", Hm[sl], P[sl], Hm[sl])
+        jumps = (np.abs(nu) >= cfg.jump_sigma * np.sqrt(hph + rm[sl])) & has
+        common = jumps.sum(axis=1) > p.integrity_common_fraction * np.maximum(has.sum(axis=1), 1)
+        skip = young | common
+        c.integrity_warmup += int(young.sum())
+        c.integrity_common_mode += int((common & ~young).sum())
+        Z[sl[skip]] = np.nan
+        judged = set(sl[~skip].tolist())
+        self._guard = {}
+        for co in self._cohorts:
+            a, b = co[0], co[1]
+            got = {}
+
+            def judge(x, P_, z, gm, **kw):  # the monitor's verdict only: the tracker's own update follows
+                got["inert"], got["r"] = np.asarray(gm.inert), np.asarray(gm.R_diag())
+
+            _, co[2], rep = self._mon.step(co[2], X[a:b], P[a:b], Z[a:b], _Prepared(hm[a:b], Hm[a:b], rm[a:b]),
+                                           self._mon_ch, update=judge, backend=self.params.backend)
+            c.integrity_epochs += 1
+            has = np.isfinite(Z[a:b])
+            c.integrity_rows_left_out += int((has & got["inert"]).sum())
+            c.integrity_exclusions += int(rep.newly_excluded.sum())
+            c.integrity_readmissions += int(rep.readmitted.sum())
+            evs = self._events(rep, self._mon_ch, t, lambda bi, ch, a=a: f"{self._ids[a + bi[0]]}.{self._channel_name(ch)}",
+                               cfg)
+            c.integrity_events += len(evs)
+            for u in upd:
+                if a <= u[1] < b and u[1] in judged:
+                    self._guard[u[1]] = (got["inert"][u[1] - a], got["r"][u[1] - a])
+
+    def _guarded(self, model: SondeMeasurement, group) -> SondeMeasurement:
+        """The group's measurement model with the monitor's verdict of this epoch applied: the
+        rows it left out masked (z = 0, r = 1: no information, no NIS), the others with the
+        variance it used (the nominal one, or its robust / adaptive inflation)."""
+        S = self._mon_S
+        U = model.U
+        z, r = model.z.copy(), model._r.copy()
+        keep = np.ones(z.shape, dtype=bool)
+        rows = np.full(z.shape[1], -1, dtype=np.int64)
+        for u in range(U):
+            ch = self._chan_of.get(model.sat_ids[u], -1)
+            if ch >= 0:
+                rows[u], rows[U + u] = ch, S + ch
+        if self._mon_R:
+            rows[2 * U:] = 2 * S + np.arange(self._mon_R)
+        ok = rows >= 0
+        src, dst = np.flatnonzero(ok), rows[ok]
+        for b, g in enumerate(group):
+            gd = self._guard.get(g[1])
+            if gd is None:
+                continue
+            inert, rr = gd[0][dst], gd[1][dst]
+            keep[b, src] = ~inert
+            r[b, src] = np.where(inert, r[b, src], rr)
+        if keep.all() and np.array_equal(r, model._r):
+            return model
+        z = np.where(keep, z, 0.0)
+        r = np.where(keep, r, 1.0)
+        kw = {"row_mask": keep}
+        if model.relay:
+            kw.update(sat_pos=model.sat_pos, sat_vel=model.sat_vel, relay_mask=model.relay_mask, ground=model.ground,
+                      bias_col=model.bias_col, bias_scale=model.bias_scale, sat_ids=model.sat_ids)
+        if model.radar:
+            kw.update(site=model.site, rot=model.rot, radar_mask=model.radar_mask)
+        return SondeMeasurement(self.layout, z, r, **kw)
 
     def _window_test(self, slots, nis, m, dt: float) -> None:
         """Sliding-window manoeuvre test: the NIS summed over the last ``manoeuvre_window``
@@ -1554,6 +1770,21 @@ class SondeTracker:
             if ok:
                 self.counters.reacquired += 1
                 self._rejects[slot] = 0
+                self._t_init[slot] = self._t[slot]
+
+
+class _Prepared:
+    """A measurement model already evaluated at the monitor's prior: h (N, m), H (N, m, n) and
+    the R diagonal (N, m) of the monitor's fixed row layout."""
+
+    def __init__(self, h, H, r):
+        self._h, self._H, self._r = h, H, r
+
+    def h_and_H(self, x):
+        return self._h, self._H.copy()
+
+    def R_diag(self):
+        return self._r
 
 
 class _MixedSites(Exception):

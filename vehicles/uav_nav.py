@@ -70,7 +70,8 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
-from filters.ekf import ekf_step
+from filters.ekf import ekf_predict, ekf_step, ekf_update
+from filters.integrity import IntegrityConfig, IntegrityMonitor
 from filters.models import ConstantVelocity, JointMeasurement
 from sitl import geodesy
 from sitl.checks import nonnegative as _nonnegative
@@ -100,6 +101,8 @@ __all__ = [
     "ls_fix",
     "nav_init",
     "nav_step",
+    "nav_step_monitored",
+    "sat_channels",
     "OnboardNav",
     "nav_track",
 ]
@@ -160,6 +163,8 @@ class NavConfig:
     el_mask_rad: satellites below this geodetic elevation are not tracked.
     light_time: light-time geometry with Earth rotation (True) or instantaneous (False).
     ls_iterations: Gauss-Newton iterations of the initial least-squares fix.
+    integrity: the integrity monitor around the EKF update (filters.integrity, one channel
+        per satellite: its pseudorange and rate rows), or None for the plain EKF.
     """
 
     noise: GnssNoise = field(default_factory=GnssNoise)
@@ -167,6 +172,7 @@ class NavConfig:
     el_mask_rad: float = math.radians(10.0)
     light_time: bool = True
     ls_iterations: int = 10
+    integrity: IntegrityConfig | None = None
 
     def __post_init__(self):
         if not isinstance(self.noise, GnssNoise):
@@ -180,6 +186,9 @@ class NavConfig:
         if isinstance(self.ls_iterations, bool) or int(self.ls_iterations) != self.ls_iterations \
                 or self.ls_iterations < 1:
             raise ValueError(f"ls_iterations must be an integer >= 1, got {self.ls_iterations!r}")
+        if self.integrity is not None and not isinstance(self.integrity, IntegrityConfig):
+            raise ValueError(f"integrity must be a filters.integrity.IntegrityConfig or None, "
+                             f"got {type(self.integrity).__name__}")
 
     def transition(self) -> ConstantVelocity:
         return ConstantVelocity(3, q=self.q_m2_s3)
@@ -559,26 +568,86 @@ def nav_step(est: NavEstimate, epoch: GnssEpoch, constellation: Constellation,
     return NavEstimate(epoch.t_gps_s, res.x, res.P, res.nis, epoch.tracked.sum(axis=-1))
 
 
+def sat_channels(n_sats: int) -> np.ndarray:
+    """The monitor's row -> channel map of the measurement layout [pr_1..pr_S, prr_1..prr_S]:
+    one channel per satellite (its pseudorange and rate)."""
+    a = np.arange(int(n_sats))
+    return np.concatenate([a, a])
+
+
+def nav_step_monitored(est: NavEstimate, epoch: GnssEpoch, constellation: Constellation, monitor: IntegrityMonitor,
+                       state, config: NavConfig = NavConfig(), backend=None, sat_states=None):
+    """:func:`nav_step` with the integrity monitor around the update: (NavEstimate,
+    MonitorState, Report). Untracked satellites enter the monitor as missing (NaN), so
+    they count as healthy in its windows; a satellite whose rows fail the monitor's tests
+    is left out of the update (a jump: that row this epoch; a persistent step or a drift:
+    the whole channel until it is readmitted)."""
+    dt = epoch.t_gps_s - est.t_gps_s
+    if not dt > 0:
+        raise ValueError(f"epoch.t_gps_s must be after the estimate's time {est.t_gps_s}, got {epoch.t_gps_s}")
+    model, z = nav_measurement_model(epoch, constellation, config, sat_states)
+    tr = np.asarray(epoch.tracked, dtype=bool)
+    z = np.where(np.concatenate([tr, tr], axis=-1), z, np.nan)
+    x_pred, P_pred = ekf_predict(est.x, est.P, _transition(float(config.q_m2_s3)), dt, backend=backend)
+    res, state, rep = monitor.step(state, x_pred, P_pred, z, model, sat_channels(tr.shape[-1]), update=ekf_update,
+                                   backend=backend)
+    return NavEstimate(epoch.t_gps_s, res.x, res.P, res.nis, tr.sum(axis=-1)), state, rep
+
+
+
 class OnboardNav:
     """The onboard navigation of a batch of UAVs: ``update(epoch)`` initialises from the
     first epoch's least-squares fix, then runs one EKF step per epoch; ``estimate`` is the
-    latest :class:`NavEstimate` (what the UAV publishes, with its covariance)."""
+    latest :class:`NavEstimate` (what the UAV publishes, with its covariance).
 
-    def __init__(self, constellation: Constellation, config: NavConfig = NavConfig(), backend=None):
+    With ``config.integrity`` set, each step runs under the integrity monitor (one channel
+    per satellite); ``report`` is the last epoch's filters.integrity.Report and, when an
+    ``events`` publisher (sitl.integrity_events.IntegrityEventPublisher) is given, the
+    epoch's integrity events go out through it (``last_events``), their channels named
+    ``<uav id>.<satellite id>`` (uav_ids: the ids along the last batch axis, default
+    uav1, uav2, ...; a single UAV without a batch axis: uav_ids[0]). The first epoch's
+    least-squares fix is not monitored (it uses every tracked satellite).
+    """
+
+    def __init__(self, constellation: Constellation, config: NavConfig = NavConfig(), backend=None, *,
+                 events=None, uav_ids=None):
         self.constellation = _check_constellation(constellation)
         if not isinstance(config, NavConfig):
             raise ValueError(f"config must be a NavConfig, got {type(config).__name__}")
         self.config = config
         self.backend = backend
         self.estimate: NavEstimate | None = None
+        self.monitor = None if config.integrity is None else IntegrityMonitor(config.integrity)
+        self.monitor_state = None
+        self.report = None
+        self.events = events
+        self.last_events: list = []
+        self.uav_ids = None if uav_ids is None else [str(u) for u in uav_ids]
+        self._sat_ids = [str(s) for s in np.asarray(self.constellation.sat_id)]
+
+    def channel_name(self, b: tuple, c: int) -> str:
+        """The bus channel of satellite c of batch member b: ``<uav id>.<satellite id>``."""
+        i = b[-1] if b else 0
+        uav = self.uav_ids[i] if self.uav_ids is not None else f"uav{i + 1}"
+        return f"{uav}.{self._sat_ids[c]}"
 
     def update(self, epoch: GnssEpoch, sat_states=None) -> NavEstimate:
         """sat_states: the epoch's :func:`filter_sat_states` when already computed."""
         if self.estimate is None:
             self.estimate = nav_init(epoch, self.constellation, self.config)
-        else:
+            if self.monitor is not None:
+                S = len(self.constellation)
+                self.monitor_state = self.monitor.init(self.estimate.x.shape[:-1], 2 * S, S)
+        elif self.monitor is None:
             self.estimate = nav_step(self.estimate, epoch, self.constellation, self.config, self.backend,
                                      sat_states)
+        else:
+            self.estimate, self.monitor_state, self.report = nav_step_monitored(
+                self.estimate, epoch, self.constellation, self.monitor, self.monitor_state, self.config,
+                self.backend, sat_states)
+            if self.events is not None:
+                self.last_events = self.events(self.report, sat_channels(len(self.constellation)), epoch.t_gps_s,
+                                               self.channel_name, self.config.integrity)
         return self.estimate
 
 

@@ -53,6 +53,7 @@ import dataclasses
 import itertools
 import json
 import math
+import re
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -69,6 +70,20 @@ LABELS = {"fused": "fused (relay + radar)", "radar_only": "radar only", "relay_o
 RUN_ID = "seed004"
 RADAR_ID = "arls1"
 FIGURES = ("sonde_error_vs_time.png", "sonde_rmse_vs_range.png", "sonde_nees.png")
+INTEGRITY = ("off", "on", "compare")
+MONITORED = "_monitored"
+
+
+def integrity_config():
+    """The sonde trackers' integrity monitor (filters.integrity.IntegrityConfig)."""
+    from filters.integrity import IntegrityConfig
+
+    return IntegrityConfig(**SONDE_INTEGRITY)
+
+
+# the trackers' monitor settings (see sitl/experiments/sonde.py's integrity note in the report)
+SONDE_INTEGRITY = {"jump_sigma": 3.5, "window": 30, "window_alpha": 1e-4, "bias_alpha": None, "persist": 2,
+                   "readmit_after": 10}
 
 
 @dataclass(frozen=True)
@@ -86,6 +101,21 @@ class SondeScenario:
     max_range_km: float = 250.0
     white_baseline: bool = True  # also run fused / radar_only with naive white radar noise
     filter: str = "auto"  # "auto": EKF, UKF per sonde-epoch where the radar geometry needs it; "ekf"; "ukf"
+    # the integrity monitor (issue 6): "off"; "on" (every tracker monitored); "compare" (the three main
+    # trackers plain, and each again with the monitor, "<mode>_monitored", on the same messages)
+    integrity: str = "off"
+    # measurement faults (sitl.measfault, world side; times since launch): a clock step on one relayed
+    # satellite's pseudorange (relay_step_sat "": the first satellite delivered to trial 0 at the onset)
+    relay_step_m: float = 0.0
+    relay_step_sat: str = ""
+    relay_step_s: tuple = (1200.0, 1800.0)
+    # a burst of heavy-tailed radar azimuth outliers (probability per epoch, scale in azimuth sigmas,
+    # Student-t with 2 dof) and a radar azimuth step (rad)
+    az_outlier_prob: float = 0.0
+    az_outlier_sigmas: float = 10.0
+    az_outlier_s: tuple = (900.0, 1000.0)
+    az_step_rad: float = 0.0
+    az_step_s: tuple = (2400.0, 2700.0)
 
     def __post_init__(self):
         for name in ("duration_s", "dt_s", "wind_scale", "gcpp_offset_m", "bin_km", "max_range_km"):
@@ -98,6 +128,21 @@ class SondeScenario:
                 raise ValueError(f"{name} must be (start, end) with 0 <= start < end, got {getattr(self, name)!r}")
         if self.filter not in ("auto", "ekf", "ukf"):
             raise ValueError(f"filter must be 'auto', 'ekf' or 'ukf', got {self.filter!r}")
+        if self.integrity not in INTEGRITY:
+            raise ValueError(f"integrity must be one of {', '.join(INTEGRITY)}, got {self.integrity!r}")
+        for name in ("relay_step_m", "az_step_rad"):
+            if not (isinstance(getattr(self, name), (int, float)) and math.isfinite(getattr(self, name))):
+                raise ValueError(f"{name} must be a finite number, got {getattr(self, name)!r}")
+        if not 0.0 <= self.az_outlier_prob <= 1.0:
+            raise ValueError(f"az_outlier_prob must lie in [0, 1], got {self.az_outlier_prob!r}")
+        if not (math.isfinite(self.az_outlier_sigmas) and self.az_outlier_sigmas > 0):
+            raise ValueError(f"az_outlier_sigmas must be a finite number > 0, got {self.az_outlier_sigmas!r}")
+        for name in ("relay_step_s", "az_outlier_s", "az_step_s"):
+            a, b = getattr(self, name)
+            if not (math.isfinite(a) and 0 <= a < b):
+                raise ValueError(f"{name} must be (start, end) with 0 <= start < end, got {getattr(self, name)!r}")
+        if self.relay_step_sat and not re.fullmatch(r"[A-Za-z0-9_.-]{1,64}", self.relay_step_sat):
+            raise ValueError(f"relay_step_sat must be a satellite id such as G07, got {self.relay_step_sat!r}")
 
     def filter_for(self, mode: str) -> str:
         """The trackers' filter: "auto" lets each tracker take the UKF for a sonde while its
@@ -111,7 +156,12 @@ class SondeScenario:
 
     @property
     def modes(self) -> tuple:
-        return MODES + (WHITE_MODES if self.white_baseline else ())
+        extra = tuple(m + MONITORED for m in MODES) if self.integrity == "compare" else ()
+        return MODES + (WHITE_MODES if self.white_baseline else ()) + extra
+
+    @property
+    def has_faults(self) -> bool:
+        return bool(self.relay_step_m or self.az_outlier_prob or self.az_step_rad)
 
 
 # ------------------------------------------------------------------ the world
@@ -153,7 +203,8 @@ def tracker_params(scn: SondeScenario, label: str, backend=None):
     from sitl.radio.relay import RelayParams
 
     sp, rp, gp = _sonde_params(scn), RadarParams(), RelayParams()
-    white = label.endswith("_white")
+    monitored = label.endswith(MONITORED) or scn.integrity == "on"
+    white = label.removesuffix(MONITORED).endswith("_white")
     beta = sp.p1_1_s + sp.p2_1_s
     # the acceleration of the sonde model, a = (s / (s + p1)) a_g (the gust a_g seen through the
     # sonde's response p1; k_v vertically), has the stationary variance sigma_a^2 beta / (beta + p1):
@@ -161,11 +212,11 @@ def tracker_params(scn: SondeScenario, label: str, backend=None):
     s_h = sp.sigma_a_m_s2 * math.sqrt(beta / (beta + sp.p1_1_s))
     s_v = sp.sigma_a_vertical_m_s2 * math.sqrt(beta / (beta + sp.vertical_relax_rate_1_s))
     return SondeTrackerParams(
-        mode=label.removesuffix("_white"), radar_noise="white" if white else "colored", filter=scn.filter_for(label),
+        mode=label.removesuffix(MONITORED).removesuffix("_white"), radar_noise="white" if white else "colored", filter=scn.filter_for(label),
         accel_rate_1_s=beta, sigma_acc_horizontal_m_s2=s_h, sigma_acc_vertical_m_s2=s_v, osc_gamma_1_s=gp.osc_gamma_1_s,
         osc_sigma_m_s=2.0 * math.pi * gp.osc_sigma_hz * gp.osc_doppler_scale_m_s_per_rad_s,
         radar_sigma=tuple(rp.sigma), radar_gamma_1_s=tuple(rp.gamma_1_s), label=label,
-        backend=None if backend in (None, "auto") else backend)
+        backend=None if backend in (None, "auto") else backend, integrity=integrity_config() if monitored else None)
 
 
 class _Scorer:
@@ -260,6 +311,22 @@ def run_trials(scn: SondeScenario, seed: int, trials, *, backend=None, progress=
     scorer = _Scorer(modes, B, T, t0, scn.dt_s, index)
     bus.subscribe(f"{RUN_ID}/truth/sonde/*", scorer.on_truth)
     bus.subscribe(f"{RUN_ID}/gs/estimate/sonde/*", scorer.on_estimate)
+    events = []  # the integrity events on the bus: (t since launch, source, channel, event, statistic)
+    bus.subscribe(f"{RUN_ID}/gs/integrity/*", lambda key, m: events.append(
+        (m.t_gps_s - t0, m.source_id, m.channel, m.event, m.statistic)))
+    # measurement faults (world side), one seeded stream for the batch
+    from sitl.measfault import Fault, FaultInjector
+    from sitl.radio.radar import RadarParams
+
+    frng = np.random.default_rng(np.random.SeedSequence([seed, 3003]))
+    az_faults = []
+    if scn.az_outlier_prob:
+        az_faults.append(Fault("outlier", 0, *scn.az_outlier_s, prob=scn.az_outlier_prob,
+                               scale=scn.az_outlier_sigmas * RadarParams().sigma_az_rad, dof=2.0))
+    if scn.az_step_rad:
+        az_faults.append(Fault("step", 0, *scn.az_step_s, magnitude=scn.az_step_rad))
+    az_inj = FaultInjector(az_faults, (B,), 1) if az_faults else None
+    relay_inj, step_sat = None, None
     trackers = []
     for m in modes:
         tr = SondeTracker(RUN_ID, tracker_params(scn, m, backend), radar_id=RADAR_ID)
@@ -284,6 +351,23 @@ def run_trials(scn: SondeScenario, seed: int, trials, *, backend=None, progress=
             w0 = time.perf_counter()
             rv, rd, raz, rel, ra = (rmt.range_valid[j], rmt.slant_range_m[j], rmt.az_rad[j], rmt.el_rad[j],
                                     rmt.angles_valid[j])
+            pr_all = rt.pseudorange_m[j]
+            if scn.relay_step_m and relay_inj is None and t - t0 >= scn.relay_step_s[0]:
+                ids = [str(v) for v in sat_id]
+                if scn.relay_step_sat:
+                    if scn.relay_step_sat not in ids:
+                        raise ValueError(f"relay_step_sat: no satellite {scn.relay_step_sat!r} in the constellation")
+                    step_sat = scn.relay_step_sat
+                else:
+                    seen = np.flatnonzero(rt.delivered[j, 0])
+                    step_sat = ids[int(seen[0])] if seen.size else ids[0]
+                relay_inj = FaultInjector([Fault("step", ids.index(step_sat), *scn.relay_step_s,
+                                                 magnitude=scn.relay_step_m)], (B,), len(ids))
+            if relay_inj is not None:
+                pr_all, _ = relay_inj.step(frng, t - t0, pr_all)
+            if az_inj is not None:
+                az_f = az_inj.step(frng, t - t0, raz[:, None])[0][:, 0]
+                raz = np.where(np.isfinite(az_f), np.mod(az_f, 2.0 * math.pi), az_f)
             vr, va, ve = rmt.var_range_m2[j], rmt.var_az_rad2[j], rmt.var_el_rad2[j]
             for b in range(B):
                 msg = Truth(t_gps_s=t, source_id="world", seq=seq["world"], kind="sonde",
@@ -293,7 +377,7 @@ def run_trials(scn: SondeScenario, seed: int, trials, *, backend=None, progress=
                 examples["truth"] = msg
                 d = rt.delivered[j, b]
                 msg = SondeRelay(t_gps_s=t, source_id="gcpp", seq=seq["gcpp"], sat_ids=sat_id[d],
-                                 pseudorange_m=rt.pseudorange_m[j, b][d], pseudo_doppler_m_s=rt.pseudo_doppler_m_s[j, b][d],
+                                 pseudorange_m=pr_all[b][d], pseudo_doppler_m_s=rt.pseudo_doppler_m_s[j, b][d],
                                  var_pseudorange_m2=rt.var_pr_m2[j, b][d], var_pseudo_doppler_m2_s2=rt.var_prr_m2_s2[j, b][d],
                                  sat_pos_ecef_m=rt.sat_pos_ecef_m[j, b][d], sat_vel_ecef_m_s=rt.sat_vel_ecef_m_s[j, b][d],
                                  ground_pos_ecef_m=rt.ground_pos_ecef_m)
@@ -341,8 +425,9 @@ def run_trials(scn: SondeScenario, seed: int, trials, *, backend=None, progress=
         "counters": {tr.label: tr.counters.as_dict() for tr in trackers},
         "bus": {"published": bus.stats.published, "delivered": bus.stats.total.delivered,
                 "rejected": dict(bus.stats.total.rejected), "callback_errors": bus.stats.total.callback_errors,
-                "messages_by_kind": {**n_msgs, "estimate": int(scorer.count.sum())}},
+                "messages_by_kind": {**n_msgs, "estimate": int(scorer.count.sum()), "integrity": len(events)}},
         "scorer_unexpected": scorer.unexpected,
+        "integrity_events": events, "fault_relay_step_sat": step_sat,
         "timing_s": timing, "wall_s": time.perf_counter() - wall0, "examples": examples,
     }
 
@@ -397,6 +482,7 @@ def _merge(parts: list[dict]) -> dict:
             bus["messages_by_kind"][k] = bus["messages_by_kind"].get(k, 0) + v
     out["bus"] = bus
     out["scorer_unexpected"] = sum(p["scorer_unexpected"] for p in parts)
+    out["integrity_events"] = [e for p in parts for e in p["integrity_events"]]
     out["timing_s"] = {k: sum(p["timing_s"][k] for p in parts) for k in parts[0]["timing_s"]}
     out["wall_s"] = sum(p["wall_s"] for p in parts)
     return out
@@ -527,6 +613,34 @@ def score(raw: dict, scn: SondeScenario) -> dict:
 
 
 
+def integrity_summary(raw: dict, sc: dict, scn: SondeScenario) -> dict | None:
+    """The integrity monitor's part of the result: events on the bus by tracker and kind, by
+    channel kind (relayed satellite / radar axis), the first ones, and with ``integrity="compare"``
+    each main mode's RMSE without and with the monitor on the same messages."""
+    if scn.integrity == "off":
+        return None
+    ev = raw.get("integrity_events", [])
+    by_tracker: dict = {}
+    by_channel: dict = {}
+    for t, src, ch, kind, stat in ev:
+        tr = src.removeprefix("sonde_tracker.").removesuffix(".integrity")
+        d = by_tracker.setdefault(tr, {})
+        d[kind] = d.get(kind, 0) + 1
+        part = ch.split(".", 1)[1] if "." in ch else ch  # drop the sonde id
+        key = f"{tr}:{part}:{kind}"
+        by_channel[key] = by_channel.get(key, 0) + 1
+    out = {"mode": scn.integrity, "config": dict(SONDE_INTEGRITY), "events": len(ev), "by_tracker": by_tracker,
+           "by_channel": dict(sorted(by_channel.items(), key=lambda kv: -kv[1])[:40]),
+           "first_events": [{"t_s": t, "source": src, "channel": ch, "event": kind,
+                             "statistic": None if not math.isfinite(stat) else stat}
+                            for t, src, ch, kind, stat in ev[:20]],
+           "fault_relay_step_sat": raw.get("fault_relay_step_sat")}
+    if scn.integrity == "compare":
+        r = sc["overall_rmse_m"]
+        out["overall_rmse_m"] = {m: {"without_monitor": r[m], "with_monitor": r.get(m + MONITORED)} for m in MODES}
+    return out
+
+
 def result_document(scn, seed: int, raw: dict, sc: dict, figures, wall_s: float, one_trial_wall_s) -> dict:
     anees = {m: ({k: v for k, v in a.items() if not k.startswith("per_epoch")} if a else None)
              for m, a in sc["anees"].items()}
@@ -555,6 +669,7 @@ def result_document(scn, seed: int, raw: dict, sc: dict, figures, wall_s: float,
         "anees": main, "radar_noise_comparison": comparison,
         "continuity": sc["continuity"], "flight": sc["flight"], "overall_rmse_m": sc["overall_rmse_m"],
         "tracker_counters": raw["counters"], "bus": raw["bus"],
+        "integrity": integrity_summary(raw, sc, scn),
         "wall_s": wall_s, "wall_s_per_trial": wall_s / max(1, len(raw["trials"])),
         "one_trial_wall_s": one_trial_wall_s,
         "timing_s": {**timing, "bus_total": bus_s, "messages_delivered": nmsg,
