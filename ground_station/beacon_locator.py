@@ -181,6 +181,7 @@ numpy/scipy plus sitl (bus, geodesy, multilateration) and filters; never imports
 """
 from __future__ import annotations
 
+import dataclasses
 import functools
 import math
 from collections import Counter
@@ -315,6 +316,7 @@ class LocatorConfig:
     second_order_r: bool = False
     prior_mean: tuple = ()
     prior_cov: tuple = ()
+    acquire_s: float = 50.0
 
     def __post_init__(self):
         _nonneg("q_m2_s3", self.q_m2_s3)
@@ -335,6 +337,7 @@ class LocatorConfig:
             _pos(name, getattr(self, name))
         _nonneg("uav_error_corr_s", self.uav_error_corr_s)
         _nonneg("init_resolve_s", self.init_resolve_s)
+        _nonneg("acquire_s", self.acquire_s)
         _pos("init_resolve_llr", self.init_resolve_llr)
         if not 0.0 < float(self.gate_prob) < 1.0:
             raise ValueError(f"gate_prob must lie in (0, 1), got {self.gate_prob!r}")
@@ -688,7 +691,7 @@ def ut_to_ecef(y, P, fr: Frame):
 
 
 def cyl_step(y, P, fr: Frame, obs: ObserverEpoch, config: LocatorConfig, dt_s: float, loglik: bool = False,
-             C=None):
+             C=None, Pu_prev=None):
     """One predict (over dt_s, skipped when 0) + update of the cylindrical filter, batched.
 
     y (T, 6), P (T, 6, 6) in the frames ``fr``; obs with T rows.  Returns (y, P, frame,
@@ -708,7 +711,8 @@ def cyl_step(y, P, fr: Frame, obs: ObserverEpoch, config: LocatorConfig, dt_s: f
         P = F @ P @ np.swapaxes(F, -1, -2) + Gi @ Q @ np.swapaxes(Gi, -1, -2)
         P = 0.5 * (P + np.swapaxes(P, -1, -2))
     if config.observer_uncertainty == "consider":
-        return _consider_step(y, P, C, fr, xp, Gi @ F6 @ G if dt_s > 0 else None, obs, config, dt_s, loglik)
+        return _consider_step(y, P, C, fr, xp, Gi @ F6 @ G if dt_s > 0 else None, obs, config, dt_s, loglik,
+                              Pu_prev)
     obs = _fill_absent(obs, xp)
     T, N = obs.mask.shape
     kappa = config.kappa(dt_s)
@@ -744,12 +748,19 @@ def cyl_step(y, P, fr: Frame, obs: ObserverEpoch, config: LocatorConfig, dt_s: f
     return out + (fr,)
 
 
-def _consider_step(y, P, C, fr, xp, F, obs, config, dt_s, loglik):
+def _consider_step(y, P, C, fr, xp, F, obs, config, dt_s, loglik, Pu_prev=None):
     """observer_uncertainty="consider": the UAVs' navigation errors eps_i = U_i - U^_i as
     Schmidt (consider) states, first-order Gauss-Markov with correlation times
     uav_error_corr_s (position) and uav_vel_error_corr_s (velocity), covariance P_i (the
     UAV's own, sent with each message).  The filter carries C_i = Cov(state error, eps_i)
-    (T, N, n, 6) per observer slot: predicted C_i <- F C_i A (A = diag(rho_p, rho_v)), the
+    (T, N, n, 6) per observer slot: predicted C_i <- F C_i A_i' with the transition
+    eps_i(k) = A_i eps_i(k-1) + w, A_i = L_k diag(rho_p, rho_v) L_{k-1}^-1 (L the Cholesky
+    factors of the UAV's covariance sent at the two epochs, Pu_prev (T, N, 6, 6) the previous
+    ones): Gauss-Markov in the UAV's whitened error, so that Cov(eps_i(k)) is exactly the P_i
+    sent now whatever the UAV's filter did meanwhile (a plain eps(k) = diag(rho) eps(k-1) + w
+    needs Var(w) = P_k - rho^2 P_{k-1}, negative while the UAV's filter converges -- its
+    covariance shrinks by half in the first second of the seed run -- and the joint covariance
+    is then over-confident); the
     update is one batched update of the epoch's 2N rows with S = H P H' + H X + X' H' +
     blockdiag(J_i P_i J_i' + R_i), X_i = C_i J_i' (J_i = d z_i / d U_i = -H_i in ECEF),
     gain K = (P H' + X) S^-1, P -= K S K', C_i -= K (H C_i + E_i J_i P_i): the memory of
@@ -769,7 +780,17 @@ def _consider_step(y, P, C, fr, xp, F, obs, config, dt_s, loglik):
         rp = math.exp(-dt_s / tp) if tp > 0 else 0.0
         rv = math.exp(-dt_s / tv) if tv > 0 else 0.0
         A = np.array([rp] * 3 + [rv] * 3)
-        C = np.einsum("tij,tnjb->tnib", F, C) * A
+        C = np.einsum("tij,tnjb->tnib", F, C)
+        if Pu_prev is None:
+            C = C * A
+        else:
+            # A_i' = L_{k-1}^-T diag(rho) L_k' (absent slots and new ones: the covariance kept)
+            seen = (Pu_prev[..., 0, 0] > 0)[..., None, None]
+            Pn = np.where(obs.mask[..., None, None], obs.cov, np.where(seen, Pu_prev, np.eye(6)))
+            Pp = np.where(seen, Pu_prev, Pn)
+            Ln, Lp = np.linalg.cholesky(Pn), np.linalg.cholesky(Pp)
+            At = np.linalg.solve(np.swapaxes(Lp, -1, -2), A[:, None] * np.swapaxes(Ln, -1, -2))
+            C = C @ At
     zhat, He, R0 = range_doppler_blocks(xp, obs, 0.0)
     _, G2 = cyl_to_ecef(y, fr, jacobian=True)
     if config.second_order_r:
@@ -780,7 +801,7 @@ def _consider_step(y, P, C, fr, xp, F, obs, config, dt_s, loglik):
     z = np.stack([obs.range_m, obs.range_rate_m_s], axis=-1)
     Hy = He @ G2[:, None]
     J = -He  # d z / d U_i (wrt UAV i's [U, V])
-    out = _consider_update(y, P, C, z - zhat, Hy, J, obs.cov, R0, obs.mask, config, loglik, None)
+    out = _consider_update(y, P, C, z - zhat, Hy, J, obs.cov, R0, obs.mask, config, False, None)
     if config.update_iterations > 1:
         used0, yi = out[3], out[0]
         for _ in range(int(config.update_iterations) - 1):
@@ -791,7 +812,22 @@ def _consider_step(y, P, C, fr, xp, F, obs, config, dt_s, loglik):
             it = _consider_update(y, P, C, nui, Hyi, -Hi, obs.cov, R0, obs.mask, config, False, used0)
             yi = it[0]
         out = (it[0], it[1], it[2], it[3], obs.mask & ~it[3], out[5], it[6])
-    y1, P1, nis, used, gated, m2ll, C1 = out
+    y1, P1, nis, used, gated, _, C1 = out
+    m2ll = None
+    if loglik:
+        # hypotheses are scored as by "inflate": the UAVs' errors white with their per-epoch
+        # variance (R0 + J P_i J', no cross-covariances).  With the Schmidt S the log det term
+        # favours whichever side projects less of the UAVs' covariance -- measured on the
+        # printed run with the prior split in two halves by the side of the UAVs' plane: the
+        # mirror was chosen in 18 of 20 three-satellite trials
+        R1 = R0 + np.einsum("tnai,tnij,tnbj->tnab", He, obs.cov, He)
+        l11, l21, l22 = _chol2(R1)
+        pm = obs.mask[..., None]
+        T, N = obs.mask.shape
+        yw = _solve2(l11, l21, l22, (z - zhat)[..., None])[..., 0]
+        Hw = _solve2(l11, l21, l22, Hy)
+        m2ll = _m2ll((yw * pm).reshape(T, 2 * N), (Hw * pm[..., None]).reshape(T, 2 * N, n), P,
+                     2.0 * np.sum(np.log(l11 * l22) * obs.mask, axis=-1))
     return y1, P1, nis, used, gated, m2ll, fr, C1
 
 
@@ -1091,6 +1127,9 @@ class BeaconLocator:
         if not run_ids or len(set(run_ids)) != len(run_ids):
             raise ValueError(f"run_ids must be non-empty and distinct, got {run_ids!r}")
         self.config = config
+        # "consider": the acquisition's filter (the first acquire_s seconds of each track)
+        self._acquire_config = dataclasses.replace(config, observer_uncertainty="inflate") \
+            if config.observer_uncertainty == "consider" else None
         self.transport = transport
         self.run_ids = run_ids
         self.beacon_id = beacon_id
@@ -1125,6 +1164,7 @@ class BeaconLocator:
         # slots are fixed per UAV id (_collect), so that slot i is always the same UAV
         self.C = np.zeros((T, 0, n, 6))
         self.alt_C = np.zeros((T, 0, n, 6))
+        self.uav_cov_prev = np.zeros((T, 0, 6, 6))  # the last covariance each slot's UAV sent (0: none yet)
         self._C_out = None
         self._slot: dict = {}
         self.resolve_at = np.full(T, np.inf)
@@ -1224,13 +1264,40 @@ class BeaconLocator:
             self.publish()
         return self
 
-    def _filter(self, y, P, fr, obs, dt, loglik, C=None):
+    def _filter(self, y, P, fr, obs, dt, loglik, C=None, Pu=None, acq=None):
         """One filter step on stacked rows; returns (y, P, frame, nis, used, gated, m2ll, V)
-        (and sets self._C_out: the consider cross-covariances, "consider" only)."""
+        (and sets self._C_out: the consider cross-covariances, "consider" only).  acq (rows,)
+        bool: "consider" rows still in their acquisition (``acquire_s``), stepped by "inflate"
+        with their cross-covariances kept at 0."""
         c = self.config
         if c.motion == "cv":
             if c.observer_uncertainty == "consider":
-                y, P, nis, used, gated, m2ll, fr, self._C_out = cyl_step(y, P, fr, obs, c, dt, loglik, C)
+                if acq is None or not acq.any():
+                    y, P, nis, used, gated, m2ll, fr, self._C_out = cyl_step(y, P, fr, obs, c, dt, loglik, C, Pu)
+                    return y, P, fr, nis, used, gated, m2ll, None
+                ca = self._acquire_config
+                if acq.all():
+                    self._C_out = np.zeros_like(C)
+                    y, P, nis, used, gated, m2ll, fr = cyl_step(y, P, fr, obs, ca, dt, loglik)
+                    return y, P, fr, nis, used, gated, m2ll, None
+                a, b = np.flatnonzero(acq), np.flatnonzero(~acq)
+                ra = cyl_step(y[a], P[a], fr.take(a), obs.take(a), ca, dt, loglik)
+                rb = cyl_step(y[b], P[b], fr.take(b), obs.take(b), c, dt, loglik, C[b], Pu[b])
+                self._C_out = np.zeros_like(C)
+                self._C_out[b] = rb[7]
+                out = []
+                for i in range(6):  # y, P, nis, used, gated, m2ll
+                    if ra[i] is None:
+                        out.append(None)
+                        continue
+                    v = np.empty((y.shape[0],) + ra[i].shape[1:], ra[i].dtype)
+                    v[a], v[b] = ra[i], rb[i]
+                    out.append(v)
+                frame = Frame(*(np.empty((y.shape[0],) + u.shape[1:], u.dtype) for u in ra[6]))
+                for full, pa, pb in zip(frame, ra[6], rb[6]):
+                    full[a], full[b] = pa, pb
+                y, P, nis, used, gated, m2ll = out
+                return y, P, frame, nis, used, gated, m2ll, None
             else:
                 y, P, nis, used, gated, m2ll, fr = cyl_step(y, P, fr, obs, c, dt, loglik)
             return y, P, fr, nis, used, gated, m2ll, None
@@ -1263,6 +1330,7 @@ class BeaconLocator:
                 y0, P0 = self.y.copy(), self.P.copy()
                 fr0 = Frame(*(u.copy() for u in self.frame))
                 C0 = self._grow_C(obs.mask.shape[1])[0]
+                Pu0 = self.uav_cov_prev[:, :obs.mask.shape[1]]
             else:
                 rows = np.concatenate([on, alt])
                 sub = obs.take(rows)
@@ -1271,7 +1339,13 @@ class BeaconLocator:
                 fr0 = Frame(*(np.concatenate([u[on], v[alt]]) for u, v in zip(self.frame, self.alt_frame)))
                 Cm, Ca = self._grow_C(obs.mask.shape[1])
                 C0 = np.concatenate([Cm[on], Ca[alt]])
-            y, P, fr, nis, used, gated, m2ll, vel = self._filter(y0, P0, fr0, sub, dt, alt.size > 0, C0)
+                Pu = self.uav_cov_prev[:, :obs.mask.shape[1]]
+                Pu0 = np.concatenate([Pu[on], Pu[alt]])
+            acq = None
+            if c.observer_uncertainty == "consider" and c.acquire_s > 0:
+                started = self.init_t_gps_s[np.concatenate([on, alt])]
+                acq = t - started < c.acquire_s - 1e-9
+            y, P, fr, nis, used, gated, m2ll, vel = self._filter(y0, P0, fr0, sub, dt, alt.size > 0, C0, Pu0, acq)
             self.y[on], self.P[on], self.nis[on] = y[:n], P[:n], nis[:n]
             self.alt_y[alt], self.alt_P[alt] = y[n:], P[n:]
             if c.observer_uncertainty == "consider":
@@ -1313,6 +1387,10 @@ class BeaconLocator:
                     self.counters["mirror_chosen"] += 1
                 else:
                     self.counters["mirror_dropped"] += 1
+        if c.observer_uncertainty == "consider":  # the UAVs' covariances sent this epoch, per slot
+            self._grow_C(obs.mask.shape[1])
+            Pu = self.uav_cov_prev[:, :obs.mask.shape[1]]
+            Pu[obs.mask] = obs.cov[obs.mask]
         for k in np.flatnonzero(~self.initialised):  # (none left with a prior)
             if obs.mask[k].sum() >= 3:
                 self._window[k].append((t, obs.take(slice(k, k + 1))))
@@ -1323,12 +1401,12 @@ class BeaconLocator:
 
     def _grow_C(self, N: int):
         """The consider cross-covariances (T, N, n, 6) of the tracks and of the mirror hypotheses,
-        grown to N observer slots (zeros for new ones)."""
+        grown to N observer slots (zeros for new ones), and the UAVs' last covariances with them."""
         if self.C.shape[1] < N:
             T, n = self.y.shape
-            for name in ("C", "alt_C"):
+            for name, m in (("C", n), ("alt_C", n), ("uav_cov_prev", 6)):
                 old = getattr(self, name)
-                new = np.zeros((T, N, n, 6))
+                new = np.zeros((T, N, m, 6))
                 new[:, :old.shape[1]] = old
                 setattr(self, name, new)
         return self.C[:, :N], self.alt_C[:, :N]
