@@ -497,7 +497,7 @@ def _to_toml_like(d: dict) -> dict:
 def worker_specs(scn: Scenario, zenoh_connect, out_dir) -> list[WorkerSpec]:
     """One spec per vehicle group (uavs.per_process UAVs each; the first also carries the
     beacon's truth and the sonde) and one for the ground station."""
-    doc = scn.to_dict()
+    doc = _to_toml_like(scn.to_dict())
     n = scn.uavs.count
     groups = scn.n_uav_processes
     per = scn.uavs.per_process

@@ -14,7 +14,8 @@ import numpy as np
 from sitl.live.scoring import ErrorTracker
 
 
-def run_batch(scn, *, settle_s: float = 0.0, progress=None) -> dict:
+def run_batch(scn, *, settle_s: float = 0.0, progress=None, record=None) -> dict:
+    """record: a path: the run's bus traffic goes to a bus log there (as a live run's)."""
     from sitl.bus import InMemoryTransport
 
     vp = importlib.import_module("vehicles.process")
@@ -23,6 +24,10 @@ def run_batch(scn, *, settle_s: float = 0.0, progress=None) -> dict:
     bus = InMemoryTransport(start_t_gps_s=run.t0_gps_s)
     scorer = ErrorTracker(keep_s=1e9, settle_s=settle_s, t0_gps_s=run.t0_gps_s)
     scorer.subscribe(bus, run.id)
+    recorder = None
+    if record is not None:
+        from sitl.bus.buslog import BusRecorder
+        recorder = BusRecorder(bus, record, key_expr=f"{run.id}/**", append=False)
     node = gn.GroundStationNode(bus, run.id, gn.GsConfig.from_scenario(scn))
     groups = []
     per = scn.uavs.per_process
@@ -44,6 +49,9 @@ def run_batch(scn, *, settle_s: float = 0.0, progress=None) -> dict:
     out = {"errors": scorer.summary(), "gs": node.stats(), "published": bus.stats.published,
            "series": {f"{a}/{b}": v for (a, b), v in scorer.series.items()}}
     node.close()
+    if recorder is not None:
+        out["recorded"] = recorder.records
+        recorder.close()
     bus.close()
     return out
 

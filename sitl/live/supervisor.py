@@ -180,6 +180,8 @@ class Supervisor:
             if c.reader is not None:
                 c.reader.join(timeout=1.0)  # take the last lines (its done line)
             c.exits.append(rc)
+            # whatever the dead worker left in its process group goes with it (no orphans)
+            self._signal_group(p, signal.SIGKILL)
             ok = rc == 0 and c.done
             self._event("exit", c, pid=p.pid, returncode=rc, clean=ok)
             self._close_pipes(p)

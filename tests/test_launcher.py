@@ -1,0 +1,255 @@
+"""The live plumbing without the full demo: pacer, worker runtime, supervisor (restart and
+clean shutdown with dummy workers: no orphans, ports freed), replay against batch."""
+from __future__ import annotations
+
+import io
+import json
+import os
+import signal
+import socket
+import sys
+import textwrap
+import threading
+import time
+
+import pytest
+
+from sitl.live.pacer import Pacer
+from sitl.live.supervisor import Supervisor
+
+
+# ------------------------------------------------------------------ pacer
+
+
+class FakeClock:
+    def __init__(self, t=1000.0):
+        self.t = t
+
+    def __call__(self):
+        return self.t
+
+
+class FakeStop(threading.Event):
+    """A stop event whose wait advances the fake clock instead of sleeping."""
+
+    def __init__(self, clock):
+        super().__init__()
+        self.clock = clock
+        self.waited = 0.0
+
+    def wait(self, timeout=None):
+        self.clock.t += timeout
+        self.waited += timeout
+        return self.is_set()
+
+
+def test_pacer_maps_sim_to_wall_at_speed():
+    clk = FakeClock()
+    p = Pacer(4.0, 500.0, wall_start_s=1000.0, clock=clk)
+    assert p.sim_now() == 500.0
+    clk.t = 1002.5
+    assert p.sim_now() == pytest.approx(510.0)
+    assert p.wall_at(520.0) == pytest.approx(1005.0)
+    with pytest.raises(ValueError):
+        Pacer(0.0, 0.0)
+
+
+def test_pacer_epochs_wait_for_their_time():
+    clk = FakeClock()
+    stop = FakeStop(clk)
+    p = Pacer(2.0, 0.0, wall_start_s=1000.0, clock=clk, stop=stop)
+    seen = []
+    for t in p.epochs(0.0, 1.0, 5.0):
+        seen.append((t, clk.t))
+    assert [t for t, _ in seen] == [0.0, 1.0, 2.0, 3.0, 4.0, 5.0]
+    for t, wall in seen:  # never early, never later than the wait granularity
+        assert p.wall_at(t) <= wall + 1e-9
+    assert stop.waited == pytest.approx(2.5)
+    assert p.late_epochs == 0 and p.skipped_epochs == 0
+
+
+def test_pacer_skips_when_far_behind_and_stops_on_request():
+    clk = FakeClock()
+    stop = FakeStop(clk)
+    p = Pacer(1.0, 0.0, wall_start_s=1000.0, clock=clk, stop=stop)
+    out = []
+    for t in p.epochs(0.0, 1.0, 100.0, max_lag_s=3.0):
+        out.append(t)
+        if t == 2.0:
+            clk.t += 10.0  # a 10 s stall after epoch 2
+        if t >= 20.0:
+            stop.set()
+    # epoch 2 came at sim 2 s; after the stall it is sim 12 s: epochs 3..11 are skipped and
+    # the latest due one, 12, comes next
+    assert out[:4] == [0.0, 1.0, 2.0, 12.0]
+    assert p.skipped_epochs == 9
+    assert out[-1] == 20.0
+
+
+# ------------------------------------------------------------------ worker runtime
+
+
+def _spec(tmp_path, **kw):
+    from sitl.scenario import default_scenario, worker_specs
+    spec = worker_specs(default_scenario(), [], tmp_path)[0]
+    for k, v in kw.items():
+        setattr(spec, k, v)
+    return spec.write(tmp_path / "spec.json")
+
+
+def test_worker_runtime_protocol(tmp_path):
+    from sitl.live.worker import WorkerRuntime
+    r_in, w_in = os.pipe()
+    out = io.StringIO()
+    rt = WorkerRuntime(_spec(tmp_path), out=out, stdin=os.fdopen(r_in), install_signals=False)
+    w = os.fdopen(w_in, "w")
+    w.write("garbage\n" + json.dumps({"cmd": "start", "wall_start_s": 1234.5}) + "\n")
+    w.flush()
+    assert rt.wait_start(timeout_s=5.0)
+    assert rt.wall_start_s == 1234.5 and sum(rt.bad_commands.values()) == 1
+    assert json.loads(out.getvalue().splitlines()[0])["event"] == "ready"
+    assert not rt.stop.is_set()
+    w.close()  # the launcher is gone: the worker stops by itself
+    assert rt.stop.wait(5.0)
+
+
+# ------------------------------------------------------------------ supervisor
+
+DUMMY = textwrap.dedent("""
+    import json, os, signal, socket, subprocess, sys, time
+    mode, marks, port = sys.argv[1], sys.argv[2], int(sys.argv[3])
+    if mode == "stubborn":
+        signal.signal(signal.SIGTERM, signal.SIG_IGN)
+    first = not os.path.exists(os.path.join(marks, "ran-" + mode))
+    open(os.path.join(marks, "ran-" + mode), "a").close()
+    gc = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(120)"])
+    srv = socket.socket(); srv.bind(("127.0.0.1", port)); srv.listen()
+    with open(os.path.join(marks, "pids"), "a") as f:
+        f.write(f"{os.getpid()} {gc.pid}\\n")
+    print(json.dumps({"event": "ready"}), flush=True)
+    cmd = json.loads(sys.stdin.readline())
+    assert cmd["cmd"] == "start"
+    if mode == "crash" and first:
+        sys.exit(3)
+    n = 0
+    while True:
+        print(json.dumps({"event": "status", "t_sim_s": float(n), "sent": n, "rejected": {"x": 1}}), flush=True)
+        if mode == "finish" and n == 3:
+            print(json.dumps({"event": "done", "sent": n}), flush=True)
+            sys.exit(0)
+        line = sys.stdin.readline() if mode == "good" else None
+        if line is not None and (not line or json.loads(line).get("cmd") == "stop"):
+            sys.exit(0)
+        time.sleep(0.05)
+        n += 1
+""")
+
+
+def _free_port():
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def _dead(pid: int) -> bool:
+    try:
+        with open(f"/proc/{pid}/stat") as f:
+            return f.read().rsplit(")", 1)[1].split()[0] in ("Z", "X")
+    except FileNotFoundError:
+        return True
+
+
+def _port_free(port: int) -> bool:
+    with socket.socket() as s:
+        s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        try:
+            s.bind(("127.0.0.1", port))
+            return True
+        except OSError:
+            return False
+
+
+def _wait(cond, timeout=15.0):
+    t_end = time.monotonic() + timeout
+    while time.monotonic() < t_end:
+        if cond():
+            return True
+        time.sleep(0.05)
+    return False
+
+
+def test_supervisor_restarts_a_dead_worker_and_stops_everything(tmp_path):
+    script = tmp_path / "dummy.py"
+    script.write_text(DUMMY)
+    ports = {m: _free_port() for m in ("crash", "good", "finish")}
+    events = []
+    sup = Supervisor(tmp_path / "logs", grace_s=0.5, term_timeout_s=2.0, on_event=events.append)
+    for mode, port in ports.items():
+        sup.add(mode, [sys.executable, str(script), mode, str(tmp_path), str(port)])
+    try:
+        sup.start_all()
+        assert sup.wait_ready(30.0)
+        sup.broadcast_start(time.time())
+        assert _wait(lambda: (sup.poll() or True) and sup.children["crash"].restarts == 1
+                     and sup.children["crash"].status.get("t_sim_s", 0) >= 2)
+        assert _wait(lambda: (sup.poll() or True) and sup.children["finish"].finished)
+        fin = sup.children["finish"]
+        assert fin.exits == [0] and fin.done and fin.restarts == 0  # a clean end is not restarted
+        crash = sup.children["crash"]
+        assert crash.exits[0] == 3
+        kinds = [(e["event"], e["worker"]) for e in events]
+        assert ("restart", "crash") in kinds and ("restart", "good") not in kinds
+        assert sup.alive() == ["crash", "good"]
+    finally:
+        how = sup.stop()
+    pids = [int(p) for line in (tmp_path / "pids").read_text().split("\n") if line for p in line.split()]
+    assert len(pids) == 8  # 4 incarnations (crash twice), each with a grandchild
+    assert _wait(lambda: all(_dead(p) for p in pids), 10.0), [p for p in pids if not _dead(p)]
+    assert all(_port_free(p) for p in ports.values())
+    assert how["good"] == "exited"  # it honoured the stop command
+    assert sup.all_finished() and not sup.alive()
+
+
+def test_supervisor_kills_a_worker_that_ignores_sigterm(tmp_path):
+    script = tmp_path / "dummy.py"
+    script.write_text(DUMMY)
+    port = _free_port()
+    sup = Supervisor(tmp_path / "logs", grace_s=0.2, term_timeout_s=0.5)
+    sup.add("stubborn", [sys.executable, str(script), "stubborn", str(tmp_path), str(port)])
+    sup.start_all()
+    assert sup.wait_ready(30.0)
+    sup.broadcast_start(time.time())
+    assert _wait(lambda: sup.children["stubborn"].status.get("t_sim_s", 0) >= 1)
+    how = sup.stop()
+    assert how["stubborn"] == "SIGKILL"
+    pids = [int(p) for p in (tmp_path / "pids").read_text().split()]
+    assert _wait(lambda: all(_dead(p) for p in pids), 10.0)
+    assert _port_free(port)
+    assert sup.children["stubborn"].exits == [-signal.SIGKILL]
+
+
+# ------------------------------------------------------------------ replay = batch
+
+
+def test_replay_of_a_recorded_batch_run_gives_the_same_estimates(tmp_path):
+    from sitl.live.batch import run_batch
+    from sitl.live.launcher import replay
+    from sitl.scenario import default_scenario
+
+    scn = default_scenario().replace(run={"duration_s": 25.0}, mavlink={"enabled": False})
+    log = tmp_path / "bus.log"
+    res = run_batch(scn, record=log)
+    assert res["recorded"] > 0
+    rep = replay(log, scn)
+    for kind in ("beacon", "sonde"):
+        c = rep["vs_live"][kind]
+        assert c["recorded"] > 10 and c["matched"] == c["recorded"] == c["replayed"]
+        assert c["max_pos_diff_m"] == 0.0
+    # the replay's own scoring (recorded truth) agrees with the batch run's
+    for name, e in res["errors"].items():
+        assert rep["errors"][name]["rmse_m"] == pytest.approx(e["rmse_m"], rel=1e-12)
+    # a torn tail (a crash mid-write) still replays up to it
+    data = log.read_bytes()
+    log.write_bytes(data[: len(data) - 7])
+    rep2 = replay(log, scn)
+    assert rep2["torn_tail"]["dropped_bytes"] > 0 and rep2["records"] == rep["records"] - 1
