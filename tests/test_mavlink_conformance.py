@@ -488,3 +488,75 @@ def test_group_of_uavs_and_a_sonde():
                 g.step(T0_GPS_S + 5, [None])
     finally:
         peer.close()
+
+
+# ---------------------------------------------------------------------------- what GCSs do at connect
+def test_qgc_initial_connect_sequence_completes_without_waiting():
+    """QGroundControl's InitialConnectStateMachine, request by request, each answered within
+    one step of 0.1 s (QGC waits seconds for an unanswered one)."""
+    store, _ = _uav_store()
+    with Link("uav", params=store, on_mission=lambda w: None) as L:
+        L.step(2)
+        seq = [
+            (_cmd(L, mav.MAV_CMD_REQUEST_MESSAGE, 148), lambda g: of_type(g, "AUTOPILOT_VERSION")),
+            (_cmd(L, mav.MAV_CMD_REQUEST_MESSAGE, 397), lambda g: of_type(g, "COMMAND_ACK")),
+            (_cmd(L, mav.MAV_CMD_REQUEST_MESSAGE, 395), lambda g: of_type(g, "COMMAND_ACK")),
+            (_cmd(L, mav.MAV_CMD_REQUEST_MESSAGE, 435), lambda g: of_type(g, "COMMAND_ACK")),
+            (L.peer.mav.param_request_list_encode(1, 1), lambda g: len(of_type(g, "PARAM_VALUE")) == len(store)),
+            (L.peer.mav.mission_request_list_encode(1, 1, 0), lambda g: of_type(g, "MISSION_COUNT")),
+            (_cmd(L, mav.MAV_CMD_REQUEST_MESSAGE, 242), lambda g: of_type(g, "HOME_POSITION")),
+        ]
+        for req, done in seq:
+            got = L.exchange(req, done, max_steps=1)
+            assert done(got), req.get_type()
+        home = of_type(got, "HOME_POSITION")[0]
+        assert (home.latitude, home.longitude, home.altitude) == (
+            int(np.rint(np.degrees(L.tel.lat_rad) * 1e7)), int(np.rint(np.degrees(L.tel.lon_rad) * 1e7)),
+            int(np.rint(L.tel.alt_msl_m * 1e3)))
+
+
+def test_mavproxy_ftp_parameter_download_is_refused_at_once():
+    """MAVProxy tries MAVLink FTP (OpenFileRO @PARAM/param.pck) before PARAM_REQUEST_LIST:
+    a NAK right away lets it fall back without its timeouts."""
+    with Link() as L:
+        name = b"@PARAM/param.pck"
+        payload = (7).to_bytes(2, "little") + bytes([3, 4, len(name), 0, 0, 0]) + bytes(4) + name
+        req = L.peer.mav.file_transfer_protocol_encode(0, 1, 1, list(payload.ljust(251, b"\x00")))
+        got = L.exchange(req, lambda g: of_type(g, "FILE_TRANSFER_PROTOCOL"), max_steps=1)
+        p = bytes(of_type(got, "FILE_TRANSFER_PROTOCOL")[0].payload)
+        seq, session, opcode, size, req_opcode = int.from_bytes(p[:2], "little"), p[2], p[3], p[4], p[5]
+        assert (seq, session, opcode, size, req_opcode, p[12]) == (8, 3, 129, 1, 4, 10)  # NAK FileNotFound
+        got = L.exchange(_cmd(L, mav.MAV_CMD_GET_HOME_POSITION), lambda g: of_type(g, "HOME_POSITION"), max_steps=1)
+        assert of_type(got, "COMMAND_ACK")[0].result == mav.MAV_RESULT_ACCEPTED
+
+
+def test_a_gcs_connecting_to_the_vehicle_port_gets_the_streams_until_it_goes_quiet():
+    with Link() as L:
+        direct = Peer(sysid=254)
+        try:
+            direct.send(direct.mav.heartbeat_encode(mav.MAV_TYPE_GCS, mav.MAV_AUTOPILOT_INVALID, 0, 0, 0), L.to)
+            L.exchange(None, lambda g: False, max_steps=1)
+            L.step(20)
+            assert len(of_type(direct.drain(0.01), "HEARTBEAT")) >= 2  # streams to it as well as to the GCS
+            L.step(700, dt=0.1)  # 70 s without a word from it
+            direct.drain(0.0)
+            L.step(20)
+            assert not direct.drain(0.01)
+        finally:
+            direct.close()
+
+
+def test_legacy_mission_item_float_messages():
+    flown = []
+    with Link("uav", on_mission=flown.append) as L:
+        items = [L.peer.mav.mission_item_encode(1, 1, 0, mav.MAV_FRAME_GLOBAL, mav.MAV_CMD_NAV_WAYPOINT, 0, 1, 0, 0, 0, 0,
+                                                45.5, 30.25, 1234.5, 0)]
+        got = L.exchange(L.peer.mav.mission_count_encode(1, 1, 1, 0), lambda g: of_type(g, "MISSION_REQUEST_INT"))
+        got = L.exchange(items[0], lambda g: of_type(g, "MISSION_ACK"))
+        assert of_type(got, "MISSION_ACK")[0].type == mav.MAV_MISSION_ACCEPTED
+        assert flown[0][0] == pytest.approx((math.radians(45.5), math.radians(30.25), 1234.5), abs=2e-9)
+        got = L.exchange(L.peer.mav.mission_request_encode(1, 1, 0, 0), lambda g: of_type(g, "MISSION_ITEM"))
+        it = of_type(got, "MISSION_ITEM")[0]
+        assert (it.x, it.y, it.z) == pytest.approx((45.5, 30.25, 1234.5), abs=1e-6)
+        got = L.exchange(L.peer.mav.mission_request_int_encode(1, 1, 5, 0), lambda g: of_type(g, "MISSION_ACK"))
+        assert of_type(got, "MISSION_ACK")[0].type == mav.MAV_MISSION_INVALID_SEQUENCE

@@ -51,7 +51,7 @@ REJECT_REASONS = ("garbage", "truncated", "bad_crc", "unknown_msgid", "malformed
                   "unsigned", "bad_signature", "replayed", "param_unknown", "param_rejected",
                   "mission_rejected", "mission_timeout")
 TRAFFIC_COUNTERS = ("rx_datagrams", "rx_bytes", "received", "not_for_us", "sent", "tx_bytes", "send_errors",
-                    "cmd_unsupported")
+                    "cmd_unsupported", "ftp_refused")
 
 KINDS = {
     "uav": mavlink.MAV_TYPE_FIXED_WING,
@@ -62,6 +62,7 @@ KINDS = {
 HEARTBEAT, SYS_STATUS, SYSTEM_TIME = 0, 1, 2
 GPS_RAW_INT, ATTITUDE, GLOBAL_POSITION_INT = 24, 30, 33
 AUTOPILOT_VERSION = 148
+HOME_POSITION = 242
 STREAMS = (HEARTBEAT, SYS_STATUS, SYSTEM_TIME, GPS_RAW_INT, ATTITUDE, GLOBAL_POSITION_INT)
 DEFAULT_STREAM_RATES_HZ = {HEARTBEAT: 1.0, SYS_STATUS: 1.0, SYSTEM_TIME: 1.0, GPS_RAW_INT: 2.0,
                            ATTITUDE: 4.0, GLOBAL_POSITION_INT: 4.0}
@@ -80,6 +81,10 @@ CAPABILITIES = (mavlink.MAV_PROTOCOL_CAPABILITY_MAVLINK2 | mavlink.MAV_PROTOCOL_
 FLIGHT_SW_VERSION = (0 << 24) | (1 << 16) | (0 << 8) | mavlink.FIRMWARE_VERSION_TYPE_DEV
 
 _SENSORS = mavlink.MAV_SYS_STATUS_SENSOR_GPS
+# MAVLink FTP (mavlink.io "File Transfer Protocol"): opcodes and errors used to refuse it
+_FTP_TERMINATE_SESSION, _FTP_RESET_SESSIONS, _FTP_LIST_DIRECTORY, _FTP_OPEN_FILE_RO = 1, 2, 3, 4
+_FTP_ACK, _FTP_NAK = 128, 129
+_FTP_ERR_UNKNOWN_COMMAND, _FTP_ERR_FILE_NOT_FOUND = 7, 10
 _MAX_DATAGRAMS_PER_STEP = 256
 _MAX_PARAMS_PER_STEP = 64
 _MAX_PEERS = 8
@@ -193,6 +198,7 @@ class VehicleEndpoint:
         self._unix_s = 0.0
         self.telemetry: VehicleTelemetry | None = None
         self.home_alt_msl_m: float | None = None
+        self.home: tuple[float, float, float] | None = None  # (lat_rad, lon_rad, alt_msl_m)
         self._handlers = {
             "PARAM_REQUEST_LIST": self._on_param_request_list,
             "PARAM_REQUEST_READ": self._on_param_request_read,
@@ -201,6 +207,7 @@ class VehicleEndpoint:
             "COMMAND_INT": self._on_command,
             "TIMESYNC": self._on_timesync,
             "REQUEST_DATA_STREAM": self._on_request_data_stream,
+            "FILE_TRANSFER_PROTOCOL": self._on_ftp,
         }
         for name in ("MISSION_REQUEST_LIST", "MISSION_COUNT", "MISSION_REQUEST_INT", "MISSION_REQUEST",
                      "MISSION_ITEM_INT", "MISSION_ITEM", "MISSION_CLEAR_ALL", "MISSION_ACK"):
@@ -270,9 +277,9 @@ class VehicleEndpoint:
 
     def _advance(self, telemetry) -> None:
         self.telemetry = telemetry  # None: nothing to report now (never a stale position)
-        if telemetry is not None:
-            if self.home_alt_msl_m is None:
-                self.home_alt_msl_m = float(telemetry.alt_msl_m)
+        if telemetry is not None and self.home is None:  # home: the first position reported
+            self.home = (float(telemetry.lat_rad), float(telemetry.lon_rad), float(telemetry.alt_msl_m))
+            self.home_alt_msl_m = self.home[2]
         t = self._t
         if self._peers:
             for a in [a for a, seen in self._peers.items() if t - seen > _PEER_TIMEOUT_S]:
@@ -380,6 +387,12 @@ class VehicleEndpoint:
         elif msgid == AUTOPILOT_VERSION:
             mav.autopilot_version_send(CAPABILITIES, FLIGHT_SW_VERSION, 0, 0, 0, list(b"skyfuse\x00"), [0] * 8,
                                        [0] * 8, 0, 0, 0x534B_5946_0000_0000 | self.sysid)
+        elif msgid == HOME_POSITION:
+            if self.home is None:
+                return False
+            la, lo, h = self.home
+            mav.home_position_send(tm.deg_e7(la), tm.deg_e7(lo), tm.mm(h), 0.0, 0.0, 0.0, [1.0, 0.0, 0.0, 0.0],
+                                   0.0, 0.0, 0.0, int(round(self._unix_s * 1e6)))
         elif tel is None:
             return False
         elif msgid == GPS_RAW_INT:
@@ -456,14 +469,21 @@ class VehicleEndpoint:
         cmd = msg.command
         if cmd == mavlink.MAV_CMD_REQUEST_MESSAGE:
             msgid = int(msg.param1) if math.isfinite(msg.param1) else -1
-            if msgid not in STREAMS and msgid != AUTOPILOT_VERSION:
+            if msgid not in STREAMS and msgid not in (AUTOPILOT_VERSION, HOME_POSITION):
                 self._count("cmd_unsupported")
                 self._ack(addr, msg, mavlink.MAV_RESULT_UNSUPPORTED)
-            elif msgid in (GPS_RAW_INT, GLOBAL_POSITION_INT, ATTITUDE) and self.telemetry is None:
+            elif (msgid in (GPS_RAW_INT, GLOBAL_POSITION_INT, ATTITUDE) and self.telemetry is None) or \
+                    (msgid == HOME_POSITION and self.home is None):
                 self._ack(addr, msg, mavlink.MAV_RESULT_TEMPORARILY_REJECTED)
             else:
                 self._ack(addr, msg, mavlink.MAV_RESULT_ACCEPTED)
                 self._send_message_to(addr, msgid)
+        elif cmd == mavlink.MAV_CMD_GET_HOME_POSITION:  # deprecated, but MAVProxy asks it every few seconds
+            if self.home is None:
+                self._ack(addr, msg, mavlink.MAV_RESULT_TEMPORARILY_REJECTED)
+            else:
+                self._ack(addr, msg, mavlink.MAV_RESULT_ACCEPTED)
+                self._send_message_to(addr, HOME_POSITION)
         elif cmd == mavlink.MAV_CMD_REQUEST_AUTOPILOT_CAPABILITIES:
             self._ack(addr, msg, mavlink.MAV_RESULT_ACCEPTED)
             self._send_message_to(addr, AUTOPILOT_VERSION)
@@ -504,6 +524,26 @@ class VehicleEndpoint:
             on = msg.start_stop and msg.req_message_rate > 0
             self._interval[msgid] = 1.0 / msg.req_message_rate if on else None
             self._due.pop(msgid, None)
+
+    def _on_ftp(self, msg, addr) -> None:
+        """No MAVLink FTP here: NAK every request at once, so that a GCS that tries FTP first
+        (MAVProxy's parameter download: OpenFileRO @PARAM/param.pck) falls back to the
+        parameter protocol without waiting for its timeouts."""
+        p = bytes(msg.payload)
+        if len(p) < 12:
+            self._count("malformed")
+            return
+        seq, session, opcode = int.from_bytes(p[0:2], "little"), p[2], p[3]
+        if opcode in (_FTP_TERMINATE_SESSION, _FTP_RESET_SESSIONS):
+            op, size, data = _FTP_ACK, 0, b""
+        else:
+            err = _FTP_ERR_FILE_NOT_FOUND if opcode in (_FTP_LIST_DIRECTORY, _FTP_OPEN_FILE_RO) else _FTP_ERR_UNKNOWN_COMMAND
+            op, size, data = _FTP_NAK, 1, bytes([err])
+        reply = ((seq + 1) & 0xFFFF).to_bytes(2, "little") + bytes([session, op, size, opcode, 0, 0]) \
+            + bytes(4) + data
+        self.counters["ftp_refused"] += 1
+        self._send_to(addr, "file_transfer_protocol_send", 0, msg.get_srcSystem(), msg.get_srcComponent(),
+                      list(reply.ljust(251, b"\x00")))
 
     def _on_timesync(self, msg, addr) -> None:
         if msg.tc1 == 0:  # a request (tc1 != 0 is someone's answer)
