@@ -163,7 +163,7 @@ def launch(scn, out: Path, *, quiet: bool = False, stop: threading.Event | None 
     restore = _install_signals(stop)
     run = scn.run
     t_wall0 = perf_now()
-    router = bus = recorder = sup = None
+    router = bus = recorder = sup = warm = None
     report: dict = {"mode": "live", "scenario": scn.to_dict(), "ok": False, "events": []}
     shutdown = {}
     try:
@@ -180,8 +180,7 @@ def launch(scn, out: Path, *, quiet: bool = False, stop: threading.Event | None 
         if scn.bus.log:
             recorder = BusRecorder(bus, out / "bus.log", key_expr=f"{run.id}/**", append=False)
         (out / "scenario.json").write_text(json.dumps(scn.to_dict(), indent=1))
-        if warm_up:
-            _warm_up(out / "scenario.json", out / "logs", stop)
+        warm = _start_warm_up(out / "scenario.json", out / "logs") if warm_up else None
         spec_dir = out / "specs"
         spec_dir.mkdir(exist_ok=True)
         sup = Supervisor(out / "logs")
@@ -189,7 +188,10 @@ def launch(scn, out: Path, *, quiet: bool = False, stop: threading.Event | None 
             path = spec.write(spec_dir / f"{spec.name}.json")
             sup.add_module(spec.name, spec.module, str(path), restart=True)
         sup.start_all()
-        if not sup.wait_ready(ready_timeout_s, stop):
+        ready = sup.wait_ready(ready_timeout_s, stop)
+        if warm is not None:
+            _finish_warm_up(warm, stop)
+        if not ready:
             sup.poll()
             report["error"] = ("stopped before the workers were ready" if stop.is_set() else
                                f"workers not ready after {ready_timeout_s:.0f} s: " +
@@ -224,6 +226,9 @@ def launch(scn, out: Path, *, quiet: bool = False, stop: threading.Event | None 
         report["stopped_early"] = stop.is_set()
         report["last_status"] = last_line
     finally:
+        if warm is not None and warm.poll() is None:
+            warm.kill()
+            warm.wait()
         if sup is not None:
             shutdown = sup.stop()
         if recorder is not None:
@@ -244,22 +249,27 @@ def launch(scn, out: Path, *, quiet: bool = False, stop: threading.Event | None 
     return report
 
 
-def _warm_up(scenario_json: Path, log_dir: Path, stop: threading.Event) -> None:
-    """A few batch epochs of the scenario in a subprocess: numba's on-disk caches are filled
-    (compiled if a kernel's source changed) before the workers need them."""
+def _start_warm_up(scenario_json: Path, log_dir: Path):
+    """A few batch epochs of the scenario in a subprocess, beside the workers' start-up:
+    numba's on-disk caches are filled (compiled if a kernel's source changed) before the run
+    starts, so that no worker compiles in the middle of the run (its first calls come after
+    the start, which waits for this)."""
     import subprocess
     log_dir.mkdir(parents=True, exist_ok=True)
     with open(log_dir / "warm_up.stderr.log", "ab") as err:
-        p = subprocess.Popen([sys.executable, "-m", "sitl.live.batch", str(scenario_json), "--warm-up"],
-                             stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=err)
-        try:
-            while p.poll() is None:
-                if stop.wait(0.1):
-                    break
-        finally:
-            if p.poll() is None:
-                p.kill()
-            p.wait()
+        return subprocess.Popen([sys.executable, "-m", "sitl.live.batch", str(scenario_json), "--warm-up"],
+                                stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=err)
+
+
+def _finish_warm_up(p, stop: threading.Event) -> None:
+    try:
+        while p.poll() is None:
+            if stop.wait(0.1):
+                break
+    finally:
+        if p.poll() is None:
+            p.kill()
+        p.wait()
 
 
 def _fill_report(report, sup, scorer, bus, recorder) -> None:
@@ -284,6 +294,13 @@ def _fill_report(report, sup, scorer, bus, recorder) -> None:
     report["rejected"] = dict(rejected)
     report["restarts"] = int(sup.counters.get("restarts", 0))
     report["errors"] = scorer.summary() if scorer is not None else {}
+    if scorer is not None:  # (t - t0, error) per target, at most ~600 points each
+        series = {}
+        for (kind, tid), pts in dict(scorer.series).items():
+            step = max(1, len(pts) // 600)
+            t0 = scorer.t0 or 0.0
+            series[f"{kind}/{tid}"] = [[round(t - t0, 3), round(e, 3)] for t, e in pts[::step]]
+        report["error_series"] = series
     report["bus_log"] = {"records": recorder.records, "errors": recorder.errors} if recorder is not None else None
     clean = all(c.done and c.exits and c.exits[-1] == 0 for c in sup.children.values())
     report["orphans"] = sup.alive()
