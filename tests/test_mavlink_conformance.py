@@ -18,7 +18,7 @@ from pymavlink.dialects.v20 import ardupilotmega as mav
 from test_mavlink_peer import T0_GPS_S, Link, Peer, of_type, telemetry
 
 from sitl.timescales import utc_from_gps_seconds
-from vehicles.mavlink import (CAPABILITIES, EndpointGroup, ParamSpec, ParamStore, VehicleEndpoint,
+from vehicles.mavlink import (CAPABILITIES, REJECT_REASONS, EndpointGroup, ParamSpec, ParamStore, VehicleEndpoint,
                               sonde_param_specs, uav_param_specs)
 
 KEY = bytes(range(32))
@@ -421,9 +421,14 @@ def test_bad_input_hypothesis_never_raises():
         @given(st.binary(max_size=600), st.integers(0, 600), st.booleans())
         def feed(data, cut, with_good):
             blob = (data[:cut] + good + data[cut:]) if with_good else data
-            n0 = sum(ep.counters[k] for k in ("received",) + tuple(ep.counters))
+            keys = ("received",) + REJECT_REASONS
+            n0, d0 = sum(ep.counters[k] for k in keys), ep.counters["rx_datagrams"]
             ep.handle_datagram(blob, L.peer.addr)
-            assert sum(ep.counters[k] for k in ("received",) + tuple(ep.counters)) > n0 or not blob
+            # every datagram is seen, and anything in it is either accepted or rejected with a reason
+            assert ep.counters["rx_datagrams"] == d0 + 1
+            assert sum(ep.counters[k] for k in keys) > n0 or not blob
+            if with_good and not data:
+                assert ep.counters["received"] > 0
 
         feed()
 
