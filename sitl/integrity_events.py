@@ -8,9 +8,10 @@ One event per channel and epoch at most, from the `filters.integrity.Report` of 
 =============  ==========================================================  ================
 ``event``      when                                                        ``statistic``
 =============  ==========================================================  ================
-``step``       the channel is newly excluded for jumps on ``persist``      its row's beta
-               consecutive epochs (a step that stays)                      of largest |.|
-``ramp``       the channel is newly excluded by a window test (a drift)    the window
+``step``       the channel is newly excluded with a jump this epoch        its row's beta
+               (jumps on ``persist`` consecutive epochs: a step that        of largest |.|
+               stays; a window test may have fired as well)
+``ramp``       the channel is newly excluded by a window test alone        the window
                                                                            statistic that
                                                                            tripped (bias
                                                                            test if above
@@ -64,8 +65,8 @@ def channel_events(report, channels, bias_threshold: float = math.inf):
     newly = np.asarray(report.newly_excluded, dtype=bool)
     excl = np.asarray(report.excluded, dtype=bool)
     readmit = np.asarray(report.readmitted, dtype=bool)
-    step = newly & ~drift_ch
-    ramp = newly & drift_ch
+    step = newly & jump_ch  # excluded with a jump this epoch: the persistence rule (a window test may fire too)
+    ramp = newly & ~jump_ch  # excluded by a window test alone: a drift
     outlier = jump_ch & ~newly & ~excl
     any_ev = step | ramp | outlier | readmit
     if not any_ev.any():
