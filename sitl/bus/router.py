@@ -13,8 +13,7 @@ Multicast scouting is off by default (runs meet through explicit endpoints; two 
 one machine must not find each other). Open it before starting worker processes with
 `subprocess` (never fork a process that holds an open Zenoh session).
 
-``python -m sitl.bus.router [ENDPOINT ...]`` runs a router in the foreground: it prints its
-endpoints as one JSON line, then routes until SIGINT/SIGTERM.
+``python -m sitl.bus.routerd`` runs one as a process (see there).
 """
 
 from __future__ import annotations
@@ -28,7 +27,7 @@ from typing import Any
 
 import zenoh
 
-from ._zconfig import ZenohConfigError, make_config, zenoh_error_text
+from ._zconfig import make_config, zenoh_error_text
 
 log = logging.getLogger("sitl.bus.router")
 
@@ -109,32 +108,6 @@ class Router:
     def __repr__(self) -> str:
         state = "closed" if self.closed else ", ".join(self.endpoints)
         return f"Router({self.zid[:8]} {state})"
-
-
-def main(argv: list[str] | None = None) -> int:
-    import signal
-    import sys
-
-    args = sys.argv[1:] if argv is None else argv
-    if any(a.startswith("-") for a in args):
-        print("usage: python -m sitl.bus.router [ENDPOINT ...]   (default tcp/127.0.0.1:0)",
-              file=sys.stderr)
-        return 2
-    signals = {signal.SIGINT, signal.SIGTERM}
-    signal.pthread_sigmask(signal.SIG_BLOCK, signals)  # before zenoh starts its threads
-    try:
-        router = Router(args or DEFAULT_LISTEN)
-    except (RouterError, ZenohConfigError) as e:
-        print(f"error: {e}", file=sys.stderr)
-        return 2
-    with router:
-        print(json.dumps({"zid": router.zid, "endpoints": router.endpoints}), flush=True)
-        signal.sigwait(signals)
-    return 0
-
-
-if __name__ == "__main__":
-    raise SystemExit(main())
 
 
 __all__ = ["DEFAULT_LISTEN", "Router", "RouterError"]

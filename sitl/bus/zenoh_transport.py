@@ -296,17 +296,18 @@ class ZenohTransport(Transport):
             self._owner[key] = owner
         return owner
 
-    def _on_sample(self, expr: str, sample: zenoh.Sample) -> None:
-        """One sample that reached the Zenoh subscriber of ``expr`` (lock held)."""
+    def _on_sample(self, expr: str, sample: zenoh.Sample) -> bool:
+        """One sample that reached the Zenoh subscriber of ``expr`` (lock held); True if it
+        was taken through this expression (not left to an overlapping one)."""
         key = str(sample.key_expr)
         try:
             owner = self._owner_of(key)
         except KeyExprError as e:
             self.stats.total.rejected["key: invalid"] += 1
             self._ratelog(logging.WARNING, "reject:key", f"bus: rejected key {key!r}: {e}")
-            return
+            return True
         if owner != expr:  # another declared expression takes this key
-            return
+            return False
         # a DELETE carries no message: it is rejected as an empty payload
         payload = sample.payload.to_bytes() if sample.kind == zenoh.SampleKind.PUT else b""
         for rsub in list(self._raw.values()):
@@ -319,16 +320,19 @@ class ZenohTransport(Transport):
                                   f"bus: raw callback of {rsub!r} raised on {key!r}: "
                                   f"{type(e).__name__}: {e}")
         self._deliver(key, payload)
+        return True
 
     def drain(self, until_t_gps_s: float | None = None, max_items: int | None = None) -> int:
-        """Queue mode: take what has been received so far (at most ``max_items`` samples) and
-        decode and deliver it on this thread. ``until_t_gps_s`` is accepted for parity with
-        `InMemoryTransport.drain` and ignored (live: a message is due when it arrives).
-        Returns the number of samples taken. In callback mode, or when called from one of
-        this transport's callbacks: 0."""
+        """Queue mode: take what has been received so far from Zenoh's channels (at most
+        ``max_items`` samples in all, and at most ``queue_capacity`` per expression, so a
+        drain ends even under a flood) and decode and deliver it on this thread.
+        ``until_t_gps_s`` is accepted for parity with `InMemoryTransport.drain` and ignored
+        (live: a message is due when it arrives). Returns the number of payloads handed to
+        the receive path (a sample that two overlapping expressions received counts once).
+        In callback mode, or when called from one of this transport's callbacks: 0."""
         if self.delivery != "queue":
             return 0
-        count = 0
+        count = taken = 0
         limit = float("inf") if max_items is None else max_items
         with self._lock:
             if self._draining or self._closed:
@@ -336,12 +340,15 @@ class ZenohTransport(Transport):
             self._draining = True
             try:
                 for z in sorted(self._zsubs.values(), key=lambda z: z.order):
-                    while count < limit and not self._closed and z.expr in self._zsubs:
+                    per_expr = 0
+                    while (taken < limit and per_expr < self.queue_capacity
+                           and not self._closed and z.expr in self._zsubs):
                         sample = z.zsub.try_recv()
                         if sample is None:
                             break
-                        count += 1
-                        self._on_sample(z.expr, sample)
+                        taken += 1
+                        per_expr += 1
+                        count += self._on_sample(z.expr, sample)
             finally:
                 self._draining = False
         return count
