@@ -40,11 +40,40 @@ def bench_group(n: int = 200, sim_seconds: float = 20.0, step_hz: float = 10.0, 
     finally:
         sink.close()
     per_step_us = cpu / (steps * n) * 1e6
+    peer_us = _pymavlink_floor_us(sent)
     return {"endpoints": n, "steps": steps, "step_hz": step_hz, "cpu_s": cpu, "wall_s": wall,
             "cpu_us_per_endpoint_step": per_step_us, "packets_sent": sent,
             "packets_per_endpoint_s": sent / (n * sim_seconds),
             "core_share_at_rate": per_step_us * 1e-6 * n * step_hz,
-            "max_endpoints_one_core": int(1.0 / (per_step_us * 1e-6 * step_hz))}
+            "max_endpoints_one_core": int(1.0 / (per_step_us * 1e-6 * step_hz)),
+            "pymavlink_send_us_per_packet": peer_us,
+            "ratio_to_pymavlink_floor": cpu / (sent * peer_us * 1e-6)}
+
+
+def _pymavlink_floor_us(n_packets: int) -> float:
+    """The peer: CPU us per packet of bare pymavlink (encode + pack + sendto, one socket),
+    measured now, so that the group's cost is also read as a ratio on a shared machine."""
+    from pymavlink.dialects.v20 import ardupilotmega as mavlink
+
+    sink = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    sink.bind(("127.0.0.1", 0))
+    tx = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    addr = sink.getsockname()
+
+    class _File:
+        def write(self, buf):
+            tx.sendto(buf, addr)
+
+    mav = mavlink.MAVLink(_File(), srcSystem=1, srcComponent=1)
+    n = max(1000, min(int(n_packets), 50_000))
+    try:
+        cpu0 = time.process_time()
+        for k in range(n):
+            mav.attitude_send(k, 0.1, 0.2, 0.3, 0.0, 0.0, 0.0)
+        return (time.process_time() - cpu0) / n * 1e6
+    finally:
+        sink.close()
+        tx.close()
 
 
 def main(argv=None) -> int:

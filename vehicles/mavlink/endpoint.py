@@ -157,6 +157,7 @@ class VehicleEndpoint:
         self._default_interval = {k: (1.0 / r if r > 0 else None) for k, r in rates.items()}
         self._interval = dict(self._default_interval)
         self._due: dict[int, float] = {}
+        self._next_due = -math.inf  # earliest due time of any stream
 
         self.counters = dict.fromkeys(TRAFFIC_COUNTERS + REJECT_REASONS, 0)
 
@@ -355,17 +356,28 @@ class VehicleEndpoint:
 
     # ------------------------------------------------------------------ streams
     def _send_streams(self, t: float) -> None:
+        if t < self._next_due - _DUE_TOL_S:  # most steps at 10 Hz: nothing due
+            return
         self._dest = self._stream_dest()
+        nxt = math.inf
         for msgid in STREAMS:
             iv = self._interval.get(msgid)
             if iv is None:
                 continue
             due = self._due.get(msgid)
-            if due is not None and t < due - _DUE_TOL_S:
-                continue
-            if self._send_message(msgid):
-                # keep the phase; if we fell more than an interval behind, restart from now
-                self._due[msgid] = t + iv if due is None or t - due >= iv else due + iv
+            if due is None or t >= due - _DUE_TOL_S:
+                if self._send_message(msgid):
+                    # keep the phase; if we fell more than an interval behind, restart from now
+                    due = t + iv if due is None or t - due >= iv else due + iv
+                    self._due[msgid] = due
+                else:
+                    due = t  # nothing to send yet (no telemetry): try again next step
+            nxt = min(nxt, due)
+        self._next_due = nxt
+
+    def _streams_changed(self, msgid: int) -> None:
+        self._due.pop(msgid, None)
+        self._next_due = -math.inf
 
     def _send_message(self, msgid: int) -> bool:
         """Send one message now to the current destinations; False if we cannot (no data)."""
@@ -502,7 +514,7 @@ class VehicleEndpoint:
                     self._interval[msgid] = self._default_interval[msgid]
                 else:
                     self._interval[msgid] = iv_us * 1e-6
-                self._due.pop(msgid, None)
+                self._streams_changed(msgid)
                 self._ack(addr, msg, mavlink.MAV_RESULT_ACCEPTED)
         elif cmd == mavlink.MAV_CMD_GET_MESSAGE_INTERVAL:
             msgid = int(msg.param1) if math.isfinite(msg.param1) else -1
@@ -523,7 +535,7 @@ class VehicleEndpoint:
         for msgid in ids:
             on = msg.start_stop and msg.req_message_rate > 0
             self._interval[msgid] = 1.0 / msg.req_message_rate if on else None
-            self._due.pop(msgid, None)
+            self._streams_changed(msgid)
 
     def _on_ftp(self, msg, addr) -> None:
         """No MAVLink FTP here: NAK every request at once, so that a GCS that tries FTP first
