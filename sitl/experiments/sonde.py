@@ -838,6 +838,14 @@ def summary_table(doc: dict) -> str:
     rows.append(f"wall {doc['wall_s']:.1f} s ({doc['wall_s_per_trial']:.2f} s per trial): world {tm['world']:.1f}, "
                 f"publish {tm['publish']:.1f}, bus delivery {tm['deliver']:.1f} + {tm['estimates_delivery']:.1f}, "
                 f"trackers {tm['trackers']:.1f} s; bus {1e6 * (tm['bus_s_per_message'] or 0):.0f} us per message")
+    ig = doc.get("integrity")
+    if ig:
+        rows.append(f"integrity monitor ({ig['mode']}): {ig['events']} events on the bus; by tracker "
+                    + "; ".join(f"{t}: " + ", ".join(f"{k} {v}" for k, v in d.items()) for t, d in ig["by_tracker"].items()))
+        if "overall_rmse_m" in ig:
+            rows.append("RMSE without / with the monitor, same messages (m): "
+                        + ", ".join(f"{m} {v['without_monitor']:.2f} / {v['with_monitor']:.2f}"
+                                    for m, v in ig["overall_rmse_m"].items() if v["with_monitor"] is not None))
     bc = doc["bus_cost_per_message_us"]
     rows.append("bus path per message (build + encode + decode, us): "
                 + ", ".join(f"{k} {v['total_us']:.0f}" for k, v in bc.items())
@@ -853,6 +861,18 @@ def scenario_from_args(args) -> SondeScenario:
     kw = {"white_baseline": not getattr(args, "no_white_baseline", False), "filter": getattr(args, "filter", "auto")}
     if getattr(args, "duration", None) is not None:
         kw["duration_s"] = float(args.duration)
+    # the integrity options (flags --integrity, --relay-step M, --relay-step-sat ID, --relay-step-at A B,
+    # --az-outliers P, --az-outlier-at A B, --az-step-deg D, --az-step-at A B; absent: the defaults)
+    if getattr(args, "integrity", None) is not None:
+        kw["integrity"] = args.integrity
+    for flag, name, conv in (("relay_step", "relay_step_m", float), ("relay_step_sat", "relay_step_sat", str),
+                             ("relay_step_at", "relay_step_s", tuple), ("az_outliers", "az_outlier_prob", float),
+                             ("az_outlier_at", "az_outlier_s", tuple), ("az_step_at", "az_step_s", tuple)):
+        v = getattr(args, flag, None)
+        if v is not None:
+            kw[name] = conv(v)
+    if getattr(args, "az_step_deg", None) is not None:
+        kw["az_step_rad"] = math.radians(float(args.az_step_deg))
     return SondeScenario(**kw)
 
 
