@@ -198,8 +198,8 @@ def test_param_list_read_set():
         assert sorted(p.param_index for p in pv) == list(range(len(store)))
         assert {p.param_count for p in pv} == {len(store)}
         assert {p.param_type for p in pv} == {mav.MAV_PARAM_TYPE_REAL32}
-        assert {p.param_id: p.param_value for p in pv} == dict(store)
-        assert dict(store)["WP_SPEED"] == 100.0 and dict(store)["NAV_Q"] == np.float32(0.035)
+        assert {p.param_id: p.param_value for p in pv} == {k: float(np.float32(v)) for k, v in store.items()}
+        assert dict(store)["WP_SPEED"] == 100.0 and dict(store)["NAV_Q"] == 0.035
         # read by name and by index
         got = L.exchange(L.peer.mav.param_request_read_encode(1, 1, b"WP_RADIUS", -1), lambda g: of_type(g, "PARAM_VALUE"))
         p = of_type(got, "PARAM_VALUE")[0]

@@ -172,9 +172,11 @@ def test_param_set_law(v):
     s = ParamStore([ParamSpec("A", 0.0, -10.0, 10.0)])
     with np.errstate(over="ignore"):
         f32 = float(np.float32(v)) if math.isfinite(v) else v
-    if math.isfinite(f32) and -10.0 <= f32 <= 10.0:
-        assert s.set("A", v) == f32 == s["A"]
-        assert s.set("A", s["A"]) == s["A"]  # a value read back sets exactly
+    if math.isfinite(f32) and -10.0 <= v <= 10.0:
+        stored = s.set("A", v)
+        assert stored == s["A"] and np.float32(stored) == np.float32(v)
+        assert stored == (0.0 if np.float32(v) == 0 else v)  # exact value kept unless the same on the wire
+        assert s.set("A", float(np.float32(s["A"]))) == stored  # a value read back (float32) changes nothing
     else:
         with pytest.raises(ParamError) as e:
             s.set("A", v)
@@ -195,4 +197,25 @@ def test_param_store_mapping_index_and_replace_into():
     assert e.value.reason == "param_unknown"
     s.set("SND_P2", 0.05)
     sp2 = s.replace_into(sp)
-    assert sp2.ascent_rate_m_s == 6.0 and sp2.p2_1_s == np.float32(0.05) and sp2.wind_alt_m == sp.wind_alt_m
+    assert sp2.ascent_rate_m_s == 6.0 and sp2.p2_1_s == 0.05 and sp2.wind_alt_m == sp.wind_alt_m
+    assert s.replace_into(SondeParams()) == SondeParams(ascent_rate_m_s=6.0, p2_1_s=0.05)  # exact, not float32
+
+
+def test_apply_uav_params_rebuilds_the_simulation_objects():
+    from vehicles.mavlink.params import apply_uav_params, uav_param_specs
+    from vehicles.uav import WaypointMission
+    from vehicles.uav_nav import NavConfig
+    wm = WaypointMission([np.array([[0.8, 0.5, 3000.0]])] * 2, speed_m_s=[100.0, 90.0])
+    nav = NavConfig()
+    s = ParamStore(uav_param_specs(wm, nav, 1))
+    assert s["WP_SPEED"] == 90.0 and s["NAV_Q"] == nav.q_m2_s3 and s["GNSS_PSD_PR"] == nav.noise.psd_pr_m2_s
+    n0, m0 = apply_uav_params(s, nav, wm, 1)
+    assert n0 == nav and list(m0.speed_m_s) == [100.0, 90.0]  # unchanged store: the same simulation
+    s.set("WP_SPEED", 95.0)
+    s.set("GNSS_PSD_PR", 800.0)
+    s.set("NAV_Q", 0.05)
+    n1, m1 = apply_uav_params(s, nav, wm, 1)
+    assert (n1.noise.psd_pr_m2_s, n1.q_m2_s3, list(m1.speed_m_s)) == (800.0, 0.05, [100.0, 95.0])
+    s.set("WP_CLIMB_MAX", 99.0)  # >= speed: the constructor refuses, the caller vetoes
+    with pytest.raises(ValueError, match="max_climb"):
+        apply_uav_params(s, nav, wm, 1)

@@ -58,7 +58,7 @@ from .endpoint import (
 )
 from .framing import TlogWriter, load_signing_key, split_datagram
 from .mission import MissionServer
-from .params import ParamError, ParamSpec, ParamStore, sonde_param_specs, uav_param_specs
+from .params import ParamError, ParamSpec, ParamStore, apply_uav_params, sonde_param_specs, uav_param_specs
 from .telemetry import VehicleTelemetry, gps_from_unix_s, unix_s_from_gps
 
 __all__ = [
@@ -77,6 +77,7 @@ __all__ = [
     "TlogWriter",
     "VehicleEndpoint",
     "VehicleTelemetry",
+    "apply_uav_params",
     "gps_from_unix_s",
     "listen_port",
     "load_signing_key",

@@ -6,8 +6,10 @@ the doc), each declared once by a :class:`ParamSpec` (name <= 16 characters, as 
 inside the bounds), stores and calls the change callbacks, so the simulation picks the new
 value up; a callback that raises ``ValueError`` vetoes the change (the old value is kept).
 
-Every value travels as MAV_PARAM_TYPE_REAL32 (a float32): the store keeps the float32 the
-GCS sees, so that a PARAM_SET of a value read back is always an exact round trip.
+Every value travels as MAV_PARAM_TYPE_REAL32 (a float32).  The store keeps the simulation's
+exact values (a default 0.035 stays 0.035, not its float32 neighbour) and treats a PARAM_SET
+whose float32 equals the current value's float32 as no change: a value read back and set
+again changes nothing, and the simulation never moves by float32 rounding.
 
 :func:`uav_param_specs` and :func:`sonde_param_specs` declare the parameters of a UAV
 (its waypoint guidance and onboard GNSS navigation) and of a radiosonde (its flight model),
@@ -81,7 +83,7 @@ class ParamStore(Mapping):
             self._specs[s.name] = s
         self._names = list(self._specs)
         self._index = {n: i for i, n in enumerate(self._names)}
-        self._values = {n: _f32(s.default) for n, s in self._specs.items()}
+        self._values = {n: float(s.default) for n, s in self._specs.items()}
         self._callbacks: list[Callable[[str, float], None]] = []
         for name, v in (values or {}).items():
             self.set(name, v)
@@ -112,7 +114,7 @@ class ParamStore(Mapping):
         self._callbacks.append(callback)
 
     def set(self, name: str, value) -> float:
-        """Validate and store; returns the stored float32 value. Raises ParamError."""
+        """Validate and store; returns the stored value. Raises ParamError."""
         spec = self._specs.get(name)
         if spec is None:
             raise ParamError("param_unknown", f"unknown parameter {name!r}")
@@ -122,12 +124,11 @@ class ParamStore(Mapping):
             raise ParamError("param_rejected", f"{name}: value {value!r} is not a number") from None
         if not math.isfinite(v) or abs(v) > _F32_MAX:
             raise ParamError("param_rejected", f"{name}: value {v!r} is not a finite float32")
-        v = _f32(v)
         if not spec.min <= v <= spec.max:
             raise ParamError("param_rejected", f"{name}: value {v} outside [{spec.min}, {spec.max}]")
         old = self._values[name]
-        if v == old:
-            return v
+        if _f32(v) == _f32(old):  # the same number on the wire: keep the exact value
+            return old
         self._values[name] = v
         try:
             for cb in self._callbacks:
@@ -205,3 +206,29 @@ def sonde_param_specs(params=None) -> list[ParamSpec]:
         ParamSpec("SND_SIGMA_AV", p.sigma_a_vertical_m_s2, 0.0, 10.0,
                   "vertical gust acceleration std, m/s^2", "sigma_a_vertical_m_s2"),
     ]
+
+
+def apply_uav_params(store: ParamStore, nav=None, mission=None, i: int = 0):
+    """(NavConfig, WaypointMission) with the store's current values: the objects a UAV's
+    simulation is rebuilt from after a PARAM_SET (call it from an ``on_change`` callback).
+
+    nav: the NavConfig the specs were read from (None: skipped, returned as None); its GNSS
+    noise is replaced too.  mission: the swarm's WaypointMission (None: skipped); only vehicle
+    i's entries of its per-vehicle arrays change.  Both are frozen: new objects come back.
+    The constructors validate: a ValueError raised here vetoes the change (the store
+    restores the old value).
+    """
+    new_nav = None
+    if nav is not None:
+        new_nav = dataclasses.replace(store.replace_into(nav), noise=store.replace_into(nav.noise))
+    new_mission = None
+    if mission is not None:
+        changes = {}
+        for s in store._specs.values():
+            if s.field is not None and s.field in {f.name for f in dataclasses.fields(mission)} \
+                    and s.field != "waypoints_rad_m":
+                arr = np.array(getattr(mission, s.field), dtype=float, copy=True)
+                arr[int(i)] = store[s.name]
+                changes[s.field] = arr
+        new_mission = dataclasses.replace(mission, waypoints_rad_m=list(mission.waypoints_rad_m), **changes)
+    return new_nav, new_mission
