@@ -565,3 +565,13 @@ def test_legacy_mission_item_float_messages():
         assert (it.x, it.y, it.z) == pytest.approx((45.5, 30.25, 1234.5), abs=1e-6)
         got = L.exchange(L.peer.mav.mission_request_int_encode(1, 1, 5, 0), lambda g: of_type(g, "MISSION_ACK"))
         assert of_type(got, "MISSION_ACK")[0].type == mav.MAV_MISSION_INVALID_SEQUENCE
+
+
+def test_a_handler_bug_is_counted_not_raised():
+    with Link() as L:
+        def boom(msg, addr):
+            raise RuntimeError("simulated bug")
+        L.ep._handlers["TIMESYNC"] = boom
+        L.exchange(L.peer.mav.timesync_encode(0, 1), lambda g: False, max_steps=2)
+        assert L.ep.counters["handler_errors"] == 1 and "RuntimeError: simulated bug" in L.ep.last_error
+        assert of_type(L.step(10), "HEARTBEAT")

@@ -51,7 +51,7 @@ REJECT_REASONS = ("garbage", "truncated", "bad_crc", "unknown_msgid", "malformed
                   "unsigned", "bad_signature", "replayed", "param_unknown", "param_rejected",
                   "mission_rejected", "mission_timeout")
 TRAFFIC_COUNTERS = ("rx_datagrams", "rx_bytes", "received", "not_for_us", "sent", "tx_bytes", "send_errors",
-                    "cmd_unsupported", "ftp_refused")
+                    "cmd_unsupported", "ftp_refused", "handler_errors")
 
 KINDS = {
     "uav": mavlink.MAV_TYPE_FIXED_WING,
@@ -213,6 +213,7 @@ class VehicleEndpoint:
         for name in ("MISSION_REQUEST_LIST", "MISSION_COUNT", "MISSION_REQUEST_INT", "MISSION_REQUEST",
                      "MISSION_ITEM_INT", "MISSION_ITEM", "MISSION_CLEAR_ALL", "MISSION_ACK"):
             self._handlers[name] = self._on_mission_msg
+        self.last_error: str | None = None  # the last handler error, one line
         self._closed = False
 
     # ------------------------------------------------------------------ plumbing
@@ -352,7 +353,11 @@ class VehicleEndpoint:
         self._peers[addr] = self._t if self._t is not None else 0.0
         h = self._handlers.get(msg.get_type())
         if h is not None:
-            h(msg, addr)
+            try:
+                h(msg, addr)
+            except Exception as e:  # a bug met by some input must not stop the vehicle: count, keep one line
+                self.counters["handler_errors"] += 1
+                self.last_error = f"{msg.get_type()} from {addr[0]}:{addr[1]}: {type(e).__name__}: {e}"
 
     # ------------------------------------------------------------------ streams
     def _send_streams(self, t: float) -> None:
