@@ -19,13 +19,23 @@ state machine asks for, see vehicles/mavlink/__init__.py):
   streams       HEARTBEAT 1 Hz, SYS_STATUS, SYSTEM_TIME, GPS_RAW_INT, GLOBAL_POSITION_INT,
                 ATTITUDE at ``stream_rates_hz``; changed by SET_MESSAGE_INTERVAL and
                 REQUEST_DATA_STREAM (MAVProxy's ``streamrate``)
-  commands      COMMAND_LONG / COMMAND_INT -> COMMAND_ACK: REQUEST_MESSAGE,
-                SET_MESSAGE_INTERVAL, GET_MESSAGE_INTERVAL, REQUEST_AUTOPILOT_CAPABILITIES
-                ACCEPTED (+ the message); every other command UNSUPPORTED at once
+  commands      COMMAND_LONG / COMMAND_INT -> COMMAND_ACK: REQUEST_MESSAGE (the streams,
+                AUTOPILOT_VERSION, HOME_POSITION), SET_MESSAGE_INTERVAL, GET_MESSAGE_INTERVAL,
+                REQUEST_AUTOPILOT_CAPABILITIES, GET_HOME_POSITION ACCEPTED (+ the message);
+                every other command, and REQUEST_MESSAGE of anything else, UNSUPPORTED at once
   params        PARAM_REQUEST_LIST / _READ / PARAM_SET over a ParamStore
   missions      see mission.py
+  MAVLink FTP   refused at once (NAK), so that MAVProxy falls back to the parameter protocol
   TIMESYNC      tc1 = our (simulated unix) time in ns, ts1 echoed
-  signing       optional; unsigned / wrongly signed / replayed packets rejected
+  signing       optional; unsigned / wrongly signed / replayed packets rejected.  Our
+                signing timestamps follow the simulated clock and jump to any accepted peer's
+                timestamp that is ahead (as pymavlink does), so a GCS on the wall clock
+                accepts our replies; until a GCS has sent us a signed packet, a simulated
+                date more than a minute behind its clock makes it drop our streams as an
+                old stream (it recovers with its first heartbeat)
+
+Counters (``counters``): REJECT_REASONS count rejected inputs; TRAFFIC_COUNTERS the rest.
+An exception inside a handler is counted (``handler_errors``, ``last_error``), never raised.
 """
 from __future__ import annotations
 
