@@ -33,12 +33,14 @@ class GsConfig:
     sonde_dt_s: float = 1.0
     gcpp_offset_m: float = 300.0
     gcpp_bearing_deg: float = 140.0
+    sonde_integrity: bool = False
 
     @classmethod
-    def from_scenario(cls, scn) -> "GsConfig":
+    def from_scenario(cls, scn) -> GsConfig:
         return cls(beacon_id=scn.beacon.id, beacon_init_epochs=scn.ground_station.beacon_init_epochs,
                    sonde=scn.sonde.enabled, radar_id=scn.sonde.radar_id, sonde_dt_s=1.0 / scn.run.rate_hz,
-                   gcpp_offset_m=scn.sonde.gcpp_offset_m, gcpp_bearing_deg=scn.sonde.gcpp_bearing_deg)
+                   gcpp_offset_m=scn.sonde.gcpp_offset_m, gcpp_bearing_deg=scn.sonde.gcpp_bearing_deg,
+                   sonde_integrity=scn.ground_station.integrity)
 
 
 class _Sub:
@@ -120,10 +122,11 @@ class GroundStationNode:
         if c.sonde:
             from sitl.experiments.sonde import SondeScenario, tracker_params
             scn = SondeScenario(dt_s=c.sonde_dt_s, gcpp_offset_m=c.gcpp_offset_m,
-                                gcpp_bearing_deg=c.gcpp_bearing_deg)
+                                gcpp_bearing_deg=c.gcpp_bearing_deg, integrity="on" if c.sonde_integrity else "off")
             self.tracker = SondeTracker(run_id, tracker_params(scn, "fused"), radar_id=c.radar_id, source_id="gs")
             self.tracker.attach(self.bus)
         self.estimates: dict[tuple[str, str], Estimate] = {}
+        self.events: list = []  # (key, IntegrityEvent) published by the components; the caller takes them
 
     def _on_input(self, key, msg) -> None:
         t = float(msg.t_gps_s)
@@ -141,17 +144,23 @@ class GroundStationNode:
 
     def advance(self, t_until_gps_s: float) -> list:
         """Take in what has arrived and process every epoch <= t_until; returns the
-        (key, Estimate) published meanwhile."""
+        (key, Estimate) published meanwhile (other messages they published, integrity events,
+        are appended to ``events``)."""
         with self._lock:
             self.bus.pump()
             due = sorted(e for e in self._epochs if e <= t_until_gps_s)
             for tau in due:
                 self._epochs.discard(tau)
                 self._step(tau)
-            out, self.bus.published = self.bus.published, []
-            for key, est in out:
-                parts = key.rsplit("/", 2)
-                self.estimates[(parts[-2], parts[-1])] = est
+            published, self.bus.published = self.bus.published, []
+            out = []
+            for key, msg in published:
+                if isinstance(msg, Estimate):
+                    parts = key.rsplit("/", 2)
+                    self.estimates[(parts[-2], parts[-1])] = msg
+                    out.append((key, msg))
+                else:  # integrity events of the trackers' monitors (opt-in)
+                    self.events.append((key, msg))
             self.counters["estimates"] += len(out)
             return out
 

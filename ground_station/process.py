@@ -5,7 +5,7 @@ stepped by the paced clock: every tick it takes in what has arrived and processe
 older than ``ground_station.hold_wall_s`` (x speed, in simulated time), publishing the
 Estimates on ``<run>/gs/estimate/**``. It also speaks MAVLink to the ground-control
 endpoint (pymavlink): the beacon and sonde estimates as ADSB_VEHICLE (so that the GCS map
-shows them) and the integrity events of ``<run>/gs/integrity/**`` as STATUSTEXT, from its
+shows them) and the integrity events its trackers publish (``<run>/gs/integrity/**``) as STATUSTEXT, from its
 own system id (250, component MAV_COMP_ID_ONBOARD_COMPUTER); ``mav_gs.tlog`` records them.
 """
 from __future__ import annotations
@@ -40,7 +40,9 @@ class GcsLink:
             if self._tlog is not None:
                 import struct
 
-                from sitl.live.pacer import wall_now  # a tlog stamps wall time (us), by convention
+                from sitl.live.pacer import (
+                    wall_now,  # a tlog stamps wall time (us), by convention
+                )
                 self._tlog.write(struct.pack(">Q", int(wall_now() * 1e6)) + msg.get_msgbuf())
             self.sent[msg.get_type()] += 1
         except OSError:
@@ -87,7 +89,7 @@ class GcsLink:
 
 def main(argv=None) -> int:
     from ground_station.node import GroundStationNode, GsConfig
-    from sitl.live.worker import WorkerRuntime, bus_counters, open_bus, out_path
+    from sitl.live.worker import WorkerRuntime, open_bus, out_path
 
     argv = sys.argv[1:] if argv is None else argv
     if len(argv) != 1:
@@ -100,8 +102,6 @@ def main(argv=None) -> int:
     node = None
     try:
         node = GroundStationNode(bus, spec.run_id, GsConfig.from_scenario(scn))
-        integrity = []
-        bus.subscribe(f"{spec.run_id}/gs/integrity/**", lambda k, m: integrity.append(m))
         if scn.mavlink.enabled:
             try:
                 gcs = GcsLink(scn.mavlink.gcs, out_path(spec, "mav_gs.tlog") if scn.mavlink.tlog else None)
@@ -115,9 +115,14 @@ def main(argv=None) -> int:
         tick = min(0.1 * scn.run.speed, 1.0 / scn.run.rate_hz)  # ~10 ticks per wall second
         t = pacer.sim_now()
         errors = 0
+        from collections import deque
+
+        from sitl.live.pacer import perf_now
+        tick_s = deque(maxlen=2000)
         while not rt.stop.is_set():
             if not pacer.wait_until(t):
                 break
+            w0 = perf_now()
             bus.drain()
             horizon = min(pacer.sim_now(), t_end + hold_sim) - hold_sim
             try:
@@ -131,20 +136,21 @@ def main(argv=None) -> int:
                     for key, est in out:
                         parts = key.rsplit("/", 2)
                         gcs.adsb(parts[-2], parts[-1], est)
-                    while integrity:
-                        ev = integrity.pop(0)
+                    for _key, ev in node.events:
                         gcs.statustext(f"integrity {ev.channel}: {ev.event}")
                 except Exception as e:  # the GCS side must not stop the fusion
                     errors += 1
                     print(f"gs: MAVLink send failed: {type(e).__name__}: {e}", file=sys.stderr)
+            node.events.clear()
+            tick_s.append(perf_now() - w0)
             if rt.status_due():
-                rt.emit(_status(node, bus, gcs, errors, horizon))
+                rt.emit(_status(node, bus, gcs, errors, horizon, tick_s))
             if horizon >= t_end:
                 break
             t = max(t + tick, pacer.sim_now())
         bus.drain()
         node.advance(t_end)
-        rt.emit({**_status(node, bus, gcs, errors, t_end), "event": "done", "gs": node.stats()})
+        rt.emit({**_status(node, bus, gcs, errors, t_end, tick_s), "event": "done", "gs": node.stats()})
         return 0
     finally:
         if node is not None:
@@ -154,12 +160,17 @@ def main(argv=None) -> int:
         bus.close()
 
 
-def _status(node, bus, gcs, errors, t) -> dict:
+def _status(node, bus, gcs, errors, t, tick_s=()) -> dict:
+    from sitl.live.pacer import cpu_now
     from sitl.live.worker import bus_counters
-    d = {"event": "status", "t_sim_s": t, "epochs": node.counters["epochs"], "estimates": node.counters["estimates"],
+    d = {"event": "status", "t_sim_s": t, "cpu_s": cpu_now(), "epochs": node.counters["epochs"], "estimates": node.counters["estimates"],
          "late": node.counters["late"], "step_errors": errors, **bus_counters(bus)}
     if gcs is not None:
         d["mavlink"] = {"sent": dict(gcs.sent), "errors": gcs.errors}
+    if tick_s:
+        a = sorted(tick_s)
+        d["tick_ms"] = {"p50": 1e3 * a[len(a) // 2], "p90": 1e3 * a[int(0.9 * len(a))], "p99": 1e3 * a[min(len(a) - 1, int(0.99 * len(a)))],
+                        "max": 1e3 * a[-1]}
     return d
 
 

@@ -16,13 +16,14 @@ Layout of a scenario (every key optional; the defaults are those of `DEFAULT_SCE
                    listen (the embedded router's endpoint), log (record the bus), lease_ms
     [mavlink]      enabled, gcs ("HOST:PORT"), base_port (vehicle i listens on base_port + 10 i),
                    signing_key_file, tlog
-    [uavs]         count, per_process, center (lat deg, lon deg), radius_m, alt_m, alt_step_m, speed_m_s,
+    [uavs]         count, per_process, center (lat deg, lon deg), radius_m, alt_m, alt_step_m, speed_m_s, nav_rate_hz,
                    starts (optional list of [lat deg, lon deg, h m], one per UAV)
     [beacon]       id, mode (seed | legs | static), start ([lat deg, lon deg, h m])
     [sonde]        enabled, id, radar_id, launch ([lat deg, lon deg, h m]), gcpp_offset_m,
                    gcpp_bearing_deg, radar_loss_s ([start, end] after launch), gnss_outage_s
     [ground_station] hold_wall_s (how long after an epoch's time the GS waits for its
-                   messages, wall seconds), beacon_init_epochs
+                   messages, wall seconds), beacon_init_epochs, integrity (the sonde tracker's
+                   integrity monitor; its events go out as STATUSTEXT too)
 """
 from __future__ import annotations
 
@@ -70,6 +71,7 @@ radius_m = 15000.0
 alt_m = 2000.0
 alt_step_m = 2000.0
 speed_m_s = 100.0
+nav_rate_hz = 1.0
 
 [beacon]
 id = "b1"
@@ -88,6 +90,7 @@ gnss_outage_s = [3600.0, 3720.0]
 
 [ground_station]
 hold_wall_s = 0.3
+integrity = false
 """
 
 
@@ -229,6 +232,7 @@ class UavSection:
     alt_m: float = 2000.0
     alt_step_m: float = 2000.0
     speed_m_s: float = 100.0
+    nav_rate_hz: float = 1.0  # UavNav messages per simulated second (beacon measurements carry the nav anyway)
     starts: tuple = ()  # ((lat deg, lon deg, h m), ...) or () for a ring about center
 
     def start_points(self) -> list[tuple]:
@@ -271,6 +275,7 @@ class SondeSection:
 class GroundStationSection:
     hold_wall_s: float = 0.3
     beacon_init_epochs: int = 3
+    integrity: bool = False  # the sonde tracker's integrity monitor (its events: bus + STATUSTEXT)
 
 
 @dataclass(frozen=True)
@@ -288,7 +293,7 @@ class Scenario:
     def n_uav_processes(self) -> int:
         return max(1, math.ceil(self.uavs.count / self.uavs.per_process))
 
-    def replace(self, **sections) -> "Scenario":
+    def replace(self, **sections) -> Scenario:
         """A copy with some sections' fields replaced: ``replace(run={"speed": 10})``."""
         import dataclasses
         kw = {}
@@ -333,6 +338,7 @@ _SECTIONS: dict[str, tuple[type, dict]] = {
         "alt_m": lambda k, v: _number(k, v, lo=-500, hi=100000),
         "alt_step_m": lambda k, v: _number(k, v, lo=0, hi=20000),
         "speed_m_s": lambda k, v: _number(k, v, lo=0, hi=2000),
+        "nav_rate_hz": lambda k, v: _number(k, v, lo=0, lo_open=True, hi=100),
         "starts": lambda k, v: tuple(_geo(f"{k}[{i}]", s) for i, s in enumerate(_list(k, v))),
     }),
     "beacon": (BeaconSection, {
@@ -353,6 +359,7 @@ _SECTIONS: dict[str, tuple[type, dict]] = {
     "ground_station": (GroundStationSection, {
         "hold_wall_s": lambda k, v: _number(k, v, lo=0, hi=60),
         "beacon_init_epochs": lambda k, v: _int(k, v, lo=1, hi=100),
+        "integrity": _bool,
     }),
 }
 
@@ -469,7 +476,7 @@ class WorkerSpec:
         return p
 
     @classmethod
-    def read(cls, path) -> "WorkerSpec":
+    def read(cls, path) -> WorkerSpec:
         d = json.loads(Path(path).read_text(encoding="utf-8"))
         if not isinstance(d, dict) or d.get("spec_version") != SPEC_VERSION:
             raise ValueError(f"{path}: not a skyfuse worker spec of version {SPEC_VERSION}")

@@ -17,7 +17,6 @@ import pytest
 from sitl.live.pacer import Pacer
 from sitl.live.supervisor import Supervisor
 
-
 # ------------------------------------------------------------------ pacer
 
 

@@ -14,8 +14,6 @@ import socket
 import threading
 import time
 
-import pytest
-
 from sitl.live.launcher import launch, replay
 from sitl.scenario import default_scenario
 

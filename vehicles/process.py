@@ -31,7 +31,14 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from sitl.bus import BeaconMeasurement, RadarMeasurement, SondeRelay, Truth, UavNav, key_for
+from sitl.bus import (
+    BeaconMeasurement,
+    RadarMeasurement,
+    SondeRelay,
+    Truth,
+    UavNav,
+    key_for,
+)
 from sitl.radio import beacon_link
 
 SONDE_WORLD_KEYS = ("flight", "radar", "relay")
@@ -117,6 +124,8 @@ class VehicleGroup:
         self.src = [f"uav{i + 1}" for i in self.idx]
         self.last_uav_truth = None
         self.last_nav = None
+        self._uav_truth_t = None
+        self._nav_t = None
         self.sonde = None
         if with_sonde:
             self._build_sonde(streams[1])
@@ -192,13 +201,23 @@ class VehicleGroup:
         meas = beacon_link.measure(self.rng, U, V, B, VB, self.link_cfg)
         sym = 0.5 * (est.P + np.swapaxes(est.P, -1, -2))
         ntr = est.n_tracked.tolist()
+        # the UAVs' own truth is for scoring their navigation only (the ground station never
+        # reads it): once per simulated second, not every epoch (a third of a swarm's traffic)
+        uav_truth = self.with_truth and (self._uav_truth_t is None or t >= self._uav_truth_t + 1.0 - 1e-9)
+        if uav_truth:
+            self._uav_truth_t = t
+        # UavNav at uavs.nav_rate_hz (every BeaconMeasurement carries the same snapshot anyway)
+        nav_due = self._nav_t is None or t >= self._nav_t + 1.0 / self.scn.uavs.nav_rate_hz - 1e-9
+        if nav_due:
+            self._nav_t = t
         r_l, rr_l = meas.range_m.tolist(), meas.range_rate_m_s.tolist()
         vr_l, vv_l = meas.var_range_m2.tolist(), meas.var_range_rate_m2_s2.tolist()
         for i in range(self.n):
             x, C = est.x[i], sym[i]
             fix = 3 if ntr[i] >= 4 else (2 if ntr[i] >= 3 else 0)
-            self._publish(self.k_nav[i], UavNav(t_gps_s=t, source_id=self.src[i], seq=k, pos_ecef_m=x[0:3],
-                                                vel_ecef_m_s=x[3:6], cov=C, n_sats=ntr[i], fix_type=fix))
+            if nav_due:
+                self._publish(self.k_nav[i], UavNav(t_gps_s=t, source_id=self.src[i], seq=k, pos_ecef_m=x[0:3],
+                                                    vel_ecef_m_s=x[3:6], cov=C, n_sats=ntr[i], fix_type=fix))
             if not r_l[i] > 0:
                 self.links_nonpositive += 1
             else:
@@ -206,7 +225,7 @@ class VehicleGroup:
                     t_gps_s=t, source_id=self.src[i], seq=k, range_m=r_l[i], range_rate_m_s=rr_l[i],
                     var_range_m2=vr_l[i], var_range_rate_m2_s2=vv_l[i], uav_pos_ecef_m=x[0:3],
                     uav_vel_ecef_m_s=x[3:6], uav_cov=C))
-            if self.with_truth:
+            if uav_truth:
                 self._publish(self.k_tu[i], Truth(t_gps_s=t, source_id="truth", seq=k, kind="uav",
                                                   pos_ecef_m=U[i], vel_ecef_m_s=V[i]))
 
@@ -285,7 +304,12 @@ def build_endpoints(group: VehicleGroup, scn, out_dir):
     None if MAVLink is off."""
     from pathlib import Path
 
-    from vehicles.mavlink import EndpointGroup, ParamStore, VehicleEndpoint, load_signing_key
+    from vehicles.mavlink import (
+        EndpointGroup,
+        ParamStore,
+        VehicleEndpoint,
+        load_signing_key,
+    )
     from vehicles.mavlink.params import sonde_param_specs, uav_param_specs
 
     m = scn.mavlink
@@ -330,7 +354,7 @@ def _mav_telemetry(tel: list[Telemetry], n_endpoints: int):
 
 
 def main(argv=None) -> int:
-    from sitl.live.worker import WorkerRuntime, bus_counters, open_bus
+    from sitl.live.worker import WorkerRuntime, open_bus
 
     argv = sys.argv[1:] if argv is None else argv
     if len(argv) != 1:
@@ -355,7 +379,12 @@ def main(argv=None) -> int:
         k0 = max(0, math.ceil((pacer.sim_now() - scn.run.t0_gps_s) / dt - 1e-9))
         t_first = scn.run.t0_gps_s + k0 * dt
         errors = 0
+        from collections import deque
+
+        from sitl.live.pacer import perf_now
+        step_s = deque(maxlen=2000)  # wall time of each epoch's work (world + bus + MAVLink)
         for t in pacer.epochs(t_first, dt, t_end, max_lag_s=5 * dt):
+            w0 = perf_now()
             try:
                 group.step(t)
             except Exception as e:  # one bad epoch must not end the run: counted, reported
@@ -367,9 +396,10 @@ def main(argv=None) -> int:
                 except Exception as e:
                     errors += 1
                     print(f"{spec.name}: MAVLink step failed: {type(e).__name__}: {e}", file=sys.stderr)
+            step_s.append(perf_now() - w0)
             if rt.status_due():
-                rt.emit(_status(group, bus, pacer, endpoints, errors, t))
-        rt.emit({**_status(group, bus, pacer, endpoints, errors, group.t_last), "event": "done"})
+                rt.emit(_status(group, bus, pacer, endpoints, errors, t, step_s))
+        rt.emit({**_status(group, bus, pacer, endpoints, errors, group.t_last, step_s), "event": "done"})
         return 0
     finally:
         if endpoints is not None:
@@ -388,13 +418,18 @@ def _warm_up(scn, spec) -> None:
     bus.close()
 
 
-def _status(group, bus, pacer, endpoints, errors, t) -> dict:
+def _status(group, bus, pacer, endpoints, errors, t, step_s=()) -> dict:
+    from sitl.live.pacer import cpu_now
     from sitl.live.worker import bus_counters
-    d = {"event": "status", "t_sim_s": t, "epochs": group.epoch, "vehicles": group.n + (group.sonde is not None),
+    d = {"event": "status", "t_sim_s": t, "cpu_s": cpu_now(), "epochs": group.epoch, "vehicles": group.n + (group.sonde is not None),
          "uavs": group.n, "lag_s": max(0.0, pacer.sim_now() - (t or 0.0)), "late_epochs": pacer.late_epochs,
          "skipped_epochs": pacer.skipped_epochs, "step_errors": errors, **bus_counters(bus)}
     if endpoints is not None:
         d["mavlink"] = dict(endpoints.counters)
+    if step_s:
+        a = np.sort(np.array(step_s))
+        d["step_ms"] = {"p50": 1e3 * float(a[len(a) // 2]), "p99": 1e3 * float(a[min(len(a) - 1, int(0.99 * len(a)))]),
+                        "max": 1e3 * float(a[-1])}
     return d
 
 

@@ -27,7 +27,6 @@ from __future__ import annotations
 import argparse
 import importlib
 import json
-import math
 import signal
 import sys
 import threading
@@ -273,8 +272,9 @@ def _finish_warm_up(p, stop: threading.Event) -> None:
 
 
 def _fill_report(report, sup, scorer, bus, recorder) -> None:
-    from sitl.live.status import _rejected_total
     from collections import Counter
+
+    from sitl.live.status import _rejected_total
     workers = {}
     rejected = Counter()
     sent = 0
@@ -436,7 +436,12 @@ def replay(log_path, scn) -> dict:
 
 def replay_main(args) -> int:
     from sitl.experiments._common import strict
-    from sitl.scenario import ScenarioError, default_scenario, load_scenario, scenario_from_dict
+    from sitl.scenario import (
+        ScenarioError,
+        default_scenario,
+        load_scenario,
+        scenario_from_dict,
+    )
     log = Path(args.log)
     if not log.is_file():
         raise _usage()(f"replay: {str(log)!r}: no such file")

@@ -14,10 +14,11 @@ def _rejected_total(status: dict) -> Counter:
     rej = mav.get("rejected") if isinstance(mav.get("rejected"), dict) else None
     if rej is not None:
         for reason, n in rej.items():
-            c[f"mavlink:{reason}"] += int(n)
+            if n:
+                c[f"mavlink:{reason}"] += int(n)
     else:
         for reason in ("garbage", "bad_crc", "unknown_msgid", "unsigned", "bad_signature", "malformed"):
-            if isinstance(mav.get(reason), int):
+            if isinstance(mav.get(reason), int) and mav[reason]:
                 c[f"mavlink:{reason}"] += mav[reason]
     for k in ("step_errors", "late"):
         if status.get(k):

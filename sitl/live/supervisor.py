@@ -269,7 +269,7 @@ class Supervisor:
             except (OSError, ValueError):
                 pass
 
-    def __enter__(self) -> "Supervisor":
+    def __enter__(self) -> Supervisor:
         return self
 
     def __exit__(self, *exc) -> None:

@@ -1,0 +1,229 @@
+"""`skyfuse bench live`: how large a swarm the live SITL keeps at real time (issue 7).
+
+For each swarm size N (``--uavs``), a live run of the default scenario's UAVs and beacon
+(no sonde) at ``--rate`` Hz and speed 1 for ``--duration`` simulated seconds: a Zenoh router
+(started here), the vehicle worker(s) (N UAVs stepped as arrays, each a MAVLink endpoint on
+real UDP unless --no-mavlink, streams to a UDP sink here) and the ground-station worker.
+
+Per size:
+  * ``kept_real_time``: every vehicle worker ran every epoch on time -- no epoch skipped,
+    at most 1 % of the epochs more than one epoch late, its per-epoch work p99 under the
+    epoch (1 / rate) -- and the ground station's tick (drain + fuse + publish) p90 under the
+    epoch (p90, not p99: the locator's one-off start from a window of epochs, ~1 s at 200 UAVs,
+    is one of the run's ~100 ticks);
+  * ``bus_latency_ms``: p50 / p99 / max of probe messages (UavNav-sized, 100 per second)
+    published by one client session and received by another through the same router while
+    the run loads it: the publish -> receive time a ground-station session sees at that load
+    (both probe sessions live in this process, so one clock times them);
+  * ``cpu_ms_per_uav_s``: CPU time of the vehicle workers per UAV per simulated second
+    (at speed 1, x 1e-3 = the share of a core one UAV costs), and the same for the ground
+    station;
+  * the workers' own figures (step_ms, tick_ms, messages sent).
+
+The largest N that kept real time is the headline (target: >= 200 on 2 cores, bus latency
+p99 < 20 ms). The machine's load (``os.getloadavg``) is printed beside: this is a shared
+machine. A benchmark, not a test.
+"""
+from __future__ import annotations
+
+import json
+import os
+import socket
+import sys
+import threading
+from pathlib import Path
+
+
+def _sizes(text: str) -> list[int]:
+    import argparse
+    try:
+        out = [int(v) for v in text.split(",") if v.strip()]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected comma-separated counts, got {text!r}") from None
+    if not out or any(n < 3 for n in out):
+        raise argparse.ArgumentTypeError(f"expected counts >= 3, got {text!r}")
+    return sorted(set(out))
+
+
+def add_args(p) -> None:
+    from sitl.cli import output_file, positive_float, positive_int
+    p.add_argument("--uavs", type=_sizes, default=_sizes("50,100,200,300"), metavar="N,N,...",
+                   help="swarm sizes to try (default 50,100,200,300)")
+    p.add_argument("--rate", type=positive_float, default=10.0, help="epochs per second (default 10)")
+    p.add_argument("--duration", type=positive_float, default=20.0, metavar="S",
+                   help="simulated (= wall) seconds per size (default 20)")
+    p.add_argument("--per-process", type=positive_int, default=1000, metavar="N",
+                   help="UAVs per vehicle worker (default 1000: one vehicle process)")
+    p.add_argument("--no-mavlink", action="store_true", help="no MAVLink endpoints")
+    p.add_argument("--out", type=Path, default=Path("out/bench_live"), metavar="DIR", help="runs' outputs")
+    p.add_argument("--json", type=output_file, default=None, metavar="FILE", help="also write the result as JSON")
+
+
+class _Sink(threading.Thread):
+    """A UDP socket that reads and counts what the vehicles send to the GCS address."""
+
+    def __init__(self):
+        super().__init__(daemon=True)
+        self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        self.sock.bind(("127.0.0.1", 0))
+        self.sock.settimeout(0.2)
+        self.port = self.sock.getsockname()[1]
+        self.datagrams = 0
+        self.stop = threading.Event()
+
+    def run(self):
+        while not self.stop.is_set():
+            try:
+                self.sock.recv(65535)
+                self.datagrams += 1
+            except TimeoutError:
+                pass
+            except OSError:
+                return
+
+    def close(self):
+        self.stop.set()
+        self.join(1.0)
+        self.sock.close()
+
+
+class _Probe:
+    """Latency probes publish -> receive through the router (module docstring)."""
+
+    def __init__(self, endpoint: str, rate_hz: float = 100.0):
+        import numpy as np
+
+        from sitl.bus import UavNav
+        from sitl.bus.zenoh_transport import ZenohTransport
+        self.pub = ZenohTransport(connect=[endpoint])
+        self.sub = ZenohTransport(connect=[endpoint], delivery="callback")
+        self.lat: list[float] = []
+        self.key = "benchprobe/uav/1/nav"
+        self.sub.subscribe(self.key, self._on)
+        self._msg = dict(source_id="probe", pos_ecef_m=np.array([6.4e6, 0.0, 0.0]), vel_ecef_m_s=np.zeros(3),
+                         cov=np.eye(6), n_sats=8, fix_type=3)
+        self._UavNav = UavNav
+        self.period = 1.0 / rate_hz
+        self.stop = threading.Event()
+        self.measure = threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+        self._thread.start()
+
+    def _on(self, key, msg):
+        from sitl.live.pacer import perf_now
+        if self.measure.is_set():
+            self.lat.append(perf_now() - msg.t_gps_s)
+
+    def _run(self):
+        from sitl.live.pacer import perf_now
+        k = 0
+        while not self.stop.wait(self.period):
+            self.pub.publish(self.key, self._UavNav(t_gps_s=perf_now(), seq=k, **self._msg))
+            k += 1
+
+    def close(self):
+        self.stop.set()
+        self._thread.join(2.0)
+        self.pub.close()
+        self.sub.close()
+
+
+def _pct(values, q):
+    if not values:
+        return None
+    a = sorted(values)
+    return a[min(len(a) - 1, int(q * len(a)))]
+
+
+def run_size(n: int, args, router_ep: str) -> dict:
+    from sitl.live.launcher import launch
+    from sitl.scenario import default_scenario
+
+    sink = _Sink() if not args.no_mavlink else None
+    if sink is not None:
+        sink.start()
+    probe = _Probe(router_ep)
+    base = 20000
+    # a ring whose radius grows with the swarm (the same spacing), heights in three layers
+    scn = default_scenario().replace(
+        run={"id": f"bench{n}", "rate_hz": args.rate, "duration_s": args.duration, "speed": 1.0},
+        bus={"zenoh": (router_ep,), "log": False},
+        uavs={"count": n, "per_process": args.per_process, "radius_m": max(15000.0, 150.0 * n)},
+        sonde={"enabled": False},
+        mavlink={"enabled": not args.no_mavlink, "gcs": f"127.0.0.1:{sink.port if sink else 14550}",
+                 "base_port": base, "tlog": False})
+    started = threading.Event()
+
+    def on_started(sup):
+        started.set()
+        # measure after the first epochs (the start-up transient is not the steady load)
+        threading.Timer(min(3.0, args.duration / 4), probe.measure.set).start()
+
+    out = Path(args.out) / f"n{n}"
+    out.mkdir(parents=True, exist_ok=True)
+    try:
+        rep = launch(scn, out, quiet=True, on_started=on_started)
+    finally:
+        probe.measure.clear()
+        probe.close()
+        if sink is not None:
+            sink.close()
+    epochs = int(args.duration * args.rate) + 1
+    veh = [w["last"] for name, w in rep.get("workers", {}).items() if name.startswith("vehicles")]
+    gs = rep.get("workers", {}).get("gs", {}).get("last", {})
+    skipped = sum(int(v.get("skipped_epochs", 0)) for v in veh)
+    late = sum(int(v.get("late_epochs", 0)) for v in veh)
+    step_p99 = max((v.get("step_ms", {}).get("p99", 0.0) for v in veh), default=None)
+    tick_p90 = (gs.get("tick_ms") or {}).get("p90")
+    cpu_v = sum(float(v.get("cpu_s", 0.0)) for v in veh)
+    kept = (rep.get("ok", False) and skipped == 0 and late <= 0.01 * epochs and step_p99 is not None
+            and step_p99 < 1e3 / args.rate and tick_p90 is not None and tick_p90 < 1e3 / args.rate)
+    lat = probe.lat
+    return {"uavs": n, "kept_real_time": bool(kept), "ok": rep.get("ok", False), "error": rep.get("error"),
+            "epochs": epochs, "skipped_epochs": skipped, "late_epochs": late,
+            "vehicle_step_ms": [v.get("step_ms") for v in veh], "gs_tick_ms": gs.get("tick_ms"),
+            "bus_latency_ms": {"p50": None if not lat else 1e3 * _pct(lat, 0.5),
+                               "p99": None if not lat else 1e3 * _pct(lat, 0.99),
+                               "max": None if not lat else 1e3 * max(lat), "probes": len(lat)},
+            "cpu_ms_per_uav_s": 1e3 * cpu_v / (n * args.duration),
+            "gs_cpu_ms_per_s": 1e3 * float(gs.get("cpu_s", 0.0)) / args.duration,
+            "messages_sent": rep.get("messages_sent"), "mavlink_datagrams_at_gcs": sink.datagrams if sink else 0,
+            "beacon_estimates": (rep.get("errors", {}).get(f"beacon/{scn.beacon.id}") or {}).get("estimates"),
+            "load_avg": os.getloadavg(), "wall_s": rep.get("wall_s")}
+
+
+def main(args) -> int:
+    from sitl.bus.router import Router
+    from sitl.experiments._common import prepare_out, strict
+
+    prepare_out(Path(args.out))
+    rows = []
+    with Router(listen=["tcp/127.0.0.1:0"]) as router:
+        ep = router.endpoints[0]
+        for n in args.uavs:
+            print(f"[bench live] {n} UAVs at {args.rate:g} Hz for {args.duration:g} s (load {os.getloadavg()[0]:.1f}) ...",
+                  file=sys.stderr, flush=True)
+            r = run_size(n, args, ep)
+            rows.append(r)
+            lat = r["bus_latency_ms"]
+            print(f"  {n:5d} UAVs: real time {'kept' if r['kept_real_time'] else 'NOT kept'}; skipped "
+                  f"{r['skipped_epochs']}, late {r['late_epochs']} of {r['epochs']} epochs; vehicle step p99 "
+                  f"{_fmt([s.get('p99') if s else None for s in r['vehicle_step_ms']])} ms; GS tick p90 "
+                  f"{_fmt([(r['gs_tick_ms'] or {}).get('p90')])} ms; bus latency p50/p99 "
+                  f"{_fmt([lat['p50']])}/{_fmt([lat['p99']])} ms; CPU {r['cpu_ms_per_uav_s']:.2f} ms per UAV-s "
+                  f"(GS {r['gs_cpu_ms_per_s']:.0f} ms/s); load {r['load_avg'][0]:.1f}", flush=True)
+            if r["error"]:
+                print(f"    error: {r['error']}", flush=True)
+    kept = [r["uavs"] for r in rows if r["kept_real_time"]]
+    best = max(kept) if kept else None
+    print(f"largest swarm at real time ({args.rate:g} Hz): {best if best is not None else 'none of ' + str(args.uavs)}"
+          f" (target >= 200)")
+    doc = {"rate_hz": args.rate, "duration_s": args.duration, "largest_real_time_uavs": best, "runs": rows}
+    if args.json is not None:
+        Path(args.json).write_text(json.dumps(strict(doc), indent=1, allow_nan=False))
+    return 0
+
+
+def _fmt(vals) -> str:
+    vals = [v for v in vals if v is not None]
+    return "/".join(f"{v:.1f}" for v in vals) if vals else "--"
