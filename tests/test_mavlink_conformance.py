@@ -575,3 +575,24 @@ def test_a_handler_bug_is_counted_not_raised():
         L.exchange(L.peer.mav.timesync_encode(0, 1), lambda g: False, max_steps=2)
         assert L.ep.counters["handler_errors"] == 1 and "RuntimeError: simulated bug" in L.ep.last_error
         assert of_type(L.step(10), "HEARTBEAT")
+
+
+def test_a_group_can_share_one_tlog(tmp_path):
+    from vehicles.mavlink import TlogWriter
+    path = tmp_path / "group.tlog"
+    peer = Peer()
+    try:
+        with TlogWriter(path) as w:
+            eps = [VehicleEndpoint(i + 1, "uav", gcs=peer.addr, listen=("127.0.0.1", 0), tlog=w) for i in range(2)]
+            with EndpointGroup(eps) as g:
+                for k in range(15):
+                    g.step(T0_GPS_S + 0.1 * k, [telemetry(), telemetry()])
+                sent = g.counters["sent"]
+        log = mavutil.mavlink_connection(str(path))
+        by_sys = {}
+        while (m := log.recv_match()) is not None:
+            by_sys[m.get_srcSystem()] = by_sys.get(m.get_srcSystem(), 0) + 1
+        log.close()
+        assert sum(by_sys.values()) == sent and set(by_sys) == {1, 2} and by_sys[1] == by_sys[2]
+    finally:
+        peer.close()
