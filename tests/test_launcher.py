@@ -252,3 +252,39 @@ def test_replay_of_a_recorded_batch_run_gives_the_same_estimates(tmp_path):
     log.write_bytes(data[: len(data) - 7])
     rep2 = replay(log, scn)
     assert rep2["torn_tail"]["dropped_bytes"] > 0 and rep2["records"] == rep["records"] - 1
+
+
+# ------------------------------------------------------------------ mission upload
+
+
+def test_uploaded_mission_is_flown():
+    import math
+
+    import numpy as np
+
+    from sitl.bus import InMemoryTransport
+    from sitl.geodesy import ecef_to_geodetic, geodetic_to_ecef
+    from sitl.scenario import default_scenario
+    from vehicles.process import VehicleGroup
+
+    scn = default_scenario().replace(sonde={"enabled": False})
+    bus = InMemoryTransport()
+    g = VehicleGroup(scn, [0, 1, 2], bus, np.random.SeedSequence(1), with_sonde=False)
+    t0 = scn.run.t0_gps_s
+    for k in range(3):
+        g.step(t0 + k)
+    lat, lon, h = (float(g.last_uav_truth.lat_rad[1]), float(g.last_uav_truth.lon_rad[1]),
+                   float(g.last_uav_truth.h_m[1]))
+    wp = (lat, lon + 8000.0 / (6.371e6 * math.cos(lat)), h)  # 8 km east, same height
+    g.on_mission(1)([wp])
+    W = np.array(geodetic_to_ecef(*wp))
+    d = []
+    for k in range(3, 200):
+        g.step(t0 + k)
+        d.append(float(np.linalg.norm(g.last_uav_truth.pos_ecef_m[1] - W)))
+    assert d[0] > 7000.0 and min(d) < 200.0  # it reached the waypoint (accept radius 150 m)
+    # the others still fly the scenario's law (heading north)
+    assert abs(float(g.last_uav_truth.heading_rad[0])) < 1e-9
+    # its published truth is the mission's path, consistent with its geodetic state
+    la, lo, hh = ecef_to_geodetic(g.last_uav_truth.pos_ecef_m[1])
+    assert float(la) == pytest.approx(float(g.last_uav_truth.lat_rad[1]), abs=1e-9)

@@ -125,6 +125,7 @@ class VehicleGroup:
         self.last_uav_truth = None
         self.last_nav = None
         self._uav_truth_t = None
+        self.missions: dict = {}  # local UAV index -> its own swarm flying an uploaded mission
         self._nav_t = None
         self.sonde = None
         if with_sonde:
@@ -193,6 +194,12 @@ class VehicleGroup:
     def _step_uavs(self, t, k, trel, B, VB) -> None:
         un = self._uav_nav
         tu = self.swarm.step(trel)
+        if self.missions:  # UAVs flying an uploaded mission: their own truth replaces the law's
+            tu = tu._replace(**{f: np.array(getattr(tu, f)) for f in tu._fields[1:]})
+            for j, sw in self.missions.items():
+                tm = sw.step(trel)
+                for f in tu._fields[1:]:
+                    getattr(tu, f)[j] = np.asarray(getattr(tm, f))[0]
         U, V = tu.pos_ecef_m, tu.vel_ecef_m_s
         self.last_uav_truth = tu
         ep = un.gnss_measure(self.rng, t, U, V, self.const, self.nav_cfg)
@@ -257,13 +264,24 @@ class VehicleGroup:
 
     # ------------------------------------------------------------------ MAVLink side
     def on_mission(self, i: int):
-        """The callback of UAV i's mission upload: this group flies the scenario's laws, so
-        a mission is refused (ValueError: the endpoint answers MAV_MISSION_DENIED) rather
-        than accepted and not flown."""
-        def refuse(waypoints):
+        """The callback of UAV i's (global index) mission upload: from the next epoch on the
+        UAV flies the waypoints (vehicles.uav.WaypointMission at the scenario's speed) from its
+        current position and heading; a clear (no waypoints) keeps what it flies."""
+        def accept(waypoints):
             if waypoints:
-                raise ValueError(f"uav{i + 1} flies the scenario's law; missions are not flown in this build")
-        return refuse
+                self.fly_mission(i, waypoints)
+        return accept
+
+    def fly_mission(self, i: int, waypoints) -> None:
+        """UAV i (global index) leaves the scenario's law for these waypoints [(lat_rad, lon_rad, h_m)]."""
+        from vehicles import uav as uav_mod
+        j = self.idx.index(i)
+        st = self.swarm.state if j not in self.missions else self.missions[j].state
+        y = np.asarray(st.y).reshape(-1, 4)[0 if j in self.missions else j]
+        wp = np.asarray(waypoints, dtype=float).reshape(-1, 3)
+        speed = max(self.scn.uavs.speed_m_s, 10.0)
+        law = uav_mod.WaypointMission([wp], speed_m_s=speed, max_climb_m_s=min(5.0, 0.5 * speed))
+        self.missions[j] = uav_mod.KinematicSwarm(law, y[0], y[1], y[2], t0_s=float(st.t_s), heading0_rad=y[3])
 
     def telemetry(self) -> list[Telemetry]:
         """Each vehicle's state as its autopilot would report it: the onboard estimate (the
