@@ -387,7 +387,11 @@ def main(argv=None) -> int:
         group = VehicleGroup(scn, spec.uav_indices, bus, seq, with_beacon_truth=spec.with_beacon_truth,
                              with_sonde=spec.with_sonde)
         _warm_up(scn, spec)
-        endpoints = build_endpoints(group, scn, spec.out_dir)
+        try:
+            endpoints = build_endpoints(group, scn, spec.out_dir)
+        except (ValueError, OSError) as e:  # a port taken, a bad key file: a configuration error
+            rt.emit({"event": "fatal", "error": f"MAVLink: {' '.join(str(e).split())}"})
+            return 2
         if not rt.wait_start():
             return 0
         pacer = rt.pacer()

@@ -192,9 +192,16 @@ def launch(scn, out: Path, *, quiet: bool = False, stop: threading.Event | None 
             _finish_warm_up(warm, stop)
         if not ready:
             sup.poll()
-            report["error"] = ("stopped before the workers were ready" if stop.is_set() else
-                               f"workers not ready after {ready_timeout_s:.0f} s: " +
-                               ", ".join(c.name for c in sup.children.values() if not c.ready.is_set()))
+            fatal = [f"{c.name}: {c.fatal}" for c in sup.children.values() if c.fatal]
+            dead = [f"{c.name} exited with {c.exits[-1]} before it was ready (see {c.stderr_path})"
+                    for c in sup.children.values() if c.exits and not c.ready.is_set() and not c.fatal]
+            if stop.is_set():
+                report["error"] = "stopped before the workers were ready"
+            elif fatal or dead:
+                report["error"] = "; ".join(fatal + dead)
+            else:
+                report["error"] = (f"workers not ready after {ready_timeout_s:.0f} s: " +
+                                   ", ".join(c.name for c in sup.children.values() if not c.ready.is_set()))
             return report
         wall_start = wall_now() + 0.2
         sup.broadcast_start(wall_start)
@@ -210,6 +217,12 @@ def launch(scn, out: Path, *, quiet: bool = False, stop: threading.Event | None 
             for ev in sup.poll():
                 if ev["event"] in ("restart", "gave_up") or (ev["event"] == "exit" and not ev.get("clean")):
                     _say(status_stream, tty, f"[launcher] {ev['worker']}: {_event_text(ev)}")
+                if ev["event"] == "fatal":
+                    report["error"] = f"{ev['worker']}: {ev['error']}"
+            fatal = next((c for c in sup.children.values() if c.fatal), None)
+            if fatal is not None:
+                report.setdefault("error", f"{fatal.name}: {fatal.fatal}")
+                break
             if sup.all_finished():
                 break
             if pacer.sim_now() > t_end + END_GRACE_WALL_S * run.speed:

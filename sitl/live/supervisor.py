@@ -11,7 +11,8 @@ each worker sees the end of its stdin and stops by itself.
 A worker that dies (non-zero exit, or exit before its ``done`` line) is reported and, if it
 was added with ``restart=True``, started again (at most ``max_restarts`` times); a restarted
 worker is sent the run's start command as soon as it reports ready, and joins at the
-current epoch.
+current epoch. A worker that reports ``{"event": "fatal", "error": ...}`` and exits with 2 (a
+configuration error: a port taken, a bad key file) is not restarted.
 """
 from __future__ import annotations
 
@@ -46,6 +47,7 @@ class Child:
     reader: threading.Thread | None = None
     stderr_path: Path | None = None
     history: list = field(default_factory=list)  # status lines of earlier incarnations (last of each)
+    fatal: str | None = None  # a configuration error the worker reported (exit 2): not restarted
 
     @property
     def pid(self):
@@ -134,6 +136,8 @@ class Supervisor:
                     self._send(c, cmd)
             elif ev == "status":
                 c.status = obj
+            elif ev == "fatal":
+                c.fatal = str(obj.get("error", "fatal error"))[:300]
             elif ev == "done":
                 c.status = obj
                 c.last_done = obj
@@ -189,6 +193,10 @@ class Supervisor:
                 c.history.append(c.status)
             if ok or self._stopping or not c.restart:
                 c.finished = True
+                continue
+            if c.fatal is not None and rc == 2:  # restarting would fail the same way
+                c.finished = True
+                self._event("fatal", c, error=c.fatal)
                 continue
             if c.restarts >= self.max_restarts:
                 c.finished = True
