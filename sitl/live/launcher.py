@@ -123,6 +123,8 @@ def _main(scn, args) -> int:
         return _batch(scn, out, args)
     report = launch(scn, out, quiet=args.quiet)
     print(summary_text(report))
+    if report.get("stopped_early"):
+        return 130  # Ctrl-C / SIGTERM: stopped cleanly, as asked
     return 0 if report["ok"] else 1
 
 
@@ -182,7 +184,7 @@ def launch(scn, out: Path, *, quiet: bool = False, stop: threading.Event | None 
         warm = _start_warm_up(out / "scenario.json", out / "logs") if warm_up else None
         spec_dir = out / "specs"
         spec_dir.mkdir(exist_ok=True)
-        sup = Supervisor(out / "logs")
+        sup = Supervisor(out / "logs", grace_s=3.0)  # closing a Zenoh session + interpreter exit: ~1 s
         for spec in worker_specs(scn, endpoints, out):
             path = spec.write(spec_dir / f"{spec.name}.json")
             sup.add_module(spec.name, spec.module, str(path), restart=True)
