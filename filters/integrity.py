@@ -56,7 +56,7 @@ from typing import NamedTuple
 import numpy as np
 import scipy.stats
 
-from .ekf import ekf_update, measure
+from .ekf import UpdateResult, ekf_update, measure
 
 __all__ = ["GuardedModel", "IntegrityConfig", "IntegrityMonitor", "MonitorState", "Report"]
 
@@ -145,7 +145,11 @@ class MonitorState(NamedTuple):
     #                                  healthy values: a readmitted channel's fresh window (None: none)
 
 
-RESUM = 4096  # epochs between exact recomputations of the running window sums
+RESUM = 4096
+_NONE_M = np.empty((0, 0))  # placeholders for the kernel's unused outputs
+_NONE_P = np.empty((0, 0, 0))
+_NONE_V = np.empty(0)
+_NONE_I = np.empty((0, 0), dtype=np.int64)  # epochs between exact recomputations of the running window sums
 
 
 class Report(NamedTuple):
@@ -271,49 +275,29 @@ class IntegrityMonitor:
         batch = z.shape[:-1]
         n = x.shape[-1]
         old_sq, old_b = state.ring[state.pos], state.ring_b[state.pos]
-        if state.stale is not None:  # slots of a fresh window leave as the healthy values they stand for
-            gone = state.stale > 0
-            old_sq, old_b = np.where(gone, 1.0, old_sq), np.where(gone, 0.0, old_b)
         if _use_kernel(update_kw.get("backend")):
-            from . import _nbintegrity
-
-            N = int(np.prod(batch, dtype=np.int64))
-
-            def flat(a, shape):
-                return np.ascontiguousarray(np.broadcast_to(np.asarray(a, dtype=float), batch + shape)).reshape(
-                    (N,) + shape)
-
-            # H is masked in place when it is the model's own fresh, writeable array of the full shape
-            # (a model must not hand out an H it keeps and reuses: filters/models.py's never do);
-            # a shared or read-only H (e.g. LinearGaussian's broadcast view) is copied
-            Ha = np.asarray(H)
-            inplace = bool(Ha.dtype == np.float64 and Ha.shape == batch + (m, n) and Ha.flags.c_contiguous
-                           and Ha.flags.writeable)
-            outs = _nbintegrity.monitor_epoch(
-                flat(z, (m,)), flat(hx, (m,)), Ha.reshape(N, m, n) if inplace else flat(H, (m, n)), flat(P, (n, n)), flat(rd, (m,)),
-                flat(state.r_est, (m,)), flat(old_sq, (m,)), flat(old_b, (m,)), flat(state.sum_sq, (m,)),
-                flat(state.sum_b, (m,)), np.ascontiguousarray(state.jump_run).reshape(N, C),
-                np.ascontiguousarray(state.excluded).reshape(N, C), np.ascontiguousarray(state.clean_run).reshape(N, C),
-                ch.astype(np.int64), float(J), count, W, thr_ms, thr_b, cfg.bias_alpha is not None, cfg.persist,
-                cfg.readmit_after, float(cfg.huber_c or 0.0), cfg.huber_c is not None, bool(cfg.adapt_r),
-                float(cfg.r_forget), bool(cfg.isolate), inplace)
-            (z_f, beta, jump, drift_stat, bias_stat, drift, inert, w, r_used, new_sq, new_b, sum_sq, sum_b, hx_g,
-             H_g, r_est, excluded, newly, readmit, jump_run, clean_run) = (
-                a.reshape(batch + a.shape[1:]) for a in outs)
+            res, (beta, jump, drift_stat, bias_stat, drift, used, w, sum_sq, sum_b, r_est, excluded, newly, readmit,
+                  jump_run, clean_run, new_sq, new_b), n_readmit = self._epoch_kernel(
+                state, x, P, z, model, hx, H, rd, ch, count, thr_ms, thr_b, old_sq, old_b, update, update_kw)
         else:
+            if state.stale is not None:  # slots of a fresh window leave as the healthy values they stand for
+                gone = state.stale > 0
+                old_sq, old_b = np.where(gone, 1.0, old_sq), np.where(gone, 0.0, old_b)
             (z_f, beta, jump, drift_stat, bias_stat, drift, inert, w, r_used, new_sq, new_b, sum_sq, sum_b, hx_g,
              H_g, r_est, excluded, newly, readmit, jump_run, clean_run) = self._epoch_numpy(
                 state, x, P, z, hx, H, rd, ch, C, count, thr_ms, thr_b, old_sq, old_b)
-        gm = GuardedModel(model, z_f, inert, prepared=(x, hx_g, H_g), r_diag=r_used)
-        res = update(x, P, z_f, gm, **update_kw)
+            gm = GuardedModel(model, z_f, inert, prepared=(x, hx_g, H_g), r_diag=r_used)
+            res = update(x, P, z_f, gm, **update_kw)
+            used = ~inert
+            n_readmit = 1 if cfg.isolate and readmit.any() else 0
 
         pos = state.pos
         ring = state.ring[:pos] + (new_sq,) + state.ring[pos + 1:]
         ring_b = state.ring_b[:pos] + (new_b,) + state.ring_b[pos + 1:]
         steps = state.steps + 1
         stale = None if state.stale is None else np.maximum(state.stale - 1, 0)
-        fresh = readmit[..., ch] if cfg.isolate else None  # (..., m) rows of readmitted channels
-        if fresh is not None and fresh.any():
+        if n_readmit:
+            fresh = readmit[..., ch]  # (..., m) rows of readmitted channels
             # a readmitted channel starts a fresh window of healthy values (beta^2 = 1, beta = 0): its
             # sums are reset and its W ring slots are marked stale (no copy of the ring)
             sum_sq = np.where(fresh, float(W), sum_sq)
@@ -331,8 +315,93 @@ class IntegrityMonitor:
             sum_b = np.add.reduce(rb, axis=0)
         new_state = MonitorState(ring, ring_b, sum_sq, sum_b, (pos + 1) % W, count, jump_run, excluded, clean_run,
                                  r_est, steps, stale)
-        report = Report(beta, jump, drift_stat, bias_stat, drift, ~inert, w, excluded, newly, readmit)
+        report = Report(beta, jump, drift_stat, bias_stat, drift, used, w, excluded, newly, readmit)
         return res, new_state, report
+
+    def _epoch_kernel(self, state, x, P, z, model, hx, H, rd, ch, count, thr_ms, thr_b, old_sq, old_b, update,
+                      update_kw):
+        """The epoch on the compiled kernel (filters/_nbintegrity.py): (UpdateResult, the monitor's
+        arrays, number of readmissions). Wrapping the EKF update (``ekf_update``), the kernel runs the
+        update itself on each block of trials right after the monitor (fused: one pass over P and H);
+        any other update runs afterwards on a GuardedModel."""
+        from . import _nbintegrity, kernels
+
+        cfg = self.config
+        batch = z.shape[:-1]
+        m = z.shape[-1]
+        n = x.shape[-1]
+        C = state.excluded.shape[-1]
+        N = int(np.prod(batch, dtype=np.int64))
+
+        def flat(a, shape, dtype=float):
+            a = np.asarray(a, dtype=dtype)
+            if a.shape != batch + shape or not a.flags.c_contiguous or not a.flags.writeable:
+                # (a read-only input is copied too: one compiled variant of the kernel, not one per flag)
+                a = np.array(np.broadcast_to(a, batch + shape), order="C")
+            return a.reshape((N,) + shape)
+
+        def rows(a):  # (1, m) when shared by every trial, else (N, m)
+            a = np.asarray(a, dtype=float)
+            return np.array(a, order="C").reshape(1, m) if a.ndim <= 1 else flat(a, (m,))
+
+        fuse = update is ekf_update and set(update_kw) <= {"backend"}
+        Ha = np.asarray(H)
+        if fuse:  # the fused kernel masks H on its own copy of each lane group: H is only read
+            Hk = flat(Ha, (m, n))
+        elif Ha.dtype == np.float64 and Ha.shape == batch + (m, n) and Ha.flags.c_contiguous and Ha.flags.writeable:
+            # H is masked in place when it is the model's own fresh, writeable array of the full shape
+            # (a model must not hand out an H it keeps and reuses: filters/models.py's never do);
+            # a shared or read-only H (e.g. LinearGaussian's broadcast view) is copied
+            Hk = Ha.reshape(N, m, n)
+        else:
+            Hk = np.array(np.broadcast_to(Ha, batch + (m, n)), dtype=float, order="C").reshape(N, m, n)
+        has_stale = state.stale is not None
+        adapt = bool(cfg.adapt_r)
+
+        def fm():
+            return np.empty((N, m))
+
+        def bm():
+            return np.empty((N, m), dtype=bool)
+
+        def bc(dtype=bool):
+            return np.empty((N, C), dtype=dtype)
+
+        beta, drift_stat, bias_stat, weight, r_used, y, new_sq, new_b, sum_sq, sum_b = (fm() for _ in range(10))
+        jump, drift, inert, used = bm(), bm(), bm(), bm()
+        excluded, newly, readmit, jump_run, clean_run = bc(), bc(), bc(), bc(np.int64), bc(np.int64)
+        r_est = fm() if adapt else state.r_est
+        z_f = hx_g = _NONE_M
+        if not fuse:
+            z_f, hx_g = fm(), fm()
+        xf, Pf = flat(x, (n,)), flat(P, (n, n))
+        xo, Po, nis = (np.empty((N, n)), np.empty((N, n, n)), np.empty(N)) if fuse else (_NONE_M, _NONE_P, _NONE_V)
+        prm = np.array([cfg.jump_sigma, thr_ms, thr_b, cfg.huber_c or 0.0, cfg.r_forget])
+        iprm = np.array([count, cfg.window, cfg.bias_alpha is not None, cfg.persist, cfg.readmit_after,
+                         cfg.huber_c is not None, adapt, cfg.isolate, has_stale, not fuse], dtype=np.int64)
+        drive = _nbintegrity.epoch_par if N >= kernels.PARALLEL_MIN_TRIALS else _nbintegrity.epoch_ser
+        n_readmit = drive(
+            flat(z, (m,)), flat(hx, (m,)), Hk, Pf, rows(rd), flat(state.r_est, (m,)), flat(old_sq, (m,)),
+            flat(old_b, (m,)), flat(state.stale, (m,), np.int64) if has_stale else _NONE_I, flat(state.sum_sq, (m,)),
+            flat(state.sum_b, (m,)), flat(state.jump_run, (C,), np.int64), flat(state.excluded, (C,), bool),
+            flat(state.clean_run, (C,), np.int64), ch.astype(np.int64), prm, iprm,
+            beta, jump, drift_stat, bias_stat, drift, inert, used, weight, r_used, y, new_sq, new_b, sum_sq, sum_b,
+            r_est if adapt else _NONE_M, excluded, newly, readmit, jump_run, clean_run, z_f, hx_g,
+            fuse, xf, xo, Po, nis, min(N, _nbintegrity.LANES))
+
+        def shaped(a):
+            return a.reshape(batch + a.shape[1:])
+
+        if fuse:
+            res = UpdateResult(shaped(xo), shaped(Po), shaped(y), nis.reshape(batch))
+        else:
+            gm = GuardedModel(model, shaped(z_f), shaped(inert), prepared=(x, shaped(hx_g), Hk.reshape(batch + (m, n))),
+                              r_diag=shaped(r_used))
+            res = update(x, P, shaped(z_f), gm, **update_kw)
+        arrays = tuple(shaped(a) for a in (beta, jump, drift_stat, bias_stat, drift, used, weight, sum_sq, sum_b)) + (
+            shaped(r_est) if adapt else r_est,) + tuple(
+            shaped(a) for a in (excluded, newly, readmit, jump_run, clean_run, new_sq, new_b))
+        return res, arrays, int(n_readmit)
 
     def _epoch_numpy(self, state, x, P, z, hx, H, rd, ch, C, count, thr_ms, thr_b, old_sq, old_b):
         """The reference of filters/_nbintegrity.monitor_epoch (same outputs)."""
