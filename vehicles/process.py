@@ -447,7 +447,9 @@ def _status(group, bus, pacer, endpoints, errors, t, step_s=()) -> dict:
          "uavs": group.n, "lag_s": max(0.0, pacer.sim_now() - (t or 0.0)), "late_epochs": pacer.late_epochs,
          "skipped_epochs": pacer.skipped_epochs, "step_errors": errors, **bus_counters(bus)}
     if endpoints is not None:
-        d["mavlink"] = dict(endpoints.counters)
+        from vehicles.mavlink import REJECT_REASONS
+        c = dict(endpoints.counters)
+        d["mavlink"] = {**c, "rejected": {r: int(c.get(r, 0)) for r in REJECT_REASONS if c.get(r, 0)}}
     if step_s:
         a = np.sort(np.array(step_s))
         d["step_ms"] = {"p50": 1e3 * float(a[len(a) // 2]), "p99": 1e3 * float(a[min(len(a) - 1, int(0.99 * len(a)))]),

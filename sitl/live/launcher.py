@@ -210,6 +210,7 @@ def launch(scn, out: Path, *, quiet: bool = False, stop: threading.Event | None 
         pacer = Pacer(run.speed, run.t0_gps_s, wall_start, stop=stop)
         t_end = run.t0_gps_s + run.duration_s
         if on_started is not None:
+            sup.zenoh_endpoints = list(endpoints)
             on_started(sup)
         board = StatusBoard()
         next_status = perf_now()
