@@ -291,17 +291,23 @@ class VehicleGroup:
         from sitl.geodesy import ecef_to_geodetic
         if self.n and self.last_nav is not None:
             est, tu = self.last_nav, self.last_uav_truth
-            lat, lon, h = ecef_to_geodetic(est.x[:, 0:3])
-            lat, lon, h = np.atleast_1d(lat), np.atleast_1d(lon), np.atleast_1d(h)
+            lat, lon, h = (np.atleast_1d(v) for v in ecef_to_geodetic(est.x[:, 0:3]))
+            v = est.x[:, 3:6]  # ECEF -> NED, all UAVs at once
+            sl, cl, so, co = np.sin(lat), np.cos(lat), np.sin(lon), np.cos(lon)
+            ve = -so * v[:, 0] + co * v[:, 1]
+            vn = -sl * co * v[:, 0] - sl * so * v[:, 1] + cl * v[:, 2]
+            vd = -(cl * co * v[:, 0] + cl * so * v[:, 1] + sl * v[:, 2])
+            pitch = np.arctan2(-vd, np.hypot(vn, ve))
             P = est.P
-            for i in range(self.n):
-                vn = _ecef_to_ned(est.x[i, 3:6], lat[i], lon[i])
-                ntr = int(est.n_tracked[i])
-                out.append(Telemetry("uav", self.idx[i], est.t_gps_s, float(lat[i]), float(lon[i]), float(h[i]), vn,
-                                     0.0, math.atan2(-vn[2], math.hypot(vn[0], vn[1])),
-                                     float(np.asarray(tu.heading_rad)[i]), 3 if ntr >= 4 else 2, ntr,
-                                     float(math.sqrt(max(P[i, 0, 0] + P[i, 1, 1], 0.0) / 2)),
-                                     float(math.sqrt(max(P[i, 2, 2], 0.0)))))
+            eph = np.sqrt(np.maximum(P[:, 0, 0] + P[:, 1, 1], 0.0) / 2)
+            epv = np.sqrt(np.maximum(P[:, 2, 2], 0.0))
+            ntr = est.n_tracked.tolist()
+            heading = np.asarray(tu.heading_rad).tolist()
+            rows = zip(self.idx, lat.tolist(), lon.tolist(), h.tolist(), vn.tolist(), ve.tolist(), vd.tolist(),
+                       pitch.tolist(), heading, ntr, eph.tolist(), epv.tolist())
+            t = float(est.t_gps_s)
+            out.extend(Telemetry("uav", i, t, la, lo, hh, (a, b, c), 0.0, pi, hd, 3 if nt >= 4 else 2, nt, e1, e2)
+                       for i, la, lo, hh, a, b, c, pi, hd, nt, e1, e2 in rows)
         if self.sonde is not None and self.last_sonde is not None:
             st = self.last_sonde
             vn = tuple(float(v) for v in (st.vel_enu_m_s[0][1], st.vel_enu_m_s[0][0], -st.vel_enu_m_s[0][2]))
