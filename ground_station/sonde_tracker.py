@@ -136,7 +136,8 @@ update of the epoch (z = 0, r = 1, H = 0: no information and no NIS, so the gate
 too), the others take the variance it used. The monitor assumes single-channel faults, so it
 does not judge a sonde whose rows mostly jump at once (more than ``integrity_common_fraction``:
 a manoeuvre such as the burst, or a track error, which the gate and the manoeuvre hypothesis
-handle) nor a track younger than ``integrity_warmup_s``; those are counted. Its events
+handle) nor a track within ``integrity_warmup_s`` of its (re)initialisation or of a manoeuvre
+(accepted under the manoeuvre hypothesis, or found by the window test); those are counted. Its events
 (sitl.integrity_events: step, ramp, outlier, readmit) go on ``<run>/gs/integrity/<channel>``
 from ``<source_id>.integrity``, channel ``<sonde>.relay.<sat>`` or ``<sonde>.<radar>.<axis>``.
 The monitor's batch is a cohort of sondes that joined together (its window position is common
@@ -272,8 +273,8 @@ class SondeTrackerParams:
     backend: str | None = None  # filters.kernels backend (None: default)
     integrity: IntegrityConfig | None = None  # the integrity monitor (filters.integrity) around the updates; None: off
     integrity_sat_channels: int = 48  # relayed-satellite channels of the monitor (>= satellites seen in its memory)
-    integrity_warmup_s: float = 10.0  # a track is not judged this long after its (re)initialisation
-    integrity_common_fraction: float = 0.5  # jumps on more than this fraction of a sonde's rows: a manoeuvre
+    integrity_warmup_s: float = 10.0  # a track is not judged this long after its (re)initialisation or a manoeuvre
+    integrity_common_fraction: float = 0.25  # jumps on more than this fraction of a sonde's rows: a manoeuvre
 
     def __post_init__(self):
         if self.mode not in MODES:
@@ -1241,6 +1242,7 @@ class SondeTracker:
             res2 = self._update(x[bad], P[bad] + self._transition.boost(dt), z[bad], model.subset(bad), filt)
             ok2 = np.asarray(res2.nis) <= gate[bad]
             acc, rej = bad[ok2], bad[~ok2]
+            self._t_init[slots[acc]] = self._t[slots[acc]]  # (already the epoch) a manoeuvre: the monitor waits
             xo[acc], Po[acc], nis[acc] = np.asarray(res2.x)[ok2], np.asarray(res2.P)[ok2], np.asarray(res2.nis)[ok2]
             xo[rej], Po[rej], nis[rej] = x[rej], P[rej], np.nan
             setattr(c, f"{what}_manoeuvre", getattr(c, f"{what}_manoeuvre") + int(acc.size))
@@ -1744,6 +1746,7 @@ class SondeTracker:
             if self._win_k[slot] < W or not S > M or not S > self._gate(np.array([M]))[0]:
                 return
             self._P[slot] += (S / M) * self._transition.boost(dt)
+            self._t_init[slot] = self._t[slot]  # a manoeuvre: the monitor waits (integrity_warmup_s)
             self._win_nis[slot], self._win_m[slot], self._win_k[slot] = 0.0, 0, 0
             self._win_S[slot], self._win_M[slot] = 0.0, 0
             self.counters.window_manoeuvre += 1
@@ -1767,6 +1770,7 @@ class SondeTracker:
             # radar alone is a 40 m/s surprise, not one acceleration step)
             scale = (S[hit] / M[hit])[:, None, None]
             self._P[hs] += scale * self._transition.boost(dt)
+            self._t_init[hs] = self._t[hs]
             self._win_nis[hs], self._win_m[hs], self._win_k[hs] = 0.0, 0, 0
             self._win_S[hs], self._win_M[hs] = 0.0, 0
             self.counters.window_manoeuvre += int(hit.sum())
