@@ -130,7 +130,8 @@ def main(argv=None) -> int:
             except Exception as e:  # counted, reported, the node keeps running
                 errors += 1
                 out = []
-                print(f"gs: step failed: {type(e).__name__}: {e}", file=sys.stderr)
+                if errors <= 10 or errors % 100 == 0:  # the log stays readable
+                    print(f"gs: step failed ({errors} so far): {type(e).__name__}: {e}", file=sys.stderr)
             if gcs is not None:
                 try:
                     for key, est in out:
@@ -140,7 +141,8 @@ def main(argv=None) -> int:
                         gcs.statustext(f"integrity {ev.channel}: {ev.event}")
                 except Exception as e:  # the GCS side must not stop the fusion
                     errors += 1
-                    print(f"gs: MAVLink send failed: {type(e).__name__}: {e}", file=sys.stderr)
+                    if errors <= 10 or errors % 100 == 0:
+                        print(f"gs: MAVLink send failed ({errors} so far): {type(e).__name__}: {e}", file=sys.stderr)
             node.events.clear()
             tick_s.append(perf_now() - w0)
             if rt.status_due():

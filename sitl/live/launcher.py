@@ -168,14 +168,20 @@ def launch(scn, out: Path, *, quiet: bool = False, stop: threading.Event | None 
     report: dict = {"mode": "live", "scenario": scn.to_dict(), "ok": False, "events": []}
     shutdown = {}
     try:
-        if scn.bus.zenoh:
-            endpoints = list(scn.bus.zenoh)
-        else:
-            from sitl.bus.router import Router
-            router = Router(listen=[scn.bus.listen], lease_ms=scn.bus.lease_ms)
-            endpoints = router.endpoints
-        report["zenoh"] = endpoints
-        bus = ZenohTransport(connect=endpoints, mode="client", lease_ms=scn.bus.lease_ms)
+        from sitl.bus._zconfig import ZenohConfigError
+        from sitl.bus.router import Router, RouterError
+        from sitl.bus.zenoh_transport import ZenohTransportError
+        try:
+            if scn.bus.zenoh:
+                endpoints = list(scn.bus.zenoh)
+            else:
+                router = Router(listen=[scn.bus.listen], lease_ms=scn.bus.lease_ms)
+                endpoints = router.endpoints
+            report["zenoh"] = endpoints
+            bus = ZenohTransport(connect=endpoints, mode="client", lease_ms=scn.bus.lease_ms)
+        except (RouterError, ZenohTransportError, ZenohConfigError) as e:
+            report["error"] = " ".join(str(e).split())
+            return report
         scorer = ErrorTracker(t0_gps_s=run.t0_gps_s)
         scorer.subscribe(bus, run.id)
         if scn.bus.log:
