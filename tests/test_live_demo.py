@@ -162,5 +162,6 @@ def test_live_demo_multi_process(tmp_path):
     assert err["beacon/b1"]["rmse_m"] < 3.0 * batch["beacon/b1"]["rmse_m"] + 10.0
     # the tlogs read with pymavlink
     from pymavlink import mavutil
-    tl = mavutil.mavlink_connection(str(tmp_path / "mav_uav1.tlog"))
-    assert tl.recv_match(type="HEARTBEAT") is not None
+    for name in ("mav_vehicles0.tlog", "mav_vehicles1.tlog", "mav_vehicles1.r1.tlog"):  # vehicles1 restarted
+        tl = mavutil.mavlink_connection(str(tmp_path / name))
+        assert tl.recv_match(type="HEARTBEAT") is not None, name

@@ -321,19 +321,15 @@ class VehicleGroup:
 # ---------------------------------------------------------------------- MAVLink glue
 
 
-def build_endpoints(group: VehicleGroup, scn, out_dir):
+def build_endpoints(group: VehicleGroup, scn, out_dir, name: str = "vehicles"):
     """vehicles.mavlink endpoints for this group's vehicles: UAV i (global index) has sysid
     i + 1 and listens on udp base_port + 10 i; the sonde comes after the UAVs. Parameters:
     the UAV's onboard navigation settings and the sonde's flight model (their real values).
-    None if MAVLink is off."""
+    All the group's traffic goes to one .tlog, OUT/mav_<name>.tlog (a restarted worker starts
+    a new file, mav_<name>.r<k>.tlog: nothing recorded is overwritten). None if MAVLink is off."""
     from pathlib import Path
 
-    from vehicles.mavlink import (
-        EndpointGroup,
-        ParamStore,
-        VehicleEndpoint,
-        load_signing_key,
-    )
+    from vehicles.mavlink import EndpointGroup, ParamStore, TlogWriter, VehicleEndpoint, load_signing_key
     from vehicles.mavlink.params import sonde_param_specs, uav_param_specs
 
     m = scn.mavlink
@@ -344,6 +340,13 @@ def build_endpoints(group: VehicleGroup, scn, out_dir):
     vehicles = [("uav", i) for i in group.idx]
     if group.sonde is not None:
         vehicles.append(("sonde", scn.uavs.count))
+    tlog = None
+    if m.tlog:
+        path, k = Path(out_dir) / f"mav_{name}.tlog", 0
+        while path.exists():
+            k += 1
+            path = Path(out_dir) / f"mav_{name}.r{k}.tlog"
+        tlog = TlogWriter(path)
     eps = []
     try:
         for kind, i in vehicles:
@@ -351,7 +354,6 @@ def build_endpoints(group: VehicleGroup, scn, out_dir):
                 params = ParamStore(uav_param_specs(None, group.nav_cfg, 0))
             else:
                 params = ParamStore(sonde_param_specs(group.flight.params))
-            tlog = str(Path(out_dir) / f"mav_{kind}{i + 1}.tlog") if m.tlog else None
             eps.append(VehicleEndpoint(sysid=i + 1, kind=kind, gcs=(host, int(port)),
                                        listen=("127.0.0.1", m.base_port + 10 * i), params=params,
                                        on_mission=group.on_mission(i) if kind == "uav" else None,
@@ -359,8 +361,12 @@ def build_endpoints(group: VehicleGroup, scn, out_dir):
     except Exception:
         for ep in eps:
             ep.close()
+        if tlog is not None:
+            tlog.close()
         raise
-    return EndpointGroup(eps)
+    eg = EndpointGroup(eps)
+    eg.tlog_writer = tlog  # shared by the endpoints: closed by the worker after them
+    return eg
 
 
 def _mav_telemetry(tel: list[Telemetry], n_endpoints: int):
@@ -394,7 +400,7 @@ def main(argv=None) -> int:
                              with_sonde=spec.with_sonde)
         _warm_up(scn, spec)
         try:
-            endpoints = build_endpoints(group, scn, spec.out_dir)
+            endpoints = build_endpoints(group, scn, spec.out_dir, spec.name)
         except (ValueError, OSError) as e:  # a port taken, a bad key file: a configuration error
             rt.emit({"event": "fatal", "error": f"MAVLink: {' '.join(str(e).split())}"})
             return 2
@@ -436,6 +442,8 @@ def main(argv=None) -> int:
     finally:
         if endpoints is not None:
             endpoints.close()
+            if endpoints.tlog_writer is not None:
+                endpoints.tlog_writer.close()
         bus.close()
 
 
