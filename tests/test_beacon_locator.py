@@ -514,13 +514,16 @@ def test_printed_sweep_trials_that_diverged_with_one_linearisation():
         cfg1 = E.locator_config("inflate", prior)
         assert cfg1.update_iterations > 1
     # the same data with one linearisation: the reported divergence
-    saved = E.PRIOR_UPDATE_ITERATIONS
+    # (and without the unresolved-formation limit, which skips those first epochs altogether)
+    saved = E.PRIOR_UPDATE_ITERATIONS, dict(E.LOCATORS["inflate"])
     try:
         E.PRIOR_UPDATE_ITERATIONS = 1
+        E.LOCATORS["inflate"]["min_formation_sigmas"] = 0.0
         tr, prior = E.scenario("printed", 10, 60.0, 5, np.random.default_rng([1, 77, 10, 5]))
         res = E.run_case("constellation", tr, 5, 1011, locators=("inflate",), central=False, prior=prior)
     finally:
-        E.PRIOR_UPDATE_ITERATIONS = saved
+        E.PRIOR_UPDATE_ITERATIONS = saved[0]
+        E.LOCATORS["inflate"] = saved[1]
     err1 = np.linalg.norm(res["x"]["inflate"][-1, :, 0:3] - res["truth"][-1, :, 0:3], axis=-1)
     assert err1[2] > 300.0, err1
 
