@@ -18,7 +18,6 @@ import json
 import os
 import subprocess
 import sys
-import time
 
 _SUB = r"""
 import json, sys, time
