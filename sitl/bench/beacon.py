@@ -71,7 +71,7 @@ def _bus_trial(case, tracks, seed, prior=None):
     ex = component("sitl.experiments.beacon")
     tm = {}
     t0 = time.perf_counter()
-    res = ex.run_case(case, tracks, 1, seed, locators=("inflate",), central=False, timing=tm, prior=prior)
+    res = ex.run_case(case, tracks, 1, seed, locators=(ex.PRODUCTION,), central=False, timing=tm, prior=prior)
     return time.perf_counter() - t0, res, tm
 
 
@@ -93,7 +93,7 @@ def _direct_trial(case, tracks, seed, prior=None):
     link_cfg = beacon_link.BeaconLinkConfig()
     t_gps = uav_nav.SEED002_T0_GPS_S + t
     rng = np.random.default_rng([seed, ex.CASES.index(case) if case in ex.CASES else 7, N])
-    loc = bl.BeaconLocator(None, run_ids=["direct"], beacon_id=ex.BEACON_ID, config=ex.locator_config("inflate", prior))
+    loc = bl.BeaconLocator(None, run_ids=["direct"], beacon_id=ex.BEACON_ID, config=ex.locator_config(ex.PRODUCTION, prior))
     nav = uav_nav.OnboardNav(const, nav_cfg)
     order = sorted(range(N), key=lambda i: str(i + 1))  # the locator orders observers by UAV id (a str)
     x_out = np.full((K, 1, 6), np.nan)
@@ -234,18 +234,18 @@ def run(duration_s=1000.0, uavs=3, case="three_satellites", rounds=3, seed=1, pr
         c0 = time.process_time()
         wd, xd, Pd = _direct_trial(case, tracks, seed, prior)
         keep("direct", wd + w_truth, time.process_time() - c0 + c_truth)
-        equal = equal and np.array_equal(res["x"]["inflate"], xd, equal_nan=True) and \
-            np.array_equal(res["P"]["inflate"], Pd, equal_nan=True)
+        equal = equal and np.array_equal(res["x"][ex.PRODUCTION], xd, equal_nan=True) and \
+            np.array_equal(res["P"][ex.PRODUCTION], Pd, equal_nan=True)
         say(f"round {r + 1}/{rounds} same trial, direct (no bus): {wd + w_truth:.2f} s")
         c0 = time.process_time()
         ww = _world_only(case, tracks, seed)
         keep("world", ww + w_truth, time.process_time() - c0 + c_truth)
         say(f"round {r + 1}/{rounds} world only: {ww + w_truth:.2f} s")
         c0 = time.process_time()
-        wb, n_pub, n_del = _bus_only(tracks, res["nav_x"], res["nav_P"], res["x"]["inflate"], res["P"]["inflate"])
+        wb, n_pub, n_del = _bus_only(tracks, res["nav_x"], res["nav_P"], res["x"][ex.PRODUCTION], res["P"][ex.PRODUCTION])
         keep("bus_only", wb, time.process_time() - c0)
         info = {"messages_published": n_pub, "messages_delivered": n_del,
-                "trial_bus": res["bus"], "locator_counters": res["counters"]["inflate"]}
+                "trial_bus": res["bus"], "locator_counters": res["counters"][ex.PRODUCTION]}
         say(f"round {r + 1}/{rounds} bus alone: {wb:.2f} s ({n_pub} messages)")
     K = round(duration_s) + 1
     names = {"bus": "trial through the bus", "direct": "same trial, direct (no bus)",

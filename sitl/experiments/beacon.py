@@ -11,10 +11,14 @@ every epoch (1 s):
     scoring: subscribes to truth and gs/estimate only
 
 Each Monte Carlo trial is one run id (``<base>-t<k>``) on the shared bus; the UAVs' filters
-and the locator run all trials as one batch.  The production locator ("inflate") publishes
-its Estimates on the bus and is scored from there; the comparison locators on the same
-messages ("ignore", "inflate" with white UAV errors, the seed's position-only filter) are
-scored from their states.  The centralised filter (ground_station.beacon_central) is then
+and the locator run all trials as one batch.  The production locator (PRODUCTION,
+"consider": the UAVs' navigation errors as Schmidt states after an "inflate" acquisition,
+ground_station/beacon_locator.py) publishes its Estimates on the bus and is scored from
+there; the comparison locators on the same messages ("inflate": R + kappa J P_i J', kappa =
+101; "inflate" with white UAV errors, kappa = 1; "ignore": the UAVs taken as exact; the
+seed's position-only filter) are scored from their states (result.json
+``inflate_vs_ignore``: every locator of LOCATORS, accounting for the UAVs' uncertainty
+against ignoring it).  The centralised filter (ground_station.beacon_central) is then
 replayed on the same receiver outputs and links, and the PCRB computed at the truth.
 
 Geometry (``--geometry``; vehicles/uav.py says how the seed's laws are read):
@@ -88,9 +92,11 @@ DT_S = 1.0
 BEACON_ID = "b1"
 FIGURES = ("beacon_errors.png", "beacon_rmse_vs_pcrb.png", "beacon_uav_count.png")
 # locators on the same messages: name -> LocatorConfig overrides
+PRODUCTION = "consider"  # the locator whose Estimates go on the bus (the first of run_case's locators)
 _BLOCK = 64  # epochs whose world side (receiver geometry, filter ephemeris) is computed in one call
 _BLOCK_ROWS = 4096  # at most this many epochs x trials x UAVs in one block
 LOCATORS = {
+    "consider": {"observer_uncertainty": "consider"},
     "inflate": {},
     "inflate_white": {"uav_error_corr_s": 0.0},
     "ignore": {"observer_uncertainty": "ignore"},
@@ -180,7 +186,7 @@ def scenario(geometry: str, n_uavs: int, duration_s: float, trials: int, rng):
     return truth_tracks(n_uavs, duration_s, geometry), None
 
 
-def locator_config(name: str = "inflate", prior=None):
+def locator_config(name: str = PRODUCTION, prior=None):
     """The LocatorConfig of a locator of LOCATORS, started from ``prior`` (mean, cov) if given."""
     LocatorConfig = component("ground_station.beacon_locator").LocatorConfig
     kw = dict(LOCATORS[name])
@@ -259,7 +265,7 @@ class _Scorer:
             self.uav_truth_msgs += 1
 
 
-def run_case(case, tracks, trials, seed, locators=("inflate",), progress=None, central=True,
+def run_case(case, tracks, trials, seed, locators=(PRODUCTION,), progress=None, central=True,
              timing=None, prior=None) -> dict:
     """One case through the bus (module docstring).  Returns the raw series and counters."""
     BeaconLocator = component("ground_station.beacon_locator").BeaconLocator
@@ -289,15 +295,16 @@ def run_case(case, tracks, trials, seed, locators=("inflate",), progress=None, c
     run_ids = [f"{base}-t{k:03d}" for k in range(T)]
     bus = InMemoryTransport(start_t_gps_s=float(t_gps[0]))
     locs = {}
+    pub = locators[0]  # publishes on the bus, scored from there; the others from their states
     for name in locators:
         cfg = locator_config(name, prior)
         locs[name] = BeaconLocator(bus, run_ids=run_ids, beacon_id=BEACON_ID, config=cfg,
-                                   source_id="gs" if name == "inflate" else f"gs-{name.replace('_', '-')}",
-                                   publish_estimates=name == "inflate")
+                                   source_id="gs" if name == pub else f"gs-{name.replace('_', '-')}",
+                                   publish_estimates=name == pub)
     scorer = _Scorer(bus, run_ids, K)
     nav = uav_nav.OnboardNav(const, nav_cfg)
-    side = {name: np.full((K, T, 6), np.nan) for name in locators if name != "inflate"}
-    side_P = {name: np.full((K, T, 6, 6), np.nan) for name in locators if name != "inflate"}
+    side = {name: np.full((K, T, 6), np.nan) for name in locators if name != pub}
+    side_P = {name: np.full((K, T, 6, 6), np.nan) for name in locators if name != pub}
     nav_x = np.empty((K, T, N, 6))
     nav_P = np.empty((K, T, N, 6, 6))
     epochs, links = [], []
@@ -365,7 +372,7 @@ def run_case(case, tracks, trials, seed, locators=("inflate",), progress=None, c
             t0 = time.perf_counter()
             loc.step(tk)  # the production locator also publishes its Estimates here
             clock(f"locator_{name}", t0)
-            if name != "inflate":
+            if name != pub:
                 side[name][k], side_P[name][k] = loc.state_ecef()
                 side[name][k][~loc.initialised] = np.nan
         t0 = time.perf_counter()
@@ -374,14 +381,14 @@ def run_case(case, tracks, trials, seed, locators=("inflate",), progress=None, c
         if progress and (k % 200 == 0 or k == K - 1):
             progress(f"[{case} N={N}] t = {t[k]:6.0f} s of {t[-1]:.0f}")
     est_x, est_P = scorer.x, scorer.P
-    out = {"t": t, "truth": scorer.truth, "nav_x": nav_x, "nav_P": nav_P, "x": {"inflate": est_x},
-           "P": {"inflate": est_P}, "mode": scorer.mode, "counters": {}, "bus": _bus_stats(bus)}
+    out = {"t": t, "truth": scorer.truth, "nav_x": nav_x, "nav_P": nav_P, "x": {pub: est_x},
+           "P": {pub: est_P}, "mode": scorer.mode, "counters": {}, "bus": _bus_stats(bus)}
     for name in side:
         out["x"][name], out["P"][name] = side[name], side_P[name]
     for name, loc in locs.items():
         out["counters"][name] = {**dict(loc.counters), **{f"rejected_{r}": c for r, c in loc.rejected.items()},
                                  "links_nonpositive_not_sent": nonpositive}
-    loc = locs.get("inflate")
+    loc = locs.get(pub)
     if central and loc is not None:
         t0 = time.perf_counter()
         start = None
@@ -573,7 +580,7 @@ def pcrb_series(tracks, const, nav_cfg, cfg, prior=None):
     return np.sqrt(np.trace(Bd, axis1=-2, axis2=-1)), Bd
 
 
-def summarise_case(res, pcrb_tr, name="inflate") -> dict:
+def summarise_case(res, pcrb_tr, name=PRODUCTION) -> dict:
     t, truth = res["t"], res["truth"]
     sc = _scores(t, res["x"][name], res["P"][name], truth)
     sel = t >= SETTLE_S
@@ -636,7 +643,7 @@ def plot(out: Path, cases: dict, sweep: list, meta: str, geometry: str = "printe
     for c, (case, d) in enumerate(cases.items()):
         ax = axes[0, c]
         t = d["t"]
-        ax.plot(t, d["rmse_series"], color="C0", lw=1.4, label="decomposed locator (inflate): RMSE")
+        ax.plot(t, d["rmse_series"], color="C0", lw=1.4, label=f"decomposed locator ({PRODUCTION}): RMSE")
         if d.get("central_series") is not None:
             ax.plot(t, d["central_series"], color="C1", lw=1.1, label="centralised filter: RMSE")
         if d.get("ignore_series") is not None:
@@ -752,7 +759,7 @@ def run(args) -> dict:
         d = summarise_case(res, pc)
         d["uav_nav_rmse"] = uav_nav_rmse(res, tr)
         d["satellites"] = len(res["constellation"])
-        d["counters"] = res["counters"]["inflate"]
+        d["counters"] = res["counters"][PRODUCTION]
         d["bus"] = res["bus"]
         d["modes"] = {m: int(np.sum(res["mode"] == m)) for m in ("fused", "degraded", "coast", "lost")}
         doc_cases[case] = d
@@ -777,9 +784,9 @@ def run(args) -> dict:
                                 "centralised_errors_m": sc["errors_m"], "pcrb_m": d["pcrb_m"]}
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", RuntimeWarning)
-            sig = np.sqrt(np.nanmean(np.trace(res["P"]["inflate"][..., 0:3, 0:3], axis1=-2, axis2=-1), axis=1))
-        plots[case] = {"t": t, "x": res["x"]["inflate"], "truth": res["truth"],
-                       "rmse_series": _series(t, res["x"]["inflate"], res["truth"]),
+            sig = np.sqrt(np.nanmean(np.trace(res["P"][PRODUCTION][..., 0:3, 0:3], axis1=-2, axis2=-1), axis=1))
+        plots[case] = {"t": t, "x": res["x"][PRODUCTION], "truth": res["truth"],
+                       "rmse_series": _series(t, res["x"][PRODUCTION], res["truth"]),
                        "ignore_series": _series(t, res["x"]["ignore"], res["truth"]),
                        "central_series": None if cen is None else _series(t, cen["x"], res["truth"]),
                        "sigma_series": sig, "pcrb_series": pc}
@@ -791,17 +798,17 @@ def run(args) -> dict:
         tr, prior = tracks_for(n, args.sweep_trials)
         tm = {}
         t0 = time.perf_counter()
-        res = run_case("constellation", tr, args.sweep_trials, args.seed + 1000 + n, locators=("inflate",),
+        res = run_case("constellation", tr, args.sweep_trials, args.seed + 1000 + n, locators=(PRODUCTION,),
                        progress=prog, central=False, timing=tm, prior=prior)
         pc, _ = pcrb_series(tr, res["constellation"], nav_cfg, cfg, prior)
         tm["wall_s"] = time.perf_counter() - t0
         timing[f"sweep_n{n}"] = tm
-        sc = _scores(res["t"], res["x"]["inflate"], res["P"]["inflate"], res["truth"])
+        sc = _scores(res["t"], res["x"][PRODUCTION], res["P"][PRODUCTION], res["truth"])
         sel = res["t"] >= SETTLE_S
         sweep.append({"uavs": n, "rmse_m": sc["rmse_m"], "pcrb_m": float(np.mean(pc[sel])),
                       "anees": sc["anees"]["value"], "errors_m": sc["errors_m"], "trials": args.sweep_trials,
                       "uav_nav_rmse": uav_nav_rmse(res, tr)})
-    lc = locator_config("inflate", beacon_prior() if geometry == "printed" else None)
+    lc = locator_config(PRODUCTION, beacon_prior() if geometry == "printed" else None)
     wall = time.perf_counter() - wall0
     three = doc_cases["three_satellites"]["errors_m"]
     reproduces = all(three[ax]["median_of_trial_max"] <= PAPER_ERRORS_M[ax] for ax in AXES)
@@ -823,6 +830,7 @@ def run(args) -> dict:
         "cases": doc_cases,
         "centralised_vs_decomposed": central_vs,
         "inflate_vs_ignore": inflate_vs_ignore,
+        "production_locator": PRODUCTION,
         "by_uav_count": sweep,
         "locator": {k: getattr(lc, k) for k in lc.__dataclass_fields__ if k not in ("prior_mean", "prior_cov")},
         "wall_s": wall,
