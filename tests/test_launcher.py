@@ -288,3 +288,64 @@ def test_uploaded_mission_is_flown():
     # its published truth is the mission's path, consistent with its geodetic state
     la, lo, hh = ecef_to_geodetic(g.last_uav_truth.pos_ecef_m[1])
     assert float(la) == pytest.approx(float(g.last_uav_truth.lat_rad[1]), abs=1e-9)
+
+
+# ------------------------------------------------------------------ parameters over MAVLink
+
+
+def test_param_set_reaches_the_group_and_a_sonde_set_is_vetoed():
+    import numpy as np
+    from pymavlink import mavutil
+
+    from sitl.bus import InMemoryTransport
+    from sitl.scenario import default_scenario
+    from vehicles.process import VehicleGroup, _mav_telemetry, build_endpoints
+
+    def free_base():
+        for base in range(33000, 60000, 991):
+            socks = []
+            try:
+                for i in range(4):
+                    s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+                    socks.append(s)
+                    s.bind(("127.0.0.1", base + 10 * i))
+                return base
+            except OSError:
+                continue
+            finally:
+                for s in socks:
+                    s.close()
+        raise RuntimeError("no free ports")
+
+    base = free_base()
+    gcs = mavutil.mavlink_connection("udpin:127.0.0.1:0", source_system=255)
+    scn = default_scenario().replace(mavlink={"gcs": f"127.0.0.1:{gcs.port.getsockname()[1]}", "base_port": base,
+                                              "tlog": False})
+    g = VehicleGroup(scn, [0, 1, 2], InMemoryTransport(), np.random.SeedSequence(1))
+    eps = build_endpoints(g, scn, "unused")
+    u2 = mavutil.mavlink_connection(f"udpout:127.0.0.1:{base + 10}", source_system=255)
+    s4 = mavutil.mavlink_connection(f"udpout:127.0.0.1:{base + 30}", source_system=255)
+    try:
+        t0 = scn.run.t0_gps_s
+        q0 = g.nav_cfg.q_m2_s3
+        u2.mav.param_set_send(2, 1, b"NAV_Q", 0.5, mavutil.mavlink.MAV_PARAM_TYPE_REAL32)
+        s4.mav.param_set_send(4, 1, b"SND_ASCENT", 7.0, mavutil.mavlink.MAV_PARAM_TYPE_REAL32)
+        got = {}
+        for k in range(40):
+            g.step(t0 + k)
+            eps.step(t0 + k, _mav_telemetry(g.telemetry(), len(eps)))
+            for c in (u2, s4):
+                m = c.recv_match(type="PARAM_VALUE", blocking=False)
+                if m is not None:
+                    got[m.param_id] = m.param_value
+            if len(got) == 2:
+                break
+            time.sleep(0.02)
+        assert q0 != 0.5 and got["NAV_Q"] == 0.5
+        assert g.nav.config.q_m2_s3 == 0.5 == g.nav_cfg.q_m2_s3  # the group's filters run with it
+        assert got["SND_ASCENT"] == pytest.approx(g.flight.params.ascent_rate_m_s)  # vetoed: unchanged
+        assert eps.counters["param_rejected"] == 1
+    finally:
+        eps.close()
+        for c in (gcs, u2, s4):
+            c.close()

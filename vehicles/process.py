@@ -272,6 +272,17 @@ class VehicleGroup:
                 self.fly_mission(i, waypoints)
         return accept
 
+    def on_nav_param(self, store):
+        """The parameter store's change callback: the group's receivers and onboard filters take
+        the new NavConfig from the next epoch (a bad combination raises ValueError: vetoed)."""
+        from vehicles.mavlink.params import apply_uav_params
+
+        def apply(name, value):
+            cfg, _ = apply_uav_params(store, nav=self.nav_cfg)
+            self.nav_cfg = cfg
+            self.nav.config = cfg
+        return apply
+
     def fly_mission(self, i: int, waypoints) -> None:
         """UAV i (global index) leaves the scenario's law for these waypoints [(lat_rad, lon_rad, h_m)]."""
         from vehicles import uav as uav_mod
@@ -347,13 +358,20 @@ def build_endpoints(group: VehicleGroup, scn, out_dir, name: str = "vehicles"):
             k += 1
             path = Path(out_dir) / f"mav_{name}.r{k}.tlog"
         tlog = TlogWriter(path)
+    # the UAVs of a group share one receiver / onboard-filter configuration (their filters
+    # run as one batch): one parameter store for all of them, a PARAM_SET on any applies to
+    # the group from the next epoch; the sonde's flight model is fixed at launch (sets vetoed)
+    uav_store = sonde_store = None
+    if group.n:
+        uav_store = ParamStore(uav_param_specs(None, group.nav_cfg, 0))
+        uav_store.on_change(group.on_nav_param(uav_store))
+    if group.sonde is not None:
+        sonde_store = ParamStore(sonde_param_specs(group.flight.params))
+        sonde_store.on_change(_veto_sonde_param)
     eps = []
     try:
         for kind, i in vehicles:
-            if kind == "uav":
-                params = ParamStore(uav_param_specs(None, group.nav_cfg, 0))
-            else:
-                params = ParamStore(sonde_param_specs(group.flight.params))
+            params = uav_store if kind == "uav" else sonde_store
             eps.append(VehicleEndpoint(sysid=i + 1, kind=kind, gcs=(host, int(port)),
                                        listen=("127.0.0.1", m.base_port + 10 * i), params=params,
                                        on_mission=group.on_mission(i) if kind == "uav" else None,
@@ -367,6 +385,10 @@ def build_endpoints(group: VehicleGroup, scn, out_dir, name: str = "vehicles"):
     eg = EndpointGroup(eps)
     eg.tlog_writer = tlog  # shared by the endpoints: closed by the worker after them
     return eg
+
+
+def _veto_sonde_param(name, value):
+    raise ValueError("the sonde's flight model is fixed at launch")
 
 
 def _mav_telemetry(tel: list[Telemetry], n_endpoints: int):
