@@ -237,6 +237,7 @@ __all__ = [
     "ut_to_ecef",
     "InitFix",
     "init_fix",
+    "uav_error_transition",
     "cyl_step",
     "position_only_step",
     "BeaconLocator",
@@ -782,6 +783,18 @@ def cyl_step(y, P, fr: Frame, obs: ObserverEpoch, config: LocatorConfig, dt_s: f
     return out + (fr,)
 
 
+def uav_error_transition(P_prev, P_now, rho):
+    """Transition A (..., 6, 6) of a UAV's navigation error between two epochs at which it
+    sent covariances P_prev and P_now (..., 6, 6): first-order Gauss-Markov with
+    correlations rho (6,) in its whitened error, A = L_now diag(rho) L_prev^-1 (L the Cholesky
+    factors).  Then eps_now = A eps_prev + w with Cov(w) = L_now (I - diag(rho)^2) L_now' >= 0,
+    so Cov(eps_now) = P_now exactly, however fast the UAV's filter shrank its covariance."""
+    Ln, Lp = np.linalg.cholesky(P_now), np.linalg.cholesky(P_prev)
+    # A' = L_prev^-T diag(rho) L_now'
+    At = np.linalg.solve(np.swapaxes(Lp, -1, -2), np.asarray(rho, float)[:, None] * np.swapaxes(Ln, -1, -2))
+    return np.swapaxes(At, -1, -2)
+
+
 def _consider_step(y, P, C, fr, xp, F, obs, config, dt_s, loglik, Pu_prev=None):
     """observer_uncertainty="consider": the UAVs' navigation errors eps_i = U_i - U^_i as
     Schmidt (consider) states, first-order Gauss-Markov with correlation times
@@ -818,13 +831,10 @@ def _consider_step(y, P, C, fr, xp, F, obs, config, dt_s, loglik, Pu_prev=None):
         if Pu_prev is None:
             C = C * A
         else:
-            # A_i' = L_{k-1}^-T diag(rho) L_k' (absent slots and new ones: the covariance kept)
+            # absent slots and new ones: the covariance kept
             seen = (Pu_prev[..., 0, 0] > 0)[..., None, None]
             Pn = np.where(obs.mask[..., None, None], obs.cov, np.where(seen, Pu_prev, np.eye(6)))
-            Pp = np.where(seen, Pu_prev, Pn)
-            Ln, Lp = np.linalg.cholesky(Pn), np.linalg.cholesky(Pp)
-            At = np.linalg.solve(np.swapaxes(Lp, -1, -2), A[:, None] * np.swapaxes(Ln, -1, -2))
-            C = C @ At
+            C = C @ np.swapaxes(uav_error_transition(np.where(seen, Pu_prev, Pn), Pn, A), -1, -2)
     zhat, He, R0 = range_doppler_blocks(xp, obs, 0.0)
     _, G2 = cyl_to_ecef(y, fr, jacobian=True)
     if config.second_order_r:

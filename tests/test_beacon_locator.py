@@ -22,6 +22,7 @@ import math
 import msgpack
 import numpy as np
 import pytest
+from hypothesis import given, settings, strategies as st
 
 from filters import metrics
 from filters.models import Composite, ConstantVelocity
@@ -552,3 +553,81 @@ def test_consider_states_white_limit_equals_inflate_and_correlation_widens():
     assert np.all(tr5 > 1.5 * trw), (tr5, trw)
     with pytest.raises(ValueError, match="consider"):
         LocatorConfig(observer_uncertainty="consider", motion="position")
+
+
+@settings(max_examples=60, deadline=None, derandomize=True)
+@given(st.integers(0, 2 ** 32 - 1), st.floats(0.02, 1.0), st.floats(0.5, 0.999), st.floats(0.0, 0.99))
+def test_uav_error_transition_keeps_the_sent_covariance(seed, shrink, rho_p, rho_v):
+    """"consider": the UAV's error moves from one sent covariance to the next by a
+    Gauss-Markov step in its whitened error: A P_prev A' + Cov(w) = P_now with Cov(w) =
+    L_now (I - rho^2) L_now' >= 0 whatever the change (the UAV's filter may shrink its
+    covariance by any factor); a plain eps' = rho eps + w needs Cov(w) = P_now - rho P_prev rho,
+    which is not a covariance once P_now shrinks faster than rho^2."""
+    from ground_station.beacon_locator import uav_error_transition
+
+    rng = np.random.default_rng(seed)
+    M = rng.standard_normal((6, 6)) * np.r_[[30.0] * 3, [0.3] * 3]
+    P_prev = M @ M.T + np.diag([1.0] * 3 + [1e-4] * 3)
+    M2 = rng.standard_normal((6, 6)) * 0.2
+    P_now = shrink * (P_prev + M2 @ P_prev @ M2.T)
+    rho = np.array([rho_p] * 3 + [rho_v] * 3)
+    A = uav_error_transition(P_prev, P_now, rho)
+    Q = P_now - A @ P_prev @ A.T
+    L = np.linalg.cholesky(P_now)
+    assert np.allclose(Q, L @ np.diag(1.0 - rho ** 2) @ L.T, rtol=1e-7, atol=1e-9 * np.abs(P_now).max())
+    assert np.linalg.eigvalsh(0.5 * (Q + Q.T)).min() >= -1e-9 * np.abs(P_now).max()
+    if shrink < 0.5 and rho_p > 0.9:  # the plain diagonal transition is not a Gauss-Markov step then
+        Qd = P_now - np.diag(rho) @ P_prev @ np.diag(rho)
+        assert np.linalg.eigvalsh(0.5 * (Qd + Qd.T)).min() < 0
+
+
+def test_formation_smaller_than_its_errors_gives_no_measurement():
+    """min_formation_sigmas: an epoch whose 3 UAVs are a few metres apart with 30 m position
+    sigmas (the printed run's first seconds) is not used -- the track only predicts, exactly
+    as with no observer at all, and the epoch is counted; once the formation is wide the
+    epoch is used; with the limit off the narrow epoch is used too."""
+    K = 3
+    scene = _scene(K, N=3)
+    t, B, VB, U, V = scene
+    eps = _epochs(np.random.default_rng(8), scene, 2)
+    x0 = np.concatenate([B[0], VB[0]]) + np.array([20.0, -10.0, 5.0, 1.0, 0.0, -1.0])
+    narrow = eps[1]._replace(pos=eps[1].pos[:, :1] + np.array([[0.0, 0.0, 0.0], [3.0, 1.0, 0.0], [0.0, 4.0, 2.0]]))
+    empty = narrow._replace(mask=np.zeros_like(narrow.mask))
+    runs = {}
+    for name, cfg, ep1 in (("limit", _prior_config(x0), narrow), ("no_obs", _prior_config(x0), empty),
+                           ("off", _prior_config(x0, min_formation_sigmas=0.0), narrow)):
+        loc = BeaconLocator(None, run_ids=["a", "b"], config=cfg)
+        loc.process(t[0], eps[0])
+        loc.process(t[1], ep1)
+        runs[name] = (loc.state_ecef()[0].copy(), loc)
+    assert np.array_equal(runs["limit"][0], runs["no_obs"][0])
+    loc = runs["limit"][1]
+    assert loc.counters["epochs_formation_unresolved"] == 2 and list(loc.mode) == ["coast", "coast"]
+    assert not np.allclose(runs["off"][0], runs["limit"][0])
+    assert runs["off"][1].counters["epochs_formation_unresolved"] == 0
+    loc.process(t[2], eps[2])  # the scene's own UAVs, 40-80 km apart: used
+    assert loc.counters["epochs_formation_unresolved"] == 2 and list(loc.mode) == ["fused", "fused"]
+
+
+def test_consider_acquires_as_inflate_then_carries_the_uav_errors():
+    """observer_uncertainty="consider": the first acquire_s of a track are the "inflate"
+    filter's steps bit for bit (same settings otherwise), the cross-covariances with the UAVs'
+    errors stay 0 meanwhile; afterwards the Schmidt states are carried and the tracks part."""
+    K, T, acq = 40, 3, 20.0
+    scene = _scene(K)
+    t, B, VB = scene[0], scene[1], scene[2]
+    eps = _epochs(np.random.default_rng(12), scene, T)
+    x0 = np.concatenate([B[0], VB[0]]) + np.array([30.0, -20.0, 10.0, 1.0, -1.0, 0.5])
+    xi, Pi, _ = _run(_prior_config(x0), eps, t, T)
+    lc = BeaconLocator(None, run_ids=[f"r{k}" for k in range(T)],
+                       config=_prior_config(x0, observer_uncertainty="consider", acquire_s=acq))
+    xs = []
+    for k, ob in enumerate(eps):
+        lc.process(t[k], ob)
+        xs.append(lc.state_ecef()[0].copy())
+        if t[k] < acq:
+            assert np.abs(lc.C).max() == 0.0
+    xs = np.array(xs)
+    before = t < acq
+    assert np.array_equal(xs[before], xi[before])
+    assert np.abs(lc.C).max() > 0 and not np.allclose(xs[-1], xi[-1], rtol=0, atol=1e-6)
