@@ -29,9 +29,11 @@ from ._nbkernels import LANES, N_BLOCKS, _jit
 def _monitor_chunk(t0, nl, hq, z, hx, H, r_nom, r_est, old_sq, old_b, stale, sum_sq, sum_b, jump_run, excluded,
                    clean_run, ch, prm, iprm, beta, jump, drift_stat, bias_stat, drift, inert, used, weight, r_used, y,
                    new_sq, new_b, sum_sq2, sum_b2, r_est2, excl2, newly, readmit, jr2, cr2, z_f, hx_g, nu, rf, q2, qb,
-                   miss, jmp, drf, jump_ch, drift_ch, zero_h):
+                   miss, jmp, drf, jump_ch, drift_ch, zero_h, glob):
     """The monitor's epoch for the trials t0 .. t0 + nl - 1 given hq[q] = diag(H P- H') of trial
-    t0 + q. Returns the readmissions.
+    t0 + q. Returns the readmissions. With glob, inert and r_used are the batched outputs (N, m)
+    (for a guarded model); without, chunk scratch (>= nl, m) indexed by q (the fused update reads
+    them straight away).
 
     prm: (J, thr_ms, thr_b, huber_c, lam); iprm: (count, W, use_bias, persist, readmit_after,
     use_huber, adapt_r, isolate, has_stale, write_zh) -- write_zh: also z with NaN -> 0 (z_f)
@@ -153,7 +155,7 @@ def _monitor_chunk(t0, nl, hq, z, hx, H, r_nom, r_est, old_sq, old_b, stale, sum
             it = miss[q, j]
             if isolate:
                 it = it or jmp[q, j] or excl2[t, ch[j]]
-            inert[t, j] = it
+            inert[t if glob else q, j] = it
             used[t, j] = not it
             w = 0.0 if it else 1.0
             r = rf[q, j]
@@ -163,7 +165,7 @@ def _monitor_chunk(t0, nl, hq, z, hx, H, r_nom, r_est, old_sq, old_b, stale, sum
                     w = huber_c / max(ab, 1e-300)
                     r = r * (1.0 / w)
             weight[t, j] = w
-            r_used[t, j] = r
+            r_used[t if glob else q, j] = r
             y[t, j] = 0.0 if it else nu[q, j]
     # the innovation-based R estimate (admitted rows)
     if adapt_r:
@@ -171,7 +173,7 @@ def _monitor_chunk(t0, nl, hq, z, hx, H, r_nom, r_est, old_sq, old_b, stale, sum
             t = t0 + q
             for j in range(m):
                 re = r_est[t, j]
-                if not inert[t, j]:
+                if not inert[t if glob else q, j]:
                     sample = nu[q, j] * nu[q, j] - hq[q, j]
                     re = (1.0 - lam) * re + lam * sample if math.isfinite(re) else sample
                 r_est2[t, j] = re
@@ -179,7 +181,7 @@ def _monitor_chunk(t0, nl, hq, z, hx, H, r_nom, r_est, old_sq, old_b, stale, sum
         for q in range(nl):
             t = t0 + q
             for j in range(m):
-                it = inert[t, j]
+                it = inert[t if glob else q, j]
                 if write_zh:
                     hx_g[t, j] = z_f[t, j] if it else hx[t, j]
                 if zero_h and it:
@@ -230,7 +232,7 @@ def _epoch_block(lo, hi, z, hx, H, P, r_nom, r_est, old_sq, old_b, stale, sum_sq
         tot += _monitor_chunk(t0, nl, hq, z, hx, H, r_nom, r_est, old_sq, old_b, stale, sum_sq, sum_b, jump_run,
                               excluded, clean_run, ch, prm, iprm, beta, jump, drift_stat, bias_stat, drift, inert,
                               used, weight, r_used, y, new_sq, new_b, sum_sq2, sum_b2, r_est2, excl2, newly, readmit,
-                              jr2, cr2, z_f, hx_g, nu, rf, q2, qb, miss, jmp, drf, jump_ch, drift_ch, True)
+                              jr2, cr2, z_f, hx_g, nu, rf, q2, qb, miss, jmp, drf, jump_ch, drift_ch, True, True)
     return tot
 
 
@@ -265,6 +267,7 @@ def _fused_block(lo, hi, z, hx, H, P, r_nom, r_est, old_sq, old_b, stale, sum_sq
     idx = np.empty(n, np.int64)
     hq = np.empty((B, m))
     nu_t, rf, q2, qb = np.empty((B, m)), np.empty((B, m)), np.empty((B, m)), np.empty((B, m))
+    r_q, inert_q = np.empty((B, m)), np.empty((B, m), np.bool_)
     miss, jmp, drf = np.empty((B, m), np.bool_), np.empty((B, m), np.bool_), np.empty((B, m), np.bool_)
     jump_ch, drift_ch = np.empty((B, C), np.bool_), np.empty((B, C), np.bool_)
     tot = 0
@@ -303,15 +306,15 @@ def _fused_block(lo, hi, z, hx, H, P, r_nom, r_est, old_sq, old_b, stale, sum_sq
             for a in range(m):
                 hq[q, a] = hl[a, q]
         tot += _monitor_chunk(t0, nl, hq, z, hx, H, r_nom, r_est, old_sq, old_b, stale, sum_sq, sum_b, jump_run,
-                              excluded, clean_run, ch, prm, iprm, beta, jump, drift_stat, bias_stat, drift, inert,
-                              used, weight, r_used, y, new_sq, new_b, sum_sq2, sum_b2, r_est2, excl2, newly, readmit,
-                              jr2, cr2, z_f, hx_g, nu_t, rf, q2, qb, miss, jmp, drf, jump_ch, drift_ch, False)
+                              excluded, clean_run, ch, prm, iprm, beta, jump, drift_stat, bias_stat, drift, inert_q,
+                              used, weight, r_q, y, new_sq, new_b, sum_sq2, sum_b2, r_est2, excl2, newly, readmit,
+                              jr2, cr2, z_f, hx_g, nu_t, rf, q2, qb, miss, jmp, drf, jump_ch, drift_ch, False, False)
         for q in range(nl):
             t = t0 + q
             for a in range(m):
                 yl[a, q] = y[t, a]
-                rl[a, q] = r_used[t, a]
-                if inert[t, a]:
+                rl[a, q] = r_q[q, a]
+                if inert_q[q, a]:
                     for i in range(n):
                         Hl[a, i, q] = 0.0
         for q in range(nl, B):

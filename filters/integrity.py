@@ -149,7 +149,8 @@ RESUM = 4096
 _NONE_M = np.empty((0, 0))  # placeholders for the kernel's unused outputs
 _NONE_P = np.empty((0, 0, 0))
 _NONE_V = np.empty(0)
-_NONE_I = np.empty((0, 0), dtype=np.int64)  # epochs between exact recomputations of the running window sums
+_NONE_I = np.empty((0, 0), dtype=np.int64)
+_NONE_B = np.empty((0, 0), dtype=bool)  # epochs between exact recomputations of the running window sums
 
 
 class Report(NamedTuple):
@@ -367,13 +368,15 @@ class IntegrityMonitor:
         def bc(dtype=bool):
             return np.empty((N, C), dtype=dtype)
 
-        beta, drift_stat, bias_stat, weight, r_used, y, new_sq, new_b, sum_sq, sum_b = (fm() for _ in range(10))
-        jump, drift, inert, used = bm(), bm(), bm(), bm()
+        beta, drift_stat, bias_stat, weight, y, new_sq, new_b, sum_sq, sum_b = (fm() for _ in range(9))
+        jump, drift, used = bm(), bm(), bm()
         excluded, newly, readmit, jump_run, clean_run = bc(), bc(), bc(), bc(np.int64), bc(np.int64)
         r_est = fm() if adapt else state.r_est
-        z_f = hx_g = _NONE_M
+        # for a guarded model: z without NaN, h, the row mask and R (the fused update keeps them in its lanes)
+        z_f = hx_g = r_used = _NONE_M
+        inert = _NONE_B
         if not fuse:
-            z_f, hx_g = fm(), fm()
+            z_f, hx_g, r_used, inert = fm(), fm(), fm(), bm()
         xf, Pf = flat(x, (n,)), flat(P, (n, n))
         xo, Po, nis = (np.empty((N, n)), np.empty((N, n, n)), np.empty(N)) if fuse else (_NONE_M, _NONE_P, _NONE_V)
         prm = np.array([cfg.jump_sigma, thr_ms, thr_b, cfg.huber_c or 0.0, cfg.r_forget])
