@@ -235,7 +235,7 @@ def test_replay_of_a_recorded_batch_run_gives_the_same_estimates(tmp_path):
     from sitl.live.launcher import replay
     from sitl.scenario import default_scenario
 
-    scn = default_scenario().replace(run={"duration_s": 25.0}, mavlink={"enabled": False})
+    scn = default_scenario().replace(run={"duration_s": 15.0}, mavlink={"enabled": False})
     log = tmp_path / "bus.log"
     res = run_batch(scn, record=log)
     assert res["recorded"] > 0
