@@ -161,9 +161,12 @@ def run_size(n: int, args, router_ep: str) -> dict:
 
     out = Path(args.out) / f"n{n}"
     out.mkdir(parents=True, exist_ok=True)
+    from sitl.live.pacer import cpu_now
+    cpu0 = cpu_now()
     try:
         rep = launch(scn, out, quiet=True, on_started=on_started)
     finally:
+        cpu1 = cpu_now()
         probe.measure.clear()
         probe.close()
         if sink is not None:
@@ -187,6 +190,8 @@ def run_size(n: int, args, router_ep: str) -> dict:
                                "max": None if not lat else 1e3 * max(lat), "probes": len(lat)},
             "cpu_ms_per_uav_s": 1e3 * cpu_v / (n * args.duration),
             "gs_cpu_ms_per_s": 1e3 * float(gs.get("cpu_s", 0.0)) / args.duration,
+            # this process during the run: the router, the launcher's session, the probes, start-up
+            "router_launcher_cpu_ms_per_s": 1e3 * (cpu1 - cpu0) / max(rep.get("wall_s") or 1.0, 1e-9),
             "messages_sent": rep.get("messages_sent"), "mavlink_datagrams_at_gcs": sink.datagrams if sink else 0,
             "beacon_estimates": (rep.get("errors", {}).get(f"beacon/{scn.beacon.id}") or {}).get("estimates"),
             "load_avg": os.getloadavg(), "wall_s": rep.get("wall_s")}
@@ -211,7 +216,8 @@ def main(args) -> int:
                   f"{_fmt([s.get('p99') if s else None for s in r['vehicle_step_ms']])} ms; GS tick p90 "
                   f"{_fmt([(r['gs_tick_ms'] or {}).get('p90')])} ms; bus latency p50/p99 "
                   f"{_fmt([lat['p50']])}/{_fmt([lat['p99']])} ms; CPU {r['cpu_ms_per_uav_s']:.2f} ms per UAV-s "
-                  f"(GS {r['gs_cpu_ms_per_s']:.0f} ms/s); load {r['load_avg'][0]:.1f}", flush=True)
+                  f"(GS {r['gs_cpu_ms_per_s']:.0f} ms/s, router+launcher {r['router_launcher_cpu_ms_per_s']:.0f} ms/s); "
+                  f"load {r['load_avg'][0]:.1f}", flush=True)
             if r["error"]:
                 print(f"    error: {r['error']}", flush=True)
     kept = [r["uavs"] for r in rows if r["kept_real_time"]]

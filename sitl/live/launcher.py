@@ -263,6 +263,8 @@ def launch(scn, out: Path, *, quiet: bool = False, stop: threading.Event | None 
         if tty and not quiet:
             status_stream.write("\n")
         report["wall_s"] = perf_now() - t_wall0
+        from sitl.live.pacer import cpu_now
+        report["launcher_cpu_s"] = cpu_now()  # this process: the embedded router, the log, the scorer
         report["shutdown"] = shutdown
         if sup is not None:
             _fill_report(report, sup, scorer if bus is not None else None, bus, recorder)
