@@ -967,6 +967,7 @@ class SondeTracker:
             self._mon_k = 0  # monitor epochs so far
             self._cohorts: list = []  # [first slot, end slot, MonitorState]: sondes that joined together
             self._guard: dict = {}  # slot -> (inert (m_mon,), r used (m_mon,)) of the current epoch
+            self._mon_models: dict = {}  # (dt, slots) -> the epoch's measurement model, built once
             self._events = IntegrityEventPublisher(run_id, f"{self.source_id}.integrity")
             # a readmitted or long-unused channel has a fresh window: reuse after this many epochs
             self._chan_age = p.integrity.window + p.integrity.readmit_after + 1
@@ -1506,7 +1507,11 @@ class SondeTracker:
     def _joint_update(self, group, dt: float, t: float, filt: str) -> None:
         c, p = self.counters, self.params
         try:
-            model = self._measurement(group, dt, t)
+            model = None
+            if self._mon is not None:  # the monitor built this very group's model already
+                model = self._mon_models.pop((dt, tuple(g[1] for g in group)), None)
+            if model is None:
+                model = self._measurement(group, dt, t)
         except _MixedSites:  # different ground receivers / radar sites: one sonde at a time
             for g in group:
                 self._joint_update([g], dt, t, filt)
@@ -1614,13 +1619,16 @@ class SondeTracker:
         rm = np.ones((N, m))
         X = np.where(np.isfinite(self._x), self._x, 0.0)
         P = np.where(np.isfinite(self._P), self._P, 0.0)
-        dts = np.array([t - float(self._t[u[1]]) for u in upd])
-        for dt in np.unique(dts):
-            group = [u for u, d in zip(upd, dts) if d == dt]
+        dts = [t - float(self._t[u[1]]) for u in upd]
+        self._mon_models = {}
+        for dt in sorted(set(dts)):
+            group = upd if len(dts) == 1 else [u for u, d in zip(upd, dts) if d == dt]
             try:
-                models = [(group, self._measurement(group, float(dt), t))]
+                models = [(group, self._measurement(group, dt, t))]
             except _MixedSites:
-                models = [([g], self._measurement([g], float(dt), t)) for g in group]
+                models = [([g], self._measurement([g], dt, t)) for g in group]
+            for grp, mdl in models:
+                self._mon_models[(dt, tuple(g[1] for g in grp))] = mdl
             F, Q = self._transition.F(None, dt), self._transition.Q(dt)
             slots = np.array([g[1] for g in group])
             X[slots] = self._x[slots] @ F.T  # after _measurement: a new satellite's error state is reset
@@ -1659,7 +1667,8 @@ class SondeTracker:
         young = (t - self._t_init[sl]) < p.integrity_warmup_s
         has = np.isfinite(Z[sl])
         nu = np.where(has, Z[sl] - hm[sl], 0.0)
-        hph = np.einsum("bmi,bij,bmj->bm", Hm[sl], P[sl], Hm[sl])
+        Hs = Hm[sl]
+        hph = np.sum((Hs @ P[sl]) * Hs, axis=-1)
         jumps = (np.abs(nu) >= cfg.jump_sigma * np.sqrt(hph + rm[sl])) & has
         common = jumps.sum(axis=1) > p.integrity_common_fraction * np.maximum(has.sum(axis=1), 1)
         skip = young | common
