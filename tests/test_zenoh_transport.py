@@ -16,7 +16,7 @@ import time
 
 import numpy as np
 import pytest
-from test_bus import FACTORIES, nav
+from test_bus import FACTORIES, nav, relay
 
 from sitl.bus import (
     BusDecodeError,
@@ -306,10 +306,12 @@ def test_unsubscribe_stops_delivery_and_close_is_final(pair):
 PUBLISHER = """
     import sys
     sys.path.insert(0, "tests")
-    from test_bus import relay
-    from sitl.bus import ZenohTransport, encode
+    import msgpack
+    from sitl.bus import ZenohTransport
     bus = ZenohTransport(connect=[sys.argv[1]], congestion_control=sys.argv[3])
-    payloads = [encode(relay(60, seq=i)) for i in range(int(sys.argv[2]))]  # 5.3 kB each
+    with open(sys.argv[4], "rb") as f:  # one encoded SondeRelay; each copy gets its seq
+        wire = msgpack.unpackb(f.read())
+    payloads = [msgpack.packb({**wire, "seq": i}) for i in range(int(sys.argv[2]))]
     assert bus.wait_for_subscribers("burst/sonde/1/relay", 10.0)
     for p in payloads:
         bus.publish_raw("burst/sonde/1/relay", p)
@@ -319,16 +321,19 @@ PUBLISHER = """
 """
 
 
-def test_burst_into_a_stalled_receiver_loses_nothing_with_block(router):
+def test_burst_into_a_stalled_receiver_loses_nothing_with_block(router, tmp_path):
     """3000 messages of 5.3 kB (16 MB, more than the socket buffers hold) as fast as another
     process can publish, into a receiver that stops draining for 0.5 s and whose queue holds
     64: BLOCK back-pressure must make the publisher wait, not drop (DROP loses most here)."""
     n = 3000
+    template = tmp_path / "relay.bin"
+    template.write_bytes(encode(relay(60)))  # 5.3 kB
     b = ZenohTransport(connect=router.endpoints, queue_capacity=64)
     seqs = []
     b.subscribe("burst/**", lambda k, m: seqs.append(m.seq))
     proc = subprocess.Popen([sys.executable, "-c", textwrap.dedent(PUBLISHER),
-                             router.endpoints[0], str(n), "block"], env=ENV, cwd=REPO,
+                             router.endpoints[0], str(n), "block", str(template)],
+                            env=ENV, cwd=REPO,
                             stdin=subprocess.PIPE, stdout=subprocess.PIPE,
                             stderr=subprocess.PIPE, text=True)
     try:
