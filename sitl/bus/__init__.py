@@ -1,5 +1,6 @@
-"""The message bus: one versioned schema, one codec, two transports (in-memory for batch
-runs here; Zenoh for live runs).
+"""The message bus: one versioned schema, one codec, two transports (`InMemoryTransport` for
+batch runs; `ZenohTransport` for live runs, through an embedded `Router`), and the
+crash-safe bus log (`BusLogWriter`, `read_bus_log`, `BusRecorder`).
 
     from sitl.bus import InMemoryTransport, UavNav, key_for
     bus = InMemoryTransport()
