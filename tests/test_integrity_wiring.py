@@ -270,3 +270,17 @@ def test_sonde_fault_free_monitored_fused_track_is_not_worse():
     se = d.std(ddof=1) / math.sqrt(d.size)
     # not significantly worse (one-sided 95 %) and within 5 % (4 short trials: a wider margin than the UAV's)
     assert d.mean() - 1.645 * se <= 0.0 and d.mean() + 1.645 * se <= 0.05 * math.sqrt(np.mean(e2[0])), (per, se)
+
+
+@pytest.mark.parametrize("kw, name", [({"integrity": "maybe"}, "integrity"), ({"relay_step_sat": "X99"}, "relay_step_sat"),
+                                      ({"az_outlier_prob": 1.5}, "az_outlier_prob"),
+                                      ({"relay_step_s": (50.0, 10.0)}, "relay_step_s"),
+                                      ({"relay_step_m": math.nan}, "relay_step_m")])
+def test_bad_integrity_options_name_the_field(kw, name):
+    with pytest.raises(ValueError, match=name):
+        E.SondeScenario(**kw)
+    from ground_station.sonde_tracker import SondeTrackerParams
+    with pytest.raises(ValueError, match="integrity"):
+        SondeTrackerParams(integrity={"jump_sigma": 3})
+    with pytest.raises(ValueError, match="integrity"):
+        NavConfig(integrity=3.5)

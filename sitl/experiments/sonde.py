@@ -53,7 +53,6 @@ import dataclasses
 import itertools
 import json
 import math
-import re
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -141,8 +140,13 @@ class SondeScenario:
             a, b = getattr(self, name)
             if not (math.isfinite(a) and 0 <= a < b):
                 raise ValueError(f"{name} must be (start, end) with 0 <= start < end, got {getattr(self, name)!r}")
-        if self.relay_step_sat and not re.fullmatch(r"[A-Za-z0-9_.-]{1,64}", self.relay_step_sat):
-            raise ValueError(f"relay_step_sat must be a satellite id such as G07, got {self.relay_step_sat!r}")
+        if self.relay_step_sat:
+            from sitl.gnss.orbits import default_constellation
+
+            ids = [str(v) for v in default_constellation("GR").sat_id]
+            if self.relay_step_sat not in ids:
+                raise ValueError(f"relay_step_sat must be a satellite of the relay's constellation (e.g. {ids[0]}), "
+                                 f"got {self.relay_step_sat!r}")
 
     def filter_for(self, mode: str) -> str:
         """The trackers' filter: "auto" lets each tracker take the UKF for a sonde while its
