@@ -284,3 +284,26 @@ def test_bad_integrity_options_name_the_field(kw, name):
         SondeTrackerParams(integrity={"jump_sigma": 3})
     with pytest.raises(ValueError, match="integrity"):
         NavConfig(integrity=3.5)
+
+
+def test_sonde_monitor_with_few_satellite_channels_leaves_the_rest_unjudged(monkeypatch):
+    """4 relayed-satellite channels for ~15 satellites in view: the first four seen are judged, the
+    others used unjudged (counted); events name only those four; the track is the plain one's to
+    within the monitor's row rejections."""
+    import dataclasses as dc
+
+    orig = E.tracker_params
+
+    def few(scn, label, backend=None):
+        p = orig(scn, label, backend)
+        return dc.replace(p, integrity_sat_channels=4) if p.integrity is not None else p
+
+    monkeypatch.setattr(E, "tracker_params", few)
+    scn = E.SondeScenario(**{**SONDE, "duration_s": 80.0})
+    raw = E.run_trials(scn, 5, range(1), modes=MODES)
+    c = raw["counters"]["fused_monitored"]
+    assert c["integrity_unmonitored"] > 8 * 60 and c["integrity_epochs"] == 80
+    sats = {e[2].split(".")[2] for e in _sonde_events(raw, "fused_monitored") if ".relay." in e[2]}
+    assert len(sats) <= 4
+    r_plain, r_mon = _window_rmse(raw, "fused", 20.0, 80.0), _window_rmse(raw, "fused_monitored", 20.0, 80.0)
+    assert abs(r_mon - r_plain) < 0.1 * r_plain, (r_mon, r_plain)
