@@ -59,7 +59,7 @@ def reports(draw):
     return rep, ch
 
 
-@settings(max_examples=60, deadline=None)
+@settings(max_examples=40, deadline=None)
 @given(reports())
 def test_one_event_per_channel_epoch_and_its_kind_follows_the_report(rc):
     rep, ch = rc
