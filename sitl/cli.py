@@ -210,6 +210,22 @@ def _add_sonde_args(p: argparse.ArgumentParser) -> None:
                    help="skip the two extra trackers with the naive white radar-noise model (NEES comparison)")
     p.add_argument("--backend", choices=("auto", "numba", "numpy"), default="auto",
                    help="filter kernels and flight loop: compiled (numba) or plain numpy (default auto)")
+    p.add_argument("--integrity", choices=("off", "on", "compare"), default=None,
+                   help="integrity monitor on the trackers: on, or compare (the three main trackers plain and again "
+                        "monitored, <mode>_monitored, on the same messages) (default off)")
+    p.add_argument("--relay-step", type=finite_float, default=None, metavar="M",
+                   help="inject a satellite clock step of M metres on one relayed satellite's pseudorange")
+    p.add_argument("--relay-step-sat", default=None, metavar="ID",
+                   help="that satellite (default: the first delivered to trial 0 at the onset)")
+    p.add_argument("--relay-step-at", type=nonnegative_float, nargs=2, default=None, metavar=("A", "B"),
+                   help="its start and end, s since launch (default 1200 1800)")
+    p.add_argument("--az-outliers", type=finite_float, default=None, metavar="P",
+                   help="radar azimuth outlier burst: probability per epoch (10-sigma Student-t, 2 dof)")
+    p.add_argument("--az-outlier-at", type=nonnegative_float, nargs=2, default=None, metavar=("A", "B"),
+                   help="the burst's start and end, s since launch (default 900 1000)")
+    p.add_argument("--az-step-deg", type=finite_float, default=None, metavar="D", help="radar azimuth step, degrees")
+    p.add_argument("--az-step-at", type=nonnegative_float, nargs=2, default=None, metavar=("A", "B"),
+                   help="the step's start and end, s since launch (default 2400 2700)")
     p.add_argument("--quiet", action="store_true", help="no progress lines")
 
 
