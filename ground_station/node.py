@@ -9,8 +9,10 @@ The components subscribe and publish through a small deferred bus (`_DeferredBus
 the real transport delivers (on its own threads, for Zenoh) is queued, and handed to the
 components in the caller's thread by `pump` / `advance`, so the components never run
 concurrently with themselves. ``advance(t)`` processes every epoch seen up to t (in time
-order): the live process calls it with its paced clock minus a hold time (how long an
-epoch's messages may take to arrive); replay calls it with the recorded messages' times.
+order): the live process calls it with its paced clock minus a hold time (the longest an
+epoch waits for its messages) and processes an epoch sooner once every source that is
+publishing has delivered it (each source's messages arrive in order); replay calls it with the
+recorded messages' times.
 Messages for an epoch already processed are counted (``late``) and passed on (the
 components count them as stale).
 """
@@ -113,6 +115,8 @@ class GroundStationNode:
         self.run_id = run_id
         self.counters = Counter()
         self._epochs: set[float] = set()
+        self._src_last: dict[str, float] = {}  # latest input time per source id
+        self._t_first: float | None = None  # earliest input time seen
         self.t_done = -math.inf
         self._lock = threading.Lock()
         self.bus = _DeferredBus(transport, self._on_input)
@@ -131,10 +135,26 @@ class GroundStationNode:
     def _on_input(self, key, msg) -> None:
         t = float(msg.t_gps_s)
         self.counters["inputs"] += 1
+        if self._t_first is None or t < self._t_first:
+            self._t_first = t
+        last = self._src_last.get(msg.source_id)
+        if last is None or t > last:
+            self._src_last[msg.source_id] = t
         if t <= self.t_done:
             self.counters["late"] += 1
         else:
             self._epochs.add(round(t, 6))
+
+    def _complete(self, tau: float, window_s: float) -> bool:
+        """Every source heard within window_s before tau has delivered tau or later (each
+        source's messages arrive in order, so its epoch-tau message is in)."""
+        if self._t_first is None or tau < self._t_first + window_s:
+            return False  # the sources are not all known yet
+        lo = tau - window_s - 1e-9
+        for last in self._src_last.values():
+            if lo <= last < tau - 1e-9:
+                return False
+        return True
 
     def feed(self, key: str, msg) -> None:
         self.bus.feed(key, msg)
@@ -142,16 +162,23 @@ class GroundStationNode:
     def pending_epochs(self) -> int:
         return len(self._epochs)
 
-    def advance(self, t_until_gps_s: float) -> list:
+    def advance(self, t_until_gps_s: float, *, early_window_s: float | None = None) -> list:
         """Take in what has arrived and process every epoch <= t_until; returns the
         (key, Estimate) published meanwhile (other messages they published, integrity events,
-        are appended to ``events``)."""
+        are appended to ``events``).
+
+        early_window_s (live): also process, in time order, the later epochs that are complete
+        already: every input source heard within early_window_s before the epoch has delivered
+        it (or a later one). t_until is then only the longest an epoch waits for a silent source."""
         with self._lock:
             self.bus.pump()
-            due = sorted(e for e in self._epochs if e <= t_until_gps_s)
-            for tau in due:
+            for tau in sorted(self._epochs):
+                if tau > t_until_gps_s and (early_window_s is None or not self._complete(tau, early_window_s)):
+                    break  # epochs are processed in time order only
                 self._epochs.discard(tau)
                 self._step(tau)
+                if tau > t_until_gps_s:
+                    self.counters["epochs_early"] += 1
             published, self.bus.published = self.bus.published, []
             out = []
             for key, msg in published:

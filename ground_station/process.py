@@ -2,7 +2,8 @@
 
 A `GroundStationNode` (the batch beacon locator and sonde tracker) on the run's Zenoh bus,
 stepped by the paced clock: every tick it takes in what has arrived and processes the epochs
-older than ``ground_station.hold_wall_s`` (x speed, in simulated time), publishing the
+that are complete (every source publishing has delivered them) or older than
+``ground_station.hold_wall_s`` (x speed, in simulated time), publishing the
 Estimates on ``<run>/gs/estimate/**``. It also speaks MAVLink to the ground-control
 endpoint (pymavlink): the beacon and sonde estimates as ADSB_VEHICLE (so that the GCS map
 shows them) and the integrity events its trackers publish (``<run>/gs/integrity/**``) as STATUSTEXT, from its
@@ -113,6 +114,9 @@ def main(argv=None) -> int:
         hold_sim = scn.ground_station.hold_wall_s * scn.run.speed
         t_end = scn.run.t0_gps_s + scn.run.duration_s
         tick = min(0.1 * scn.run.speed, 1.0 / scn.run.rate_hz)  # ~10 ticks per wall second
+        # an epoch is processed once every source publishing (heard within 2.5 epochs) has
+        # delivered it, at the latest hold_wall_s after its time (a source that fell silent)
+        early_window = 2.5 / scn.run.rate_hz
         t = pacer.sim_now()
         errors = 0
         from collections import deque
@@ -126,7 +130,7 @@ def main(argv=None) -> int:
             bus.drain()
             horizon = min(pacer.sim_now(), t_end + hold_sim) - hold_sim
             try:
-                out = node.advance(horizon)
+                out = node.advance(horizon, early_window_s=early_window)
             except Exception as e:  # counted, reported, the node keeps running
                 errors += 1
                 out = []

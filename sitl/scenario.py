@@ -21,8 +21,8 @@ Layout of a scenario (every key optional; the defaults are those of `DEFAULT_SCE
     [beacon]       id, mode (seed | legs | static), start ([lat deg, lon deg, h m])
     [sonde]        enabled, id, radar_id, launch ([lat deg, lon deg, h m]), gcpp_offset_m,
                    gcpp_bearing_deg, radar_loss_s ([start, end] after launch), gnss_outage_s
-    [ground_station] hold_wall_s (how long after an epoch's time the GS waits for its
-                   messages, wall seconds), beacon_init_epochs, integrity (the sonde tracker's
+    [ground_station] hold_wall_s (the longest the GS waits for an epoch's messages after
+                   its time, wall seconds; it goes on as soon as every source has delivered it), beacon_init_epochs, integrity (the sonde tracker's
                    integrity monitor; its events go out as STATUSTEXT too)
 """
 from __future__ import annotations
@@ -89,7 +89,7 @@ radar_loss_s = [30.0, 330.0]
 gnss_outage_s = [3600.0, 3720.0]
 
 [ground_station]
-hold_wall_s = 0.3
+hold_wall_s = 1.0
 integrity = false
 """
 
@@ -273,7 +273,7 @@ class SondeSection:
 
 @dataclass(frozen=True)
 class GroundStationSection:
-    hold_wall_s: float = 0.3
+    hold_wall_s: float = 1.0
     beacon_init_epochs: int = 3
     integrity: bool = False  # the sonde tracker's integrity monitor (its events: bus + STATUSTEXT)
 
