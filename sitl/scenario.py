@@ -40,6 +40,7 @@ from sitl.gnss.orbits import DEFAULT_TOA_GPS_S
 
 DEFAULT_T0_GPS_S = DEFAULT_TOA_GPS_S + 3600.0
 SPEC_VERSION = 1
+MAX_MAVLINK_VEHICLES = 249  # system ids 1..249: 250 is the ground station's (ADSB / STATUSTEXT), 255 the GCS's
 
 DEFAULT_SCENARIO_TOML = """\
 # skyfuse built-in default scenario: 3 UAVs around a moving radio beacon, one radiosonde
@@ -409,6 +410,11 @@ def _cross_checks(scn: Scenario) -> None:
     if u.count and u.count < 3:
         raise ScenarioError(f"scenario: uavs.count: expected 0 or >= 3 (the beacon locator needs 3 UAVs), "
                             f"got {u.count}")
+    n_vehicles = u.count + (1 if scn.sonde.enabled else 0)
+    if scn.mavlink.enabled and n_vehicles > MAX_MAVLINK_VEHICLES:
+        raise ScenarioError(f"scenario: uavs.count: expected at most {MAX_MAVLINK_VEHICLES} vehicles (UAVs + sonde) "
+                            f"with mavlink.enabled (MAVLink system ids 1..{MAX_MAVLINK_VEHICLES}; 250 is the ground "
+                            f"station, 255 the GCS), got {n_vehicles}; set mavlink.enabled = false for larger swarms")
     if scn.mavlink.enabled:
         top = scn.mavlink.base_port + 10 * max(u.count + (1 if scn.sonde.enabled else 0), 1)
         if top > 65535:

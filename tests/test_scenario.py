@@ -43,6 +43,7 @@ BAD = [
     ("[uavs]\ncount = -3", "uavs.count", "integer"),
     ("[uavs]\ncount = 2", "uavs.count", ">= 3"),
     ("[uavs]\nper_process = 0", "uavs.per_process", "integer"),
+    ("[uavs]\ncount = 249", "uavs.count", "at most 249 vehicles"),
     ("[uavs]\ncenter = [45.0]", "uavs.center", "[lat deg, lon deg]"),
     ("[uavs]\ncenter = [95.0, 30.0]", "uavs.center[0]", "<= 90"),
     ("[uavs]\nradius_m = -1.0", "uavs.radius_m", ">= 0"),

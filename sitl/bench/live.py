@@ -3,7 +3,8 @@
 For each swarm size N (``--uavs``), a live run of the default scenario's UAVs and beacon
 (no sonde) at ``--rate`` Hz and speed 1 for ``--duration`` simulated seconds: a Zenoh router
 (started here), the vehicle worker(s) (N UAVs stepped as arrays, each a MAVLink endpoint on
-real UDP unless --no-mavlink, streams to a UDP sink here) and the ground-station worker.
+real UDP unless --no-mavlink or N > 249 -- MAVLink system ids end there --, streams to a UDP
+sink here) and the ground-station worker.
 
 Per size:
   * ``kept_real_time``: every vehicle worker ran every epoch on time -- no epoch skipped,
@@ -150,7 +151,7 @@ def run_size(n: int, args, router_ep: str) -> dict:
         bus={"zenoh": (router_ep,), "log": False},
         uavs={"count": n, "per_process": args.per_process, "radius_m": max(15000.0, 150.0 * n)},
         sonde={"enabled": False},
-        mavlink={"enabled": not args.no_mavlink, "gcs": f"127.0.0.1:{sink.port if sink else 14550}",
+        mavlink={"enabled": not args.no_mavlink and n <= 249, "gcs": f"127.0.0.1:{sink.port if sink else 14550}",
                  "base_port": base, "tlog": False})
     started = threading.Event()
 
@@ -182,7 +183,7 @@ def run_size(n: int, args, router_ep: str) -> dict:
     kept = (rep.get("ok", False) and skipped == 0 and late <= 0.01 * epochs and step_p99 is not None
             and step_p99 < 1e3 / args.rate and tick_p90 is not None and tick_p90 < 1e3 / args.rate)
     lat = probe.lat
-    return {"uavs": n, "kept_real_time": bool(kept), "ok": rep.get("ok", False), "error": rep.get("error"),
+    return {"uavs": n, "mavlink": scn.mavlink.enabled, "kept_real_time": bool(kept), "ok": rep.get("ok", False), "error": rep.get("error"),
             "epochs": epochs, "skipped_epochs": skipped, "late_epochs": late,
             "vehicle_step_ms": [v.get("step_ms") for v in veh], "gs_tick_ms": gs.get("tick_ms"),
             "bus_latency_ms": {"p50": None if not lat else 1e3 * _pct(lat, 0.5),
@@ -211,7 +212,7 @@ def main(args) -> int:
             r = run_size(n, args, ep)
             rows.append(r)
             lat = r["bus_latency_ms"]
-            print(f"  {n:5d} UAVs: real time {'kept' if r['kept_real_time'] else 'NOT kept'}; skipped "
+            print(f"  {n:5d} UAVs{'' if r['mavlink'] else ' (no MAVLink)'}: real time {'kept' if r['kept_real_time'] else 'NOT kept'}; skipped "
                   f"{r['skipped_epochs']}, late {r['late_epochs']} of {r['epochs']} epochs; vehicle step p99 "
                   f"{_fmt([s.get('p99') if s else None for s in r['vehicle_step_ms']])} ms; GS tick p90 "
                   f"{_fmt([(r['gs_tick_ms'] or {}).get('p90')])} ms; bus latency p50/p99 "
