@@ -314,7 +314,8 @@ class LocatorConfig:
     update_iterations: 1 (EKF) or more: an iterated EKF update (Gauss-Newton on the epoch's
         ranges and Dopplers, relinearised at each iterate; the gate decided at the first).
         For ranges comparable with the state's uncertainty (a beacon that starts among the
-        UAVs), where one linearisation at the prediction is poor.
+        UAVs), where one linearisation at the prediction is poor.  At most this many: the
+        iterations stop once no row's ECEF iterate moves by 1 mm (mm/s) or more.
     acquire_s: "consider" only: a track's first acquire_s run as "inflate" (module docstring).
     min_formation_sigmas: an epoch whose >= 3 UAVs span less than this many times their RMS
         position sigma gives no beacon measurement (0: off; module docstring).
@@ -725,6 +726,15 @@ def ut_to_ecef(y, P, fr: Frame):
 # --------------------------------------------------------------------------- filter steps
 
 
+_IEKF_TOL = 1e-3  # m, m/s: iterated updates stop once no row's ECEF iterate moved by more
+
+
+def _converged(x, x_last) -> bool:
+    """The iterated update has converged: no row's ECEF [B, V] moved by _IEKF_TOL or more since
+    the last relinearisation (a further one would relinearise at the same point)."""
+    return bool(np.max(np.abs(x - x_last)) < _IEKF_TOL)
+
+
 def cyl_step(y, P, fr: Frame, obs: ObserverEpoch, config: LocatorConfig, dt_s: float, loglik: bool = False,
              C=None, Pu_prev=None):
     """One predict (over dt_s, skipped when 0) + update of the cylindrical filter, batched.
@@ -772,14 +782,19 @@ def cyl_step(y, P, fr: Frame, obs: ObserverEpoch, config: LocatorConfig, dt_s: f
     if config.update_iterations > 1:  # iterated EKF: relinearise at the updated state
         z = np.stack([obs.range_m, obs.range_rate_m_s], axis=-1)
         used0, yi = out[3], out[0]
+        x_last, it = xp, None
         for _ in range(int(config.update_iterations) - 1):
             xi, Gi_ = cyl_to_ecef(yi, fr, jacobian=True)
+            if _converged(xi, x_last):
+                break
+            x_last = xi
             zh, Hi, _ = range_doppler_blocks(xi, obs, kappa)  # (R kept at the prediction's)
             Hi = Hi @ Gi_[:, None]
             nui = z - zh - np.einsum("tnai,ti->tna", Hi, y - yi)
             it = _update(y, P, nui, Hi, R, used0, config, False)
             yi = it[0]
-        out = (it[0], it[1], it[2], it[3], obs.mask & ~it[3], out[5])
+        if it is not None:
+            out = (it[0], it[1], it[2], it[3], obs.mask & ~it[3], out[5])
     return out + (fr,)
 
 
@@ -848,14 +863,19 @@ def _consider_step(y, P, C, fr, xp, F, obs, config, dt_s, loglik, Pu_prev=None):
     out = _consider_update(y, P, C, z - zhat, Hy, J, obs.cov, R0, obs.mask, config, False, None)
     if config.update_iterations > 1:
         used0, yi = out[3], out[0]
+        x_last, it = xp, None
         for _ in range(int(config.update_iterations) - 1):
             xi, Gi_ = cyl_to_ecef(yi, fr, jacobian=True)
+            if _converged(xi, x_last):
+                break
+            x_last = xi
             zh, Hi, _ = range_doppler_blocks(xi, obs, 0.0)
             Hyi = Hi @ Gi_[:, None]
             nui = z - zh - np.einsum("tnai,ti->tna", Hyi, y - yi)
             it = _consider_update(y, P, C, nui, Hyi, -Hi, obs.cov, R0, obs.mask, config, False, used0)
             yi = it[0]
-        out = (it[0], it[1], it[2], it[3], obs.mask & ~it[3], out[5], it[6])
+        if it is not None:
+            out = (it[0], it[1], it[2], it[3], obs.mask & ~it[3], out[5], it[6])
     y1, P1, nis, used, gated, _, C1 = out
     m2ll = None
     if loglik:
