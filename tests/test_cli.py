@@ -10,7 +10,7 @@ import pytest
 
 from sitl.cli import build_parser, main
 
-SUBCOMMANDS = [[], ["demo"], ["experiment"], ["experiment", "ekf-vs-ukf"], ["experiment", "iono-tropo"], ["bench"],
+SUBCOMMANDS = [[], ["demo"], ["run"], ["replay"], ["bench", "live"], ["experiment"], ["experiment", "ekf-vs-ukf"], ["experiment", "iono-tropo"], ["bench"],
                ["bench", "filters"], ["bench", "iono-tropo"]]
 
 

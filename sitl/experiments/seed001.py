@@ -435,12 +435,3 @@ def main(args) -> int:
     print(summary_table(res))
     print("wrote " + ", ".join(str(f) for f in files))
     return 0
-
-
-def demo(args) -> int:
-    """`skyfuse demo` until the live SITL exists: a short seed 001 run and its table."""
-    res = run(Seed001Scenario(), args.trials, args.seed, progress=_progress(False))
-    files = write(res, args.out)
-    print(summary_table(res))
-    print("wrote " + ", ".join(str(f) for f in files))
-    return 0
