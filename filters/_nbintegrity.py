@@ -54,9 +54,11 @@ def _monitor_chunk(t0, nl, hq, z, hx, H, r_nom, r_est, old_sq, old_b, stale, sum
         iprm[9] != 0
     J2 = J * J
     shared_r = r_nom.shape[0] == 1
-    # innovations (a NaN measurement is missing: 0 in its place)
+    # innovations (a NaN measurement is missing: 0 in its place) and the R in their variance: the
+    # nominal one, or the adaptive estimate when larger
     for q in range(nl):
         t = t0 + q
+        rt = 0 if shared_r else t
         for j in range(m):
             zj = z[t, j]
             mj = not math.isfinite(zj)
@@ -66,17 +68,12 @@ def _monitor_chunk(t0, nl, hq, z, hx, H, r_nom, r_est, old_sq, old_b, stale, sum
             nu[q, j] = zj - hx[t, j]
             if write_zh:
                 z_f[t, j] = zj
-    # the R in the innovation variance: the nominal one, or the adaptive estimate when larger
-    for q in range(nl):
-        t = t0 + q
-        rt = 0 if shared_r else t
-        for j in range(m):
-            rf[q, j] = r_nom[rt, j]
-        if adapt_r:
-            for j in range(m):
+            r = r_nom[rt, j]
+            if adapt_r:
                 re = r_est[t, j]
-                if math.isfinite(re) and re > rf[q, j]:
-                    rf[q, j] = re
+                if math.isfinite(re) and re > r:
+                    r = re
+            rf[q, j] = r
     # beta, the jump test and the (winsorised) window samples
     for q in range(nl):
         t = t0 + q
@@ -167,13 +164,10 @@ def _monitor_chunk(t0, nl, hq, z, hx, H, r_nom, r_est, old_sq, old_b, stale, sum
             weight[t, j] = w
             r_used[t if glob else q, j] = r
             y[t, j] = 0.0 if it else nu[q, j]
-    # the innovation-based R estimate (admitted rows)
-    if adapt_r:
-        for q in range(nl):
-            t = t0 + q
-            for j in range(m):
+            # the innovation-based R estimate (admitted rows)
+            if adapt_r:
                 re = r_est[t, j]
-                if not inert[t if glob else q, j]:
+                if not it:
                     sample = nu[q, j] * nu[q, j] - hq[q, j]
                     re = (1.0 - lam) * re + lam * sample if math.isfinite(re) else sample
                 r_est2[t, j] = re

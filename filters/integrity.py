@@ -265,7 +265,6 @@ class IntegrityMonitor:
         if state.sum_sq.shape[-1] != m:
             raise ValueError(f"the monitor state has {state.sum_sq.shape[-1]} rows, the measurement {m}")
         W = cfg.window
-        J = cfg.jump_sigma
         count = min(state.count + 1, W)
         thr_ms = float(cfg.drift_thresholds()[count - 1])
         thr_b = cfg.bias_threshold()
@@ -273,8 +272,6 @@ class IntegrityMonitor:
         rd = model.R_diag()
         if rd is None:
             raise ValueError("the integrity monitor needs a measurement model with a diagonal R (R_diag)")
-        batch = z.shape[:-1]
-        n = x.shape[-1]
         old_sq, old_b = state.ring[state.pos], state.ring_b[state.pos]
         if _use_kernel(update_kw.get("backend")):
             res, (beta, jump, drift_stat, bias_stat, drift, used, w, sum_sq, sum_b, r_est, excluded, newly, readmit,
@@ -407,7 +404,7 @@ class IntegrityMonitor:
         return res, arrays, int(n_readmit)
 
     def _epoch_numpy(self, state, x, P, z, hx, H, rd, ch, C, count, thr_ms, thr_b, old_sq, old_b):
-        """The reference of filters/_nbintegrity.monitor_epoch (same outputs)."""
+        """The reference of the compiled monitor (filters/_nbintegrity.py; same outputs)."""
         cfg = self.config
         W, J = cfg.window, cfg.jump_sigma
         missing = ~np.isfinite(z)

@@ -303,3 +303,71 @@ def test_compiled_and_numpy_monitor_agree():
         np.testing.assert_allclose(a[1], b[1], rtol=1e-10, atol=1e-10)
         for u, v in zip(a[2], b[2]):
             np.testing.assert_allclose(np.asarray(u, float), np.asarray(v, float), rtol=1e-10, atol=1e-10)
+
+
+@pytest.mark.parametrize("trials", [5, 300])  # the serial and the parallel driver
+def test_fused_ekf_path_equals_the_generic_path(trials):
+    """Around ekf_update the compiled monitor runs the update in its own kernel (fused); around any
+    other update it hands a guarded model to it. Both must give the same numbers, through jumps,
+    missing rows, exclusion and readmission (fresh windows), Huber weights and adaptive R."""
+    rng = np.random.default_rng(7)
+    n, m = 5, 8
+    A = rng.normal(size=(trials, n, n))
+    P0 = A @ A.transpose(0, 2, 1) + np.eye(n)
+    x0 = rng.normal(size=(trials, n))
+    Hm = rng.normal(size=(m, n))
+    model = LinearGaussian(Hm, np.diag(rng.uniform(0.5, 2.0, m)))
+    ch = np.arange(m) // 2
+    cfg = IntegrityConfig(huber_c=1.5, adapt_r=True, window=4, readmit_after=3, persist=2)
+    mon = IntegrityMonitor(cfg)
+
+    def generic(*a, **kw):
+        return ekf_update(*a, **kw)
+
+    runs = {}
+    for name, upd in (("fused", ekf_update), ("generic", generic)):
+        ms = mon.init((trials,), m, 4)
+        x, P = x0, P0
+        out = []
+        for k in range(16):
+            z = np.random.default_rng(k).normal(size=(trials, m)) + x0 @ Hm.T
+            if 3 <= k < 7:
+                z[:, 2] += 25.0  # a step on channel 1 for 4 epochs: excluded, then readmitted
+            if k == 9:
+                z[1, 5] = np.nan
+            res, ms, rep = mon.step(ms, x, P, z, model, ch, update=upd, backend="numba")
+            x, P = res.x, 0.5 * (res.P + np.swapaxes(res.P, -1, -2)) + 0.1 * np.eye(n)
+            out.append((res, rep))
+        runs[name] = out
+    assert any(r.readmitted.any() for _, r in runs["fused"]) and any(r.newly_excluded.any() for _, r in runs["fused"])
+    for (ra, pa), (rb, pb) in zip(runs["fused"], runs["generic"]):
+        for u, v in zip(ra, rb):
+            np.testing.assert_allclose(u, v, rtol=1e-11, atol=1e-11)
+        for u, v in zip(pa, pb):
+            np.testing.assert_allclose(np.asarray(u, float), np.asarray(v, float), rtol=1e-11, atol=1e-11)
+
+
+def test_the_fused_path_leaves_the_models_h_alone():
+    """The fused update masks its own lane copy of H: an H the model hands out is not written."""
+    class Owned:
+        def __init__(self, H):
+            self.Hm, self.last = H, None
+
+        def h_and_H(self, x):  # a fresh, writeable, full-shape H (the in-place candidate)
+            self.last = np.array(np.broadcast_to(self.Hm, x.shape[:-1] + self.Hm.shape))
+            return x @ self.Hm.T, self.last
+
+        def R_diag(self):
+            return np.ones(self.Hm.shape[0])
+
+    rng = np.random.default_rng(3)
+    trials, n, m = 4, 3, 4
+    model = Owned(rng.normal(size=(m, n)))
+    mon = IntegrityMonitor(IntegrityConfig())
+    ms = mon.init((trials,), m, m)
+    z = rng.normal(size=(trials, m))
+    z[:, 1] += 50.0  # a jump: the row is inert this epoch
+    _, _, rep = mon.step(ms, np.zeros((trials, n)), np.broadcast_to(np.eye(n), (trials, n, n)), z, model,
+                         np.arange(m))
+    assert not rep.used[:, 1].any()
+    np.testing.assert_array_equal(model.last, np.broadcast_to(model.Hm, (trials, m, n)))
