@@ -75,7 +75,7 @@ def _binom_ci(n, p, conf=0.999):
 
 def test_detect_only_monitor_equals_the_plain_filter_bit_for_bit():
     cfg = IntegrityConfig(isolate=False)
-    e_mon, reps, _ = _run(cfg, 20, 60, seed=3)
+    e_mon, _reps, _ = _run(cfg, 20, 60, seed=3)
     e_plain, _, _ = _run(cfg, 20, 60, seed=3, monitor=False)
     np.testing.assert_array_equal(e_mon, e_plain)
 
