@@ -1,19 +1,19 @@
 """Compiled kernel of the integrity monitor's epoch (filters/integrity.py, numpy reference there).
 
-One pass per trial over the rows: innovation, diag(H P H') (all rows of a trial at
-once), beta, the jump test, the window sums (running: + the new sample - the one leaving the
-ring), both window tests, the channel logic (jump runs, exclusion, readmission), the row
-mask, Huber weights, the R used by the update, the innovation-based R estimate, and H with
-the inert rows zeroed.
+Per trial: innovation, diag(H P- H'), beta, the jump test, the window sums (running: + the new
+sample - the one leaving the ring), both window tests, the channel logic (jump runs,
+exclusion, readmission), the row mask, Huber weights, the R used by the update and the
+innovation-based R estimate.
 
-Layout as in filters/_nbkernels.py: ``_epoch_block`` processes trials [lo, hi) with its
-scratch allocated once per block, the drivers spread blocks over the cores (``*_par``) or run
-one block (``*_ser``). Every output is allocated by the caller and passed in (no allocation
-per call in here). With ``fuse`` the block then runs the EKF's sequential Joseph update
-(_nbkernels._joseph_block, the very code behind ekf_update) on the same trials while their
-P and H are still in cache: the monitor's second pass over the two largest arrays of the
-step costs cache reads instead of memory reads, and the update takes the monitor's
-innovations, masked H and R as they are (no guarded-model round trip).
+Layout as in filters/_nbkernels.py: ``_block`` processes trials [lo, hi), LANES at a time, with
+its scratch allocated once per block; the drivers spread blocks over the cores (``*_par``) or
+run one block (``*_ser``). Every output is allocated by the caller and passed in. Everything a
+lane group needs is in that one function: a call per lane group would pay an atomic reference
+count on each of its ~45 arrays, shared by the threads (measured: a large part of the cost on
+two cores). With ``fuse`` the block then runs the EKF's sequential Joseph update on the lanes
+it has loaded (the arithmetic of _nbkernels._joseph_block), taking the monitor's innovations,
+mask and R as they are; without, the inert rows of H are zeroed in H and z, h are written out
+for a guarded model and any update.
 """
 from __future__ import annotations
 
@@ -22,230 +22,36 @@ import math
 import numba as nb
 import numpy as np
 
-from ._nbkernels import LANES, N_BLOCKS, _jit
+from ._nbkernels import LANES, N_BLOCKS, _jit  # noqa: F401 (LANES: the caller reads it here)
 
 
 @nb.njit(**_jit)
-def _monitor_chunk(t0, nl, hq, z, hx, H, r_nom, r_est, old_sq, old_b, stale, sum_sq, sum_b, jump_run, excluded,
-                   clean_run, ch, prm, iprm, beta, jump, drift_stat, bias_stat, drift, inert, used, weight, r_used, y,
-                   new_sq, new_b, sum_sq2, sum_b2, r_est2, excl2, newly, readmit, jr2, cr2, z_f, hx_g, nu, rf, q2, qb,
-                   miss, jmp, drf, jump_ch, drift_ch, zero_h, glob):
-    """The monitor's epoch for the trials t0 .. t0 + nl - 1 given hq[q] = diag(H P- H') of trial
-    t0 + q. Returns the readmissions. With glob, inert and r_used are the batched outputs (N, m)
-    (for a guarded model); without, chunk scratch (>= nl, m) indexed by q (the fused update reads
-    them straight away).
+def _block(lo, hi, z, hx, H, P, r_nom, r_est, old_sq, old_b, stale, sum_sq, sum_b, jump_run, excluded, clean_run,
+           ch, prm, iprm, beta, jump, drift_stat, bias_stat, drift, inert, used, weight, r_used, y, new_sq, new_b,
+           sum_sq2, sum_b2, r_est2, excl2, newly, readmit, jr2, cr2, z_f, hx_g, fuse, x, xo, Po, nis, lanes):
+    """The monitor (and with ``fuse`` the EKF's sequential Joseph update) on trials [lo, hi), LANES
+    trials at a time in the layout of _nbkernels._joseph_block (P[i, j, lane]): the lanes' P- and
+    H are loaded once, diag(H P- H') is computed on them (vectorised over the trials), the
+    monitor runs on the lane group, and the update takes its innovations, mask and R on the same
+    lanes. The update arithmetic is _joseph_block's (without the prediction), statement for
+    statement, so the result equals ekf_update on the guarded model (tested); H is then not
+    modified. Without ``fuse``: the inert rows of H are zeroed in H, z_f and hx_g written.
 
     prm: (J, thr_ms, thr_b, huber_c, lam); iprm: (count, W, use_bias, persist, readmit_after,
-    use_huber, adapt_r, isolate, has_stale, write_zh) -- write_zh: also z with NaN -> 0 (z_f)
-    and h with the inert rows set to it (hx_g), for a guarded model. r_nom has 1 or N rows
-    (shared or per trial). With zero_h the H rows of inert measurements are zeroed in H.
-    nu, rf, q2, qb, miss, jmp, drf (>= nl, m) and jump_ch, drift_ch (>= nl, C): scratch.
-
-    The work runs in passes over the chunk, each touching a few of the batched arrays: a pass
-    over all ~25 arrays at once, trial by trial, defeats the hardware prefetcher (measured:
-    2.4x slower at 10,000 trials than the same reads and writes in passes).
-    """
-    m = z.shape[1]
+    use_huber, adapt_r, isolate, has_stale, write_zh). r_nom has 1 or N rows (shared or per
+    trial). Returns the number of readmissions."""
     n = H.shape[2]
+    m = z.shape[1]
     C = excluded.shape[1]
+    B = lanes
     J, thr_ms, thr_b, huber_c, lam = prm[0], prm[1], prm[2], prm[3], prm[4]
     count, W, use_bias, persist, readmit_after = iprm[0], iprm[1], iprm[2] != 0, iprm[3], iprm[4]
     use_huber, adapt_r, isolate, has_stale, write_zh = iprm[5] != 0, iprm[6] != 0, iprm[7] != 0, iprm[8] != 0, \
         iprm[9] != 0
     J2 = J * J
     shared_r = r_nom.shape[0] == 1
-    # innovations (a NaN measurement is missing: 0 in its place) and the R in their variance: the
-    # nominal one, or the adaptive estimate when larger
-    for q in range(nl):
-        t = t0 + q
-        rt = 0 if shared_r else t
-        for j in range(m):
-            zj = z[t, j]
-            mj = not math.isfinite(zj)
-            if mj:
-                zj = 0.0
-            miss[q, j] = mj
-            nu[q, j] = zj - hx[t, j]
-            if write_zh:
-                z_f[t, j] = zj
-            r = r_nom[rt, j]
-            if adapt_r:
-                re = r_est[t, j]
-                if math.isfinite(re) and re > r:
-                    r = re
-            rf[q, j] = r
-    # beta, the jump test and the (winsorised) window samples
-    for q in range(nl):
-        t = t0 + q
-        for j in range(m):
-            mj = miss[q, j]
-            bj = 0.0 if mj else nu[q, j] / math.sqrt(hq[q, j] + rf[q, j])
-            beta[t, j] = bj
-            jp = (abs(bj) >= J) and not mj
-            jmp[q, j] = jp
-            jump[t, j] = jp
-            v2 = 1.0 if mj else min(bj * bj, J2)
-            vb = 0.0 if mj else min(max(bj, -J), J)
-            q2[q, j] = v2
-            qb[q, j] = vb
-            new_sq[t, j] = v2
-            new_b[t, j] = vb
-    # the window sums: the new sample in, the oldest out (a stale slot leaves as the healthy value)
-    for q in range(nl):
-        t = t0 + q
-        for j in range(m):
-            o2 = old_sq[t, j]
-            ob = old_b[t, j]
-            if has_stale and stale[t, j] > 0:
-                o2, ob = 1.0, 0.0
-            sum_sq2[t, j] = sum_sq[t, j] + q2[q, j] - o2
-            sum_b2[t, j] = sum_b[t, j] + qb[q, j] - ob
-    # both window tests
-    for q in range(nl):
-        t = t0 + q
-        for j in range(m):
-            ss = sum_sq2[t, j]
-            sb = sum_b2[t, j]
-            ds = ss / W if count == W else (ss - (W - count)) / count
-            bs = sb * sb / count
-            drift_stat[t, j] = ds
-            bias_stat[t, j] = bs
-            dr = ds > thr_ms or (use_bias and bs > thr_b)
-            drf[q, j] = dr
-            drift[t, j] = dr
-    # the channels: jump runs, exclusion, readmission
-    n_readmit = 0
-    for q in range(nl):
-        t = t0 + q
-        for c in range(C):
-            jump_ch[q, c] = False
-            drift_ch[q, c] = False
-        for j in range(m):
-            c = ch[j]
-            if jmp[q, j]:
-                jump_ch[q, c] = True
-            if drf[q, j]:
-                drift_ch[q, c] = True
-        for c in range(C):
-            jc = jump_ch[q, c]
-            dc = drift_ch[q, c]
-            jr = jump_run[t, c] + 1 if jc else 0
-            jr2[t, c] = jr
-            fault = dc or jr >= persist
-            ex = excluded[t, c]
-            clean = not (jc or (dc and not ex))  # out: the window tests do not apply
-            cr2[t, c] = clean_run[t, c] + 1 if clean else 0
-            if isolate:
-                rd = ex and cr2[t, c] >= readmit_after
-                readmit[t, c] = rd
-                n_readmit += rd
-                excl2[t, c] = (ex or fault) and not rd
-                newly[t, c] = fault and not ex
-            else:
-                readmit[t, c] = False
-                excl2[t, c] = False
-                newly[t, c] = fault
-    # the row mask, Huber weights, the R and the innovations the update uses
-    for q in range(nl):
-        t = t0 + q
-        for j in range(m):
-            it = miss[q, j]
-            if isolate:
-                it = it or jmp[q, j] or excl2[t, ch[j]]
-            inert[t if glob else q, j] = it
-            used[t, j] = not it
-            w = 0.0 if it else 1.0
-            r = rf[q, j]
-            if use_huber and not it:
-                ab = abs(beta[t, j])
-                if ab > huber_c:
-                    w = huber_c / max(ab, 1e-300)
-                    r = r * (1.0 / w)
-            weight[t, j] = w
-            r_used[t if glob else q, j] = r
-            y[t, j] = 0.0 if it else nu[q, j]
-            # the innovation-based R estimate (admitted rows)
-            if adapt_r:
-                re = r_est[t, j]
-                if not it:
-                    sample = nu[q, j] * nu[q, j] - hq[q, j]
-                    re = (1.0 - lam) * re + lam * sample if math.isfinite(re) else sample
-                r_est2[t, j] = re
-    if write_zh or zero_h:
-        for q in range(nl):
-            t = t0 + q
-            for j in range(m):
-                it = inert[t if glob else q, j]
-                if write_zh:
-                    hx_g[t, j] = z_f[t, j] if it else hx[t, j]
-                if zero_h and it:
-                    for a in range(n):
-                        H[t, j, a] = 0.0
-    return n_readmit
-
-
-@nb.njit(**_jit)
-def _hph_trial(H, P, t, hph, Ht, g):
-    """hph (m,) = diag(H[t] P[t] H[t]') of all rows at once, vectorised over the rows: with
-    Ht = H[t]' (n, m), hph_j = sum_a Ht[a, j] (P_aa Ht[a, j] + 2 sum_{b > a} P_ab Ht[b, j])."""
-    m, n = H.shape[1], H.shape[2]
-    for j in range(m):
-        hph[j] = 0.0
-        for a in range(n):
-            Ht[a, j] = H[t, j, a]
-    for a in range(n):
-        paa = P[t, a, a]
-        for j in range(m):
-            g[j] = paa * Ht[a, j]
-        for b in range(a + 1, n):
-            w = 2.0 * P[t, a, b]
-            for j in range(m):
-                g[j] += w * Ht[b, j]
-        for j in range(m):
-            hph[j] += Ht[a, j] * g[j]
-
-
-@nb.njit(**_jit)
-def _epoch_block(lo, hi, z, hx, H, P, r_nom, r_est, old_sq, old_b, stale, sum_sq, sum_b, jump_run, excluded,
-                 clean_run, ch, prm, iprm, beta, jump, drift_stat, bias_stat, drift, inert, used, weight, r_used, y,
-                 new_sq, new_b, sum_sq2, sum_b2, r_est2, excl2, newly, readmit, jr2, cr2, z_f, hx_g):
-    """The monitor alone on trials [lo, hi) (the update runs afterwards on a guarded model):
-    the H rows of inert measurements are zeroed in H. Returns the readmissions."""
-    m, n, C = z.shape[1], H.shape[2], excluded.shape[1]
-    B = LANES
-    hq = np.empty((B, m))
-    nu, rf, q2, qb = np.empty((B, m)), np.empty((B, m)), np.empty((B, m)), np.empty((B, m))
-    miss, jmp, drf = np.empty((B, m), np.bool_), np.empty((B, m), np.bool_), np.empty((B, m), np.bool_)
-    jump_ch, drift_ch = np.empty((B, C), np.bool_), np.empty((B, C), np.bool_)
-    Ht, g = np.empty((n, m)), np.empty(m)
-    tot = 0
-    for t0 in range(lo, hi, B):
-        nl = min(B, hi - t0)
-        for q in range(nl):
-            _hph_trial(H, P, t0 + q, hq[q], Ht, g)
-        tot += _monitor_chunk(t0, nl, hq, z, hx, H, r_nom, r_est, old_sq, old_b, stale, sum_sq, sum_b, jump_run,
-                              excluded, clean_run, ch, prm, iprm, beta, jump, drift_stat, bias_stat, drift, inert,
-                              used, weight, r_used, y, new_sq, new_b, sum_sq2, sum_b2, r_est2, excl2, newly, readmit,
-                              jr2, cr2, z_f, hx_g, nu, rf, q2, qb, miss, jmp, drf, jump_ch, drift_ch, True, True)
-    return tot
-
-
-@nb.njit(**_jit)
-def _fused_block(lo, hi, z, hx, H, P, r_nom, r_est, old_sq, old_b, stale, sum_sq, sum_b, jump_run, excluded,
-                 clean_run, ch, prm, iprm, beta, jump, drift_stat, bias_stat, drift, inert, used, weight, r_used, y,
-                 new_sq, new_b, sum_sq2, sum_b2, r_est2, excl2, newly, readmit, jr2, cr2, z_f, hx_g, x, xo, Po, nis,
-                 lanes):
-    """The monitor and the EKF's sequential Joseph update on trials [lo, hi), LANES trials at a
-    time in the layout of _nbkernels._joseph_block (P[i, j, lane]): the lanes' P- and H are
-    loaded once, diag(H P- H') is computed on them (vectorised over the trials), the monitor
-    runs per trial, and the update takes its innovations, mask and R on the same lanes. The
-    update arithmetic is _joseph_block's (without the prediction), statement for statement,
-    so the result equals ekf_update on the guarded model (tested). H is not modified.
-    Returns the readmissions."""
-    n = x.shape[1]
-    m = z.shape[1]
-    C = excluded.shape[1]
-    B = lanes
+    glob = not fuse  # the row mask and R: batched outputs for a guarded model, else lane-group scratch
+    zero_h = glob
     Pl = np.empty((n, n, B))
     Hl = np.empty((m, n, B))
     yl = np.empty((m, B))
@@ -262,6 +68,8 @@ def _fused_block(lo, hi, z, hx, H, P, r_nom, r_est, old_sq, old_b, stale, sum_sq
     hq = np.empty((B, m))
     nu_t, rf, q2, qb = np.empty((B, m)), np.empty((B, m)), np.empty((B, m)), np.empty((B, m))
     r_q, inert_q = np.empty((B, m)), np.empty((B, m), np.bool_)
+    inert_m = inert if glob else inert_q
+    r_m = r_used if glob else r_q
     miss, jmp, drf = np.empty((B, m), np.bool_), np.empty((B, m), np.bool_), np.empty((B, m), np.bool_)
     jump_ch, drift_ch = np.empty((B, C), np.bool_), np.empty((B, C), np.bool_)
     tot = 0
@@ -299,10 +107,136 @@ def _fused_block(lo, hi, z, hx, H, P, r_nom, r_est, old_sq, old_b, stale, sum_sq
         for q in range(nl):
             for a in range(m):
                 hq[q, a] = hl[a, q]
-        tot += _monitor_chunk(t0, nl, hq, z, hx, H, r_nom, r_est, old_sq, old_b, stale, sum_sq, sum_b, jump_run,
-                              excluded, clean_run, ch, prm, iprm, beta, jump, drift_stat, bias_stat, drift, inert_q,
-                              used, weight, r_q, y, new_sq, new_b, sum_sq2, sum_b2, r_est2, excl2, newly, readmit,
-                              jr2, cr2, z_f, hx_g, nu_t, rf, q2, qb, miss, jmp, drf, jump_ch, drift_ch, False, False)
+        # the monitor, in passes over the lane group (each pass touches a few batched arrays: one pass
+        # over all ~25 at once, trial by trial, defeats the hardware prefetcher, measured 2.4x slower)
+        # innovations (a NaN measurement is missing: 0 in its place) and the R in their variance: the
+        # nominal one, or the adaptive estimate when larger
+        for q in range(nl):
+            t = t0 + q
+            rt = 0 if shared_r else t
+            for j in range(m):
+                zj = z[t, j]
+                mj = not math.isfinite(zj)
+                if mj:
+                    zj = 0.0
+                miss[q, j] = mj
+                nu_t[q, j] = zj - hx[t, j]
+                if write_zh:
+                    z_f[t, j] = zj
+                r = r_nom[rt, j]
+                if adapt_r:
+                    re = r_est[t, j]
+                    if math.isfinite(re) and re > r:
+                        r = re
+                rf[q, j] = r
+        # beta, the jump test and the (winsorised) window samples
+        for q in range(nl):
+            t = t0 + q
+            for j in range(m):
+                mj = miss[q, j]
+                bj = 0.0 if mj else nu_t[q, j] / math.sqrt(hq[q, j] + rf[q, j])
+                beta[t, j] = bj
+                jp = (abs(bj) >= J) and not mj
+                jmp[q, j] = jp
+                jump[t, j] = jp
+                v2 = 1.0 if mj else min(bj * bj, J2)
+                vb = 0.0 if mj else min(max(bj, -J), J)
+                q2[q, j] = v2
+                qb[q, j] = vb
+                new_sq[t, j] = v2
+                new_b[t, j] = vb
+        # the window sums: the new sample in, the oldest out (a stale slot leaves as the healthy value)
+        for q in range(nl):
+            t = t0 + q
+            for j in range(m):
+                o2 = old_sq[t, j]
+                ob = old_b[t, j]
+                if has_stale and stale[t, j] > 0:
+                    o2, ob = 1.0, 0.0
+                sum_sq2[t, j] = sum_sq[t, j] + q2[q, j] - o2
+                sum_b2[t, j] = sum_b[t, j] + qb[q, j] - ob
+        # both window tests
+        for q in range(nl):
+            t = t0 + q
+            for j in range(m):
+                ss = sum_sq2[t, j]
+                sb = sum_b2[t, j]
+                ds = ss / W if count == W else (ss - (W - count)) / count
+                bs = sb * sb / count
+                drift_stat[t, j] = ds
+                bias_stat[t, j] = bs
+                dr = ds > thr_ms or (use_bias and bs > thr_b)
+                drf[q, j] = dr
+                drift[t, j] = dr
+        # the channels: jump runs, exclusion, readmission
+        for q in range(nl):
+            t = t0 + q
+            for c in range(C):
+                jump_ch[q, c] = False
+                drift_ch[q, c] = False
+            for j in range(m):
+                c = ch[j]
+                if jmp[q, j]:
+                    jump_ch[q, c] = True
+                if drf[q, j]:
+                    drift_ch[q, c] = True
+            for c in range(C):
+                jc = jump_ch[q, c]
+                dc = drift_ch[q, c]
+                jr = jump_run[t, c] + 1 if jc else 0
+                jr2[t, c] = jr
+                fault = dc or jr >= persist
+                ex = excluded[t, c]
+                clean = not (jc or (dc and not ex))  # out: the window tests do not apply
+                cr2[t, c] = clean_run[t, c] + 1 if clean else 0
+                if isolate:
+                    rd = ex and cr2[t, c] >= readmit_after
+                    readmit[t, c] = rd
+                    tot += rd
+                    excl2[t, c] = (ex or fault) and not rd
+                    newly[t, c] = fault and not ex
+                else:
+                    readmit[t, c] = False
+                    excl2[t, c] = False
+                    newly[t, c] = fault
+        # the row mask, Huber weights, the R and the innovations the update uses
+        for q in range(nl):
+            t = t0 + q
+            for j in range(m):
+                it = miss[q, j]
+                if isolate:
+                    it = it or jmp[q, j] or excl2[t, ch[j]]
+                inert_m[t if glob else q, j] = it
+                used[t, j] = not it
+                w = 0.0 if it else 1.0
+                r = rf[q, j]
+                if use_huber and not it:
+                    ab = abs(beta[t, j])
+                    if ab > huber_c:
+                        w = huber_c / max(ab, 1e-300)
+                        r = r * (1.0 / w)
+                weight[t, j] = w
+                r_m[t if glob else q, j] = r
+                y[t, j] = 0.0 if it else nu_t[q, j]
+                # the innovation-based R estimate (admitted rows)
+                if adapt_r:
+                    re = r_est[t, j]
+                    if not it:
+                        sample = nu_t[q, j] * nu_t[q, j] - hq[q, j]
+                        re = (1.0 - lam) * re + lam * sample if math.isfinite(re) else sample
+                    r_est2[t, j] = re
+        if write_zh or zero_h:
+            for q in range(nl):
+                t = t0 + q
+                for j in range(m):
+                    it = inert_m[t if glob else q, j]
+                    if write_zh:
+                        hx_g[t, j] = z_f[t, j] if it else hx[t, j]
+                    if zero_h and it:
+                        for a in range(n):
+                            H[t, j, a] = 0.0
+        if not fuse:
+            continue
         for q in range(nl):
             t = t0 + q
             for a in range(m):
@@ -384,16 +318,10 @@ def epoch_par(z, hx, H, P, r_nom, r_est, old_sq, old_b, stale, sum_sq, sum_b, ju
     tot = 0
     for blk in nb.prange(nb_):
         lo, hi = blk * N // nb_, (blk + 1) * N // nb_
-        if fuse:
-            tot += _fused_block(lo, hi, z, hx, H, P, r_nom, r_est, old_sq, old_b, stale, sum_sq, sum_b, jump_run,
+        tot += _block(lo, hi, z, hx, H, P, r_nom, r_est, old_sq, old_b, stale, sum_sq, sum_b, jump_run,
                                 excluded, clean_run, ch, prm, iprm, beta, jump, drift_stat, bias_stat, drift, inert,
                                 used, weight, r_used, y, new_sq, new_b, sum_sq2, sum_b2, r_est2, excl2, newly,
-                                readmit, jr2, cr2, z_f, hx_g, x, xo, Po, nis, lanes)
-        else:
-            tot += _epoch_block(lo, hi, z, hx, H, P, r_nom, r_est, old_sq, old_b, stale, sum_sq, sum_b, jump_run,
-                                excluded, clean_run, ch, prm, iprm, beta, jump, drift_stat, bias_stat, drift, inert,
-                                used, weight, r_used, y, new_sq, new_b, sum_sq2, sum_b2, r_est2, excl2, newly,
-                                readmit, jr2, cr2, z_f, hx_g)
+                                readmit, jr2, cr2, z_f, hx_g, fuse, x, xo, Po, nis, lanes)
     return tot
 
 
@@ -402,11 +330,7 @@ def epoch_ser(z, hx, H, P, r_nom, r_est, old_sq, old_b, stale, sum_sq, sum_b, ju
               prm, iprm, beta, jump, drift_stat, bias_stat, drift, inert, used, weight, r_used, y, new_sq, new_b,
               sum_sq2, sum_b2, r_est2, excl2, newly, readmit, jr2, cr2, z_f, hx_g, fuse, x, xo, Po, nis, lanes):
     N = z.shape[0]
-    if fuse:
-        return _fused_block(0, N, z, hx, H, P, r_nom, r_est, old_sq, old_b, stale, sum_sq, sum_b, jump_run, excluded,
+    return _block(0, N, z, hx, H, P, r_nom, r_est, old_sq, old_b, stale, sum_sq, sum_b, jump_run, excluded,
                             clean_run, ch, prm, iprm, beta, jump, drift_stat, bias_stat, drift, inert, used, weight,
                             r_used, y, new_sq, new_b, sum_sq2, sum_b2, r_est2, excl2, newly, readmit, jr2, cr2, z_f,
-                            hx_g, x, xo, Po, nis, lanes)
-    return _epoch_block(0, N, z, hx, H, P, r_nom, r_est, old_sq, old_b, stale, sum_sq, sum_b, jump_run, excluded,
-                        clean_run, ch, prm, iprm, beta, jump, drift_stat, bias_stat, drift, inert, used, weight,
-                        r_used, y, new_sq, new_b, sum_sq2, sum_b2, r_est2, excl2, newly, readmit, jr2, cr2, z_f, hx_g)
+                            hx_g, fuse, x, xo, Po, nis, lanes)
