@@ -369,7 +369,11 @@ def test_cli_tiny_run_writes_result(tmp_path, capsys):
         assert c["rmse_m"] > 0 and c["pcrb_m"] > 0
         assert {"value", "bounds_99_one_epoch"} <= set(c["anees"])
         assert {"decomposed_rmse_m", "centralised_rmse_m"} <= set(doc["centralised_vs_decomposed"][case])
-        assert {"inflate", "ignore"} <= set(doc["inflate_vs_ignore"][case])
+        assert {"consider", "inflate", "ignore"} <= set(doc["inflate_vs_ignore"][case])
+        pa = doc["cases"][case]["pcrb_axes_m"]
+        assert set(pa) == {"xi", "eta", "zeta"} and all(v > 0 for v in pa.values())
+        # the axes' bounds make up the 3-D one: mean sqrt(trace) <= sqrt(sum of mean variances)
+        assert doc["cases"][case]["pcrb_m"] <= math.sqrt(sum(v * v for v in pa.values())) * (1 + 1e-9)
     assert doc["wall_s"] > 0
     assert doc["geometry"] == "printed" and doc["locator"]["init"] == "prior"
     assert doc["axes"]["xi"] == "ECEF y" and doc["axes"]["eta"].startswith("ECEF z") and doc["axes"]["zeta"] == "ECEF x"
