@@ -328,7 +328,8 @@ class LocatorConfig:
         ranges and Dopplers, relinearised at each iterate; the gate decided at the first).
         For ranges comparable with the state's uncertainty (a beacon that starts among the
         UAVs), where one linearisation at the prediction is poor.  At most this many: the
-        iterations stop once no row's ECEF iterate moves by 1 mm (mm/s) or more.
+        iterations stop once no row's ECEF iterate moves by 1 mm (mm/s) or more, or once
+        relinearising changes no used innovation by 1e-3 of its noise sigma.
     acquire_s: "consider" only: a track's first acquire_s run as "inflate" (module docstring).
     min_formation_sigmas: an epoch whose >= 3 UAVs span less than this many times their RMS
         position sigma gives no beacon measurement (0: off; module docstring).
@@ -748,6 +749,13 @@ def _converged(x, x_last) -> bool:
     return bool(np.max(np.abs(x - x_last)) < _IEKF_TOL)
 
 
+def _same_innovation(nu, nu_last, sigma, used) -> bool:
+    """Relinearising changed no used innovation by 1e-3 of its noise sigma or more: the next
+    update would repeat the last one (the measurements are linear enough over the step)."""
+    d = np.abs(nu - nu_last) / sigma
+    return bool(np.max(np.where(used[..., None], d, 0.0), initial=0.0) < 1e-3)
+
+
 def cyl_step(y, P, fr: Frame, obs: ObserverEpoch, config: LocatorConfig, dt_s: float, loglik: bool = False,
              C=None, Pu_prev=None):
     """One predict (over dt_s, skipped when 0) + update of the cylindrical filter, batched.
@@ -795,7 +803,8 @@ def cyl_step(y, P, fr: Frame, obs: ObserverEpoch, config: LocatorConfig, dt_s: f
     if config.update_iterations > 1:  # iterated EKF: relinearise at the updated state
         z = np.stack([obs.range_m, obs.range_rate_m_s], axis=-1)
         used0, yi = out[3], out[0]
-        x_last, it = xp, None
+        x_last, it, nu_last = xp, None, nu
+        sr = np.sqrt(np.diagonal(R, axis1=-2, axis2=-1))
         for _ in range(int(config.update_iterations) - 1):
             xi, Gi_ = cyl_to_ecef(yi, fr, jacobian=True)
             if _converged(xi, x_last):
@@ -804,6 +813,9 @@ def cyl_step(y, P, fr: Frame, obs: ObserverEpoch, config: LocatorConfig, dt_s: f
             zh, Hi, _ = range_doppler_blocks(xi, obs, kappa)  # (R kept at the prediction's)
             Hi = Hi @ Gi_[:, None]
             nui = z - zh - np.einsum("tnai,ti->tna", Hi, y - yi)
+            if _same_innovation(nui, nu_last, sr, used0):
+                break
+            nu_last = nui
             it = _update(y, P, nui, Hi, R, used0, config, False)
             yi = it[0]
         if it is not None:
@@ -876,7 +888,8 @@ def _consider_step(y, P, C, fr, xp, F, obs, config, dt_s, loglik, Pu_prev=None):
     out = _consider_update(y, P, C, z - zhat, Hy, J, obs.cov, R0, obs.mask, config, False, None)
     if config.update_iterations > 1:
         used0, yi = out[3], out[0]
-        x_last, it = xp, None
+        x_last, it, nu_last = xp, None, z - zhat
+        sr = np.sqrt(np.diagonal(R0, axis1=-2, axis2=-1))
         for _ in range(int(config.update_iterations) - 1):
             xi, Gi_ = cyl_to_ecef(yi, fr, jacobian=True)
             if _converged(xi, x_last):
@@ -885,6 +898,9 @@ def _consider_step(y, P, C, fr, xp, F, obs, config, dt_s, loglik, Pu_prev=None):
             zh, Hi, _ = range_doppler_blocks(xi, obs, 0.0)
             Hyi = Hi @ Gi_[:, None]
             nui = z - zh - np.einsum("tnai,ti->tna", Hyi, y - yi)
+            if _same_innovation(nui, nu_last, sr, used0):
+                break
+            nu_last = nui
             it = _consider_update(y, P, C, nui, Hyi, -Hi, obs.cov, R0, obs.mask, config, False, used0)
             yi = it[0]
         if it is not None:
