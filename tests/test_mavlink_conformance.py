@@ -588,11 +588,14 @@ def test_a_group_can_share_one_tlog(tmp_path):
                 for k in range(15):
                     g.step(T0_GPS_S + 0.1 * k, [telemetry(), telemetry()])
                 sent = g.counters["sent"]
+                sent_by_sys = {ep.sysid: ep.counters["sent"] for ep in eps}
         log = mavutil.mavlink_connection(str(path))
         by_sys = {}
         while (m := log.recv_match()) is not None:
             by_sys[m.get_srcSystem()] = by_sys.get(m.get_srcSystem(), 0) + 1
         log.close()
-        assert sum(by_sys.values()) == sent and set(by_sys) == {1, 2} and by_sys[1] == by_sys[2]
+        # every packet each endpoint sent is in the one file, under its own system id (the
+        # endpoints' streams are phase-spread, so their counts need not be equal)
+        assert sum(by_sys.values()) == sent and by_sys == sent_by_sys
     finally:
         peer.close()

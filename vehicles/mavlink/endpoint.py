@@ -168,6 +168,10 @@ class VehicleEndpoint:
         self._interval = dict(self._default_interval)
         self._due: dict[int, float] = {}
         self._next_due = -math.inf  # earliest due time of any stream
+        # each stream's first interval is shortened by this fraction (golden-ratio spread by
+        # instance), so the streams of many vehicles stepped together do not all fall due in
+        # the same epoch (at 200 UAVs that made every tenth 10 Hz step several times the others)
+        self._phase_frac = (self.instance * 0.6180339887498949) % 1.0
 
         self.counters = dict.fromkeys(TRAFFIC_COUNTERS + REJECT_REASONS, 0)
 
@@ -383,7 +387,10 @@ class VehicleEndpoint:
             if due is None or t >= due - _DUE_TOL_S:
                 if self._send_message(msgid):
                     # keep the phase; if we fell more than an interval behind, restart from now
-                    due = t + iv if due is None or t - due >= iv else due + iv
+                    if due is None:  # first send: now, the next one spread by the vehicle's phase
+                        due = t + iv * (1.0 - self._phase_frac)
+                    else:
+                        due = t + iv if t - due >= iv else due + iv
                     self._due[msgid] = due
                 else:
                     due = t  # nothing to send yet (no telemetry): try again next step
