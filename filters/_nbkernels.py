@@ -16,6 +16,8 @@ from __future__ import annotations
 import numba as nb
 import numpy as np
 
+from ._nbentry import declare, ro
+
 # fastmath without nnan/ninf: a failed Cholesky is reported as NaN and must stay NaN.
 _jit = dict(cache=True, nogil=True, error_model="numpy", fastmath={"contract", "arcp", "nsz", "reassoc"})
 N_BLOCKS = 64
@@ -526,6 +528,7 @@ def _ukf_update_block(xbar, Pbar, X, Z, z, R, Wm, Wc, xo, Po, yo, nis, lo, hi, l
 
 # ----------------------------------------------------------------------------- drivers
 
+@declare(ro(2), ro(3), ro(2))
 @nb.njit(parallel=True, **_jit)
 def predict_par(F, P, Q):
     N = P.shape[0]
@@ -536,13 +539,15 @@ def predict_par(F, P, Q):
     return out
 
 
+@declare(ro(2), ro(3), ro(2))
 @nb.njit(**_jit)
 def predict_ser(F, P, Q):
     out = np.empty_like(P)
-    _predict_block(F, P, Q, out, 0, P.shape[0])
+    _predict_block(F, P, Q, out, np.int64(0), P.shape[0])
     return out
 
 
+@declare(ro(2), ro(3), ro(2), ro(3), ro(2), ro(2), ro(2), nb.boolean, nb.int64)
 @nb.njit(parallel=True, **_jit)
 def joseph_par(x, P, y, H, r, F, Q, predict, lanes):
     N = x.shape[0]
@@ -555,15 +560,17 @@ def joseph_par(x, P, y, H, r, F, Q, predict, lanes):
     return xo, Po, nis
 
 
+@declare(ro(2), ro(3), ro(2), ro(3), ro(2), ro(2), ro(2), nb.boolean, nb.int64)
 @nb.njit(**_jit)
 def joseph_ser(x, P, y, H, r, F, Q, predict, lanes):
     xo = np.empty_like(x)
     Po = np.empty_like(P)
     nis = np.empty(x.shape[0])
-    _joseph_block(x, P, y, H, r, xo, Po, nis, 0, x.shape[0], F, Q, predict, lanes)
+    _joseph_block(x, P, y, H, r, xo, Po, nis, np.int64(0), x.shape[0], F, Q, predict, lanes)
     return xo, Po, nis
 
 
+@declare(ro(2), ro(3), nb.float64, nb.int64)
 @nb.njit(parallel=True, **_jit)
 def sigma_par(x, P, c, lanes):
     N, n = x.shape
@@ -574,14 +581,16 @@ def sigma_par(x, P, c, lanes):
     return X
 
 
+@declare(ro(2), ro(3), nb.float64, nb.int64)
 @nb.njit(**_jit)
 def sigma_ser(x, P, c, lanes):
     N, n = x.shape
     X = np.empty((2 * n + 1, N, n))
-    _sigma_block(x, P, c, X, 0, N, lanes)
+    _sigma_block(x, P, c, X, np.int64(0), N, lanes)
     return X
 
 
+@declare(ro(3), ro(1), ro(1), ro(2))
 @nb.njit(parallel=True, **_jit)
 def moments_par(X, Wm, Wc, Q):
     K, N, n = X.shape
@@ -593,15 +602,17 @@ def moments_par(X, Wm, Wc, Q):
     return mean, P
 
 
+@declare(ro(3), ro(1), ro(1), ro(2))
 @nb.njit(**_jit)
 def moments_ser(X, Wm, Wc, Q):
     K, N, n = X.shape
     mean = np.empty((N, n))
     P = np.empty((N, n, n))
-    _moments_block(X, Wm, Wc, Q, mean, P, 0, N)
+    _moments_block(X, Wm, Wc, Q, mean, P, np.int64(0), N)
     return mean, P
 
 
+@declare(ro(2), ro(3), ro(3), ro(3), ro(2), ro(3, "A"), ro(1), ro(1), nb.int64)
 @nb.njit(parallel=True, **_jit)
 def ukf_update_par(xbar, Pbar, X, Z, z, R, Wm, Wc, lanes):
     K_, N, n = X.shape
@@ -616,6 +627,7 @@ def ukf_update_par(xbar, Pbar, X, Z, z, R, Wm, Wc, lanes):
     return xo, Po, yo, nis
 
 
+@declare(ro(2), ro(3), ro(3), ro(3), ro(2), ro(3, "A"), ro(1), ro(1), nb.int64)
 @nb.njit(**_jit)
 def ukf_update_ser(xbar, Pbar, X, Z, z, R, Wm, Wc, lanes):
     K_, N, n = X.shape
@@ -624,10 +636,11 @@ def ukf_update_ser(xbar, Pbar, X, Z, z, R, Wm, Wc, lanes):
     Po = np.empty((N, n, n))
     yo = np.empty((N, m))
     nis = np.empty(N)
-    _ukf_update_block(xbar, Pbar, X, Z, z, R, Wm, Wc, xo, Po, yo, nis, 0, N, lanes)
+    _ukf_update_block(xbar, Pbar, X, Z, z, R, Wm, Wc, xo, Po, yo, nis, np.int64(0), N, lanes)
     return xo, Po, yo, nis
 
 
+@declare(ro(3), ro(3), ro(2))
 @nb.njit(parallel=True, **_jit)
 def _batched_predict_par(F, P, Q):
     N, n, _ = P.shape
@@ -673,8 +686,8 @@ def pr_prr_h_par(x, sp, sv, ip, iv, ib, idr):
     """
     L, M, n = x.shape
     out = np.empty((L, M, 2 * sp.shape[1]))
-    for lt in nb.prange(L * M):
-        _pr_prr_h_into(x, sp, sv, ip, iv, ib, idr, out, lt)
+    for lt in nb.prange(L * M):  # the prange index is unsigned: pass int64, as the serial driver does
+        _pr_prr_h_into(x, sp, sv, ip, iv, ib, idr, out, np.int64(lt))
     return out
 
 
@@ -728,8 +741,8 @@ def pr_prr_h_H_par(x, sp, sv, ip, iv, ib, idr):
     S = sp.shape[1]
     out = np.empty((M, 2 * S))
     H = np.zeros((M, 2 * S, n))
-    for t in nb.prange(M):
-        _pr_prr_h_H_into(x, sp, sv, ip, iv, ib, idr, out, H, t)
+    for t in nb.prange(M):  # the prange index is unsigned: pass int64, as the serial driver does
+        _pr_prr_h_H_into(x, sp, sv, ip, iv, ib, idr, out, H, np.int64(t))
     return out, H
 
 

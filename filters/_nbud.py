@@ -12,6 +12,8 @@ from __future__ import annotations
 import numba as nb
 import numpy as np
 
+from ._nbentry import declare, ready, ro, rw
+
 _jit = dict(cache=True, nogil=True, error_model="numpy")
 
 
@@ -54,6 +56,7 @@ def _mwgs_one(F, U, d, G, dq, Uo, do, W, Dw):
                 W[i, k] -= u * W[j, k]
 
 
+@declare(ro(3), ro(3), ro(2), ro(3), ro(2), rw(3), rw(2), nb.int64, nb.int64)
 @nb.njit(**_jit)
 def _mwgs_range(F, U, d, G, dq, Uo, do, lo, hi):
     n = U.shape[1]
@@ -107,6 +110,7 @@ def _bierman_one(x, U, d, y, H, r, xo, Uo, do, b, f, v):
     return nis
 
 
+@declare(ro(2), ro(3), ro(2), ro(2), ro(3), ro(2), rw(2), rw(3), rw(2), rw(1), nb.int64, nb.int64)
 @nb.njit(**_jit)
 def _bierman_range(x, U, d, y, H, r, xo, Uo, do, nis, lo, hi):
     n = x.shape[1]
@@ -132,7 +136,7 @@ def mwgs_predict(F, U, d, G, dq):
     Uo = np.empty((N, n, n))
     do = np.empty((N, n))
     args = (F, _c(U), _c(d), _c(G), _c(dq), Uo, do)
-    _mwgs_range(*args, 0, N)
+    ready(_mwgs_range)(*args, 0, N)
     return Uo, do
 
 
@@ -144,5 +148,5 @@ def bierman_update(x, U, d, y, H, r):
     do = np.empty((N, n))
     nis = np.empty(N)
     args = (_c(x), _c(U), _c(d), _c(y), _c(H), _c(r), xo, Uo, do, nis)
-    _bierman_range(*args, 0, N)
+    ready(_bierman_range)(*args, 0, N)
     return xo, Uo, do, nis

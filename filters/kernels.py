@@ -19,11 +19,11 @@ from __future__ import annotations
 import numpy as np
 
 try:  # the compiled path is optional; the numpy path is always there
-    from . import _nbkernels
+    from . import _nbentry, _nbkernels
 
     HAVE_NUMBA = True
 except ImportError:  # pragma: no cover - exercised only where numba is missing
-    _nbkernels = None
+    _nbentry = _nbkernels = None
     HAVE_NUMBA = False
 
 BACKENDS = ("numpy", "numba")
@@ -135,9 +135,17 @@ def _np_ukf_update(xbar, Pbar, X, Z, z, R, Wm, Wc):
 PARALLEL_MIN_TRIALS = 256
 
 
+_DRIVERS: dict = {}
+
+
 def _nbk(name, N):
-    """The compiled serial or parallel driver of a kernel."""
-    return getattr(_nbkernels, f"{name}_{'par' if N >= PARALLEL_MIN_TRIALS else 'ser'}")
+    """The compiled serial or parallel driver of a kernel, with its one signature (read-only
+    inputs: filters/_nbentry.py) compiled or loaded on first use."""
+    key = (name, N >= PARALLEL_MIN_TRIALS)
+    d = _DRIVERS.get(key)
+    if d is None:
+        d = _DRIVERS[key] = _nbentry.ready(getattr(_nbkernels, f"{name}_{'par' if key[1] else 'ser'}"))
+    return d
 
 
 def _c(a):
@@ -158,7 +166,7 @@ def cov_predict(F, P, Q, backend=None):
     if backend == "numba" and Q.ndim == 2:
         if np.ndim(F) == 2:
             return _nbk("predict", P.shape[0])(_c(F), _c(P), _c(Q))
-        return _nbkernels._batched_predict_par(_c(F), _c(P), _c(Q))
+        return _nbentry.ready(_nbkernels._batched_predict_par)(_c(F), _c(P), _c(Q))
     return _np_cov_predict(F, P, Q)
 
 
