@@ -219,7 +219,28 @@ measurements; ``step(t_gps_s)`` processes the epoch for every trial at once and 
 one ``Estimate`` per initialised trial on ``<run>/gs/estimate/beacon/<beacon_id>``.
 ``process(t_gps_s, obs)`` is the same filter step on arrays (:class:`ObserverEpoch`).
 
-numpy/scipy plus sitl (bus, geodesy, multilateration) and filters; never imports vehicles.
+Integrity (issue 6, opt-in: ``LocatorConfig(integrity=IntegrityConfig(...))``)
+--------------------------------------------------------------------------------
+filters.integrity.IntegrityMonitor judges each UAV link (channel: its range and Doppler rows)
+once per epoch, on each primary track's prior: right after the epoch's innovations nu and
+their covariance S are built (S = H P H' + R; "consider": the Schmidt S of the batched update,
+with the cross-covariances), the monitor gets z = nu, h = 0, H = 0, R = diag(S), so beta =
+nu / sqrt(S) exactly.  A link with a row failing the jump test, or excluded (jumps on
+``persist`` epochs, or a window test), is left out of the update (neither used nor counted as
+gated) and out of the mirror hypothesis's update and score; iterated updates keep that set.
+The per-link chi-square gate stays.  Each UAV id keeps a fixed observer slot (its monitor
+column; at most ``integrity_max_links`` judged, the others used unjudged and counted).  A
+trial whose links mostly jump at once (more than ``integrity_common_fraction`` of its present
+links) is not judged that epoch: the track moved, not a link.  Events
+(sitl.integrity_events: step, ramp, outlier, readmit) go on ``<run>/gs/integrity/<channel>``
+from ``<source_id>.integrity``, channel ``<beacon_id>.uav<uav id>`` (``.slot<i>`` when fed
+through ``process`` without UAV ids); counters ``integrity_*``.  Recommended settings: no
+bias test, no Huber, no adaptive R (``INTEGRITY``): the UAVs' navigation errors are
+correlated over tens of seconds, so the innovations are not white and the bias test would
+over-alarm.
+
+numpy/scipy plus sitl (bus, geodesy, multilateration, integrity events) and filters; never
+imports vehicles.
 """
 from __future__ import annotations
 
@@ -235,9 +256,11 @@ import scipy.stats
 
 from filters import kernels
 from filters.beacon import OBSERVER_UNCERTAINTY
+from filters.integrity import IntegrityConfig, IntegrityMonitor
 from filters.models import ConstantVelocity
 from sitl.bus import BeaconMeasurement, Estimate, key_for, parse_key
 from sitl.geodesy import ecef_to_geodetic
+from sitl.integrity_events import IntegrityEventPublisher
 from sitl.radio.beacon_link import multilaterate
 
 __all__ = [
@@ -256,9 +279,12 @@ __all__ = [
     "BeaconLocator",
     "MOTIONS",
     "INITS",
+    "INTEGRITY",
 ]
 
 MOTIONS = ("cv", "position")
+# the integrity settings for the locator (module docstring, "Integrity")
+INTEGRITY = IntegrityConfig(bias_alpha=None, huber_c=None, adapt_r=False)
 INITS = ("multilateration", "prior")
 _EARTH_R_MIN_M, _EARTH_R_MAX_M = 6.2e6, 7.0e6  # a UAV position outside this shell is absurd
 _UT_C2 = 6.0  # n + lambda of the sigma points (alpha = 1, kappa = 0): +-sqrt(6) sigma, W0 = 0
@@ -333,6 +359,11 @@ class LocatorConfig:
     acquire_s: "consider" only: a track's first acquire_s run as "inflate" (module docstring).
     min_formation_sigmas: an epoch whose >= 3 UAVs span less than this many times their RMS
         position sigma gives no beacon measurement (0: off; module docstring).
+    integrity: the integrity monitor (filters.integrity) on each UAV link's range and Doppler
+        (module docstring, "Integrity"); None: off.
+    integrity_max_links: monitor channels (UAV ids beyond this many are used unjudged, counted).
+    integrity_common_fraction: an epoch of a trial whose links mostly jump at once (more than
+        this fraction of its present links) is not judged: the track moved, not one link.
     second_order_r: add the variance of the ranges' and Dopplers' second-order terms
         (:func:`second_order_var`, at the predicted state and covariance) to R -- for the
         same case; off by default (in the cylindrical coordinates the curvature is the
@@ -366,8 +397,19 @@ class LocatorConfig:
     prior_cov: tuple = ()
     acquire_s: float = 50.0
     min_formation_sigmas: float = 12.0
+    integrity: IntegrityConfig | None = None
+    integrity_max_links: int = 32
+    integrity_common_fraction: float = 0.5
 
     def __post_init__(self):
+        if self.integrity is not None and not isinstance(self.integrity, IntegrityConfig):
+            raise ValueError(f"integrity must be a filters.integrity.IntegrityConfig or None, got {self.integrity!r}")
+        v = self.integrity_max_links
+        if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < 1:
+            raise ValueError(f"integrity_max_links must be an integer >= 1, got {v!r}")
+        f = self.integrity_common_fraction
+        if isinstance(f, bool) or not isinstance(f, (int, float)) or not 0.0 < f <= 1.0:
+            raise ValueError(f"integrity_common_fraction must lie in (0, 1], got {f!r}")
         _nonneg("q_m2_s3", self.q_m2_s3)
         _nonneg("uav_vel_error_corr_s", self.uav_vel_error_corr_s)
         if self.observer_uncertainty == "consider" and self.motion != "cv":
@@ -757,13 +799,15 @@ def _same_innovation(nu, nu_last, sigma, used) -> bool:
 
 
 def cyl_step(y, P, fr: Frame, obs: ObserverEpoch, config: LocatorConfig, dt_s: float, loglik: bool = False,
-             C=None, Pu_prev=None):
+             C=None, Pu_prev=None, judge=None):
     """One predict (over dt_s, skipped when 0) + update of the cylindrical filter, batched.
 
     y (T, 6), P (T, 6, 6) in the frames ``fr``; obs with T rows.  Returns (y, P, frame,
     nis (T,), used (T, N), gated (T, N), m2ll (T,) or None); the new frame is the epoch's;
     nis is NaN where no observer was used; m2ll (``loglik``) is -2 log p(z | past) of every
-    present observer, gated or not (it scores hypotheses).
+    present observer, gated or not (it scores hypotheses).  judge: None, or a callable
+    (nu (T, N, 2), diag S (T, N, 2), mask (T, N)) -> mask (T, N) called once at the prior (the
+    integrity monitor's verdict: the links it returns False for are neither used nor scored).
     """
     y = np.asarray(y, float)
     P = np.asarray(P, float)
@@ -778,7 +822,7 @@ def cyl_step(y, P, fr: Frame, obs: ObserverEpoch, config: LocatorConfig, dt_s: f
         P = 0.5 * (P + np.swapaxes(P, -1, -2))
     if config.observer_uncertainty == "consider":
         return _consider_step(y, P, C, fr, xp, Gi @ F6 @ G if dt_s > 0 else None, obs, config, dt_s, loglik,
-                              Pu_prev)
+                              Pu_prev, judge)
     obs = _fill_absent(obs, xp)
     T, N = obs.mask.shape
     kappa = config.kappa(dt_s)
@@ -799,7 +843,7 @@ def cyl_step(y, P, fr: Frame, obs: ObserverEpoch, config: LocatorConfig, dt_s: f
         R0 = np.zeros_like(R)
         R0[..., 0, 0], R0[..., 1, 1] = obs.var_range_m2, obs.var_range_rate_m2_s2
         R_score = R0 + (R - R0) / kappa
-    out = _update(y, P, nu, H, R, obs.mask, config, loglik, R_score)
+    out = _update(y, P, nu, H, R, obs.mask, config, loglik, R_score, judge)
     if config.update_iterations > 1:  # iterated EKF: relinearise at the updated state
         z = np.stack([obs.range_m, obs.range_rate_m_s], axis=-1)
         used0, yi = out[3], out[0]
@@ -819,7 +863,7 @@ def cyl_step(y, P, fr: Frame, obs: ObserverEpoch, config: LocatorConfig, dt_s: f
             it = _update(y, P, nui, Hi, R, used0, config, False)
             yi = it[0]
         if it is not None:
-            out = (it[0], it[1], it[2], it[3], obs.mask & ~it[3], out[5])
+            out = (it[0], it[1], it[2], it[3], (out[3] | out[4]) & ~it[3], out[5])  # (judged mask: used | gated)
     return out + (fr,)
 
 
@@ -835,7 +879,7 @@ def uav_error_transition(P_prev, P_now, rho):
     return np.swapaxes(At, -1, -2)
 
 
-def _consider_step(y, P, C, fr, xp, F, obs, config, dt_s, loglik, Pu_prev=None):
+def _consider_step(y, P, C, fr, xp, F, obs, config, dt_s, loglik, Pu_prev=None, judge=None):
     """observer_uncertainty="consider": the UAVs' navigation errors eps_i = U_i - U^_i as
     Schmidt (consider) states, first-order Gauss-Markov with correlation times
     uav_error_corr_s (position) and uav_vel_error_corr_s (velocity), covariance P_i (the
@@ -885,7 +929,8 @@ def _consider_step(y, P, C, fr, xp, F, obs, config, dt_s, loglik, Pu_prev=None):
     z = np.stack([obs.range_m, obs.range_rate_m_s], axis=-1)
     Hy = He @ G2[:, None]
     J = -He  # d z / d U_i (wrt UAV i's [U, V])
-    out = _consider_update(y, P, C, z - zhat, Hy, J, obs.cov, R0, obs.mask, config, False, None)
+    out = _consider_update(y, P, C, z - zhat, Hy, J, obs.cov, R0, obs.mask, config, False, None, judge)
+    present = out[3] | out[4]  # obs.mask less the links the integrity monitor left out (judge)
     if config.update_iterations > 1:
         used0, yi = out[3], out[0]
         x_last, it, nu_last = xp, None, z - zhat
@@ -904,7 +949,7 @@ def _consider_step(y, P, C, fr, xp, F, obs, config, dt_s, loglik, Pu_prev=None):
             it = _consider_update(y, P, C, nui, Hyi, -Hi, obs.cov, R0, obs.mask, config, False, used0)
             yi = it[0]
         if it is not None:
-            out = (it[0], it[1], it[2], it[3], obs.mask & ~it[3], out[5], it[6])
+            out = (it[0], it[1], it[2], it[3], present & ~it[3], out[5], it[6])
     y1, P1, nis, used, gated, _, C1 = out
     m2ll = None
     if loglik:
@@ -915,16 +960,16 @@ def _consider_step(y, P, C, fr, xp, F, obs, config, dt_s, loglik, Pu_prev=None):
         # mirror was chosen in 18 of 20 three-satellite trials
         R1 = R0 + np.einsum("tnai,tnij,tnbj->tnab", He, obs.cov, He)
         l11, l21, l22 = _chol2(R1)
-        pm = obs.mask[..., None]
+        pm = present[..., None]
         T, N = obs.mask.shape
         yw = _solve2(l11, l21, l22, (z - zhat)[..., None])[..., 0]
         Hw = _solve2(l11, l21, l22, Hy)
         m2ll = _m2ll((yw * pm).reshape(T, 2 * N), (Hw * pm[..., None]).reshape(T, 2 * N, n), P,
-                     2.0 * np.sum(np.log(l11 * l22) * obs.mask, axis=-1))
+                     2.0 * np.sum(np.log(l11 * l22) * present, axis=-1))
     return y1, P1, nis, used, gated, m2ll, fr, C1
 
 
-def _consider_update(y, P, C, nu, Hy, J, Pe, R0, mask, config, loglik, used_fixed=None):
+def _consider_update(y, P, C, nu, Hy, J, Pe, R0, mask, config, loglik, used_fixed=None, judge=None):
     """The batched Schmidt update of _consider_step; returns (y, P, nis, used, gated, m2ll, C)."""
     T, N = mask.shape
     n = y.shape[-1]
@@ -939,6 +984,8 @@ def _consider_update(y, P, C, nu, Hy, J, Pe, R0, mask, config, loglik, used_fixe
     Sb[:, idx, :, idx, :] += np.moveaxis(D, 1, 0)
     Sjj = Sb[:, idx, :, idx, :]  # (N, T, 2, 2)
     Sjj = np.moveaxis(Sjj, 0, 1)
+    if judge is not None and used_fixed is None:
+        mask = judge(nu, np.stack([Sjj[..., 0, 0], Sjj[..., 1, 1]], axis=-1), mask)
     s11, s21, s22 = _chol2(Sjj)
     w = _solve2(s11, s21, s22, nu[..., None])[..., 0]
     d = np.sum(w * w, axis=-1)
@@ -974,12 +1021,14 @@ def _consider_update(y, P, C, nu, Hy, J, Pe, R0, mask, config, loglik, used_fixe
     return y1, P1, nis, used, gated, m2ll, C1
 
 
-def _update(y, P, nu, H, R, mask, config, loglik, R_score=None):
+def _update(y, P, nu, H, R, mask, config, loglik, R_score=None, judge=None):
     """Gate per observer, whiten the 2x2 blocks, Joseph update.  Returns (y, P, nis, used,
     gated, m2ll); m2ll (``loglik``) with R_score in place of R when given."""
     T, N = mask.shape
     n = y.shape[-1]
     S = np.einsum("tnai,tij,tnbj->tnab", H, P, H) + R
+    if judge is not None:
+        mask = judge(nu, np.diagonal(S, axis1=-2, axis2=-1), mask)
     s11, s21, s22 = _chol2(S)
     w = _solve2(s11, s21, s22, nu[..., None])[..., 0]
     d = np.sum(w * w, axis=-1)
@@ -1020,7 +1069,8 @@ def _doppler_velocity(B, obs: ObserverEpoch, kappa: float):
     return np.einsum("tij,tj->ti", C, np.einsum("tni,tn,tn->ti", u, wgt, b)), C
 
 
-def position_only_step(x, P, obs: ObserverEpoch, config: LocatorConfig, dt_s: float, loglik: bool = False):
+def position_only_step(x, P, obs: ObserverEpoch, config: LocatorConfig, dt_s: float, loglik: bool = False,
+                       judge=None):
     """The seed's beacon filter (eq 11) on B only (ECEF), batched (module docstring).
 
     x (T, 3), P (T, 3, 3).  Returns (x, P, nis, used, gated, m2ll, V_hat (T, 3), Cov_V (T, 3, 3)).
@@ -1054,7 +1104,7 @@ def position_only_step(x, P, obs: ObserverEpoch, config: LocatorConfig, dt_s: fl
     R2[..., 1, 1] = 1.0
     nu = np.stack([obs.range_m - r, np.zeros_like(r)], axis=-1)
     # (the dummy rows add nothing: zero innovation, zero Jacobian, unit variance)
-    xo, Po, nis, used, gated, m2ll = _update(x, P, nu, H, R2, obs.mask, config, loglik)
+    xo, Po, nis, used, gated, m2ll = _update(x, P, nu, H, R2, obs.mask, config, loglik, judge=judge)
     return xo, Po, nis, used, gated, m2ll, V, CV
 
 
@@ -1201,6 +1251,53 @@ def init_fix(epochs, config: LocatorConfig = LocatorConfig(), iterations: int = 
 # --------------------------------------------------------------------------- the bus component
 
 
+class _ZeroModel:
+    """The integrity monitor's model of the locator's innovations: z = nu, h = 0, H = 0 and
+    R_diag = diag(S) (S at the prior), so that beta = nu / sqrt(S) exactly."""
+
+    def __init__(self, r):
+        self._r = r
+
+    def h_and_H(self, x):
+        k, m = self._r.shape
+        return np.zeros((k, m)), np.zeros((k, m, 1))
+
+    def R_diag(self):
+        return self._r
+
+
+def _mon_take(st, idx):
+    """The monitor state of batch rows idx (a copy)."""
+    return st._replace(ring=tuple(a[idx] for a in st.ring), ring_b=tuple(a[idx] for a in st.ring_b),
+                       sum_sq=st.sum_sq[idx], sum_b=st.sum_b[idx], jump_run=st.jump_run[idx],
+                       excluded=st.excluded[idx], clean_run=st.clean_run[idx], r_est=st.r_est[idx],
+                       stale=None if st.stale is None else st.stale[idx])
+
+
+def _mon_merge(prev, acc, idx, sub):
+    """The epoch's new monitor state: acc (None: prev) with rows idx from sub, the state those
+    rows stepped to from prev this epoch (every call of an epoch steps from prev: one window
+    slot, prev.pos; rows not stepped keep their values)."""
+    p = prev.pos
+    if acc is None:
+        ring, ring_b = list(prev.ring), list(prev.ring_b)
+        ring[p], ring_b[p] = np.array(prev.ring[p]), np.array(prev.ring_b[p])
+        acc = prev._replace(ring=tuple(ring), ring_b=tuple(ring_b), sum_sq=prev.sum_sq.copy(), sum_b=prev.sum_b.copy(),
+                            jump_run=prev.jump_run.copy(), excluded=prev.excluded.copy(),
+                            clean_run=prev.clean_run.copy(), r_est=prev.r_est.copy(),
+                            stale=None if prev.stale is None else prev.stale.copy())
+    acc.ring[p][idx] = sub.ring[p]
+    acc.ring_b[p][idx] = sub.ring_b[p]
+    for f in ("sum_sq", "sum_b", "jump_run", "excluded", "clean_run", "r_est"):
+        getattr(acc, f)[idx] = getattr(sub, f)
+    stale = acc.stale
+    if sub.stale is not None or stale is not None:
+        if stale is None:
+            stale = np.zeros(acc.sum_sq.shape, dtype=np.int64)
+        stale[idx] = 0 if sub.stale is None else sub.stale
+    return acc._replace(pos=sub.pos, count=sub.count, steps=sub.steps, stale=stale)
+
+
 class BeaconLocator:
     """Bus component: collects BeaconMeasurements, steps the batched filter, publishes Estimates.
 
@@ -1268,6 +1365,19 @@ class BeaconLocator:
         self._report = None  # cached ECEF moments of the current state
         self.counters = Counter()
         self.rejected = Counter()
+        # the integrity monitor (config.integrity): one channel (range, Doppler) per UAV id, the
+        # column of its fixed observer slot (_collect); batch (T,): judged on each primary track
+        self._mon = None
+        self.integrity_events = None
+        if config.integrity is not None:
+            L = int(config.integrity_max_links)
+            self._mon = IntegrityMonitor(config.integrity)
+            self._mon_state = self._mon.init((T,), 2 * L, L)
+            self._mon_ch = np.repeat(np.arange(L), 2)
+            self._mon_next = None  # the state being built this epoch (merged per filter call)
+            self._ev_trials = None  # trial of each row of the report being turned into events
+            self.integrity_events = IntegrityEventPublisher(lambda b: self.run_ids[self._ev_trials[b[0]]],
+                                                            f"{source_id}.integrity", transport)
         self._sub = None
         if transport is not None:
             self._sub = transport.subscribe(f"*/uav/*/beacon/{beacon_id}", self.on_message)
@@ -1328,8 +1438,9 @@ class BeaconLocator:
             self._pending[k] = keep
             now.sort(key=lambda a: a[0])
             per.append(now)
-        consider = self.config.observer_uncertainty == "consider"
-        if consider:  # one fixed slot per UAV id (the consider states follow the UAV)
+        # one fixed slot per UAV id: the consider states and the integrity channels follow the UAV
+        consider = self.config.observer_uncertainty == "consider" or self.config.integrity is not None
+        if consider:
             for now in per:
                 for uid, _ in now:
                     self._slot.setdefault(uid, len(self._slot))
@@ -1357,25 +1468,34 @@ class BeaconLocator:
             self.publish()
         return self
 
-    def _filter(self, y, P, fr, obs, dt, loglik, C=None, Pu=None, acq=None):
+    def _filter(self, y, P, fr, obs, dt, loglik, C=None, Pu=None, acq=None, judge=None):
         """One filter step on stacked rows; returns (y, P, frame, nis, used, gated, m2ll, V)
         (and sets self._C_out: the consider cross-covariances, "consider" only).  acq (rows,)
         bool: "consider" rows still in their acquisition (``acquire_s``), stepped by "inflate"
-        with their cross-covariances kept at 0."""
+        with their cross-covariances kept at 0.  judge: the integrity verdict (cyl_step), as
+        judge(nu, s_diag, mask, rows=None) with rows the stacked rows of a subset."""
         c = self.config
         if c.motion == "cv":
             if c.observer_uncertainty == "consider":
                 if acq is None or not acq.any():
-                    y, P, nis, used, gated, m2ll, fr, self._C_out = cyl_step(y, P, fr, obs, c, dt, loglik, C, Pu)
+                    y, P, nis, used, gated, m2ll, fr, self._C_out = cyl_step(y, P, fr, obs, c, dt, loglik, C, Pu,
+                                                                             judge)
                     return y, P, fr, nis, used, gated, m2ll, None
                 ca = self._acquire_config
                 if acq.all():
                     self._C_out = np.zeros_like(C)
-                    y, P, nis, used, gated, m2ll, fr = cyl_step(y, P, fr, obs, ca, dt, loglik)
+                    y, P, nis, used, gated, m2ll, fr = cyl_step(y, P, fr, obs, ca, dt, loglik, judge=judge)
                     return y, P, fr, nis, used, gated, m2ll, None
                 a, b = np.flatnonzero(acq), np.flatnonzero(~acq)
-                ra = cyl_step(y[a], P[a], fr.take(a), obs.take(a), ca, dt, loglik)
-                rb = cyl_step(y[b], P[b], fr.take(b), obs.take(b), c, dt, loglik, C[b], Pu[b])
+                ja = jb = None
+                if judge is not None:
+                    def ja(nu, s, m):
+                        return judge(nu, s, m, a)
+
+                    def jb(nu, s, m):
+                        return judge(nu, s, m, b)
+                ra = cyl_step(y[a], P[a], fr.take(a), obs.take(a), ca, dt, loglik, judge=ja)
+                rb = cyl_step(y[b], P[b], fr.take(b), obs.take(b), c, dt, loglik, C[b], Pu[b], jb)
                 self._C_out = np.zeros_like(C)
                 self._C_out[b] = rb[7]
                 out = []
@@ -1392,9 +1512,9 @@ class BeaconLocator:
                 y, P, nis, used, gated, m2ll = out
                 return y, P, frame, nis, used, gated, m2ll, None
             else:
-                y, P, nis, used, gated, m2ll, fr = cyl_step(y, P, fr, obs, c, dt, loglik)
+                y, P, nis, used, gated, m2ll, fr = cyl_step(y, P, fr, obs, c, dt, loglik, judge=judge)
             return y, P, fr, nis, used, gated, m2ll, None
-        y, P, nis, used, gated, m2ll, V, CV = position_only_step(y, P, obs, c, dt, loglik)
+        y, P, nis, used, gated, m2ll, V, CV = position_only_step(y, P, obs, c, dt, loglik, judge)
         return y, P, fr, nis, used, gated, m2ll, (V, CV)
 
     def process(self, t_gps_s: float, obs: ObserverEpoch):
@@ -1440,7 +1560,14 @@ class BeaconLocator:
             if c.observer_uncertainty == "consider" and c.acquire_s > 0:
                 started = self.init_t_gps_s[np.concatenate([on, alt])]
                 acq = t - started < c.acquire_s - 1e-9
-            y, P, fr, nis, used, gated, m2ll, vel = self._filter(y0, P0, fr0, sub, dt, alt.size > 0, C0, Pu0, acq)
+            judge = None
+            if self._mon is not None:
+                judge = functools.partial(self._judge, np.concatenate([on, alt]), n, t)
+                self._mon_next = None
+            y, P, fr, nis, used, gated, m2ll, vel = self._filter(y0, P0, fr0, sub, dt, alt.size > 0, C0, Pu0, acq,
+                                                                 judge)
+            if self._mon is not None and self._mon_next is not None:
+                self._mon_state, self._mon_next = self._mon_next, None
             self.y[on], self.P[on], self.nis[on] = y[:n], P[:n], nis[:n]
             self.alt_y[alt], self.alt_P[alt] = y[n:], P[n:]
             if c.observer_uncertainty == "consider":
@@ -1493,6 +1620,60 @@ class BeaconLocator:
                 self._initialise(k, init_fix(self._window[k], c), t)
         self.t_gps_s = t
         return self
+
+    # ---------------------------------------------------------------- integrity
+    def _judge(self, trial_of_row, n_primary, t, nu, s_diag, mask, rows=None):
+        """The integrity monitor's verdict on one filter call's rows (module docstring,
+        "Integrity"): the primary tracks' rows are judged (beta = nu / sqrt(S), S at the prior),
+        their mirror hypotheses (rows of the same trials) take the same verdict.  Returns mask
+        less the links left out this epoch."""
+        c = self.config
+        cfg = c.integrity
+        L = int(c.integrity_max_links)
+        idx = np.arange(len(trial_of_row)) if rows is None else np.asarray(rows)
+        trial = trial_of_row[idx]
+        prim = np.flatnonzero(idx < n_primary)
+        if prim.size == 0:
+            return mask
+        tr = trial[prim]
+        k, N = tr.size, mask.shape[1]
+        Nm = min(N, L)
+        cnt = self.counters
+        if N > L:
+            cnt["integrity_unmonitored"] += int(mask[prim, L:].sum())
+        mp = mask[prim, :Nm]
+        nup, sp = nu[prim, :Nm], s_diag[prim, :Nm]
+        Z = np.full((k, 2 * L), np.nan)
+        R = np.ones((k, 2 * L))
+        Z[:, :2 * Nm] = np.where(mp[..., None], nup, np.nan).reshape(k, 2 * Nm)
+        R[:, :2 * Nm] = np.where(mp[..., None], sp, 1.0).reshape(k, 2 * Nm)
+        # a trial whose links mostly jump at once is not judged: its track moved, not one link
+        jl = ((np.abs(nup) >= cfg.jump_sigma * np.sqrt(sp)).any(axis=-1) & mp).sum(axis=-1)
+        common = jl > c.integrity_common_fraction * np.maximum(mp.sum(axis=-1), 1)
+        Z[common] = np.nan
+        cnt["integrity_common_mode"] += int(common.sum())
+        got = {}
+
+        def verdict(x, P, z, gm, **kw):  # the monitor's verdict only: the locator's own update follows
+            got["inert"] = np.asarray(gm.inert)
+
+        prev = self._mon_state
+        _, sub, rep = self._mon.step(_mon_take(prev, tr), np.zeros((k, 1)), np.zeros((k, 1, 1)), Z,
+                                     _ZeroModel(R), self._mon_ch, update=verdict, backend=c.backend)
+        self._mon_next = _mon_merge(prev, self._mon_next, tr, sub)
+        cnt["integrity_epochs"] += 1
+        out_link = got["inert"].reshape(k, L, 2).any(axis=-1)[:, :Nm] & mp  # present links left out
+        cnt["integrity_links_left_out"] += int(out_link.sum())
+        cnt["integrity_exclusions"] += int(rep.newly_excluded.sum())
+        cnt["integrity_readmissions"] += int(rep.readmitted.sum())
+        uid = {s: u for u, s in self._slot.items()}
+        self._ev_trials = tr
+        evs = self.integrity_events(rep, self._mon_ch, t, lambda b, ch: f"{self.beacon_id}.uav{uid[ch]}" if ch in uid
+                                    else f"{self.beacon_id}.slot{ch}", cfg)
+        cnt["integrity_events"] += len(evs)
+        bad = np.zeros((self.n_trials, N), bool)
+        bad[tr, :Nm] = out_link
+        return mask & ~bad[trial]
 
     def _drop_unresolved(self, obs: ObserverEpoch) -> ObserverEpoch:
         """Tracks in plain ECEF whose >= 3 present UAVs form a formation smaller than their own
