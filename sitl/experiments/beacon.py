@@ -65,6 +65,7 @@ Writes DIR/result.json (strict JSON) and PNG figures.  Progress on stderr.
 """
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import time
@@ -88,6 +89,11 @@ PRIOR_UPDATE_ITERATIONS = 5  # iterated EKF updates of the locators (and the cen
 # mirror through the UAVs' plane at ~10 s, 10 UAVs trial 2 (start 131 m off, 2.6 sigma) collapsed to a wrong
 # solution at ~6 s, err 137 m vs sigma 20 m); 5 Gauss-Newton relinearisations: none (max error 136 m, then < 12 m)
 CASES = ("three_satellites", "constellation")
+INTEGRITY_MODES = ("off", "on", "compare")
+# measurement faults of run_case (0: none): a range step on one UAV's beacon link, a
+# pseudorange step on one satellite (the first the UAV tracks at the fault's start) of one UAV
+FAULT_DEFAULTS = {"range_step_m": 0.0, "range_step_uav": 2, "pr_step_m": 0.0, "pr_step_uav": 1,
+                  "fault_at_s": 150.0}
 SETTLE_S = 100.0
 DT_S = 1.0
 BEACON_ID = "b1"
@@ -187,10 +193,14 @@ def scenario(geometry: str, n_uavs: int, duration_s: float, trials: int, rng):
     return truth_tracks(n_uavs, duration_s, geometry), None
 
 
-def locator_config(name: str = PRODUCTION, prior=None):
-    """The LocatorConfig of a locator of LOCATORS, started from ``prior`` (mean, cov) if given."""
-    LocatorConfig = component("ground_station.beacon_locator").LocatorConfig
+def locator_config(name: str = PRODUCTION, prior=None, integrity: bool = False):
+    """The LocatorConfig of a locator of LOCATORS, started from ``prior`` (mean, cov) if given;
+    ``integrity``: with the integrity monitor per UAV link (beacon_locator.INTEGRITY)."""
+    bl = component("ground_station.beacon_locator")
+    LocatorConfig = bl.LocatorConfig
     kw = dict(LOCATORS[name])
+    if integrity:
+        kw["integrity"] = bl.INTEGRITY
     if prior is not None:
         # the beacon starts among the UAVs: ranges comparable with the prior's sigma for the
         # first ~20 s, where one linearisation is poor -> iterated EKF updates
@@ -267,8 +277,14 @@ class _Scorer:
 
 
 def run_case(case, tracks, trials, seed, locators=(PRODUCTION,), progress=None, central=True,
-             timing=None, prior=None) -> dict:
-    """One case through the bus (module docstring).  Returns the raw series and counters."""
+             timing=None, prior=None, integrity: str = "off", faults: dict | None = None) -> dict:
+    """One case through the bus (module docstring).  Returns the raw series and counters.
+
+    integrity "on": the production locator runs the integrity monitor per UAV link and the UAVs'
+    onboard filters theirs per satellite (vehicles.uav_nav.RECOMMENDED_INTEGRITY), their events
+    on the bus (``integrity_events``: (t since start, source, channel, event, statistic)).
+    faults (world side, sitl.measfault, the same in every trial; see FAULT_DEFAULTS): a range
+    step on one UAV's beacon link and a pseudorange step on one satellite of one UAV."""
     BeaconLocator = component("ground_station.beacon_locator").BeaconLocator
     from sitl.bus import BeaconMeasurement, InMemoryTransport, Truth, UavNav, key_for
     from sitl.radio import beacon_link
@@ -285,9 +301,22 @@ def run_case(case, tracks, trials, seed, locators=(PRODUCTION,), progress=None, 
     def clock(name, t0):
         tm[name] = tm.get(name, 0.0) + time.perf_counter() - t0
 
+    if integrity not in ("off", "on"):
+        raise ValueError(f"integrity must be off or on, got {integrity!r}")
+    fl = {**FAULT_DEFAULTS, **(faults or {})}
     t0 = time.perf_counter()
     const = constellation_for(case, U[0, 0], t[-1])
     nav_cfg = uav_nav.NavConfig()
+    mon = integrity == "on"
+    nav_cfg_run = nav_cfg
+    if mon:
+        # three satellites leave the UAVs' filters no redundancy (the clock-free model: 3 unknowns): an
+        # excluded satellite is a lost fix, so their monitor only detects there (isolate=False) -- isolating
+        # on the printed run took the locator's RMSE from 24 to 172 m fault-free (6 trials, 300 s)
+        icfg = uav_nav.RECOMMENDED_INTEGRITY
+        if len(const) <= 3:
+            icfg = dataclasses.replace(icfg, isolate=False)
+        nav_cfg_run = uav_nav.NavConfig(integrity=icfg)
     link_cfg = beacon_link.BeaconLinkConfig()
     t_gps = uav_nav.SEED002_T0_GPS_S + t
     clock("setup", t0)
@@ -298,12 +327,33 @@ def run_case(case, tracks, trials, seed, locators=(PRODUCTION,), progress=None, 
     locs = {}
     pub = locators[0]  # publishes on the bus, scored from there; the others from their states
     for name in locators:
-        cfg = locator_config(name, prior)
+        cfg = locator_config(name, prior, integrity=mon and name == locators[0])
         locs[name] = BeaconLocator(bus, run_ids=run_ids, beacon_id=BEACON_ID, config=cfg,
                                    source_id="gs" if name == pub else f"gs-{name.replace('_', '-')}",
                                    publish_estimates=name == pub)
     scorer = _Scorer(bus, run_ids, K)
-    nav = uav_nav.OnboardNav(const, nav_cfg)
+    src = [f"uav{i + 1}" for i in range(N)]
+    events = []
+    if mon:
+        from sitl.integrity_events import IntegrityEventPublisher
+
+        trial_of = {r: j for j, r in enumerate(run_ids)}
+        bus.subscribe("*/gs/integrity/*", lambda key, m: events.append(
+            (trial_of.get(key.split("/", 1)[0], -1), m.t_gps_s - float(t_gps[0]), m.source_id, m.channel, m.event,
+             m.statistic)))
+        nav = uav_nav.OnboardNav(const, nav_cfg_run, events=IntegrityEventPublisher(
+            lambda b: run_ids[b[0]], lambda b: f"{src[b[-1]]}.integrity", bus))
+    else:
+        nav = uav_nav.OnboardNav(const, nav_cfg)
+    from sitl.measfault import Fault, FaultInjector
+
+    ru = int(fl["range_step_uav"]) - 1
+    pu = int(fl["pr_step_uav"]) - 1
+    if not (0 <= ru < N and 0 <= pu < N):
+        raise ValueError(f"range_step_uav / pr_step_uav must lie in 1..{N}")
+    range_inj = FaultInjector([Fault("step", ru, float(fl["fault_at_s"]), magnitude=float(fl["range_step_m"]))],
+                              (T,), N) if fl["range_step_m"] else None
+    pr_inj, pr_sat = None, None  # built at the fault's start: a satellite the UAV tracks then
     side = {name: np.full((K, T, 6), np.nan) for name in locators if name != pub}
     side_P = {name: np.full((K, T, 6, 6), np.nan) for name in locators if name != pub}
     nav_x = np.empty((K, T, N, 6))
@@ -315,12 +365,23 @@ def run_case(case, tracks, trials, seed, locators=(PRODUCTION,), progress=None, 
     truth_b_key = key_for(truth_base, Truth, kind="beacon", id=BEACON_ID)
     truth_b_keys = [key_for(r, Truth, kind="beacon", id=BEACON_ID) for r in run_ids]
     truth_u_keys = [key_for(truth_base, Truth, kind="uav", id=i + 1) for i in range(N)]
-    src = [f"uav{i + 1}" for i in range(N)]
     world = world_epochs(tracks, const, T, rng, nav_cfg, link_cfg, clock=clock)
     nonpositive = 0
     for k in range(K):
         tk = float(t_gps[k])
         ep, meas, sat = next(world)
+        # measurement faults (world side; step faults draw nothing: the world's draws are unchanged)
+        if fl["pr_step_m"] and t[k] >= fl["fault_at_s"] - 1e-9:
+            if pr_inj is None:
+                tracked = np.flatnonzero(ep.tracked[0, pu])
+                pr_sat = int(tracked[0]) if tracked.size else 0
+                pr_inj = FaultInjector([Fault("step", pr_sat, float(fl["fault_at_s"]),
+                                              magnitude=float(fl["pr_step_m"]))], (T,), ep.pseudorange_m.shape[-1])
+            pr = ep.pseudorange_m.copy()
+            pr[:, pu], _ = pr_inj.step(None, float(t[k]), pr[:, pu])
+            ep = ep._replace(pseudorange_m=pr)
+        if range_inj is not None:
+            meas = meas._replace(range_m=range_inj.step(None, float(t[k]), meas.range_m)[0])
         # UAVs: onboard filters (all trials x UAVs as one batch)
         t0 = time.perf_counter()
         est = nav.update(ep, sat)
@@ -383,7 +444,9 @@ def run_case(case, tracks, trials, seed, locators=(PRODUCTION,), progress=None, 
             progress(f"[{case} N={N}] t = {t[k]:6.0f} s of {t[-1]:.0f}")
     est_x, est_P = scorer.x, scorer.P
     out = {"t": t, "truth": scorer.truth, "nav_x": nav_x, "nav_P": nav_P, "x": {pub: est_x},
-           "P": {pub: est_P}, "mode": scorer.mode, "counters": {}, "bus": _bus_stats(bus)}
+           "P": {pub: est_P}, "mode": scorer.mode, "counters": {}, "bus": _bus_stats(bus),
+           "integrity_events": events, "faults": {**fl, "pr_step_sat": None if pr_sat is None else
+                                                   str(np.asarray(const.sat_id)[pr_sat])}}
     for name in side:
         out["x"][name], out["P"][name] = side[name], side_P[name]
     for name, loc in locs.items():
@@ -598,6 +661,71 @@ def uav_nav_rmse(res, tracks):
             "vel_m_s": float(np.sqrt(np.mean(np.sum(e[..., 3:6] ** 2, axis=-1))))}
 
 
+def integrity_summary(res_plain, res_mon, trials: int) -> dict:
+    """The integrity part of a case (``--integrity compare``: the same faulty data, plain
+    locator and UAV filters against monitored ones; ``on``: res_plain None): events by source and
+    kind, the isolation of each injected fault (delay from the fault's start to the first step
+    or ramp event on its channel, per trial; rate = trials isolated), exclusions of other
+    channels after the fault and before it (fault-free epochs: per channel-epoch), and the
+    production locator's RMSE and ANEES, over the whole scored span and after the fault."""
+    fl = res_mon["faults"]
+    ev = res_mon["integrity_events"]
+    t = res_mon["t"]
+    t_f = float(fl["fault_at_s"])
+    by_src = {}
+    for _, _, src, _, kind, _ in ev:
+        grp = "locator" if src.startswith("gs") else "uav_nav"
+        by_src.setdefault(grp, {}).setdefault(kind, 0)
+        by_src[grp][kind] += 1
+
+    def isolation(source, channel):
+        first = {}
+        for j, te, src, ch, kind, _ in ev:
+            if src == source and ch == channel and kind in ("step", "ramp") and te >= t_f - 1e-9:
+                first[j] = min(first.get(j, math.inf), te - t_f)
+        d = np.array([first.get(j, math.inf) for j in range(trials)])
+        ok = np.isfinite(d)
+        return {"channel": channel, "rate": float(ok.mean()), "trials": trials,
+                "delay_s_median": float(np.median(d[ok])) if ok.any() else None,
+                "delay_s_max": float(d[ok].max()) if ok.any() else None}
+
+    out = {"faults": fl, "events": len(ev), "by_source_and_kind": by_src}
+    N = res_mon["nav_x"].shape[2]
+    n_pre = int(np.sum((t >= 0) & (t < t_f)))
+    gs_excl_pre = sum(1 for _, te, s, _, k, _ in ev if s.startswith("gs") and k in ("step", "ramp") and te < t_f)
+    out["locator_exclusions_before_fault_per_link_epoch"] = gs_excl_pre / max(1, n_pre * trials * N)
+    if fl["range_step_m"]:
+        ch = f"{BEACON_ID}.uav{int(fl['range_step_uav'])}"
+        out["range_step_isolation"] = isolation("gs.integrity", ch)
+        out["range_step_isolation"]["other_links_excluded_after_fault"] = sum(
+            1 for _, te, s, c, k, _ in ev if s.startswith("gs") and c != ch and k in ("step", "ramp") and te >= t_f)
+    if fl["pr_step_m"] and fl.get("pr_step_sat"):
+        u = int(fl["pr_step_uav"])
+        out["pr_step_isolation"] = isolation(f"uav{u}.integrity", f"uav{u}.{fl['pr_step_sat']}")
+    after = t >= max(SETTLE_S, t_f)
+
+    def score(res):
+        sc = _scores(t, res["x"][PRODUCTION], res["P"][PRODUCTION], res["truth"])
+        if sc is None:
+            return None
+        e = res["x"][PRODUCTION][after, :, 0:3] - _truth3(res["truth"])[after][..., 0:3]
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)
+            ra = float(np.sqrt(np.nanmean(np.sum(e * e, axis=-1)))) if after.any() else None
+        return {"rmse_m": sc["rmse_m"], "rmse_after_fault_m": ra, "anees": sc["anees"]["value"],
+                "rmse_per_trial_m": sc["rmse_per_trial_m"]}
+
+    out["monitored"] = score(res_mon)
+    if res_plain is not None:
+        out["plain"] = score(res_plain)
+        if out["plain"] and out["monitored"]:
+            d = np.array(out["monitored"]["rmse_per_trial_m"]) - np.array(out["plain"]["rmse_per_trial_m"])
+            out["paired_rmse_difference_m"] = {"mean": float(d.mean()), "standard_error":
+                                               float(d.std(ddof=1) / math.sqrt(d.size)) if d.size > 1 else None,
+                                               "monitored_better_in": int(np.sum(d < 0)), "of": int(d.size)}
+    return out
+
+
 # ------------------------------------------------------------------ result.json and figures
 
 
@@ -710,6 +838,17 @@ def check_args(args):
                          f"{SETTLE_S:g} s), got {args.duration:g}")
     if args.duration > 36000.0:
         raise UsageError(f"--duration: at most 36000 s, got {args.duration:g}")
+    if getattr(args, "integrity", "off") not in INTEGRITY_MODES:
+        raise UsageError(f"--integrity: one of {', '.join(INTEGRITY_MODES)}, got {args.integrity!r}")
+    for name in ("range_step_m", "pr_step_m", "fault_at_s"):
+        v = getattr(args, name, 0.0)
+        if not math.isfinite(v) or abs(v) > 1e7 or (name == "fault_at_s" and v < 0):
+            raise UsageError(f"--{name.replace('_', '-')}: a finite number{' >= 0' if name == 'fault_at_s' else ''}, "
+                             f"got {v:g}")
+    for name in ("range_step_uav", "pr_step_uav"):
+        v = getattr(args, name, 1)
+        if not 1 <= v <= args.uavs:
+            raise UsageError(f"--{name.replace('_', '-')}: a UAV number in 1..{args.uavs}, got {v}")
     counts = sorted(set(args.uav_counts))
     if any(n < 3 or n > 100 for n in counts):
         raise UsageError(f"--uav-counts: each must lie in 3..100, got {args.uav_counts}")
@@ -741,6 +880,9 @@ def run(args) -> dict:
             timing[f"truth_rk4_n{n}_t{trials}"] = time.perf_counter() - t0
         return track_cache[(n, trials)]
 
+    integrity = getattr(args, "integrity", "off")
+    faults = {k: getattr(args, k, v) for k, v in FAULT_DEFAULTS.items()}
+    integ = {}
     plots, doc_cases = {}, {}
     inflate_vs_ignore, central_vs = {}, {}
     for case in CASES:
@@ -750,8 +892,16 @@ def run(args) -> dict:
         tm = {}
         t0 = time.perf_counter()
         res = run_case(case, tr, args.trials, args.seed, locators=tuple(LOCATORS), progress=prog, timing=tm,
-                       prior=prior)
+                       prior=prior, integrity="on" if integrity == "on" else "off", faults=faults)
         tm["case_wall_s"] = time.perf_counter() - t0
+        if integrity == "on":
+            integ[case] = integrity_summary(None, res, args.trials)
+        elif integrity == "compare":  # the same data again, monitored (the production locator alone)
+            t0 = time.perf_counter()
+            res_m = run_case(case, tr, args.trials, args.seed, locators=(PRODUCTION,), progress=prog, central=False,
+                             prior=prior, integrity="on", faults=faults)
+            tm["case_monitored_wall_s"] = time.perf_counter() - t0
+            integ[case] = integrity_summary(res, res_m, args.trials)
         t0 = time.perf_counter()
         pc, Bd = pcrb_series(tr, res["constellation"], nav_cfg, cfg, prior)
         tm["pcrb"] = time.perf_counter() - t0
@@ -837,6 +987,7 @@ def run(args) -> dict:
         "inflate_vs_ignore": inflate_vs_ignore,
         "production_locator": PRODUCTION,
         "by_uav_count": sweep,
+        "integrity": {"mode": integrity, "faults": faults, "cases": integ} if integrity != "off" else None,
         "locator": {k: getattr(lc, k) for k in lc.__dataclass_fields__ if k not in ("prior_mean", "prior_cov")},
         "wall_s": wall,
         "timing_s": timing,
@@ -868,6 +1019,19 @@ def table(doc) -> str:
         iv = doc["inflate_vs_ignore"][case]
         rows.append(f"{'':<17} " + "; ".join(f"{k}: RMSE {v['rmse_m']:.0f} m ANEES {v['anees']['value']:.3g}"
                                              for k, v in iv.items() if v))
+    for case, ig in ((doc.get("integrity") or {}).get("cases") or {}).items():
+        m, p = ig.get("monitored") or {}, ig.get("plain") or {}
+        line = f"integrity {case}: {ig['events']} events {ig['by_source_and_kind']}"
+        for key in ("range_step_isolation", "pr_step_isolation"):
+            if key in ig:
+                iso = ig[key]
+                line += f"; {key} {iso['channel']} rate {iso['rate']:.2f} delay median {iso['delay_s_median']} s"
+        rows.append(line)
+        if m:
+            rows.append(f"{'':<17} RMSE monitored {m['rmse_m']:.1f} m (after fault {m['rmse_after_fault_m']:.1f}), "
+                        f"ANEES {m['anees']:.2f}" + (f"; plain {p['rmse_m']:.1f} m (after fault "
+                                                     f"{p['rmse_after_fault_m']:.1f}), ANEES {p['anees']:.2f}"
+                                                     if p else ""))
     for s in doc["by_uav_count"]:
         rows.append(f"by_uav_count {s['uavs']:>3} UAVs: RMSE {s['rmse_m']:.1f} m, PCRB {s['pcrb_m']:.1f} m, "
                     f"ANEES {s['anees']:.2f} ({s['trials']} trials)")
