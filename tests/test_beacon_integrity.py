@@ -272,3 +272,44 @@ def test_config_checks():
         LocatorConfig(integrity_max_links=0)
     with pytest.raises(ValueError, match="integrity_common_fraction"):
         LocatorConfig(integrity_common_fraction=0.0)
+
+
+# ---------------------------------------------------------------------------- the experiment
+
+
+def test_experiment_case_isolates_the_injected_faults_and_summarises():
+    """sitl/experiments/beacon.py with integrity on: a 100 m range step on UAV 2's link and a
+    100 m pseudorange step on one of UAV 1's satellites (GPS constellation, printed geometry):
+    both isolated on their channels (locator: within 2 epochs; UAV 1's filter: within 10 s),
+    the events on the bus reach the summary."""
+    from sitl.experiments import beacon as be
+
+    trials, dur = 2, 170.0
+    tr, prior = be.scenario("printed", 3, dur, trials, np.random.default_rng([5, 77]))
+    faults = {"range_step_m": 100.0, "range_step_uav": 2, "pr_step_m": 100.0, "pr_step_uav": 1, "fault_at_s": 120.0}
+    res = be.run_case("constellation", tr, trials, 5, locators=(be.PRODUCTION,), central=False, prior=prior,
+                      integrity="on", faults=faults)
+    ig = be.integrity_summary(None, res, trials)
+    assert ig["range_step_isolation"]["rate"] == 1.0 and ig["range_step_isolation"]["delay_s_max"] <= 1.0, ig
+    assert ig["range_step_isolation"]["other_links_excluded_after_fault"] == 0, ig
+    sat = res["faults"]["pr_step_sat"]
+    assert ig["pr_step_isolation"]["channel"] == f"uav1.{sat}" and ig["pr_step_isolation"]["rate"] == 1.0, ig
+    assert ig["pr_step_isolation"]["delay_s_max"] <= 10.0, ig
+    # every event the locator built arrived on the bus (and the UAVs' too)
+    assert res["counters"][be.PRODUCTION]["integrity_events"] == sum(ig["by_source_and_kind"]["locator"].values())
+    assert sum(ig["by_source_and_kind"]["uav_nav"].values()) > 0
+    with pytest.raises(ValueError, match="integrity"):
+        be.run_case("constellation", tr, trials, 5, integrity="maybe")
+
+
+@pytest.mark.parametrize("flags", [{"integrity": "maybe"}, {"range_step_uav": 4}, {"fault_at_s": -1.0},
+                                   {"pr_step_m": math.inf}])
+def test_experiment_bad_integrity_options_are_usage_errors(flags):
+    import argparse
+
+    from sitl.cli import UsageError
+    from sitl.experiments import beacon as be
+
+    a = argparse.Namespace(uavs=3, duration=200.0, uav_counts=[3], **{**{"integrity": "off"}, **flags})
+    with pytest.raises(UsageError):
+        be.check_args(a)
