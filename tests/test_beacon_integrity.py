@@ -310,6 +310,6 @@ def test_experiment_bad_integrity_options_are_usage_errors(flags):
     from sitl.cli import UsageError
     from sitl.experiments import beacon as be
 
-    a = argparse.Namespace(uavs=3, duration=200.0, uav_counts=[3], **{**{"integrity": "off"}, **flags})
+    a = argparse.Namespace(uavs=3, duration=200.0, uav_counts=[3], **{"integrity": "off", **flags})
     with pytest.raises(UsageError):
         be.check_args(a)
