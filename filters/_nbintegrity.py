@@ -330,7 +330,8 @@ def epoch_ser(z, hx, H, P, r_nom, r_est, old_sq, old_b, stale, sum_sq, sum_b, ju
               prm, iprm, beta, jump, drift_stat, bias_stat, drift, inert, used, weight, r_used, y, new_sq, new_b,
               sum_sq2, sum_b2, r_est2, excl2, newly, readmit, jr2, cr2, z_f, hx_g, fuse, x, xo, Po, nis, lanes):
     N = z.shape[0]
-    return _block(0, N, z, hx, H, P, r_nom, r_est, old_sq, old_b, stale, sum_sq, sum_b, jump_run, excluded,
-                            clean_run, ch, prm, iprm, beta, jump, drift_stat, bias_stat, drift, inert, used, weight,
-                            r_used, y, new_sq, new_b, sum_sq2, sum_b2, r_est2, excl2, newly, readmit, jr2, cr2, z_f,
-                            hx_g, fuse, x, xo, Po, nis, lanes)
+    # np.int64(0): a literal 0 would compile _block a second time, for the type Literal[int](0)
+    return _block(np.int64(0), N, z, hx, H, P, r_nom, r_est, old_sq, old_b, stale, sum_sq, sum_b, jump_run,
+                  excluded, clean_run, ch, prm, iprm, beta, jump, drift_stat, bias_stat, drift, inert, used, weight,
+                  r_used, y, new_sq, new_b, sum_sq2, sum_b2, r_est2, excl2, newly, readmit, jr2, cr2, z_f,
+                  hx_g, fuse, x, xo, Po, nis, lanes)

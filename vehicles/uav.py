@@ -582,11 +582,12 @@ def propagate(state: KinematicState, t1_s: float, guidance, dt_s: float = 0.01,
         shape = state.y.shape[:-1]
         y = np.ascontiguousarray(state.y, dtype=float).reshape(-1, 4).copy()
         idx = np.ascontiguousarray(state.wp_index, dtype=np.int64).reshape(-1).copy()
-        sw = np.asarray(extra.get("switch_times_s", np.zeros(0)), dtype=float)
+        sw = np.ascontiguousarray(extra.get("switch_times_s", np.zeros(0)), dtype=float)
         tr = np.ascontiguousarray(extra.get("turn_rates_rad_s", np.zeros((y.shape[0], 1))), dtype=float)
         wp = np.ascontiguousarray(extra.get("waypoints", np.zeros((y.shape[0], 1, 3))), dtype=float)
         cnt = np.ascontiguousarray(extra.get("count", np.ones(y.shape[0])), dtype=np.int64)
-        _integrate_nb(law, y, idx, np.ascontiguousarray(params, dtype=float), sw, tr, wp, cnt, ts, e.a_m, e.e2)
+        ready(_integrate_nb)(law, y, idx, np.ascontiguousarray(params, dtype=float), sw, tr, wp, cnt, ts, e.a_m,
+                             e.e2)
         return KinematicState(t1, y.reshape(shape + (4,)), idx.reshape(shape))
     y, idx = state.y, state.wp_index
     for ta, tb in zip(ts[:-1], ts[1:]):
@@ -620,6 +621,8 @@ def _step_times(t0: float, t1: float, dt: float, breakpoints) -> np.ndarray:
 
 
 if nb is not None:
+    from filters._nbentry import declare, ready, ro, rw
+
     _TWO_PI = 2.0 * math.pi
 
     @nb.njit(cache=True, nogil=True)
@@ -689,16 +692,21 @@ if nb is not None:
                     k_wp = min(k_wp + 1, cnti)
         return lat, lon, h, psi, k_wp
 
+    # one compiled version each (filters/_nbentry.py): the guidance's arrays may be read-only
+    @declare(nb.int64, rw(2), rw(1, nb.int64), ro(2), ro(1), ro(2), ro(3), ro(1, dtype=nb.int64), ro(1), nb.float64,
+             nb.float64)
     @nb.njit(cache=True, nogil=True)
     def _integrate_nb(law, y, idx, params, sw, tr, wp, cnt, ts, a, e2):
         """RK4 over the step boundaries ts in place on y (N, 4) and idx (N,), one vehicle at a time."""
         for i in range(y.shape[0]):
             tri = tr[i] if law == 1 else tr[0]
-            lat, lon, h, psi, k_wp = _rk4_steps_nb(law, params[i], tri, wp[i], cnt[i], sw, ts, 0, ts.size - 1,
+            lat, lon, h, psi, k_wp = _rk4_steps_nb(law, params[i], tri, wp[i], cnt[i], sw, ts, np.int64(0), ts.size - 1,
                                                    y[i, 0], y[i, 1], y[i, 2], y[i, 3], idx[i], a, e2)
             y[i, 0], y[i, 1], y[i, 2], y[i, 3] = lat, lon, h, psi
             idx[i] = k_wp
 
+    @declare(nb.int64, rw(2), rw(1, nb.int64), ro(2), ro(1), ro(2), ro(3), ro(1, dtype=nb.int64), ro(1),
+             ro(1, dtype=nb.int64), rw(3), rw(2, nb.int64), nb.float64, nb.float64)
     @nb.njit(cache=True, nogil=True)
     def _integrate_track_nb(law, y, idx, params, sw, tr, wp, cnt, ts, ends, ys, idxs, a, e2):
         """As _integrate_nb over ts, recording the state at the boundaries ts[ends[k]] in
@@ -706,7 +714,7 @@ if nb is not None:
         for i in range(y.shape[0]):
             tri = tr[i] if law == 1 else tr[0]
             lat, lon, h, psi, k_wp = y[i, 0], y[i, 1], y[i, 2], y[i, 3], idx[i]
-            j = 0
+            j = np.int64(0)  # not a literal 0: _rk4_steps_nb would compile again for Literal[int](0)
             for k in range(ends.size):
                 lat, lon, h, psi, k_wp = _rk4_steps_nb(law, params[i], tri, wp[i], cnt[i], sw, ts, j, ends[k],
                                                        lat, lon, h, psi, k_wp, a, e2)
@@ -798,16 +806,16 @@ class KinematicSwarm:
         shape = self.state.y.shape[:-1]
         y = np.ascontiguousarray(self.state.y, dtype=float).reshape(-1, 4).copy()
         idx = np.ascontiguousarray(self.state.wp_index, dtype=np.int64).reshape(-1).copy()
-        sw = np.asarray(extra.get("switch_times_s", np.zeros(0)), dtype=float)
+        sw = np.ascontiguousarray(extra.get("switch_times_s", np.zeros(0)), dtype=float)
         tr = np.ascontiguousarray(extra.get("turn_rates_rad_s", np.zeros((y.shape[0], 1))), dtype=float)
         wp = np.ascontiguousarray(extra.get("waypoints", np.zeros((y.shape[0], 1, 3))), dtype=float)
         cnt = np.ascontiguousarray(extra.get("count", np.ones(y.shape[0])), dtype=np.int64)
         K = ts_req.size
         ys = np.empty((K,) + y.shape)
         idxs = np.empty((K, y.shape[0]), dtype=np.int64)
-        _integrate_track_nb(law, y, idx, np.ascontiguousarray(params, dtype=float), sw, tr, wp, cnt,
-                            np.concatenate(parts), np.array(ends, dtype=np.int64), ys, idxs, self.ell.a_m,
-                            self.ell.e2)
+        ready(_integrate_track_nb)(law, y, idx, np.ascontiguousarray(params, dtype=float), sw, tr, wp, cnt,
+                                   np.concatenate(parts), np.array(ends, dtype=np.int64), ys, idxs, self.ell.a_m,
+                                   self.ell.e2)
         ys = ys.reshape((K,) + shape + (4,))
         idxs = idxs.reshape((K,) + shape)
         self.state = KinematicState(float(ts_req[-1]), y.reshape(shape + (4,)), idx.reshape(shape))
