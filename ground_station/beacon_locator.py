@@ -231,7 +231,11 @@ gated) and out of the mirror hypothesis's update and score; iterated updates kee
 The per-link chi-square gate stays.  Each UAV id keeps a fixed observer slot (its monitor
 column; at most ``integrity_max_links`` judged, the others used unjudged and counted).  A
 trial whose links mostly jump at once (more than ``integrity_common_fraction`` of its present
-links) is not judged that epoch: the track moved, not a link.  Events
+links) is not judged that epoch: the track moved, not a link.  Links are left out only while at
+least ``integrity_min_links`` (3) of a trial's present links stay in: three UAVs' ranges and
+Dopplers fix the 6 states with no redundancy, and on the printed run (3 UAVs, 20 trials) leaving
+one out let the track drift until the faulty link looked clean and was readmitted (a 30 m range
+step: RMSE 230 m against the plain locator's 125 m); there the monitor only detects.  Events
 (sitl.integrity_events: step, ramp, outlier, readmit) go on ``<run>/gs/integrity/<channel>``
 from ``<source_id>.integrity``, channel ``<beacon_id>.uav<uav id>`` (``.slot<i>`` when fed
 through ``process`` without UAV ids); counters ``integrity_*``.  Recommended settings: no
@@ -364,6 +368,10 @@ class LocatorConfig:
     integrity_max_links: monitor channels (UAV ids beyond this many are used unjudged, counted).
     integrity_common_fraction: an epoch of a trial whose links mostly jump at once (more than
         this fraction of its present links) is not judged: the track moved, not one link.
+    integrity_min_links: the verdict leaves links out of a trial's update only while at least this
+        many of its present links stay in (3: ranges and Dopplers of 3 UAVs fix the 6 states with
+        no redundancy; below that an exclusion makes the track unobservable and the monitor
+        detect-only for that trial and epoch).
     second_order_r: add the variance of the ranges' and Dopplers' second-order terms
         (:func:`second_order_var`, at the predicted state and covariance) to R -- for the
         same case; off by default (in the cylindrical coordinates the curvature is the
@@ -400,6 +408,7 @@ class LocatorConfig:
     integrity: IntegrityConfig | None = None
     integrity_max_links: int = 32
     integrity_common_fraction: float = 0.5
+    integrity_min_links: int = 3
 
     def __post_init__(self):
         if self.integrity is not None and not isinstance(self.integrity, IntegrityConfig):
@@ -407,6 +416,9 @@ class LocatorConfig:
         v = self.integrity_max_links
         if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < 1:
             raise ValueError(f"integrity_max_links must be an integer >= 1, got {v!r}")
+        v = self.integrity_min_links
+        if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < 0:
+            raise ValueError(f"integrity_min_links must be an integer >= 0, got {v!r}")
         f = self.integrity_common_fraction
         if isinstance(f, bool) or not isinstance(f, (int, float)) or not 0.0 < f <= 1.0:
             raise ValueError(f"integrity_common_fraction must lie in (0, 1], got {f!r}")
@@ -1663,6 +1675,10 @@ class BeaconLocator:
         self._mon_next = _mon_merge(prev, self._mon_next, tr, sub)
         cnt["integrity_epochs"] += 1
         out_link = got["inert"].reshape(k, L, 2).any(axis=-1)[:, :Nm] & mp  # present links left out
+        # no redundancy left (fewer than integrity_min_links would stay): detect only
+        short = (mp.sum(axis=-1) - out_link.sum(axis=-1)) < c.integrity_min_links
+        cnt["integrity_detect_only"] += int((short & out_link.any(axis=-1)).sum())
+        out_link[short] = False
         cnt["integrity_links_left_out"] += int(out_link.sum())
         cnt["integrity_exclusions"] += int(rep.newly_excluded.sum())
         cnt["integrity_readmissions"] += int(rep.readmitted.sum())

@@ -313,3 +313,20 @@ def test_experiment_bad_integrity_options_are_usage_errors(flags):
     a = argparse.Namespace(uavs=3, duration=200.0, uav_counts=[3], **{"integrity": "off", **flags})
     with pytest.raises(UsageError):
         be.check_args(a)
+
+
+def test_no_exclusion_below_min_links_detects_only(data):
+    """integrity_min_links: with every exclusion leaving fewer links than that, the monitor only
+    detects -- the estimates are the plain locator's bit for bit, the fault is still reported."""
+    import dataclasses
+
+    scene, eps, x0 = data
+    bad = _fault(eps, K0, K, LINK, d_range=200.0)
+    xp, Pp, _, _ = _run(_config(x0), bad, scene[0])
+    cfg = dataclasses.replace(_config(x0, INTEGRITY), integrity_min_links=5)
+    xd, Pd, loc, got = _run(cfg, bad, scene[0])
+    assert np.array_equal(xp, xd) and np.array_equal(Pp, Pd)
+    assert any(e.channel == f"b1.slot{LINK}" and e.event == "step" for _, e in got)
+    assert loc.counters["integrity_detect_only"] > 0
+    with pytest.raises(ValueError, match="integrity_min_links"):
+        LocatorConfig(integrity_min_links=-1)
