@@ -257,6 +257,21 @@ def _add_beacon_args(p: argparse.ArgumentParser) -> None:
                    help="printed (default): the paper's laws and common start point as printed, the beacon's "
                         "start drawn about it and the locator started from that prior; geodetic: the prose's "
                         "lat/lon start points, northward flight, blind start")
+    p.add_argument("--integrity", choices=("off", "on", "compare"), default="off",
+                   help="integrity monitors (issue 6): on = the production locator per UAV link and the UAVs' "
+                        "onboard filters per satellite; compare = each main case again, monitored, on the same "
+                        "data (default off)")
+    p.add_argument("--range-step", dest="range_step_m", type=finite_float, default=0.0, metavar="M",
+                   help="fault: a range step of M m on one UAV's beacon link from --fault-at (default 0: none)")
+    p.add_argument("--range-step-uav", type=positive_int, default=2, metavar="I",
+                   help="UAV number (1..--uavs) of the range step (default 2)")
+    p.add_argument("--pr-step", dest="pr_step_m", type=finite_float, default=0.0, metavar="M",
+                   help="fault: a pseudorange step of M m on the first satellite UAV --pr-step-uav tracks at "
+                        "--fault-at (default 0: none)")
+    p.add_argument("--pr-step-uav", type=positive_int, default=1, metavar="I",
+                   help="UAV number of the pseudorange step (default 1)")
+    p.add_argument("--fault-at", dest="fault_at_s", type=nonnegative_float, default=150.0, metavar="S",
+                   help="start of the injected faults, s since the run's start (default 150)")
     p.add_argument("--quiet", action="store_true", help="no progress lines")
 
 
