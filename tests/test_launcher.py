@@ -13,6 +13,8 @@ import threading
 import time
 
 import pytest
+from procs import dead as _dead
+from procs import tcp_free as _tcp_free
 
 from sitl.live.pacer import Pacer
 from sitl.live.supervisor import Supervisor
@@ -150,24 +152,6 @@ def _free_port():
         return s.getsockname()[1]
 
 
-def _dead(pid: int) -> bool:
-    try:
-        with open(f"/proc/{pid}/stat") as f:
-            return f.read().rsplit(")", 1)[1].split()[0] in ("Z", "X")
-    except FileNotFoundError:
-        return True
-
-
-def _port_free(port: int) -> bool:
-    with socket.socket() as s:
-        s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
-        try:
-            s.bind(("127.0.0.1", port))
-            return True
-        except OSError:
-            return False
-
-
 def _wait(cond, timeout=15.0):
     t_end = time.monotonic() + timeout
     while time.monotonic() < t_end:
@@ -204,7 +188,7 @@ def test_supervisor_restarts_a_dead_worker_and_stops_everything(tmp_path):
     pids = [int(p) for line in (tmp_path / "pids").read_text().split("\n") if line for p in line.split()]
     assert len(pids) == 8  # 4 incarnations (crash twice), each with a grandchild
     assert _wait(lambda: all(_dead(p) for p in pids), 10.0), [p for p in pids if not _dead(p)]
-    assert all(_port_free(p) for p in ports.values())
+    assert all(_tcp_free(p) for p in ports.values())
     assert how["good"] == "exited"  # it honoured the stop command
     assert sup.all_finished() and not sup.alive()
 
@@ -223,7 +207,7 @@ def test_supervisor_kills_a_worker_that_ignores_sigterm(tmp_path):
     assert how["stubborn"] == "SIGKILL"
     pids = [int(p) for p in (tmp_path / "pids").read_text().split()]
     assert _wait(lambda: all(_dead(p) for p in pids), 10.0)
-    assert _port_free(port)
+    assert _tcp_free(port)
     assert sup.children["stubborn"].exits == [-signal.SIGKILL]
 
 

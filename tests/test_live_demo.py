@@ -16,28 +16,12 @@ import threading
 import time
 
 import pytest
+from procs import dead as _dead
+from procs import tcp_free as _tcp_free
+from procs import udp_free as _udp_free
 
 from sitl.live.launcher import launch, replay
 from sitl.scenario import default_scenario
-
-
-def _udp_free(port: int) -> bool:
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
-        try:
-            s.bind(("127.0.0.1", port))
-            return True
-        except OSError:
-            return False
-
-
-def _tcp_free(port: int) -> bool:
-    with socket.socket() as s:
-        s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
-        try:
-            s.bind(("127.0.0.1", port))
-            return True
-        except OSError:
-            return False
 
 
 def _base_port(n: int) -> int:
@@ -45,14 +29,6 @@ def _base_port(n: int) -> int:
         if all(_udp_free(base + 10 * i) for i in range(n)):
             return base
     raise RuntimeError("no free UDP port range")
-
-
-def _dead(pid: int) -> bool:
-    try:
-        with open(f"/proc/{pid}/stat") as f:
-            return f.read().rsplit(")", 1)[1].split()[0] in ("Z", "X")
-    except FileNotFoundError:
-        return True
 
 
 class GcsPeer(threading.Thread):
