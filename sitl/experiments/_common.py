@@ -3,6 +3,7 @@ directory check, and loading the vehicle / ground-station packages by module nam
 never imports them statically: see ARCHITECTURE.md, "Dependency direction")."""
 from __future__ import annotations
 
+import dataclasses
 import importlib
 import math
 import os
@@ -60,3 +61,97 @@ def prepare_out(out: Path) -> Path:
 def component(module: str):
     """A vehicles.* or ground_station.* module, loaded by name at run time."""
     return importlib.import_module(module)
+
+
+# ------------------------------------------------------------------ network faults on the bus (issue 8)
+class MeasurementFaults:
+    """A `sitl.bus.transport.FaultFilter` that applies network faults to the MEASUREMENT keys of
+    a batch experiment only (``exprs``: key expressions); every other key (truth, the ground
+    station's estimates, its link statistics) passes untouched, at its publication time.
+
+    ``faults``: FaultFilters ``(key, payload, t_s) -> [(deliver_at_s, bytes)]`` (e.g.
+    ``sitl.netfault.KeyFaults``, ``LinkFault``), and/or KeyFaults rules ``(key_expr, spec)``
+    (spec text or ``FaultSpec``), gathered into one ``sitl.netfault.KeyFaults(rules, seed)``.
+    The filters see time since the run's start, ``t_s = t_gps_s - t0_gps_s`` (so that
+    ``partition=150-180`` means 150 s to 180 s after the first epoch); their delivery times
+    are mapped back.  Deterministic for ``seed`` (the rules' generators derive from it and the
+    key; the filters given as objects carry their own)."""
+
+    def __init__(self, faults, exprs, *, seed: int = 0, t0_gps_s: float = 0.0):
+        from sitl.bus.transport import key_matches, validate_key_expr
+
+        self._key_matches = key_matches
+        self.exprs = tuple(validate_key_expr(e) for e in exprs)
+        self.t0_gps_s = float(t0_gps_s)
+        self.filters = []
+        rules = []
+        for f in faults or ():
+            if isinstance(f, (tuple, list)) and len(f) == 2 and isinstance(f[0], str):
+                rules.append((f[0], f[1]))
+            elif callable(f):
+                self.filters.append(f)
+            else:
+                raise TypeError(f"bus_faults: expected a FaultFilter or a (key_expr, spec) rule, got {f!r}")
+        if rules:
+            from sitl.netfault import KeyFaults
+
+            self.filters.insert(0, KeyFaults(rules, seed=int(seed)))
+        self._is_meas: dict[str, bool] = {}
+        self.passed = 0  # payloads on other keys, untouched
+        self.faulted = 0  # payloads on measurement keys handed to the filters
+
+    def __bool__(self) -> bool:
+        return bool(self.filters)
+
+    def is_measurement(self, key: str) -> bool:
+        m = self._is_meas.get(key)
+        if m is None:
+            m = self._is_meas[key] = any(self._key_matches(e, key) for e in self.exprs)
+        return m
+
+    def __call__(self, key: str, payload: bytes, t_gps_s: float):
+        if not self.is_measurement(key):
+            self.passed += 1
+            return [(t_gps_s, payload)]
+        self.faulted += 1
+        t0 = self.t0_gps_s
+        items = [(t_gps_s - t0, payload)]
+        for f in self.filters:
+            items = [out for t, p in items for out in f(key, p, t)]
+        return [(t + t0, p) for t, p in items]
+
+    def truths(self) -> dict:
+        """The injected truth per concrete key: {key: LinkTruth} of every filter that keeps one
+        (KeyFaults.truths(); a LinkFault's .truth under its name)."""
+        out = {}
+        for f in self.filters:
+            if hasattr(f, "truths"):
+                out.update(f.truths())
+            elif hasattr(f, "truth"):
+                out[getattr(f, "name", repr(f))] = f.truth
+        return out
+
+    def totals(self) -> dict:
+        """The truth counters summed over every link (numbers only), plus ``links``."""
+        tot: dict = {}
+        truths = self.truths()
+        for tr in truths.values():
+            d = dataclasses.asdict(tr) if dataclasses.is_dataclass(tr) else dict(vars(tr))
+            for k, v in d.items():
+                if isinstance(v, bool) or not isinstance(v, (int, float)):
+                    continue
+                if k.endswith("_max"):
+                    tot[k] = max(tot.get(k, 0), v)
+                else:
+                    tot[k] = tot.get(k, 0) + v
+        tot["links"] = len(truths)
+        return tot
+
+
+def measurement_faults(bus_faults, exprs, *, seed: int = 0, t0_gps_s: float = 0.0):
+    """The transport's ``faults=`` list for ``bus_faults`` (None / empty: ``[]``, no fault layer
+    at all, so a run without faults is the run it always was) and the MeasurementFaults (or None)."""
+    if not bus_faults:
+        return [], None
+    mf = MeasurementFaults(bus_faults, exprs, seed=seed, t0_gps_s=t0_gps_s)
+    return ([mf] if mf else []), mf

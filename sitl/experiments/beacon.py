@@ -74,7 +74,8 @@ from pathlib import Path
 
 import numpy as np
 
-from sitl.experiments._common import component, prepare_out, progress_printer, save_figure, strict
+from sitl.experiments._common import (component, measurement_faults, prepare_out, progress_printer, save_figure,
+                                      strict)
 
 PAPER_ERRORS_M = {"xi": 25.0, "eta": 9.0, "zeta": 15.0}
 AXES = ("xi", "eta", "zeta")
@@ -97,6 +98,8 @@ FAULT_DEFAULTS = {"range_step_m": 0.0, "range_step_uav": 2, "pr_step_m": 0.0, "p
 SETTLE_S = 100.0
 DT_S = 1.0
 BEACON_ID = "b1"
+#: the measurement links of run_case's bus_faults: the UAVs' beacon measurements to the ground station
+MEASUREMENT_KEYS = (f"*/uav/*/beacon/{BEACON_ID}",)
 FIGURES = ("beacon_errors.png", "beacon_rmse_vs_pcrb.png", "beacon_uav_count.png")
 # locators on the same messages: name -> LocatorConfig overrides
 PRODUCTION = "consider"  # the locator whose Estimates go on the bus (the first of run_case's locators)
@@ -277,8 +280,17 @@ class _Scorer:
 
 
 def run_case(case, tracks, trials, seed, locators=(PRODUCTION,), progress=None, central=True,
-             timing=None, prior=None, integrity: str = "off", faults: dict | None = None) -> dict:
+             timing=None, prior=None, integrity: str = "off", faults: dict | None = None,
+             bus_faults=None, fault_seed: int | None = None) -> dict:
     """One case through the bus (module docstring).  Returns the raw series and counters.
+
+    bus_faults (issue 8): network faults on the MEASUREMENT links only, the UAVs' beacon
+    measurements (keys MEASUREMENT_KEYS), never the truth or the estimates the ground station
+    publishes: a list of FaultFilters (``sitl.netfault.KeyFaults``, ``LinkFault``) and/or
+    KeyFaults rules ``(key_expr, spec)`` seeded with ``fault_seed`` (default: from ``seed``);
+    times in the specs are seconds since the first epoch (``partition=150-180``).  Default none:
+    no fault layer, the run it always was.  The estimates are scored as published at each epoch
+    (real time); ``out["bus_faults"]`` holds the injected truth (summed over the links).
 
     integrity "on": the production locator runs the integrity monitor per UAV link and the UAVs'
     onboard filters theirs per satellite (vehicles.uav_nav.RECOMMENDED_INTEGRITY), their events
@@ -323,7 +335,10 @@ def run_case(case, tracks, trials, seed, locators=(PRODUCTION,), progress=None, 
     rng = np.random.default_rng([seed, CASES.index(case) if case in CASES else 7, N])
     base = f"beacon-{case[:5]}-n{N}-s{seed}"
     run_ids = [f"{base}-t{k:03d}" for k in range(T)]
-    bus = InMemoryTransport(start_t_gps_s=float(t_gps[0]))
+    fault_list, mfaults = measurement_faults(
+        bus_faults, MEASUREMENT_KEYS, seed=(seed * 1009 + 8) if fault_seed is None else fault_seed,
+        t0_gps_s=float(t_gps[0]))
+    bus = InMemoryTransport(start_t_gps_s=float(t_gps[0]), faults=fault_list)
     locs = {}
     pub = locators[0]  # publishes on the bus, scored from there; the others from their states
     for name in locators:
@@ -445,7 +460,8 @@ def run_case(case, tracks, trials, seed, locators=(PRODUCTION,), progress=None, 
     est_x, est_P = scorer.x, scorer.P
     out = {"t": t, "truth": scorer.truth, "nav_x": nav_x, "nav_P": nav_P, "x": {pub: est_x},
            "P": {pub: est_P}, "mode": scorer.mode, "counters": {}, "bus": _bus_stats(bus),
-           "integrity_events": events, "faults": {**fl, "pr_step_sat": None if pr_sat is None else
+           "integrity_events": events, "bus_faults": None if mfaults is None else mfaults.totals(),
+           "faults": {**fl, "pr_step_sat": None if pr_sat is None else
                                                    str(np.asarray(const.sat_id)[pr_sat])}}
     for name in side:
         out["x"][name], out["P"][name] = side[name], side_P[name]

@@ -59,7 +59,8 @@ from pathlib import Path
 
 import numpy as np
 
-from sitl.experiments._common import component, prepare_out, progress_printer, save_figure, strict
+from sitl.experiments._common import (component, measurement_faults, prepare_out, progress_printer, save_figure,
+                                      strict)
 
 MODES = ("fused", "radar_only", "relay_only")
 WHITE_MODES = ("fused_white", "radar_only_white")
@@ -70,6 +71,8 @@ RUN_ID = "seed004"
 RADAR_ID = "arls1"
 FIGURES = ("sonde_error_vs_time.png", "sonde_rmse_vs_range.png", "sonde_nees.png")
 INTEGRITY = ("off", "on", "compare")
+#: the measurement links of run_trials' bus_faults: the relayed GNSS and the radar, to the ground station
+MEASUREMENT_KEYS = (f"{RUN_ID}/sonde/*/relay", f"{RUN_ID}/radar/*/sonde/*")
 MONITORED = "_monitored"
 
 
@@ -237,6 +240,7 @@ class _Scorer:
         self.cov = np.full((M, B, T, 6, 6), np.nan)
         self.count = np.zeros((M, B, T), dtype=np.int32)
         self.unexpected = 0
+        self.k_now = None  # the epoch being stepped: an Estimate is scored there, as published (real time)
 
     def _k(self, t):
         return round((t - self.t0) / self.dt)
@@ -255,7 +259,7 @@ class _Scorer:
         if b is None or m is None:
             self.unexpected += 1
             return
-        k = self._k(msg.t_gps_s)
+        k = self._k(msg.t_gps_s) if self.k_now is None else self.k_now
         self.pos[m, b, k], self.vel[m, b, k], self.cov[m, b, k] = msg.pos_ecef_m, msg.vel_ecef_m_s, msg.cov
         self.count[m, b, k] += 1
 
@@ -287,12 +291,20 @@ def world(scn: SondeScenario, seed: int, trials, *, backend=None):
 
 
 def run_trials(scn: SondeScenario, seed: int, trials, *, backend=None, progress=None, chunk: int = 300,
-               modes=None) -> dict:
+               modes=None, bus_faults=None, fault_seed: int | None = None) -> dict:
     """Simulate and track the given trial indices as one batch over the in-memory bus.
 
     modes: the trackers to run (default ``scn.modes``; a subset for timing -- ``score`` needs
     the three main ones). Returns the raw arrays (truth, estimates per mode, ground range,
     times) and timings.
+
+    bus_faults (issue 8): network faults on the MEASUREMENT links only (MEASUREMENT_KEYS: the
+    relayed GNSS and the radar measurements), never the truth or the trackers' estimates: a
+    list of FaultFilters (``sitl.netfault.KeyFaults``, ``LinkFault``) and/or KeyFaults rules
+    ``(key_expr, spec)`` seeded with ``fault_seed`` (default: from ``seed``); times in the specs
+    are seconds since launch.  Default none: no fault layer, the run it always was.  Estimates
+    are scored at the epoch they are published (real time); ``out["bus_faults"]`` holds the
+    injected truth summed over the links.
     """
     # the world and the ground station are imported here, not at module import: sitl must
     # not import vehicles or ground_station when it is itself imported
@@ -308,7 +320,9 @@ def run_trials(scn: SondeScenario, seed: int, trials, *, backend=None, progress=
     t0, lat, lon, h, track, radar, relay = world(scn, seed, trials, backend=backend)
     timing["world"] += time.perf_counter() - w0
 
-    bus = InMemoryTransport(start_t_gps_s=t0)
+    fault_list, mfaults = measurement_faults(
+        bus_faults, MEASUREMENT_KEYS, seed=(seed * 1009 + 8) if fault_seed is None else fault_seed, t0_gps_s=t0)
+    bus = InMemoryTransport(start_t_gps_s=t0, faults=fault_list)
     ids = [f"s{i:04d}" for i in trials]
     index = {s: b for b, s in enumerate(ids)}
     modes = scn.modes if modes is None else tuple(modes)
@@ -401,6 +415,7 @@ def run_trials(scn: SondeScenario, seed: int, trials, *, backend=None, progress=
                     examples["radar"] = msg
                     n_msgs["radar"] += 1
             w1 = time.perf_counter()
+            scorer.k_now = k
             bus.drain(t)
             w2 = time.perf_counter()
             for tr in trackers:
@@ -432,6 +447,7 @@ def run_trials(scn: SondeScenario, seed: int, trials, *, backend=None, progress=
                 "messages_by_kind": {**n_msgs, "estimate": int(scorer.count.sum()), "integrity": len(events)}},
         "scorer_unexpected": scorer.unexpected,
         "integrity_events": events, "fault_relay_step_sat": step_sat,
+        "bus_faults": None if mfaults is None else mfaults.totals(),
         "timing_s": timing, "wall_s": time.perf_counter() - wall0, "examples": examples,
     }
 
@@ -489,6 +505,12 @@ def _merge(parts: list[dict]) -> dict:
     out["integrity_events"] = [e for p in parts for e in p["integrity_events"]]
     out["timing_s"] = {k: sum(p["timing_s"][k] for p in parts) for k in parts[0]["timing_s"]}
     out["wall_s"] = sum(p["wall_s"] for p in parts)
+    if any(p.get("bus_faults") for p in parts):
+        bf: dict = {}
+        for p in parts:
+            for k, v in (p.get("bus_faults") or {}).items():
+                bf[k] = max(bf.get(k, 0), v) if k.endswith("_max") else bf.get(k, 0) + v
+        out["bus_faults"] = bf
     return out
 
 
