@@ -6,6 +6,7 @@ from __future__ import annotations
 import dataclasses
 import logging
 import math
+import zlib
 
 import msgpack
 import numpy as np
@@ -20,9 +21,11 @@ from sitl.bus import (
     BeaconMeasurement,
     BusDecodeError,
     Estimate,
+    FaultControl,
     InMemoryTransport,
     IntegrityEvent,
     KeyExprError,
+    LinkStats,
     Message,
     RadarMeasurement,
     SchemaError,
@@ -35,9 +38,11 @@ from sitl.bus import (
     key_for,
     key_matches,
     key_pattern,
+    pack_sealed,
     parse_key,
     validate_key_expr,
 )
+from sitl.bus.codec import seal
 
 # Deterministic, quick, and no example database written into the repo.
 FAST = settings(derandomize=True, database=None, deadline=None, max_examples=150,
@@ -106,9 +111,20 @@ def integrity(**kw) -> IntegrityEvent:
     return IntegrityEvent(**{**base, **kw})
 
 
+def link_stats(**kw) -> LinkStats:
+    base = dict(HDR, source_id="gs", link="uav-3", received=120, missing=4, duplicates=2, out_of_order=3,
+                gaps=2, latency_mean_s=0.125, latency_max_s=0.75, stale=False, last_t_gps_s=1_400_000_000.0)
+    return LinkStats(**{**base, **kw})
+
+
+def fault_control(**kw) -> FaultControl:
+    base = dict(HDR, source_id="cli", link="bus:*/uav/uav2/**", spec="loss=10% delay=100ms~20ms")
+    return FaultControl(**{**base, **kw})
+
+
 FACTORIES = {"UavNav": nav, "BeaconMeasurement": beacon, "SondeRelay": relay,
              "RadarMeasurement": radar, "Truth": truth, "Estimate": estimate,
-             "IntegrityEvent": integrity}
+             "IntegrityEvent": integrity, "LinkStats": link_stats, "FaultControl": fault_control}
 
 
 def test_every_kind_has_a_factory_and_round_trips():
@@ -136,10 +152,14 @@ def test_messages_are_frozen_and_arrays_read_only():
 
 def test_wire_payload_is_msgpack_map_with_raw_float64_arrays():
     m = nav()
-    obj = msgpack.unpackb(encode(m), raw=False)
-    assert obj["_v"] == SCHEMA_VERSION and obj["_kind"] == "uav_nav"
+    b = encode(m)
+    obj = msgpack.unpackb(b, raw=False)
+    assert obj["_v"] == SCHEMA_VERSION == 2 and obj["_kind"] == "uav_nav"
     assert obj["cov"] == m.cov.astype("<f8").tobytes()
-    assert set(obj) == {"_v", "_kind"} | {s.name for s in UavNav.FIELDS}
+    assert set(obj) == {"_v", "_kind", "_crc"} | {s.name for s in UavNav.FIELDS}
+    # the checksum: the map's last entry, CRC-32 (zlib, little-endian) of every byte before it
+    assert list(obj)[-1] == "_crc" and b[-11:-4] == b"\xa4_crc\xc4\x04"
+    assert obj["_crc"] == zlib.crc32(b[:-4]).to_bytes(4, "little")
 
 
 def test_empty_relay_epoch_and_lost_radar_angles_are_legal():
@@ -239,6 +259,13 @@ messages = st.one_of(
               cov=covs(), nis=st.one_of(st.just(math.nan), st.floats(0, 1e9)), mode=tokens),
     st.builds(IntegrityEvent, **header(), channel=tokens, event=tokens,
               statistic=st.floats(allow_infinity=False)),
+    st.builds(LinkStats, **header(), link=tokens, received=st.integers(0, 2**40), missing=st.integers(0, 2**40),
+              duplicates=st.integers(0, 2**40), out_of_order=st.integers(0, 2**40), gaps=st.integers(0, 2**40),
+              latency_mean_s=st.floats(allow_infinity=False), latency_max_s=st.floats(allow_infinity=False),
+              stale=st.booleans(), last_t_gps_s=st.floats(allow_infinity=False)),
+    st.builds(FaultControl, **header(), link=st.text(st.characters(min_codepoint=33, max_codepoint=126), min_size=1,
+                                                     max_size=30),
+              spec=st.text(st.characters(min_codepoint=32, max_codepoint=126), max_size=40)),
 )
 
 
@@ -298,6 +325,48 @@ def test_fuzz_bit_flips(m, data):
     decode_or_reject(bytes(b))
 
 
+@settings(FAST, max_examples=300)
+@given(messages, st.data())
+def test_single_bit_flip_always_rejected_by_the_crc(m, data):
+    """The fault layer's ``corrupt`` flips one bit: never accepted (a changed float would pass
+    every other check), always counted under "crc"."""
+    b = bytearray(encode(m))
+    bit = data.draw(st.integers(0, 8 * len(b) - 1))
+    b[bit // 8] ^= 1 << (bit % 8)
+    with pytest.raises(BusDecodeError) as exc:
+        decode(bytes(b))
+    assert exc.value.reason == "crc"
+
+
+@settings(FAST, max_examples=150)
+@given(messages, st.data())
+def test_burst_up_to_32_bits_always_rejected_by_the_crc(m, data):
+    b = bytearray(encode(m))
+    n = 8 * len(b)
+    start = data.draw(st.integers(0, n - 1))
+    length = data.draw(st.integers(1, min(32, n - start)))
+    pattern = data.draw(st.integers(1, 2 ** length - 1) if length > 1 else st.just(1)) | 1 | (1 << (length - 1))
+    for i in range(length):
+        if pattern >> i & 1:
+            bit = start + i
+            b[bit // 8] ^= 1 << (bit % 8)
+    with pytest.raises(BusDecodeError) as exc:
+        decode(bytes(b))
+    assert exc.value.reason == "crc"
+
+
+def test_every_single_bit_flip_of_a_beacon_measurement_rejected():
+    b = encode(beacon())
+    reasons = set()
+    for bit in range(8 * len(b)):
+        c = bytearray(b)
+        c[bit // 8] ^= 1 << (bit % 8)
+        with pytest.raises(BusDecodeError) as exc:
+            decode(bytes(c))
+        reasons.add(exc.value.reason)
+    assert reasons == {"crc"}
+
+
 msgpack_values = st.recursive(
     st.none() | st.booleans() | st.integers(-(2**63), 2**64 - 1) | st.floats()
     | st.text(max_size=8) | st.binary(max_size=64),
@@ -313,13 +382,17 @@ def test_fuzz_field_values(m, data):
     obj = msgpack.unpackb(encode(m), raw=False)
     name = data.draw(st.sampled_from(sorted(obj)))
     obj[name] = data.draw(msgpack_values)
-    decode_or_reject(msgpack.packb(obj, use_bin_type=True))
+    decode_or_reject(msgpack.packb(obj, use_bin_type=True))  # the checksum rejects it
+    if name != "_crc":
+        decode_or_reject(pack_sealed(obj))  # the layers after the checksum
 
 
 @FUZZ
 @given(msgpack_values)
 def test_fuzz_msgpack_structures(value):
     decode_or_reject(msgpack.packb(value, use_bin_type=True))
+    if isinstance(value, (dict, list)):
+        decode_or_reject(pack_sealed(value))
 
 
 def test_decode_non_bytes_raises_bus_decode_error():
@@ -342,7 +415,7 @@ def wire_with(m: Message, drop: tuple[str, ...] = (), **overrides) -> bytes:
         elif isinstance(v, tuple):
             v = list(v)
         obj[k] = v
-    return msgpack.packb(obj, use_bin_type=True)
+    return pack_sealed(obj)  # a valid checksum: the rule after it is what is tested
 
 
 NAN, INF = math.nan, math.inf
@@ -453,7 +526,8 @@ def test_validation_rule_constructor_and_wire(make, overrides, where):
 
 WIRE_RULES = [  # (payload, text of the error)
     (wire_with(nav(), drop=("_v",)), "header._v: missing schema version"),
-    (wire_with(nav(), _v=2), "header._v: unsupported schema version"),
+    (wire_with(nav(), _v=1), "header._v: unsupported schema version"),
+    (msgpack.packb(msgpack.unpackb(encode(nav())), use_bin_type=True)[:-4] + b"\0\0\0\0", "crc"),
     (wire_with(nav(), _v="1"), "header._v: schema version not an int"),
     (wire_with(nav(), drop=("_kind",)), "header._kind"),
     (wire_with(nav(), _kind="nav_v9"), "header._kind: unknown message kind"),
@@ -466,11 +540,16 @@ WIRE_RULES = [  # (payload, text of the error)
     (wire_with(radar(), angles_valid=1), "RadarMeasurement.angles_valid: expected bool"),
     (wire_with(relay(), sat_ids="G01"), "SondeRelay.sat_ids: expected array of str"),
     (wire_with(relay(), sat_ids=["G01", "G02"]), "SondeRelay.pseudorange_m: wrong size"),
-    (msgpack.packb([1, "uav_nav"]), "payload: not a map"),
-    (encode(nav()) + b"\x00", "payload: trailing bytes"),
+    (pack_sealed([1, "uav_nav"]), "payload: not a map"),
+    (msgpack.packb([1, "uav_nav"]), "crc"),
+    (encode(nav()) + b"\x00", "crc"),
+    (encode(nav())[:-11] + b"\x00" + encode(nav())[-11:], "crc"),
+    (seal(msgpack.packb({k: v for k, v in msgpack.unpackb(encode(nav())).items() if k != "_crc"})
+          + b"\xa4_crc\xc4\x04\0\0\0\0"), "payload: trailing bytes"),
     (b"", "payload: empty"),
-    (b"\xc1", "payload: not msgpack"),
-    (b"\x81\xa1v", "payload: not msgpack"),
+    (b"\xc1", "crc"),
+    (seal(b"\xc1\xa4_crc\xc4\x04\0\0\0\0"), "payload: not msgpack"),
+    (seal(b"\x82\xa1v\xa4_crc\xc4\x04\0\0\0\0"), "payload: not msgpack"),
     (b"\x00" * (1 << 20 + 1), "payload: too large"),
 ]
 
@@ -703,13 +782,13 @@ def test_malformed_payload_rejected_counted_logged_once(caplog):
     bus.drain()  # never raises
     assert rec.seqs == [7] and other.seqs == [7]
     stats = bus.stats.total
-    assert stats.rejected == {"payload: not msgpack": 3, "UavNav.fix_type: out of range 0..6": 1}
+    assert stats.rejected == {"crc": 3, "UavNav.fix_type: out of range 0..6": 1}
     assert stats.delivered == 1 and stats.rejected_total == 4
     assert sub.stats.rejected == stats.rejected and sub2.stats.rejected_total == 4
     assert bus.stats.per_subscription[sub.id] is sub.stats
     assert sub.stats.bytes == 3 * 8 + len(wire_with(nav(), fix_type=9)) + len(encode(nav(seq=7)))
     logged = [r.getMessage() for r in caplog.records]
-    assert sum("not msgpack" in t for t in logged) == 1  # once per reason
+    assert sum("crc" in t for t in logged) == 1  # once per reason
     assert sum("fix_type" in t for t in logged) == 1
     # the transport keeps working
     bus.publish("r/uav/1/nav", nav(seq=8))

@@ -18,7 +18,7 @@ from .buslog import (
     read_bus_log,
     read_bus_log_records,
 )
-from .codec import MAX_PAYLOAD_BYTES, BusDecodeError, decode, encode
+from .codec import MAX_PAYLOAD_BYTES, BusDecodeError, decode, encode, pack_sealed
 from .router import Router, RouterError
 from .schema import (
     KEY_TEMPLATES,
@@ -27,7 +27,9 @@ from .schema import (
     SCHEMA_VERSION,
     BeaconMeasurement,
     Estimate,
+    FaultControl,
     IntegrityEvent,
+    LinkStats,
     Message,
     RadarMeasurement,
     SchemaError,
@@ -70,10 +72,12 @@ __all__ = [
     "BusRecord",
     "BusRecorder",
     "Estimate",
+    "FaultControl",
     "InMemoryTransport",
     "IntegrityEvent",
     "KeyExprError",
     "LinkCounters",
+    "LinkStats",
     "Message",
     "RadarMeasurement",
     "Router",
@@ -98,6 +102,7 @@ __all__ = [
     "key_for",
     "key_matches",
     "key_pattern",
+    "pack_sealed",
     "parse_key",
     "read_bus_log",
     "read_bus_log_records",

@@ -1,11 +1,22 @@
 """Binary encoding of bus messages: one path for the live and the batch bus.
 
-Wire format (schema version 1): one MessagePack map
-``{"_v": 1, "_kind": "<kind tag>", "<field>": <value>, ...}`` holding every field of the message
+Wire format (schema version 2): one MessagePack map
+``{"_v": 2, "_kind": "<kind tag>", "<field>": <value>, ..., "_crc": <bin 4>}`` holding every field of the message
 dataclass by name: floats as float64, ints, bools, strs, tuples of str as arrays of str, and
 numpy arrays as ``bin`` holding the raw little-endian float64 bytes in C order (shapes are
 fixed by the schema; "n"-long arrays take n from ``len(sat_ids)``). The envelope keys start
 with "_", which no message field may, so they never clash with a field (Truth has a ``kind``).
+
+Checksum (version 2). The map's last entry is ``"_crc"``: a 4-byte ``bin`` holding the CRC-32
+(zlib, little-endian) of every payload byte before those 4 (so the map header, every field,
+and the ``"_crc"`` key and bin header are covered): the payload ends with the fixed 7
+bytes ``a4 5f 63 72 63 c4 04`` then the 4 CRC bytes. `decode` checks it before parsing anything and rejects a
+payload whose trailer or CRC does not match with reason ``"crc"``. CRC-32 detects every
+error burst of up to 32 bits, so a payload with one flipped bit (the fault layer's
+``corrupt``), or a few flipped bits close together, is always rejected, never accepted
+with a changed float; the CRC costs ~0.1 us per message. MAVLink frames have their own CRC
+(CRC-16/MCRF4XX with the message's CRC_EXTRA). Version 1 payloads (no checksum) are refused
+("header._v: unsupported schema version" can only be reached by a payload whose CRC is right).
 
 Why MessagePack and not a numpy/struct fixed layout
 ---------------------------------------------------
@@ -54,6 +65,7 @@ it can key rejection counters; ``err.detail`` has the values.
 
 from __future__ import annotations
 
+import zlib
 from typing import Any
 
 import msgpack
@@ -74,8 +86,36 @@ from .schema import (
 )
 
 MAX_PAYLOAD_BYTES = 1 << 20  # far above any message (SondeRelay n=100 is ~11 kB)
-_HEADER_KEYS = ("_v", "_kind")
+_HEADER_KEYS = ("_v", "_kind", "_crc")
 _LE_F8 = np.dtype("<f8")
+CRC_KEY = "_crc"
+_CRC_PLACEHOLDER = b"\0\0\0\0"
+CRC_TRAILER = b"\xa4_crc\xc4\x04"  # msgpack: fixstr "_crc", bin8 of length 4 (then the 4 CRC bytes)
+_TRAILER_LEN = len(CRC_TRAILER) + 4
+
+
+def seal(packed: bytes | bytearray) -> bytes:
+    """Fill in the CRC of msgpack bytes that end with ``"_crc"`` + a 4-byte placeholder bin
+    (what `encode` does; tests use it to build payloads that pass the checksum)."""
+    b = bytearray(packed)
+    if len(b) < _TRAILER_LEN or bytes(b[-_TRAILER_LEN:-4]) != CRC_TRAILER:
+        raise ValueError("seal: the bytes do not end with the '_crc' entry")
+    b[-4:] = zlib.crc32(memoryview(b)[:-4]).to_bytes(4, "little")
+    return bytes(b)
+
+
+def pack_sealed(obj: Any) -> bytes:
+    """msgpack ``obj`` with a valid checksum: a map gets (or keeps, last) its ``"_crc"`` entry,
+    a list gets ``"_crc"`` and the CRC as its last two items (for tests of the layers after
+    the checksum)."""
+    if isinstance(obj, dict):
+        obj = {k: v for k, v in obj.items() if k != CRC_KEY}
+        obj[CRC_KEY] = _CRC_PLACEHOLDER
+    elif isinstance(obj, list):
+        obj = [*obj, CRC_KEY, _CRC_PLACEHOLDER]
+    else:
+        raise TypeError("pack_sealed: a dict or a list")
+    return seal(msgpack.packb(obj, use_bin_type=True))
 
 
 class BusDecodeError(ValueError):
@@ -101,7 +141,9 @@ def encode(msg: Message) -> bytes:
             out[spec.name] = list(value)
         else:
             out[spec.name] = value
-    return msgpack.packb(out, use_bin_type=True)
+    out[CRC_KEY] = _CRC_PLACEHOLDER  # last: the payload ends with the CRC (module docstring)
+    b = msgpack.packb(out, use_bin_type=True)
+    return b[:-4] + zlib.crc32(memoryview(b)[:-4]).to_bytes(4, "little")
 
 
 _WIRE_TYPES = {F_FLOAT: (float,), F_INT: (int,), F_BOOL: (bool,), F_STR: (str,)}
@@ -144,6 +186,11 @@ def _decode(payload: Any) -> Message:
         raise BusDecodeError("payload: empty")
     if size > MAX_PAYLOAD_BYTES:
         raise BusDecodeError("payload: too large", f"{size} bytes")
+    mv = memoryview(payload).cast("B") if isinstance(payload, memoryview) else memoryview(payload)
+    if size < _TRAILER_LEN or mv[-_TRAILER_LEN:-4] != CRC_TRAILER:
+        raise BusDecodeError("crc", "no checksum trailer")
+    if zlib.crc32(mv[:-4]) != int.from_bytes(mv[-4:], "little"):
+        raise BusDecodeError("crc", "checksum mismatch")
     try:
         obj = msgpack.unpackb(payload, raw=False, strict_map_key=True, use_list=True)
     except msgpack.ExtraData:
@@ -173,11 +220,13 @@ def _decode(payload: Any) -> Message:
     if plan is None:
         plan = _PLANS[cls] = _plan(cls)
     expected = len(cls.FIELDS) + len(_HEADER_KEYS)
-    if len(obj) != expected:
+    if len(obj) != expected or CRC_KEY not in obj:
         known = {s.name for s in cls.FIELDS}.union(_HEADER_KEYS)
         for k in obj:
             if k not in known:
                 raise BusDecodeError(f"{name}: unexpected field", repr(k)[:40])
+        if CRC_KEY not in obj:
+            raise BusDecodeError("header._crc: missing")
     # pass 1: every field present with its wire type (the first offender is reported)
     kwargs: dict[str, Any] = {}
     for fname, ft, wire, _ in plan:
@@ -212,4 +261,5 @@ def _decode(payload: Any) -> Message:
     return cls(**kwargs)
 
 
-__all__ = ["MAX_PAYLOAD_BYTES", "BusDecodeError", "decode", "encode"]
+__all__ = ["CRC_KEY", "CRC_TRAILER", "MAX_PAYLOAD_BYTES", "BusDecodeError", "decode", "encode", "pack_sealed",
+           "seal"]

@@ -1,4 +1,4 @@
-"""Bus message schema, version 1: one definition for the live (Zenoh) and batch (in-memory) bus.
+"""Bus message schema, version 2 (version 1 plus a CRC-32 in the envelope, LinkStats, FaultControl): one definition for the live (Zenoh) and batch (in-memory) bus.
 
 Every message is a frozen dataclass whose constructor validates everything (types, shapes,
 finiteness, ranges, covariances), so an invalid message cannot exist in memory, whether it
@@ -39,7 +39,7 @@ import numpy as np
 from ._fastcheck import all_finite as _all_finite
 from ._fastcheck import cov_code as _cov_code
 
-SCHEMA_VERSION = 1
+SCHEMA_VERSION = 2
 
 ID_MAX_LEN = 64
 _ID_RE = re.compile(r"[A-Za-z0-9_.\-]{1,64}\Z")
@@ -527,11 +527,64 @@ class IntegrityEvent(Message):
         _check_token(self._where("event"), self.event)
 
 
+@_message("link_stats", "gs/link/{link}")
+class LinkStats(Message):
+    """The ground station's statistics of one input link (the messages of one source id),
+    from sequence numbers and arrival times (``sitl.bus.linkstats.LinkMonitor``). Cumulative
+    since the GS started. ``missing``: sequence numbers skipped and not (yet) arrived late
+    (loss); ``gaps``: runs of skipped numbers; ``out_of_order``: arrivals below the highest
+    number seen; ``duplicates``: copies of a number already seen (discarded); latency: arrival
+    (simulation time) minus ``t_gps_s`` of the message, over every copy received (NaN before
+    any); ``stale``: the source has been silent for more than the monitor's ``stale_after_s``;
+    ``last_t_gps_s``: the newest message time heard from it (NaN: none)."""
+
+    link: str  # the monitored source id
+    received: int
+    missing: int
+    duplicates: int
+    out_of_order: int
+    gaps: int
+    latency_mean_s: float = _nan_ok()
+    latency_max_s: float = _nan_ok()
+    stale: bool
+    last_t_gps_s: float = _nan_ok()
+
+    def _validate(self) -> None:
+        check_id(self.link, self._where("link"))
+        for f in ("received", "missing", "duplicates", "out_of_order", "gaps"):
+            if getattr(self, f) < 0:
+                raise SchemaError(self._where(f), "must be >= 0", repr(getattr(self, f)))
+
+
+FAULT_TEXT_MAX = 1000
+
+
+@_message("fault_control", "ctl/fault")
+class FaultControl(Message):
+    """A run-time change of a network fault: ``link`` names it (``mav:<sysid>``,
+    ``zenoh:<worker>``, ``bus:<key expression>``), ``spec`` is the netem-like text of
+    ``sitl.netfault.parse_spec`` ("" or "none": no fault). Parsed by the receiver (the
+    schema checks only that both are printable one-line text of bounded length)."""
+
+    link: str
+    spec: str
+
+    def _validate(self) -> None:
+        for f in ("link", "spec"):
+            v = getattr(self, f)
+            if len(v) > FAULT_TEXT_MAX:
+                raise SchemaError(self._where(f), f"longer than {FAULT_TEXT_MAX} chars", f"{len(v)} chars")
+            if not v.isprintable():
+                raise SchemaError(self._where(f), "not printable one-line text")
+        if not self.link.strip():
+            raise SchemaError(self._where("link"), "empty")
+
+
 # ----------------------------------------------------------------------------------------
 # Keys
 
 KEY_TEMPLATES: dict[type[Message], str] = {cls: cls.KEY_TEMPLATE for cls in MESSAGE_TYPES.values()}
-_FIELD_IDS = {"kind", "channel"}  # key ids that the message itself carries
+_FIELD_IDS = {"kind", "channel", "link"}  # key ids that the message itself carries
 _TEMPLATE_RE = re.compile(r"\{(\w+)\}")
 
 
@@ -637,8 +690,10 @@ __all__ = [
     "SCHEMA_VERSION",
     "BeaconMeasurement",
     "Estimate",
+    "FaultControl",
     "FieldSpec",
     "IntegrityEvent",
+    "LinkStats",
     "Message",
     "RadarMeasurement",
     "SchemaError",
