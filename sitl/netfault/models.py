@@ -1,0 +1,590 @@
+"""Link fault models with netem's parameters and semantics, seeded and in simulation time.
+
+One `LinkFault` is one direction of one link: ``process(t_s, payload)`` returns the copies
+the link delivers, ``[(deliver_at_s, bytes), ...]`` (``[]``: dropped; two items: duplicated;
+changed bytes: corrupted). Every random draw comes from the numpy Generator passed in; the
+time is the caller's simulation time (no clock, no sleeping). The per-packet steps follow
+linux ``net/sched/sch_netem.c`` ``netem_enqueue``, in its order:
+
+1. partition (ours; netem has none): sent at T1 <= t < T2 -> dropped, no random draws;
+2. duplicate (``duplicate >= crandom``) adds a copy, then the loss model removes one:
+   a duplicated packet that is "lost" still goes out once; an undisturbed duplicate is a
+   clone that is enqueued again (duplication off) *before* the original, so it takes its
+   own loss, corruption, queue and delay draws;
+3. corrupt: one random bit of one random byte flipped (``data[rand % len] ^= 1 << rand % 8``);
+   the clone is taken before the corruption;
+4. queue limit: a packet finding ``limit`` or more packets in the link (sent, not yet
+   delivered) is dropped with its clone (netem: ``qlen >= limit``); netem's default limit is
+   1000 packets, ours is none (a simulated bus with a 2 s delay would hit it);
+5. reorder / delay: unless reordering, ``delay = tabledist(latency, jitter)``; with a rate,
+   ``deliver = max(link busy until, t + delay) + len * 8 / rate`` (netem's "last packet in
+   queue is the reference" rule: one packet on the wire at a time); otherwise
+   ``deliver = t + delay``. A reordered packet (``gap`` counter reached and
+   ``crandom <= reorder``, netem's ``q->counter < q->gap - 1`` rule) goes out at once,
+   bypassing delay and rate, and resets the counter. Delays below 0 are clipped to 0.
+
+Correlated draws are netem's ``get_crandom``: ``u_n = (1 - rho) v_n + rho u_{n-1}`` with v
+uniform (the kernel's fixed-point version, in floating point), computed in blocks with
+`scipy.signal.lfilter`. As in netem this makes u less spread than uniform, so a correlated
+loss rate differs from ``loss`` (e.g. loss=10%,50% loses ~3.7 %); the tests check the
+model's analytic values, not the nominal ones.
+
+Delay distributions (netem's tables, table-free: the inverse CDF applied to the correlated
+uniform, as netem indexes its table with it; ``sigma`` = jitter):
+
+========================  ===========================================================
+uniform (netem's default)  ``mu + sigma (2u - 1)``  (kernel: ``rnd % 2 sigma - sigma + mu``)
+normal                     ``mu + sigma Phi^-1(u)``  (netem normal table, continuous)
+pareto                     ``mu + sigma min(4/3 ((1-u)^(-1/3) - 1.5), 32767/8192)``:
+                           iproute2's pareto.c (a = 3, shifted and scaled by 4/3), clipped
+                           as its int16 table is
+paretonormal               ``mu + sigma (0.25 N + 0.75 P)``: iproute2's paretonormal.c
+                           combination of a normal and the pareto above, its quantile
+                           computed once by numerical convolution (4096-point table like
+                           netem's) and interpolated
+========================  ===========================================================
+
+Gilbert-Elliott (``gemodel p r 1-h 1-k``): the loss of packet n uses the state it finds
+(good: loss prob 1-k, bad: 1-h), then the state moves (good->bad p, bad->good r), starting
+good, as the kernel's ``loss_gilb_ell``; stationary loss ``(r (1-k) + p (1-h)) / (p + r)``;
+with 1-h = 1, 1-k = 0 the mean burst is 1/r packets and the mean gap 1/p + ... (see tests).
+
+The models, their parameters, their netem equivalent and what tests/test_netfault_models.py
+checks (100,000 packets each):
+
+==============  =====================  ======================  ===============================
+model           spec text              netem                   test
+==============  =====================  ======================  ===============================
+random loss     loss=P                 loss random P           fraction in binomial 99.9 % CI
+correlated      loss=P,C               loss random P C         rate and lag-1 autocorrelation vs
+loss                                                           the crandom chain's exact values
+Gilbert-        gemodel=p,r,1-h,1-k    loss gemodel p r 1-h    stationary loss, mean burst 1/r,
+Elliott                                1-k                     mean gap 1/p, in CI
+delay+jitter    delay=D~J,C            delay D J C             normal mean/sd; pareto KS test vs
+                distribution=X         distribution X          scipy; uniform bounds; corr
+reorder         reorder=P,C gap=N      reorder P C gap N       fraction sent at once; gap rule
+duplicate       duplicate=P,C          duplicate P C           fraction in CI
+corrupt         corrupt=P,C            corrupt P C             fraction in CI; one bit differs
+rate + queue    rate=R limit=N         rate R limit N          throughput = R saturated; drops
+                                                               only above the limit
+partition       partition=T1-T2        (none)                  nothing sent in [T1, T2) arrives,
+                                                               all else does
+==============  =====================  ======================  ===============================
+
+`LinkTruth` keeps the counters and the delivery schedule (packet index = order of the
+``process`` calls) so that a receiver's sequence-number statistics can be compared exactly:
+`LinkTruth.receiver_view` computes what a receiver sees. `KeyFaults` applies rules per bus
+key (a `sitl.bus.transport.FaultFilter`).
+"""
+from __future__ import annotations
+
+import heapq
+import math
+import zlib
+from array import array
+from collections.abc import Iterable
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy import signal, special
+
+from sitl.bus.transport import key_matches, validate_key, validate_key_expr
+
+from .spec import FaultSpec, parse_spec
+
+__all__ = ["KeyFaults", "LinkFault", "LinkTruth", "crandom_block", "delay_quantile"]
+
+_PARETO_A = 3.0
+_PARETO_CLIP = 32767 / 8192  # netem tables are int16 scaled by NETEM_DIST_SCALE = 8192
+
+
+def crandom_block(v: np.ndarray, rho: float, last: float) -> np.ndarray:
+    """netem's get_crandom over a block of uniforms v: u_n = (1-rho) v_n + rho u_{n-1},
+    u_{-1} = last."""
+    if rho == 0.0:
+        return v
+    y, _ = signal.lfilter([1.0 - rho], [1.0, -rho], v, zi=[rho * last])
+    return y
+
+
+def _pareto_std(u: np.ndarray) -> np.ndarray:
+    x = (1.0 - u) ** (-1.0 / _PARETO_A)
+    return np.minimum((4.0 / 3.0) * (x - 1.5), _PARETO_CLIP)
+
+
+_PN_TABLE: np.ndarray | None = None
+
+
+def _paretonormal_table() -> np.ndarray:
+    """Quantiles of 0.25 N(0,1) + 0.75 P (P the clipped netem pareto above) on 4096 points,
+    by numerical convolution of the two densities (deterministic, no sampling)."""
+    global _PN_TABLE
+    if _PN_TABLE is None:
+        dx = 1e-3
+        x = np.arange(-8.0, 12.0, dx)
+        # pareto part y = 0.75 P: CDF of P known analytically (with its atom at the clip)
+        p_edges = np.concatenate([x - dx / 2, [x[-1] + dx / 2]]) / 0.75
+        xp = 1.5 + 0.75 * p_edges  # P = 4/3 (X - 1.5) -> X = 1.5 + 3/4 P
+        cdf_p = np.where(xp < 1.0, 0.0, 1.0 - np.maximum(xp, 1.0) ** (-_PARETO_A))
+        cdf_p = np.where(p_edges >= _PARETO_CLIP, 1.0, cdf_p)
+        w_p = np.diff(cdf_p)
+        n_edges = np.concatenate([x - dx / 2, [x[-1] + dx / 2]]) / 0.25
+        w_n = np.diff(special.ndtr(n_edges))
+        w = np.convolve(w_p, w_n)  # support starts at 2 x[0]
+        xs = 2 * x[0] + dx * np.arange(w.size)
+        cdf = np.cumsum(w)
+        cdf /= cdf[-1]
+        q = (np.arange(4096) + 0.5) / 4096
+        _PN_TABLE = np.interp(q, cdf, xs)
+    return _PN_TABLE
+
+
+def delay_quantile(distribution: str, u: np.ndarray) -> np.ndarray:
+    """The standardised delay offset t(u) of a netem distribution: delay = mu + sigma t(u)."""
+    u = np.asarray(u, dtype=float)
+    if distribution == "uniform":
+        return 2.0 * u - 1.0
+    if distribution == "normal":
+        return special.ndtri(np.clip(u, 1e-300, 1.0 - 2**-53))
+    if distribution == "pareto":
+        return _pareto_std(u)
+    if distribution == "paretonormal":
+        tab = _paretonormal_table()
+        return np.interp(u * 4096 - 0.5, np.arange(4096), tab)
+    raise ValueError(f"unknown distribution {distribution!r}")
+
+
+class _Stream:
+    """A correlated (or plain) uniform stream (netem's crndstate), drawn in blocks."""
+
+    __slots__ = ("rng", "rho", "last", "raw", "buf", "i", "n")
+
+    def __init__(self, rng: np.random.Generator, rho: float):
+        self.rng = rng
+        self.rho = float(rho)
+        self.last = float(rng.random())  # netem init_crandom: last = a random value
+        self.raw = np.empty(0)
+        self.buf: list[float] = []
+        self.i = 0
+        self.n = 32
+
+    def next(self) -> float:
+        if self.i >= len(self.buf):
+            self.raw = self.rng.random(self.n)
+            self.n = min(self.n * 2, 8192)
+            u = crandom_block(self.raw, self.rho, self.last)
+            self.buf = u.tolist()
+            self.i = 0
+        x = self.buf[self.i]
+        self.i += 1
+        self.last = x
+        return x
+
+    def set_rho(self, rho: float) -> None:
+        rho = float(rho)
+        if rho == self.rho:
+            return
+        self.rho = rho
+        rest = self.raw[self.i:]
+        if rest.size:
+            self.buf[self.i:] = crandom_block(rest, rho, self.last).tolist()
+
+
+@dataclass
+class LinkTruth:
+    """What a link did (the injected truth). Packet index = order of ``process`` calls.
+
+    Counters: ``sent`` packets offered; ``delivered`` copies handed out; ``dropped_loss``,
+    ``dropped_partition``, ``dropped_queue`` packets that produced no copy, by cause;
+    ``duplicated`` packets delivered twice; ``corrupted`` copies handed out with a flipped
+    bit; ``sent_at_once`` packets the reorder rule sent without delay; ``clone_lost``,
+    ``clone_queue`` duplicate clones removed by the loss model / queue limit (their packet
+    went out once); ``delay_s_sum`` / ``delay_s_max`` over delivered copies.
+    ``reordered`` (computed from the delivery schedule): packets whose first delivered copy
+    arrives after a copy of a packet sent later (ties: delivered in the order handed out).
+    """
+
+    sent: int = 0
+    delivered: int = 0
+    dropped_loss: int = 0
+    dropped_partition: int = 0
+    dropped_queue: int = 0
+    duplicated: int = 0
+    corrupted: int = 0
+    sent_at_once: int = 0
+    clone_lost: int = 0
+    clone_queue: int = 0
+    delay_s_sum: float = 0.0
+    delay_s_max: float = 0.0
+    # schedule: one entry per delivered copy, in the order handed out
+    copy_index: array = field(default_factory=lambda: array("q"), repr=False)
+    copy_at_s: array = field(default_factory=lambda: array("d"), repr=False)
+    copy_corrupt: array = field(default_factory=lambda: array("b"), repr=False)
+    sent_at_s: array = field(default_factory=lambda: array("d"), repr=False)
+    drop_index: array = field(default_factory=lambda: array("q"), repr=False)
+    drop_cause: array = field(default_factory=lambda: array("b"), repr=False)
+
+    CAUSES = ("loss", "partition", "queue")
+
+    @property
+    def dropped(self) -> int:
+        return self.dropped_loss + self.dropped_partition + self.dropped_queue
+
+    @property
+    def delay_s_mean(self) -> float:
+        return self.delay_s_sum / self.delivered if self.delivered else math.nan
+
+    def counters(self) -> dict:
+        """The counters as a plain dict (for result files and messages)."""
+        return {"sent": self.sent, "delivered": self.delivered, "dropped": self.dropped,
+                "dropped_loss": self.dropped_loss, "dropped_partition": self.dropped_partition,
+                "dropped_queue": self.dropped_queue, "duplicated": self.duplicated,
+                "corrupted": self.corrupted, "reordered": self.reordered,
+                "sent_at_once": self.sent_at_once, "clone_lost": self.clone_lost,
+                "clone_queue": self.clone_queue, "delay_s_sum": self.delay_s_sum,
+                "delay_s_max": self.delay_s_max}
+
+    # ---- index lists ----------------------------------------------------------------
+    def dropped_indices(self, cause: str | None = None) -> np.ndarray:
+        """Indices of packets that produced no copy (of one cause, or all), ascending."""
+        idx = np.frombuffer(self.drop_index, dtype=np.int64) if self.drop_index else np.zeros(0, np.int64)
+        if cause is not None:
+            c = np.frombuffer(self.drop_cause, dtype=np.int8) if self.drop_cause else np.zeros(0, np.int8)
+            idx = idx[c == self.CAUSES.index(cause)]
+        return idx.copy()
+
+    def _copies(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        n = len(self.copy_index)
+        if n == 0:
+            return np.zeros(0, np.int64), np.zeros(0), np.zeros(0, bool)
+        return (np.frombuffer(self.copy_index, dtype=np.int64),
+                np.frombuffer(self.copy_at_s, dtype=np.float64),
+                np.frombuffer(self.copy_corrupt, dtype=np.int8).astype(bool))
+
+    def duplicated_indices(self) -> np.ndarray:
+        """Indices of packets delivered more than once."""
+        idx, _, _ = self._copies()
+        u, c = np.unique(idx, return_counts=True)
+        return u[c > 1]
+
+    def corrupted_indices(self) -> np.ndarray:
+        """Indices of packets with at least one corrupted copy delivered."""
+        idx, _, bad = self._copies()
+        return np.unique(idx[bad])
+
+    def delivery_order(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(index, deliver_at_s, corrupted) of every delivered copy in delivery order
+        (deliver time; ties in the order handed out, as InMemoryTransport delivers)."""
+        idx, at, bad = self._copies()
+        o = np.argsort(at, kind="stable")
+        return idx[o], at[o], bad[o]
+
+    @staticmethod
+    def _late_first(idx_in_order: np.ndarray) -> np.ndarray:
+        """Packet indices whose first arrival comes after an arrival of a higher index."""
+        if idx_in_order.size == 0:
+            return idx_in_order
+        prev_max = np.concatenate([[-1], np.maximum.accumulate(idx_in_order)[:-1]])
+        _, first = np.unique(idx_in_order, return_index=True)
+        late = prev_max[first] > idx_in_order[first]
+        return np.sort(idx_in_order[first][late])
+
+    def reordered_indices(self) -> np.ndarray:
+        """Indices of packets whose first delivered copy comes after a copy of a later one."""
+        idx, _, _ = self.delivery_order()
+        return self._late_first(idx)
+
+    @property
+    def reordered(self) -> int:
+        return int(self.reordered_indices().size)
+
+    def receiver_view(self, reject_corrupted: bool = True, until_s: float = math.inf) -> dict:
+        """What a receiver counting sequence numbers (seq = packet index) sees of the copies
+        delivered by ``until_s``; with ``reject_corrupted`` corrupted copies are discarded
+        (a CRC check) before counting.
+
+        received: distinct packets accepted; duplicates: accepted copies beyond the first;
+        out_of_order: packets whose first accepted copy arrives after an accepted copy of a
+        higher seq; missing: seqs below the highest accepted one never accepted (what gaps
+        show); missing_total: sent - received (trailing losses included); rejected_corrupt:
+        corrupted copies discarded."""
+        idx, at, bad = self.delivery_order()
+        keep = at <= until_s
+        rejected = int(np.count_nonzero(bad & keep)) if reject_corrupted else 0
+        if reject_corrupted:
+            keep &= ~bad
+        idx = idx[keep]
+        uniq = np.unique(idx)
+        highest = int(idx.max()) if idx.size else -1
+        return {"received": int(uniq.size), "duplicates": int(idx.size - uniq.size),
+                "out_of_order": int(self._late_first(idx).size),
+                "missing": int(highest + 1 - uniq.size), "missing_total": int(self.sent - uniq.size),
+                "rejected_corrupt": rejected, "highest_seq": highest}
+
+
+class LinkFault:
+    """One direction of one link with a `FaultSpec` (see the module docstring).
+
+    ``process(t_s, payload) -> [(deliver_at_s, bytes)]``; also callable as a bus
+    ``FaultFilter`` ``(key, payload, t_s)``. ``set(spec, t_s)`` changes the spec for packets
+    sent at or after ``t_s``."""
+
+    def __init__(self, spec: FaultSpec | str | None = None, *, rng: np.random.Generator,
+                 name: str = ""):
+        if not isinstance(rng, np.random.Generator):
+            raise TypeError(f"rng must be a numpy.random.Generator, got {type(rng).__name__}")
+        self.name = name
+        self.rng = rng
+        self.spec = parse_spec(spec)
+        self.truth = LinkTruth()
+        s = self.spec
+        self._loss = _Stream(rng, s.loss_corr)
+        self._dup = _Stream(rng, s.duplicate_corr)
+        self._corrupt = _Stream(rng, s.corrupt_corr)
+        self._reorder = _Stream(rng, s.reorder_corr)
+        self._delay = _Stream(rng, s.delay_corr)
+        self._ge_u = _Stream(rng, 0.0)
+        self._ge_bad = False
+        self._counter = 0
+        self._busy_until = -math.inf
+        self._inflight: list[float] = []  # deliver times of queued packets (limit only)
+        self._pending: list[tuple[float, int, FaultSpec]] = []
+        self._pending_n = 0
+        self._last_t = -math.inf
+
+    def __repr__(self) -> str:
+        return f"LinkFault({self.name!r}, {self.spec.to_text()!r})"
+
+    # ---- run-time change ---------------------------------------------------------------
+    def set(self, spec: FaultSpec | str | None, t_s: float | None = None) -> None:
+        """Use ``spec`` for packets sent at ``t_s`` or later (None: from now on)."""
+        spec = parse_spec(spec)
+        if t_s is None or t_s <= self._last_t:
+            self._apply(spec)
+        else:
+            self._pending_n += 1
+            heapq.heappush(self._pending, (float(t_s), self._pending_n, spec))
+
+    def _apply(self, spec: FaultSpec) -> None:
+        old = self.spec
+        self.spec = spec
+        self._loss.set_rho(spec.loss_corr)
+        self._dup.set_rho(spec.duplicate_corr)
+        self._corrupt.set_rho(spec.corrupt_corr)
+        self._reorder.set_rho(spec.reorder_corr)
+        self._delay.set_rho(spec.delay_corr)
+        if spec.ge != old.ge:
+            self._ge_bad = False  # netem: a new gemodel starts in the good state
+        if (spec.gap, spec.reorder) != (old.gap, old.reorder):
+            self._counter = 0  # netem_change resets the reorder counter
+
+    # ---- the per-packet path -----------------------------------------------------------
+    def __call__(self, key: str, payload: bytes, t_s: float) -> list[tuple[float, bytes]]:
+        return self.process(t_s, payload)
+
+    def process(self, t_s: float, payload: bytes) -> list[tuple[float, bytes]]:
+        """The copies the link delivers for a packet sent at ``t_s``: [(deliver_at_s, bytes)]."""
+        t = float(t_s)
+        if not math.isfinite(t):
+            raise ValueError(f"link {self.name!r}: send time must be finite, got {t_s!r}")
+        if not isinstance(payload, bytes):
+            if isinstance(payload, (bytearray, memoryview)):
+                payload = bytes(payload)
+            else:
+                raise TypeError(f"link {self.name!r}: payload must be bytes, got "
+                                f"{type(payload).__name__}")
+        while self._pending and self._pending[0][0] <= t:
+            self._apply(heapq.heappop(self._pending)[2])
+        if t > self._last_t:
+            self._last_t = t
+        tr = self.truth
+        idx = tr.sent
+        tr.sent += 1
+        tr.sent_at_s.append(t)
+        spec = self.spec
+        if spec.partitions and spec.down(t):
+            self._drop(idx, 1)
+            return []
+        if spec.is_identity:
+            self._record(idx, t, t, False)
+            return [(t, payload)]
+        out, cause = self._enqueue(t, payload, spec, True)
+        if not out:
+            self._drop(idx, cause)
+            return []
+        if len(out) > 1:
+            tr.duplicated += 1
+        for at, p, bad in out:
+            self._record(idx, t, at, bad)
+        return [(at, p) for at, p, _ in out]
+
+    def _drop(self, idx: int, cause: int) -> None:
+        tr = self.truth
+        tr.drop_index.append(idx)
+        tr.drop_cause.append(cause)
+        if cause == 0:
+            tr.dropped_loss += 1
+        elif cause == 1:
+            tr.dropped_partition += 1
+        else:
+            tr.dropped_queue += 1
+
+    def _record(self, idx: int, t: float, at: float, bad: bool) -> None:
+        tr = self.truth
+        tr.delivered += 1
+        tr.copy_index.append(idx)
+        tr.copy_at_s.append(at)
+        tr.copy_corrupt.append(1 if bad else 0)
+        if bad:
+            tr.corrupted += 1
+        d = at - t
+        tr.delay_s_sum += d
+        if d > tr.delay_s_max:
+            tr.delay_s_max = d
+
+    def _loss_event(self, spec: FaultSpec) -> bool:
+        if spec.ge is not None:
+            p, r, one_h, one_k = spec.ge
+            # kernel loss_gilb_ell: transition draw, then the loss draw of the state it found
+            was_bad = self._ge_bad
+            if was_bad:
+                if self._ge_u.next() < r:
+                    self._ge_bad = False
+                return self._ge_u.next() < one_h
+            if self._ge_u.next() < p:
+                self._ge_bad = True
+            return self._ge_u.next() < one_k
+        return spec.loss > 0 and self._loss.next() < spec.loss
+
+    def _qlen(self, t: float) -> int:
+        q = self._inflight
+        while q and q[0] <= t:
+            heapq.heappop(q)
+        return len(q)
+
+    def _enqueue(self, t: float, payload: bytes, spec: FaultSpec, allow_dup: bool
+                 ) -> tuple[list[tuple[float, bytes, bool]], int]:
+        """netem_enqueue for one packet: (copies as (at, bytes, corrupted), drop cause)."""
+        count = 1
+        if allow_dup and spec.duplicate > 0 and self._dup.next() < spec.duplicate:
+            count += 1
+        if self._loss_event(spec):
+            count -= 1
+        if count == 0:
+            if not allow_dup:
+                self.truth.clone_lost += 1
+            return [], 0
+        clone = payload if count > 1 else None
+        bad = False
+        if spec.corrupt > 0 and self._corrupt.next() < spec.corrupt and payload:
+            b = bytearray(payload)
+            bit = int(self.rng.integers(len(b) * 8))
+            b[bit >> 3] ^= 1 << (bit & 7)
+            payload = bytes(b)
+            bad = True
+        if spec.limit is not None and self._qlen(t) >= spec.limit:
+            if not allow_dup:
+                self.truth.clone_queue += 1
+            return [], 2
+        out: list[tuple[float, bytes, bool]] = []
+        if clone is not None:
+            c_out, _ = self._enqueue(t, clone, spec, False)
+            out.extend(c_out)
+        if spec.gap == 0 or self._counter < spec.gap - 1 or spec.reorder < self._reorder.next():
+            delay = spec.delay_s
+            if spec.jitter_s > 0:
+                u = self._delay.next()
+                delay += spec.jitter_s * float(delay_quantile(spec.distribution, u))
+                if delay < 0.0:
+                    delay = 0.0
+            at = t + delay
+            if spec.rate_bps > 0:
+                at = max(self._busy_until, at) + len(payload) * 8.0 / spec.rate_bps
+                self._busy_until = at
+            self._counter += 1
+        else:
+            at = t
+            self._counter = 0
+            self.truth.sent_at_once += 1
+        if spec.limit is not None and at > t:
+            heapq.heappush(self._inflight, at)
+        out.append((at, payload, bad))
+        return out, 0
+
+
+class KeyFaults:
+    """Per-key faults for a bus: ``rules`` [(key expression, spec)], first match wins; one
+    independent `LinkFault` per concrete key, its rng ``default_rng([seed, crc32(key)])``.
+    Keys matching no rule pass untouched (and get no truth). A ``FaultFilter``:
+    ``InMemoryTransport(faults=[kf])``."""
+
+    def __init__(self, rules: Iterable[tuple[str, FaultSpec | str]] = (), *, seed: int = 0):
+        self.seed = int(seed)
+        self._rules: list[tuple[str, FaultSpec]] = []
+        for expr, spec in rules:
+            self._rules.append((validate_key_expr(expr), parse_spec(spec)))
+        self._links: dict[str, LinkFault] = {}
+        self._rule_of: dict[str, str | None] = {}
+
+    @property
+    def rules(self) -> list[tuple[str, FaultSpec]]:
+        return list(self._rules)
+
+    def _match(self, key: str) -> tuple[str, FaultSpec] | None:
+        for expr, spec in self._rules:
+            if key_matches(expr, key):
+                return expr, spec
+        return None
+
+    def link(self, key: str) -> LinkFault | None:
+        """The LinkFault of a concrete key (created on first use), None if no rule matches."""
+        lf = self._links.get(key)
+        if lf is not None:
+            return lf
+        if key in self._rule_of:  # known: matched no rule
+            return None
+        m = self._match(validate_key(key))
+        if m is None:
+            self._rule_of[key] = None
+            return None
+        rng = np.random.default_rng([self.seed, zlib.crc32(key.encode())])
+        lf = LinkFault(m[1], rng=rng, name=key)
+        self._links[key] = lf
+        self._rule_of[key] = m[0]
+        return lf
+
+    def __call__(self, key: str, payload: bytes, t_s: float) -> list[tuple[float, bytes]]:
+        lf = self._links.get(key)
+        if lf is None:
+            lf = self.link(key)
+            if lf is None:
+                return [(t_s, payload)]
+        return lf.process(t_s, payload)
+
+    def set(self, key_expr: str, spec: FaultSpec | str | None, t_s: float | None = None) -> None:
+        """Change the rule ``key_expr`` (or add it, ahead of the others) from ``t_s`` on."""
+        expr = validate_key_expr(key_expr)
+        spec = parse_spec(spec)
+        for i, (e, _) in enumerate(self._rules):
+            if e == expr:
+                self._rules[i] = (expr, spec)
+                break
+        else:
+            self._rules.insert(0, (expr, spec))
+        for key, lf in self._links.items():
+            m = self._match(key)
+            new = m[1] if m is not None else FaultSpec()
+            self._rule_of[key] = m[0] if m is not None else None
+            lf.set(new, t_s)
+        # keys that matched nothing may match now
+        for key in [k for k, r in self._rule_of.items() if r is None and k not in self._links]:
+            del self._rule_of[key]
+
+    def truth(self, key: str) -> LinkTruth:
+        lf = self._links.get(key)
+        if lf is None:
+            raise KeyError(f"no fault link for key {key!r} (no packet seen or no rule matches)")
+        return lf.truth
+
+    def truths(self) -> dict[str, LinkTruth]:
+        return {k: lf.truth for k, lf in self._links.items()}
