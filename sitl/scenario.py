@@ -24,9 +24,17 @@ Layout of a scenario (every key optional; the defaults are those of `DEFAULT_SCE
     [ground_station] hold_wall_s (the longest the GS waits for an epoch's messages after
                    its time, wall seconds; it goes on as soon as every source has delivered it), beacon_init_epochs, integrity (the sonde tracker's
                    integrity monitor; its events go out as STATUSTEXT too)
+    [faults]       network faults, a table LINK = "SPEC" (sitl.netfault's netem-like text), e.g.
+                   "mav:1" = "loss=10% delay=100ms~20ms"    (MAVLink of system id 1, both ways;
+                                                              "mav:1:up" vehicle->GCS, "mav:1:down")
+                   "zenoh:gs" = "partition=100-130"         (a worker's Zenoh session: vehicles<k>, gs)
+                   "bus:*/uav/uav2/**" = "loss=20%"         (bus keys, at their publishers)
+                   Times in a spec (partitions) are simulated seconds since the run's start.
+                   None by default; `skyfuse fault set LINK SPEC` changes them while a run goes.
 """
 from __future__ import annotations
 
+import copy
 import json
 import math
 import tomllib
@@ -279,6 +287,89 @@ class GroundStationSection:
     integrity: bool = False  # the sonde tracker's integrity monitor (its events: bus + STATUSTEXT)
 
 
+def _fault_link(key: str, link) -> str:
+    """A link name of the [faults] table (``mav:<sysid>[:up|:down]``, ``zenoh:<worker>``,
+    ``bus:<key expression>``); the worker / system id ranges are checked in _cross_checks."""
+    if not isinstance(link, str) or not link:
+        raise _err(key, "a link name", link)
+    kind, sep, rest = link.partition(":")
+    if kind == "mav" and sep:
+        parts = rest.split(":")
+        if (1 <= len(parts) <= 2 and parts[0].isdigit() and 1 <= int(parts[0]) <= MAX_MAVLINK_VEHICLES
+                and (len(parts) == 1 or parts[1] in ("up", "down"))):
+            return f"mav:{int(parts[0])}" + (f":{parts[1]}" if len(parts) == 2 else "")
+        raise _err(key, f'expected "mav:SYSID" or "mav:SYSID:up|down" with SYSID in 1..{MAX_MAVLINK_VEHICLES}',
+                   show_got=False)
+    if kind == "zenoh" and sep:
+        if rest == "gs" or (rest.startswith("vehicles") and rest[8:].isdigit()):
+            return link
+        raise _err(key, 'expected a worker\'s session "zenoh:gs" or "zenoh:vehicles<k>"', show_got=False)
+    if kind == "bus" and sep:
+        from sitl.bus import KeyExprError, validate_key_expr
+        try:
+            validate_key_expr(rest)
+        except KeyExprError as e:
+            raise _err(key, f"expected a bus key expression ({e})", show_got=False) from None
+        return link
+    raise _err(key, 'expected a link "mav:SYSID", "zenoh:WORKER" or "bus:KEY/EXPR"', show_got=False)
+
+
+def fault_spec_text(key: str, text) -> str:
+    """Validate a fault spec text with sitl.netfault.parse_spec; the text as written (an error:
+    ScenarioError naming the key with the FaultSpecError's message)."""
+    if not isinstance(text, str):
+        raise _err(key, "a fault spec string like \"loss=10% delay=100ms\"", text)
+    from sitl.netfault import FaultSpecError, parse_spec
+    try:
+        parse_spec(text)
+    except FaultSpecError as e:
+        raise ScenarioError(f"scenario: {key}: {' '.join(str(e).split())}") from None
+    return text
+
+
+@dataclass(frozen=True)
+class FaultsSection:
+    """The [faults] table: ((link, spec text), ...) in the file's order."""
+
+    links: tuple = ()
+    enabled: bool = False  # the scenario has a [faults] table (even empty): the launcher starts the proxies
+
+    def get(self, link: str, default=None):
+        for k, v in self.links:
+            if k == link:
+                return v
+        return default
+
+    def of_kind(self, kind: str) -> list[tuple[str, str]]:
+        """(link, spec) of one kind ("mav", "zenoh" or "bus")."""
+        return [(k, v) for k, v in self.links if k.split(":", 1)[0] == kind]
+
+    def __bool__(self) -> bool:
+        return self.enabled
+
+
+def _faults_section(value) -> FaultsSection:
+    if not isinstance(value, dict):
+        raise _err("faults", 'a table [faults] of LINK = "SPEC"', value)
+    links = []
+    seen = set()
+    for link, text in value.items():
+        key = f'faults."{link}"'
+        name = _fault_link(key, link)
+        if name in seen:
+            raise ScenarioError(f"scenario: {key}: the link appears twice")
+        seen.add(name)
+        links.append((name, fault_spec_text(key, text)))
+        if name.startswith("zenoh:"):  # a byte stream: delay, rate and partitions only
+            from sitl.netfault import parse_spec
+            from sitl.netfault.tcp_proxy import _stream_spec
+            try:
+                _stream_spec(parse_spec(text), name)
+            except ValueError as e:
+                raise ScenarioError(f"scenario: {key}: {' '.join(str(e).split())}") from None
+    return FaultsSection(tuple(links), True)
+
+
 @dataclass(frozen=True)
 class Scenario:
     run: RunSection = field(default_factory=RunSection)
@@ -288,6 +379,7 @@ class Scenario:
     beacon: BeaconSection = field(default_factory=BeaconSection)
     sonde: SondeSection = field(default_factory=SondeSection)
     ground_station: GroundStationSection = field(default_factory=GroundStationSection)
+    faults: FaultsSection = field(default_factory=FaultsSection)
     source: str = "<default>"
 
     @property
@@ -305,7 +397,17 @@ class Scenario:
     def to_dict(self) -> dict:
         d = asdict(self)
         d.pop("source")
+        d.pop("faults")
+        if self.faults.enabled:
+            d["faults"] = {k: v for k, v in self.faults.links}
         return d
+
+    @property
+    def n_vehicles(self) -> int:
+        return self.uavs.count + (1 if self.sonde.enabled else 0)
+
+    def worker_names(self) -> list[str]:
+        return [f"vehicles{g}" for g in range(self.n_uav_processes)] + ["gs"]
 
 
 # per section: key -> checker(key, value) -> stored value
@@ -383,9 +485,12 @@ def scenario_from_dict(doc: dict, source: str = "<dict>") -> Scenario:
         raise ScenarioError("scenario: expected a table at the top level")
     sections = {}
     for name, value in doc.items():
+        if name == "faults":
+            sections[name] = _faults_section(value)
+            continue
         if name not in _SECTIONS:
-            raise ScenarioError(f"scenario: unknown section [{name}]{_near(name, _SECTIONS)}; expected one of "
-                                f"{', '.join(_SECTIONS)}")
+            raise ScenarioError(f"scenario: unknown section [{name}]{_near(name, [*_SECTIONS, 'faults'])}; "
+                                f"expected one of {', '.join(_SECTIONS)}, faults")
         cls, checks = _SECTIONS[name]
         if not isinstance(value, dict):
             raise _err(name, "a table [" + name + "]", value)
@@ -420,6 +525,14 @@ def _cross_checks(scn: Scenario) -> None:
         if top > 65535:
             raise ScenarioError(f"scenario: mavlink.base_port: expected base_port + 10 x vehicles <= 65535, "
                                 f"got {top}")
+    for link, _ in scn.faults.links:
+        kind, _, rest = link.partition(":")
+        if kind == "zenoh" and rest not in scn.worker_names():
+            raise ScenarioError(f'scenario: faults."{link}": expected a worker of this scenario '
+                                f"({', '.join('zenoh:' + w for w in scn.worker_names())})")
+        if kind == "mav" and int(rest.split(":")[0]) > max(scn.n_vehicles, 1):
+            raise ScenarioError(f'scenario: faults."{link}": expected a MAVLink system id in 1..{scn.n_vehicles} '
+                                f"(UAVs then the sonde)")
     if scn.run.duration_s * scn.run.rate_hz < 1:
         raise ScenarioError("scenario: run.duration_s: expected at least one epoch (duration_s x rate_hz >= 1), "
                             f"got {scn.run.duration_s}")
@@ -474,7 +587,7 @@ class WorkerSpec:
     spec_version: int = SPEC_VERSION
 
     def to_json(self) -> str:
-        return json.dumps(asdict(self), indent=1, sort_keys=True)
+        return json.dumps(asdict(self), indent=1)  # in order: [faults] rules are first-match-wins
 
     def write(self, path) -> Path:
         p = Path(path)
@@ -507,9 +620,24 @@ def _to_toml_like(d: dict) -> dict:
     return conv(d)
 
 
-def worker_specs(scn: Scenario, zenoh_connect, out_dir) -> list[WorkerSpec]:
+def worker_specs(scn: Scenario, zenoh_connect, out_dir, overrides: dict | None = None) -> list[WorkerSpec]:
     """One spec per vehicle group (uavs.per_process UAVs each; the first also carries the
-    beacon's truth and the sonde) and one for the ground station."""
+    beacon's truth and the sonde) and one for the ground station.
+
+    overrides: {worker name: {"zenoh_connect": [...], "mavlink_gcs": "HOST:PORT"}} -- where
+    the launcher's fault proxies sit between that worker and the router / the GCS."""
+    specs = _worker_specs(scn, zenoh_connect, out_dir)
+    for spec in specs:
+        o = (overrides or {}).get(spec.name) or {}
+        if "zenoh_connect" in o:
+            spec.zenoh_connect = list(o["zenoh_connect"])
+        if "mavlink_gcs" in o:
+            spec.scenario = copy.deepcopy(spec.scenario)
+            spec.scenario["mavlink"]["gcs"] = o["mavlink_gcs"]
+    return specs
+
+
+def _worker_specs(scn: Scenario, zenoh_connect, out_dir) -> list[WorkerSpec]:
     doc = _to_toml_like(scn.to_dict())
     n = scn.uavs.count
     groups = scn.n_uav_processes
@@ -531,8 +659,10 @@ __all__ = [
     "DEFAULT_T0_GPS_S",
     "Scenario",
     "ScenarioError",
+    "FaultsSection",
     "WorkerSpec",
     "default_scenario",
+    "fault_spec_text",
     "load_scenario",
     "parse_scenario",
     "scenario_from_dict",

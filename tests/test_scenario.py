@@ -144,3 +144,73 @@ def test_cli_usage_error_exits_2_with_one_line(tmp_path):
     r = subprocess.run([sys.executable, "-m", "sitl.live", "demo", "--zenoh", "nonsense", "--out",
                         str(tmp_path / "o")], capture_output=True, text=True, timeout=60)
     assert r.returncode == 2 and "--zenoh" in r.stderr and len(r.stderr.strip().splitlines()) == 1
+
+
+# ------------------------------------------------------------------ [faults] (issue 8)
+
+FAULTS_TOML = """
+[faults]
+"mav:1" = "loss=10% delay=100ms~20ms"
+"mav:2:up" = "duplicate=5%"
+"bus:*/uav/uav2/**" = "loss=20%"
+"zenoh:gs" = "partition=100-130"
+"zenoh:vehicles0" = "delay=50ms rate=1mbit"
+"""
+
+BAD_FAULTS = [
+    ('"mav:x" = "loss=1%"', 'faults."mav:x"', "mav:SYSID"),
+    ('"mav:1:sideways" = "loss=1%"', 'faults."mav:1:sideways"', "up|down"),
+    ('"mav:9" = "loss=1%"', 'faults."mav:9"', "system id in 1..4"),
+    ('"zenoh:vehicles3" = "delay=1s"', 'faults."zenoh:vehicles3"', "zenoh:vehicles0, zenoh:gs"),
+    ('"zenoh:foo" = "delay=1s"', 'faults."zenoh:foo"', "zenoh:gs"),
+    ('"zenoh:gs" = "loss=1%"', 'faults."zenoh:gs"', "TCP stream"),
+    ('"bus:a/**/*" = "loss=1%"', 'faults."bus:a/**/*"', "key expression"),
+    ('"mav:1" = "loss=120%"', 'faults."mav:1"', "loss=120%"),
+    ('"mav:1" = "delay=fast"', 'faults."mav:1"', "delay"),
+    ('"mav:1" = 3', 'faults."mav:1"', "fault spec"),
+    ('"tcp:1" = "loss=1%"', 'faults."tcp:1"', "mav:SYSID"),
+    ('"mav:1" = "loss=1%"\n"mav:01" = "loss=2%"', 'faults."mav:01"', "twice"),
+]
+
+
+def test_faults_section_parsed_in_order_and_validated_with_the_netfault_parser():
+    from sitl.netfault import parse_spec
+    scn = parse_scenario(FAULTS_TOML)
+    assert scn.faults.enabled and bool(scn.faults)
+    assert [k for k, _ in scn.faults.links] == ["mav:1", "mav:2:up", "bus:*/uav/uav2/**", "zenoh:gs",
+                                                "zenoh:vehicles0"]
+    assert parse_spec(scn.faults.get("mav:1")) == parse_spec("delay=100ms~20ms loss=10%")
+    assert parse_spec(scn.faults.get("zenoh:gs")).partitions == ((100.0, 130.0),)
+    assert [k for k, _ in scn.faults.of_kind("zenoh")] == ["zenoh:gs", "zenoh:vehicles0"]
+    # default: none, and no [faults] in the dict (a scenario without the table stays without it)
+    assert not default_scenario().faults and "faults" not in default_scenario().to_dict()
+    # an empty table is "faults on, none yet": the launcher starts the proxies
+    empty = parse_scenario("[faults]\n")
+    assert empty.faults.enabled and empty.faults.links == ()
+    from sitl.scenario import _to_toml_like
+    assert scenario_from_dict(_to_toml_like(empty.to_dict())).faults.enabled
+
+
+@pytest.mark.parametrize("line, key, expected", BAD_FAULTS, ids=[b[0][:24] for b in BAD_FAULTS])
+def test_bad_fault_entry_is_one_line_naming_the_key(line, key, expected):
+    with pytest.raises(ScenarioError) as exc:
+        parse_scenario("[faults]\n" + line)
+    msg = str(exc.value)
+    assert "\n" not in msg and msg.startswith("scenario: ")
+    assert key in msg, msg
+    assert expected in msg, msg
+
+
+def test_faults_round_trip_through_the_worker_spec_json(tmp_path):
+    scn = parse_scenario(FAULTS_TOML)
+    over = {"vehicles0": {"zenoh_connect": ["tcp/127.0.0.1:1111"], "mavlink_gcs": "127.0.0.1:2222"},
+            "gs": {"zenoh_connect": ["tcp/127.0.0.1:3333"]}}
+    specs = worker_specs(scn, ["tcp/127.0.0.1:7447"], tmp_path, over)
+    for s in specs:
+        back = WorkerSpec.read(s.write(tmp_path / f"{s.name}.json"))
+        obj = back.scenario_obj()
+        assert obj.faults == scn.faults
+        assert back.zenoh_connect == over[s.name]["zenoh_connect"]
+        # only the vehicles talk MAVLink through the front; the GS keeps the real GCS
+        assert obj.mavlink.gcs == ("127.0.0.1:2222" if s.name == "vehicles0" else scn.mavlink.gcs)
+    assert scn.mavlink.gcs == "127.0.0.1:14550"  # the scenario object itself is untouched
