@@ -19,6 +19,7 @@ from .buslog import (
     read_bus_log_records,
 )
 from .codec import MAX_PAYLOAD_BYTES, BusDecodeError, decode, encode, pack_sealed
+from .linkstats import LinkMonitor, LinkState
 from .router import Router, RouterError
 from .schema import (
     KEY_TEMPLATES,
@@ -77,6 +78,8 @@ __all__ = [
     "IntegrityEvent",
     "KeyExprError",
     "LinkCounters",
+    "LinkMonitor",
+    "LinkState",
     "LinkStats",
     "Message",
     "RadarMeasurement",
