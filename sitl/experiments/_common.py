@@ -136,7 +136,8 @@ class MeasurementFaults:
         tot: dict = {}
         truths = self.truths()
         for tr in truths.values():
-            d = dataclasses.asdict(tr) if dataclasses.is_dataclass(tr) else dict(vars(tr))
+            names = [f.name for f in dataclasses.fields(tr)] if dataclasses.is_dataclass(tr) else list(vars(tr))
+            d = {k: getattr(tr, k) for k in names + ["reordered"] if hasattr(tr, k)}
             for k, v in d.items():
                 if isinstance(v, bool) or not isinstance(v, (int, float)):
                     continue
