@@ -469,3 +469,128 @@ def test_router_restart_clients_reconnect_and_the_gap_shows_in_the_sequence():
         a.close()
         b.close()
         r.close()
+
+
+# ----------------------------------------------------------------------------------------
+# Publisher fault filters (issue 8): what reaches a receiver is exactly the injected truth
+
+
+def _faulty_pair(router, kf, **kw):
+    a = ZenohTransport(connect=router.endpoints, faults=[kf], **kw)
+    b = ZenohTransport(connect=router.endpoints)
+    return a, b
+
+
+@pytest.mark.parametrize("seed", [3, 4])
+def test_publisher_filter_drops_duplicates_and_corrupts_exactly_the_truth(router, seed):
+    """KeyFaults at the publisher over a real router: a receiver's SequenceTracker sees the
+    loss, duplicates and (through the CRC) corruption that the LinkTruth of each key says,
+    key by key; a key no rule matches passes untouched."""
+    from sitl.bus import SequenceTracker
+    from sitl.netfault import KeyFaults
+    t0 = 1_400_000_000.0
+    kf = KeyFaults([("fz/uav/*/nav", "loss=15% duplicate=10% corrupt=5%")], seed=seed)
+    a, b = _faulty_pair(router, kf, fault_t0_s=t0)
+    try:
+        tracker = SequenceTracker()
+        b.subscribe("fz/**", lambda k, m: tracker.update(k, m.seq))
+        _sync(a, b, "fz/uav/1/nav")
+        keys = ["fz/uav/1/nav", "fz/uav/2/nav", "fz/other/x"]
+        n = 600
+        for i in range(n):
+            for k in keys:
+                a.publish(k, nav(seq=i, t_gps_s=t0 + 0.1 * i, source_id="uav-1"))
+        expect_valid = n  # the untouched key
+        expect_bad = 0
+        for k in keys[:2]:
+            v = kf.truth(k).receiver_view()
+            expect_valid += v["received"] + v["duplicates"]
+            expect_bad += v["rejected_corrupt"]
+        done = lambda: b.stats.total.delivered + b.stats.total.rejected_total >= expect_valid + expect_bad
+        assert _drain_until(b, done, 10.0)
+        for k in keys[:2]:
+            tr = kf.truth(k)
+            assert tr.sent == n and tr.dropped_loss > 0 and tr.duplicated > 0 and tr.corrupted > 0
+            v = tr.receiver_view()  # what a CRC-checking receiver counting seqs must see
+            c = tracker.counters(k)
+            assert (c.new + c.out_of_order, c.duplicates, c.missing) == (v["received"], v["duplicates"],
+                                                                          v["missing"]), k
+        other = tracker.counters("fz/other/x")
+        assert (other.new, other.duplicates, other.missing) == (n, 0, 0)
+        assert b.stats.total.rejected.get("crc", 0) == expect_bad
+        assert b.stats.total.rejected_total == expect_bad
+        fs = a.fault_stats
+        assert fs["offered"] == 3 * n and a.stats.published == 3 * n
+        assert fs["dropped"] == sum(kf.truth(k).dropped for k in keys[:2])
+        assert fs["duplicated"] == sum(kf.truth(k).duplicated for k in keys[:2])
+        assert fs["sent"] == n + sum(kf.truth(k).delivered for k in keys[:2])
+    finally:
+        a.close()
+        b.close()
+
+
+def test_publisher_filter_delay_waits_in_wall_time_scaled_by_speed_and_close_flushes(router):
+    """delay=400ms at speed 2 is ~0.2 s of wall time; a copy still waiting when the publisher
+    closes is put at once (counted), nothing is lost; a run-time change (with_faults) applies
+    to what is published after it; the scheduler thread is gone after close."""
+    import threading
+
+    from sitl.netfault import KeyFaults
+    kf = KeyFaults([("fd/**", "delay=400ms")], seed=1)
+    a, b = _faulty_pair(router, kf, speed=2.0)
+    try:
+        got = []
+        b.subscribe("fd/**", lambda k, m: got.append((m.seq, time.perf_counter())))
+        _sync(a, b, "fd/x")
+        t_pub = time.perf_counter()
+        a.publish("fd/x", nav(seq=0, t_gps_s=10.0))
+        assert a.fault_stats["delayed"] == 1 and a.fault_stats["sent"] == 0
+        assert _drain_until(b, lambda: len(got) == 1, 5.0)
+        lat = got[0][1] - t_pub
+        assert 0.17 <= lat <= 0.6, lat
+        # a long delay, then close at once: flushed, not lost
+        a.with_faults(lambda: kf.set("fd/**", "delay=100s", a.fault_now_s))
+        a.publish("fd/x", nav(seq=1, t_gps_s=11.0))
+        assert a.fault_stats["pending"] == 1
+        a.close()
+        assert a.fault_stats["flushed_at_close"] == 1 and a.fault_stats["pending"] == 0
+        assert _drain_until(b, lambda: len(got) == 2, 5.0)
+        assert [s for s, _ in got] == [0, 1]
+        assert not any(t.name == "bus-fault-delay" and t.is_alive() for t in threading.enumerate())
+    finally:
+        a.close()
+        b.close()
+
+
+def test_publisher_filter_partition_in_run_time_and_async_control_subscription(router):
+    """Filter times are relative to fault_t0_s (the run's start): partition=2-4 drops exactly
+    the messages of seconds 2..4 of the run. subscribe_async delivers on Zenoh's thread to a
+    worker that never drains, and counts a bad payload instead of raising."""
+    import threading
+
+    from sitl.netfault import KeyFaults
+    t0 = 1_400_000_000.0
+    kf = KeyFaults([("fp/**", "partition=2-4")], seed=2)
+    a, b = _faulty_pair(router, kf, fault_t0_s=t0)
+    c = ZenohTransport(connect=router.endpoints)
+    try:
+        got = []
+        b.subscribe("fp/**", lambda k, m: got.append(m.seq))
+        heard = threading.Event()
+        ctl = []
+        a.subscribe_async("fp-ctl/**", lambda k, m: (ctl.append((k, m.seq)), heard.set()))
+        _sync(a, b, "fp/x")
+        _sync(c, a, "fp-ctl/x")
+        for i in range(60):
+            a.publish("fp/x", nav(seq=i, t_gps_s=t0 + 0.1 * i))
+        assert _drain_until(b, lambda: len(got) == 40, 5.0)
+        assert got == [i for i in range(60) if not 20 <= i < 40]
+        assert kf.truth("fp/x").dropped_partition == 20
+        c.publish_raw("fp-ctl/x", b"\x00junk")
+        c.publish("fp-ctl/x", nav(seq=7))
+        assert heard.wait(5.0)  # a never-draining transport: no drain call anywhere
+        assert ctl == [("fp-ctl/x", 7)] and a.async_rejected.total() == 1
+    finally:
+        a.close()
+        b.close()
+        c.close()

@@ -62,6 +62,30 @@ first-declared expression that matches its key: ``stats.total`` counts each payl
 as `InMemoryTransport` does. While a subscription whose expression overlaps another one is
 being closed, a sample in flight in that instant may be missed by the other one.
 
+Fault filters at the publisher (issue 8)
+----------------------------------------
+``faults=[f, ...]``: `sitl.bus.transport.FaultFilter` callables ``(key, payload, t_s) ->
+[(deliver_at_s, payload), ...]`` (e.g. a `sitl.netfault.KeyFaults`), applied at publish time
+in order as `InMemoryTransport` applies them: [] drops the message, two items duplicate it,
+changed bytes corrupt it, a later time delays it. The filters see simulation time relative to
+``fault_t0_s`` (the run's start: a spec's ``partition=100-130`` means 100-130 s into the run),
+the publication's ``msg.t_gps_s`` (or the latest one seen, for `publish_raw` without a time).
+A delayed copy waits in a small scheduler thread (one per transport, started on the first
+delay) for ``(deliver_at - t) / speed`` wall seconds and is then published; `close` publishes
+what is still pending at once (``fault_stats["flushed_at_close"]``) so nothing handed out by a
+filter is silently lost. ``fault_stats``: offered (publications through the filters), sent
+(copies put on the wire, at once or later), dropped (publications with no copy), duplicated
+(copies beyond the first), delayed (copies scheduled for later), flushed_at_close, pending.
+``stats.published`` stays what the publishers handed in. `with_faults(fn)` runs ``fn()``
+(e.g. ``lambda: kf.set(expr, spec, t)``) under the lock the filters run under, so a control
+thread may change a filter while the publisher runs; `fault_now_s` is the filters' current
+time (the latest publication's, relative to ``fault_t0_s``).
+
+`subscribe_async(key_expr, callback)`: ``callback(key, msg)`` on Zenoh's thread as soon as a
+message arrives, whatever the delivery mode, outside the drain path (control keys that a
+worker which never drains must still hear: ``<run>/ctl/fault``). Bad payloads are counted in
+``async_rejected``; the subscription is undeclared by `close`.
+
 Exit
 ----
 A process that exits with a Zenoh callback subscriber still declared hangs (Zenoh's callback
@@ -71,18 +95,24 @@ interpreter shuts down are closed by a hook that runs before Python joins its th
 
 from __future__ import annotations
 
+import heapq
+import itertools
 import logging
+import math
 import threading
 import time
 import weakref
+from collections import Counter
 from collections.abc import Callable, Iterable, Mapping
 from typing import Any
 
 import zenoh
 
 from ._zconfig import ZenohConfigError, make_config, zenoh_error_text
+from .codec import BusDecodeError, decode
 from .transport import (
     Callback,
+    FaultFilter,
     KeyExprError,
     Subscription,
     Transport,
@@ -146,14 +176,31 @@ class ZenohTransport(Transport):
     "queue" or "callback"; ``queue_capacity``: samples held per subscribed expression in
     queue mode; ``congestion_control``: "block" (default) or "drop"; ``express``: send
     without batching; ``multicast_scouting``: off by default; ``extra``: more Zenoh config
-    keys ``{"path/of/key": value}``."""
+    keys ``{"path/of/key": value}``; ``faults``, ``fault_t0_s``, ``speed``: publisher fault
+    filters (module text)."""
 
     def __init__(self, connect: Iterable[str] | str | None = None, *, mode: str = "client",
                  listen: Iterable[str] | str | None = None, lease_ms: int | None = None,
                  delivery: str = "queue", queue_capacity: int = DEFAULT_QUEUE_CAPACITY,
                  congestion_control: str = "block", express: bool = False,
-                 multicast_scouting: bool = False, extra: Mapping[str, Any] | None = None):
+                 multicast_scouting: bool = False, extra: Mapping[str, Any] | None = None,
+                 faults: Iterable[FaultFilter] = (), fault_t0_s: float = 0.0, speed: float = 1.0):
         super().__init__()
+        if not (isinstance(speed, (int, float)) and math.isfinite(speed) and speed > 0):
+            raise ZenohConfigError(f"speed: expected a finite number > 0, got {speed!r}")
+        self.faults: list[FaultFilter] = list(faults)
+        self.fault_t0_s = float(fault_t0_s)
+        self.speed = float(speed)
+        self.fault_stats: Counter = Counter()
+        self.async_rejected: Counter = Counter()
+        self._fault_lock = threading.RLock()
+        self._fault_t: float | None = None  # latest publication time seen (relative to fault_t0_s)
+        self._sched: list = []  # heap of (due perf_counter, seq, key, payload)
+        self._sched_seq = itertools.count()
+        self._sched_cv = threading.Condition(threading.Lock())
+        self._sched_thread: threading.Thread | None = None
+        self._sched_stop = False
+        self._async: list[Any] = []  # callback-mode zenoh subscribers of subscribe_async
         if delivery not in DELIVERY_MODES:
             raise ZenohConfigError(f"delivery: {delivery!r} is not one of "
                                    f"{', '.join(DELIVERY_MODES)}")
@@ -198,9 +245,7 @@ class ZenohTransport(Transport):
                     reliability=zenoh.Reliability.RELIABLE)
             return pub
 
-    def _publish_bytes(self, key: str, payload: bytes, t_gps_s: float | None) -> None:
-        self._check_open()
-        validate_key(key)
+    def _put(self, key: str, payload: bytes) -> None:
         pub = self._publishers.get(key)
         if pub is None:
             pub = self._publisher(key)
@@ -208,9 +253,156 @@ class ZenohTransport(Transport):
             pub.put(payload)
         else:
             self._session.put(key, payload, congestion_control=self._cc, express=self.express)
+
+    def _publish_bytes(self, key: str, payload: bytes, t_gps_s: float | None) -> None:
+        self._check_open()
+        validate_key(key)
+        if self.faults:
+            self._publish_faulty(key, payload, t_gps_s)
+        else:
+            self._put(key, payload)
         with self._pub_lock:
             self.stats.published += 1
             self.stats.published_bytes += len(payload)
+
+    # ------------------------------------------------------------------ fault filters
+    @property
+    def fault_now_s(self) -> float:
+        """The filters' clock: the latest publication's time relative to ``fault_t0_s`` (0
+        before the first)."""
+        return 0.0 if self._fault_t is None else self._fault_t
+
+    def with_faults(self, fn: Callable[[], Any]) -> Any:
+        """Run ``fn()`` under the filters' lock (change a filter while publishers run)."""
+        with self._fault_lock:
+            return fn()
+
+    def _publish_faulty(self, key: str, payload: bytes, t_gps_s: float | None) -> None:
+        with self._fault_lock:
+            if t_gps_s is not None and math.isfinite(t_gps_s):
+                t = float(t_gps_s) - self.fault_t0_s
+                self._fault_t = t if self._fault_t is None else max(self._fault_t, t)
+            else:
+                t = self.fault_now_s
+            items = [(t, payload)]
+            for fault in self.faults:
+                out = []
+                for t_item, p_item in items:
+                    for at, p in fault(key, p_item, t_item):
+                        at = float(at)
+                        if not math.isfinite(at) or not isinstance(p, (bytes, bytearray)):
+                            raise TypeError(f"fault filter {fault!r} produced ({at!r}, "
+                                            f"{type(p).__name__}): expected (finite time, bytes)")
+                        out.append((at, bytes(p)))
+                items = out
+            self.fault_stats["offered"] += 1
+            if not items:
+                self.fault_stats["dropped"] += 1
+            self.fault_stats["duplicated"] += max(0, len(items) - 1)
+        now = time.perf_counter()
+        for at, p in items:
+            if at <= t:
+                self._put(key, p)
+                with self._fault_lock:
+                    self.fault_stats["sent"] += 1
+            else:
+                self._schedule(now + (at - t) / self.speed, key, p)
+
+    def _schedule(self, due: float, key: str, payload: bytes) -> None:
+        with self._sched_cv:
+            heapq.heappush(self._sched, (due, next(self._sched_seq), key, payload))
+            with self._fault_lock:
+                self.fault_stats["delayed"] += 1
+                self.fault_stats["pending"] = len(self._sched)
+            if self._sched_thread is None:
+                self._sched_thread = threading.Thread(target=self._run_scheduler,
+                                                      name="bus-fault-delay", daemon=True)
+                self._sched_thread.start()
+            self._sched_cv.notify()
+
+    def _run_scheduler(self) -> None:
+        while True:
+            with self._sched_cv:
+                while not self._sched_stop:
+                    if self._sched:
+                        wait = self._sched[0][0] - time.perf_counter()
+                        if wait <= 0:
+                            break
+                        self._sched_cv.wait(min(wait, 0.5))
+                    else:
+                        self._sched_cv.wait(0.5)
+                if self._sched_stop:
+                    return
+                _, _, key, payload = heapq.heappop(self._sched)
+                with self._fault_lock:
+                    self.fault_stats["pending"] = len(self._sched)
+            try:
+                self._put(key, payload)
+                with self._fault_lock:
+                    self.fault_stats["sent"] += 1
+            except Exception as e:  # the session closed under us: counted, never raised
+                with self._fault_lock:
+                    self.fault_stats["send_errors"] += 1
+                self._ratelog(logging.WARNING, f"delayed:{type(e).__name__}",
+                              f"bus: a delayed publication on {key!r} failed: {e}")
+
+    def _stop_scheduler(self) -> None:
+        """Stop the delay thread, then put what was pending at once (in due order)."""
+        with self._sched_cv:
+            self._sched_stop = True
+            self._sched_cv.notify_all()
+            th = self._sched_thread
+        if th is not None:
+            th.join(5.0)
+        with self._sched_cv:
+            pending = [heapq.heappop(self._sched) for _ in range(len(self._sched))]
+        for _, _, key, payload in pending:
+            try:
+                self._put(key, payload)
+                with self._fault_lock:
+                    self.fault_stats["sent"] += 1
+                    self.fault_stats["flushed_at_close"] += 1
+            except Exception:
+                with self._fault_lock:
+                    self.fault_stats["send_errors"] += 1
+        with self._fault_lock:
+            self.fault_stats["pending"] = 0
+
+    # ------------------------------------------------------------------ async (control) subscriptions
+    def subscribe_async(self, key_expr: str, callback: Callback) -> None:
+        """``callback(key, msg)`` on Zenoh's thread for every valid message on matching keys,
+        in any delivery mode (module text); undeclared by `close`."""
+        self._check_open()
+        validate_key_expr(key_expr)
+        if not callable(callback):
+            raise TypeError("callback must be callable")
+
+        def handler(sample: zenoh.Sample) -> None:
+            try:
+                if self._closed:
+                    return
+                key = str(sample.key_expr)
+                payload = sample.payload.to_bytes() if sample.kind == zenoh.SampleKind.PUT else b""
+                try:
+                    msg = decode(payload)
+                except BusDecodeError as e:
+                    self.async_rejected[e.reason] += 1
+                    self._ratelog(logging.WARNING, "async-reject:" + e.reason,
+                                  f"bus: rejected a payload on {key!r}: {e}")
+                    return
+                callback(key, msg)
+            except Exception as e:  # never raise into Zenoh's thread
+                self.async_rejected["callback_error"] += 1
+                self._ratelog(logging.ERROR, f"async:{type(e).__name__}",
+                              f"bus: async callback on {key_expr!r}: {type(e).__name__}: {e}")
+
+        try:
+            zsub = self._session.declare_subscriber(key_expr, handler)
+        except Exception as e:
+            raise KeyExprError(f"zenoh refused key expression {key_expr!r}: "
+                               f"{zenoh_error_text(e)}") from None
+        with self._lock:
+            self._async.append(zsub)
 
     # ------------------------------------------------------------------ subscribing
     def subscribe(self, key_expr: str, callback: Callback) -> Subscription:
@@ -391,10 +583,17 @@ class ZenohTransport(Transport):
 
     def close(self) -> None:
         """Undeclare every subscriber and publisher, then close the session (idempotent)."""
+        self._stop_scheduler()  # before closing: what a fault filter delayed goes out now
         with self._lock:
             if self._closed:
                 return
             _OPEN.discard(self)
+            for zsub in self._async:
+                try:
+                    zsub.undeclare()
+                except Exception as e:
+                    log.debug("zenoh undeclare of an async subscriber: %s", e)
+            self._async.clear()
             super().close()  # closes every subscription -> undeclares its zenoh subscriber
             for rsub in list(self._raw.values()):
                 rsub.close()
