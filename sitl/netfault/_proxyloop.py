@@ -41,7 +41,7 @@ def default_clock(speed: float) -> Callable[[], float]:
 
 
 class TimerHandle:
-    __slots__ = ("t_s", "fn", "cancelled")
+    __slots__ = ("cancelled", "fn", "t_s")
 
     def __init__(self, t_s: float, fn: Callable[[], Any]):
         self.t_s, self.fn, self.cancelled = t_s, fn, False

@@ -96,7 +96,7 @@ class TcpProxyStats:
 class _Pipe:
     """One direction of one connection: src -> dst."""
 
-    __slots__ = ("src", "dst", "q", "queued", "out", "last_due", "eof", "shut", "timer", "up")
+    __slots__ = ("dst", "eof", "last_due", "out", "q", "queued", "shut", "src", "timer", "up")
 
     def __init__(self, src: socket.socket, dst: socket.socket, up: bool):
         self.src, self.dst, self.up = src, dst, up
@@ -114,7 +114,7 @@ class _Pipe:
 
 
 class _Conn:
-    __slots__ = ("client", "server", "connecting", "up", "down", "closed", "on_client", "on_server")
+    __slots__ = ("client", "closed", "connecting", "down", "on_client", "on_server", "server", "up")
 
     def __init__(self, client: socket.socket, server: socket.socket):
         self.client, self.server = client, server

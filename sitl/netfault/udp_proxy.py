@@ -46,6 +46,7 @@ log = logging.getLogger("sitl.netfault.proxy")
 
 MAX_DATAGRAM = 65535
 READ_BATCH = 64  # datagrams read per readiness event (fairness between proxies on one loop)
+RCVBUF = 1 << 20  # asked for (the kernel caps it at net.core.rmem_max): bursts wait, not drop
 
 
 def parse_addr(addr: str | tuple[str, int], what: str = "address") -> tuple[str, int]:
@@ -236,10 +237,14 @@ class UdpProxy:
         try:
             self._sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
             self._sock.bind(listen)
-            self._sock.setblocking(False)
             self._up_sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
             self._up_sock.bind((listen[0], 0))
-            self._up_sock.setblocking(False)
+            for s in (self._sock, self._up_sock):
+                s.setblocking(False)
+                try:
+                    s.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, RCVBUF)
+                except OSError:
+                    pass
             self.addr: tuple[str, int] = self._sock.getsockname()
             self.upstream_addr: tuple[str, int] = self._up_sock.getsockname()
             self.loop.call(self._register)
