@@ -30,19 +30,17 @@ loss rate differs from ``loss`` (e.g. loss=10%,50% loses ~3.7 %); the tests chec
 model's analytic values, not the nominal ones.
 
 Delay distributions (netem's tables, table-free: the inverse CDF applied to the correlated
-uniform, as netem indexes its table with it; ``sigma`` = jitter):
+uniform, as netem indexes its table with it; ``sigma`` = jitter; t clipped to netem's int16
+table range, |t| <= 32767/8192 ~ 4):
 
-========================  ===========================================================
-uniform (netem's default)  ``mu + sigma (2u - 1)``  (kernel: ``rnd % 2 sigma - sigma + mu``)
-normal                     ``mu + sigma Phi^-1(u)``  (netem normal table, continuous)
-pareto                     ``mu + sigma min(4/3 ((1-u)^(-1/3) - 1.5), 32767/8192)``:
-                           iproute2's pareto.c (a = 3, shifted and scaled by 4/3), clipped
-                           as its int16 table is
-paretonormal               ``mu + sigma (0.25 N + 0.75 P)``: iproute2's paretonormal.c
-                           combination of a normal and the pareto above, its quantile
-                           computed once by numerical convolution (4096-point table like
-                           netem's) and interpolated
-========================  ===========================================================
+=========================  ==========================================================
+uniform (kernel default)   ``mu + sigma (2u - 1)``  (kernel: ``rnd % 2 sigma - sigma + mu``)
+normal                     ``mu + sigma Phi^-1(u)``  (iproute2 normal table, continuous)
+pareto                     ``mu + sigma min(4/3 ((1-u)^(-1/3) - 1.5), 4)``: iproute2 pareto.c
+                           (shape a = 3, x_m = 1, shifted by its mean 1.5, scaled by 4/3)
+paretonormal               ``mu + sigma (Phi^-1(u) + 3 pareto(u)) / 4``: iproute2
+                           paretonormal.c (a quantile-wise 25 % normal + 75 % pareto mix)
+=========================  ==========================================================
 
 Gilbert-Elliott (``gemodel p r 1-h 1-k``): the loss of packet n uses the state it finds
 (good: loss prob 1-k, bad: 1-h), then the state moves (good->bad p, bad->good r), starting
@@ -95,7 +93,7 @@ from .spec import FaultSpec, parse_spec
 __all__ = ["KeyFaults", "LinkFault", "LinkTruth", "crandom_block", "delay_quantile"]
 
 _PARETO_A = 3.0
-_PARETO_CLIP = 32767 / 8192  # netem tables are int16 scaled by NETEM_DIST_SCALE = 8192
+_CLIP = 32767 / 8192  # netem tables are int16 scaled by NETEM_DIST_SCALE = 8192: |t| <= ~4
 
 
 def crandom_block(v: np.ndarray, rho: float, last: float) -> np.ndarray:
@@ -109,34 +107,7 @@ def crandom_block(v: np.ndarray, rho: float, last: float) -> np.ndarray:
 
 def _pareto_std(u: np.ndarray) -> np.ndarray:
     x = (1.0 - u) ** (-1.0 / _PARETO_A)
-    return np.minimum((4.0 / 3.0) * (x - 1.5), _PARETO_CLIP)
-
-
-_PN_TABLE: np.ndarray | None = None
-
-
-def _paretonormal_table() -> np.ndarray:
-    """Quantiles of 0.25 N(0,1) + 0.75 P (P the clipped netem pareto above) on 4096 points,
-    by numerical convolution of the two densities (deterministic, no sampling)."""
-    global _PN_TABLE
-    if _PN_TABLE is None:
-        dx = 1e-3
-        x = np.arange(-8.0, 12.0, dx)
-        # pareto part y = 0.75 P: CDF of P known analytically (with its atom at the clip)
-        p_edges = np.concatenate([x - dx / 2, [x[-1] + dx / 2]]) / 0.75
-        xp = 1.5 + 0.75 * p_edges  # P = 4/3 (X - 1.5) -> X = 1.5 + 3/4 P
-        cdf_p = np.where(xp < 1.0, 0.0, 1.0 - np.maximum(xp, 1.0) ** (-_PARETO_A))
-        cdf_p = np.where(p_edges >= _PARETO_CLIP, 1.0, cdf_p)
-        w_p = np.diff(cdf_p)
-        n_edges = np.concatenate([x - dx / 2, [x[-1] + dx / 2]]) / 0.25
-        w_n = np.diff(special.ndtr(n_edges))
-        w = np.convolve(w_p, w_n)  # support starts at 2 x[0]
-        xs = 2 * x[0] + dx * np.arange(w.size)
-        cdf = np.cumsum(w)
-        cdf /= cdf[-1]
-        q = (np.arange(4096) + 0.5) / 4096
-        _PN_TABLE = np.interp(q, cdf, xs)
-    return _PN_TABLE
+    return np.minimum((4.0 / 3.0) * (x - 1.5), _CLIP)
 
 
 def delay_quantile(distribution: str, u: np.ndarray) -> np.ndarray:
@@ -145,12 +116,12 @@ def delay_quantile(distribution: str, u: np.ndarray) -> np.ndarray:
     if distribution == "uniform":
         return 2.0 * u - 1.0
     if distribution == "normal":
-        return special.ndtri(np.clip(u, 1e-300, 1.0 - 2**-53))
+        return np.clip(special.ndtri(u), -_CLIP, _CLIP)
     if distribution == "pareto":
         return _pareto_std(u)
     if distribution == "paretonormal":
-        tab = _paretonormal_table()
-        return np.interp(u * 4096 - 0.5, np.arange(4096), tab)
+        # iproute2 paretonormal.c: (normal + 3 pareto) / 4 at the same quantile, int16-clipped
+        return np.clip(0.25 * special.ndtri(u) + 0.75 * _pareto_std(u), -_CLIP - 1 / 8192, _CLIP)
     raise ValueError(f"unknown distribution {distribution!r}")
 
 
@@ -300,26 +271,34 @@ class LinkTruth:
 
     def receiver_view(self, reject_corrupted: bool = True, until_s: float = math.inf) -> dict:
         """What a receiver counting sequence numbers (seq = packet index) sees of the copies
-        delivered by ``until_s``; with ``reject_corrupted`` corrupted copies are discarded
-        (a CRC check) before counting.
+        delivered by ``until_s``, as `sitl.bus.transport.SequenceTracker` counts them; with
+        ``reject_corrupted`` corrupted copies are discarded first (a CRC check).
 
         received: distinct packets accepted; duplicates: accepted copies beyond the first;
         out_of_order: packets whose first accepted copy arrives after an accepted copy of a
-        higher seq; missing: seqs below the highest accepted one never accepted (what gaps
-        show); missing_total: sent - received (trailing losses included); rejected_corrupt:
-        corrupted copies discarded."""
+        higher seq ("late"); gaps: arrivals beyond the highest seq so far that skip seqs;
+        missing: seqs skipped and never accepted, counted from the first accepted seq
+        (``highest - first + 1 - received``, as the tracker counts: leading losses are not
+        seen); missing_total: ``sent - received`` (leading and trailing losses included);
+        rejected_corrupt: corrupted copies discarded."""
         idx, at, bad = self.delivery_order()
         keep = at <= until_s
         rejected = int(np.count_nonzero(bad & keep)) if reject_corrupted else 0
         if reject_corrupted:
             keep &= ~bad
         idx = idx[keep]
-        uniq = np.unique(idx)
-        highest = int(idx.max()) if idx.size else -1
-        return {"received": int(uniq.size), "duplicates": int(idx.size - uniq.size),
-                "out_of_order": int(self._late_first(idx).size),
-                "missing": int(highest + 1 - uniq.size), "missing_total": int(self.sent - uniq.size),
-                "rejected_corrupt": rejected, "highest_seq": highest}
+        n_distinct = int(np.unique(idx).size)
+        if idx.size == 0:
+            return {"received": 0, "duplicates": 0, "out_of_order": 0, "gaps": 0, "missing": 0,
+                    "missing_total": self.sent, "rejected_corrupt": rejected, "highest_seq": -1}
+        prev_max = np.concatenate([[idx[0] - 1], np.maximum.accumulate(idx)[:-1]])
+        gaps = int(np.count_nonzero(idx - prev_max > 1))
+        highest = int(idx.max())
+        return {"received": n_distinct, "duplicates": int(idx.size - n_distinct),
+                "out_of_order": int(self._late_first(idx).size), "gaps": gaps,
+                "missing": highest - int(idx[0]) + 1 - n_distinct,
+                "missing_total": int(self.sent - n_distinct), "rejected_corrupt": rejected,
+                "highest_seq": highest}
 
 
 class LinkFault:
