@@ -308,10 +308,11 @@ PUBLISHER = """
     sys.path.insert(0, "tests")
     import msgpack
     from sitl.bus import ZenohTransport
+    from sitl.bus.codec import pack_sealed
     bus = ZenohTransport(connect=[sys.argv[1]], congestion_control=sys.argv[3])
-    with open(sys.argv[4], "rb") as f:  # one encoded SondeRelay; each copy gets its seq
+    with open(sys.argv[4], "rb") as f:  # one encoded SondeRelay; each copy gets its seq (and its CRC)
         wire = msgpack.unpackb(f.read())
-    payloads = [msgpack.packb({**wire, "seq": i}) for i in range(int(sys.argv[2]))]
+    payloads = [pack_sealed({**wire, "seq": i}) for i in range(int(sys.argv[2]))]
     assert bus.wait_for_subscribers("burst/sonde/1/relay", 10.0)
     for p in payloads:
         bus.publish_raw("burst/sonde/1/relay", p)
