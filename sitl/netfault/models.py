@@ -88,7 +88,7 @@ from scipy import signal, special
 
 from sitl.bus.transport import key_matches, validate_key, validate_key_expr
 
-from .spec import FaultSpec, parse_spec
+from .spec import DISTRIBUTIONS, FaultSpec, parse_spec
 
 __all__ = ["KeyFaults", "LinkFault", "LinkTruth", "crandom_block", "delay_quantile"]
 
@@ -126,39 +126,54 @@ def delay_quantile(distribution: str, u: np.ndarray) -> np.ndarray:
 
 
 class _Stream:
-    """A correlated (or plain) uniform stream (netem's crndstate), drawn in blocks."""
+    """A correlated (or plain) uniform stream (netem's crndstate), drawn in blocks; ``fn``
+    maps the uniforms to the values handed out (a delay quantile), also per block."""
 
-    __slots__ = ("rng", "rho", "last", "raw", "buf", "i", "n")
+    __slots__ = ("rng", "rho", "fn", "last0", "raw", "u", "buf", "i", "n")
 
-    def __init__(self, rng: np.random.Generator, rho: float):
+    def __init__(self, rng: np.random.Generator, rho: float, fn=None):
         self.rng = rng
         self.rho = float(rho)
-        self.last = float(rng.random())  # netem init_crandom: last = a random value
-        self.raw = np.empty(0)
+        self.fn = fn
+        self.last0 = float(rng.random())  # netem init_crandom: last = a random value
+        self.raw = self.u = np.empty(0)
         self.buf: list[float] = []
         self.i = 0
         self.n = 32
 
+    def _last(self) -> float:
+        return float(self.u[self.i - 1]) if self.i > 0 else self.last0
+
+    def _values(self, u: np.ndarray) -> list[float]:
+        return (self.fn(u) if self.fn is not None else u).tolist()
+
     def next(self) -> float:
-        if self.i >= len(self.buf):
+        i = self.i
+        if i >= len(self.buf):
+            self.last0 = self._last()
             self.raw = self.rng.random(self.n)
             self.n = min(self.n * 2, 8192)
-            u = crandom_block(self.raw, self.rho, self.last)
-            self.buf = u.tolist()
-            self.i = 0
-        x = self.buf[self.i]
-        self.i += 1
-        self.last = x
-        return x
+            self.u = crandom_block(self.raw, self.rho, self.last0)
+            self.buf = self._values(self.u)
+            i = 0
+        self.i = i + 1
+        return self.buf[i]
 
-    def set_rho(self, rho: float) -> None:
+    def change(self, rho: float, fn=None) -> None:
+        """New correlation / value map for the draws not yet handed out."""
         rho = float(rho)
-        if rho == self.rho:
+        if rho == self.rho and fn is self.fn:
             return
-        self.rho = rho
-        rest = self.raw[self.i:]
-        if rest.size:
-            self.buf[self.i:] = crandom_block(rest, rho, self.last).tolist()
+        i = self.i
+        if i < self.raw.size:
+            last = self._last()
+            u = crandom_block(self.raw[i:], rho, last)
+            self.u = np.concatenate([self.u[:i], u])
+            self.buf[i:] = (fn(u) if fn is not None else u).tolist()
+        self.rho, self.fn = rho, fn
+
+
+_QUANTILES = {d: (lambda u, d=d: delay_quantile(d, u)) for d in DISTRIBUTIONS}
 
 
 @dataclass
@@ -191,7 +206,6 @@ class LinkTruth:
     copy_index: array = field(default_factory=lambda: array("q"), repr=False)
     copy_at_s: array = field(default_factory=lambda: array("d"), repr=False)
     copy_corrupt: array = field(default_factory=lambda: array("b"), repr=False)
-    sent_at_s: array = field(default_factory=lambda: array("d"), repr=False)
     drop_index: array = field(default_factory=lambda: array("q"), repr=False)
     drop_cause: array = field(default_factory=lambda: array("b"), repr=False)
 
@@ -321,7 +335,7 @@ class LinkFault:
         self._dup = _Stream(rng, s.duplicate_corr)
         self._corrupt = _Stream(rng, s.corrupt_corr)
         self._reorder = _Stream(rng, s.reorder_corr)
-        self._delay = _Stream(rng, s.delay_corr)
+        self._delay = _Stream(rng, s.delay_corr, _QUANTILES[s.distribution])
         self._ge_u = _Stream(rng, 0.0)
         self._ge_bad = False
         self._counter = 0
@@ -330,6 +344,7 @@ class LinkFault:
         self._pending: list[tuple[float, int, FaultSpec]] = []
         self._pending_n = 0
         self._last_t = -math.inf
+        self._identity = self.spec.is_identity
 
     def __repr__(self) -> str:
         return f"LinkFault({self.name!r}, {self.spec.to_text()!r})"
@@ -347,11 +362,12 @@ class LinkFault:
     def _apply(self, spec: FaultSpec) -> None:
         old = self.spec
         self.spec = spec
-        self._loss.set_rho(spec.loss_corr)
-        self._dup.set_rho(spec.duplicate_corr)
-        self._corrupt.set_rho(spec.corrupt_corr)
-        self._reorder.set_rho(spec.reorder_corr)
-        self._delay.set_rho(spec.delay_corr)
+        self._identity = spec.is_identity
+        self._loss.change(spec.loss_corr)
+        self._dup.change(spec.duplicate_corr)
+        self._corrupt.change(spec.corrupt_corr)
+        self._reorder.change(spec.reorder_corr)
+        self._delay.change(spec.delay_corr, _QUANTILES[spec.distribution])
         if spec.ge != old.ge:
             self._ge_bad = False  # netem: a new gemodel starts in the good state
         if (spec.gap, spec.reorder) != (old.gap, old.reorder):
@@ -379,12 +395,11 @@ class LinkFault:
         tr = self.truth
         idx = tr.sent
         tr.sent += 1
-        tr.sent_at_s.append(t)
         spec = self.spec
         if spec.partitions and spec.down(t):
             self._drop(idx, 1)
             return []
-        if spec.is_identity:
+        if self._identity:
             self._record(idx, t, t, False)
             return [(t, payload)]
         out, cause = self._enqueue(t, payload, spec, True)
@@ -472,8 +487,7 @@ class LinkFault:
         if spec.gap == 0 or self._counter < spec.gap - 1 or spec.reorder < self._reorder.next():
             delay = spec.delay_s
             if spec.jitter_s > 0:
-                u = self._delay.next()
-                delay += spec.jitter_s * float(delay_quantile(spec.distribution, u))
+                delay += spec.jitter_s * self._delay.next()
                 if delay < 0.0:
                     delay = 0.0
             at = t + delay
