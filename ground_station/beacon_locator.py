@@ -262,7 +262,7 @@ from filters import kernels
 from filters.beacon import OBSERVER_UNCERTAINTY
 from filters.integrity import IntegrityConfig, IntegrityMonitor
 from filters.models import ConstantVelocity
-from sitl.bus import BeaconMeasurement, Estimate, key_for, parse_key
+from sitl.bus import BeaconMeasurement, Estimate, SequenceTracker, key_for, parse_key
 from sitl.geodesy import ecef_to_geodetic
 from sitl.integrity_events import IntegrityEventPublisher
 from sitl.radio.beacon_link import multilaterate
@@ -372,6 +372,10 @@ class LocatorConfig:
         many of its present links stay in (3: ranges and Dopplers of 3 UAVs fix the 6 states with
         no redundancy; below that an exclusion makes the track unobservable and the monitor
         detect-only for that trial and epoch).
+    lag_window_s: out-of-sequence measurements (module docstring, "Late measurements"): a
+        measurement for an epoch already processed and at most this old (simulation time)
+        is used by re-processing from that epoch; older ones are dropped (``too_late``).
+        0: the old behaviour (no history kept; a late measurement is dropped as ``stale``).
     second_order_r: add the variance of the ranges' and Dopplers' second-order terms
         (:func:`second_order_var`, at the predicted state and covariance) to R -- for the
         same case; off by default (in the cylindrical coordinates the curvature is the
@@ -409,6 +413,7 @@ class LocatorConfig:
     integrity_max_links: int = 32
     integrity_common_fraction: float = 0.5
     integrity_min_links: int = 3
+    lag_window_s: float = 5.0
 
     def __post_init__(self):
         if self.integrity is not None and not isinstance(self.integrity, IntegrityConfig):
@@ -442,6 +447,7 @@ class LocatorConfig:
         _nonneg("init_resolve_s", self.init_resolve_s)
         _nonneg("acquire_s", self.acquire_s)
         _nonneg("min_formation_sigmas", self.min_formation_sigmas)
+        _nonneg("lag_window_s", self.lag_window_s)
         _pos("init_resolve_llr", self.init_resolve_llr)
         if not 0.0 < float(self.gate_prob) < 1.0:
             raise ValueError(f"gate_prob must lie in (0, 1), got {self.gate_prob!r}")
@@ -1310,6 +1316,16 @@ def _mon_merge(prev, acc, idx, sub):
     return acc._replace(pos=sub.pos, count=sub.count, steps=sub.steps, stale=stale)
 
 
+class _Epoch(NamedTuple):
+    """One processed epoch in the lag window: its time, the locator's state before it, its
+    inputs (per trial {uav id: msg}; late messages are added here) and the counters it added."""
+
+    t: float
+    snap: dict
+    inputs: list
+    added: Counter
+
+
 class BeaconLocator:
     """Bus component: collects BeaconMeasurements, steps the batched filter, publishes Estimates.
 
@@ -1372,6 +1388,11 @@ class BeaconLocator:
         self.resolve_at = np.full(T, np.inf)
         self._window: list[list] = [[] for _ in range(T)]
         self._pending: list[dict] = [dict() for _ in range(T)]  # per trial {(uav, t): msg}
+        self._seqtrack = SequenceTracker()  # duplicates by (run/source id, seq)
+        # lag window (config.lag_window_s): per processed epoch, the state before it, its inputs
+        # (per trial {uav: msg}, completed by late messages) and the counters it added
+        self._hist: list[_Epoch] = []
+        self._dirty: float | None = None  # the earliest epoch a late message completed
         self._seq: dict[int, int] = {}
         self._keys: dict[str, str] = {}  # run id -> the key its Estimates go out on
         self._report = None  # cached ECEF moments of the current state
@@ -1413,6 +1434,9 @@ class BeaconLocator:
         if k is None:
             self.counters["other_run"] += 1
             return
+        if self._seqtrack.update(f"{run}/{msg.source_id}", msg.seq).duplicate:
+            self.counters["duplicate"] += 1  # a copy of a message seen already (source, seq): once only
+            return
         c = self.config
         if not (msg.range_m <= c.max_range_m and abs(msg.range_rate_m_s) <= c.max_range_rate_m_s):
             self.rejected["range_out_of_limits"] += 1
@@ -1424,32 +1448,68 @@ class BeaconLocator:
         if not (dg[0:3].max() <= c.max_uav_pos_sigma_m ** 2 and dg[3:6].max() <= c.max_uav_vel_sigma_m_s ** 2):
             self.rejected["uav_covariance_absurd"] += 1
             return
-        if self.t_gps_s is not None and msg.t_gps_s < self.t_gps_s - 1e-9:
+        t = float(msg.t_gps_s)
+        lag = c.lag_window_s
+        if lag > 0 and self.t_gps_s is not None and t <= self.t_gps_s + 1e-6:
+            # out of sequence: an epoch processed already -- re-processed at the next step
+            e = self._hist_at(t) if t >= self.t_gps_s - lag - 1e-6 else None
+            if e is None:
+                self.rejected["too_late"] += 1
+                return
+            inputs = e.inputs[k]
+            if ids["uav"] in inputs:
+                self.counters["duplicate_epoch"] += 1
+                return
+            inputs[ids["uav"]] = msg
+            self._dirty = e.t if self._dirty is None else min(self._dirty, e.t)
+            self.counters["accepted"] += 1
+            self.counters["late_accepted"] += 1
+            return
+        if self.t_gps_s is not None and t < self.t_gps_s - 1e-9:
             self.rejected["stale"] += 1
             return
-        slot = (ids["uav"], float(msg.t_gps_s))
+        slot = (ids["uav"], t)
         pend = self._pending[k]
         if slot in pend:
-            self.counters["duplicate"] += 1
+            self.counters["duplicate_epoch"] += 1  # another message of the same UAV and epoch
             return
         pend[slot] = msg
         self.counters["accepted"] += 1
 
+    def _hist_at(self, t: float, tol: float = 1e-6):
+        """The history entry of the processed epoch t (None: no step at t in the window)."""
+        for e in reversed(self._hist):
+            if abs(e.t - t) <= tol:
+                return e
+            if e.t < t - tol:
+                return None
+        return None
+
     def _collect(self, t: float, tol: float = 1e-6) -> ObserverEpoch:
         """The pending measurements of epoch t as padded arrays (older ones dropped, counted)."""
+        return self._observations(self._take(t, tol))
+
+    def _take(self, t: float, tol: float = 1e-6) -> list[dict]:
+        """The pending measurements of epoch t, per trial {uav id: msg} (older ones dropped,
+        counted as stale)."""
         per = []
         for k, pend in enumerate(self._pending):
-            now, keep = [], {}
+            now, keep = {}, {}
             for slot, msg in pend.items():
                 if abs(slot[1] - t) <= tol:
-                    now.append((slot[0], msg))
+                    now[slot[0]] = msg
                 elif slot[1] < t:
                     self.rejected["stale"] += 1
                 else:
                     keep[slot] = msg
             self._pending[k] = keep
-            now.sort(key=lambda a: a[0])
             per.append(now)
+        return per
+
+    def _observations(self, inputs: list[dict]) -> ObserverEpoch:
+        """Per trial {uav id: msg} -> padded arrays (UAVs in id order; fixed slots per UAV id
+        with "consider" or the integrity monitor)."""
+        per = [sorted(d.items(), key=lambda a: a[0]) for d in inputs]
         # one fixed slot per UAV id: the consider states and the integrity channels follow the UAV
         consider = self.config.observer_uncertainty == "consider" or self.config.integrity is not None
         if consider:
@@ -1473,12 +1533,94 @@ class BeaconLocator:
 
     # ---------------------------------------------------------------- processing
     def step(self, t_gps_s: float):
-        """Process the epoch t_gps_s for every trial and publish the Estimates; returns self."""
+        """Process the epoch t_gps_s for every trial and publish the Estimates; returns self.
+        Late measurements taken in since the last step (lag window) are used first: the
+        state goes back to before their epoch and the epochs since are re-run (not
+        published again)."""
         t = float(t_gps_s)
-        self.process(t, self._collect(t))
+        if self._dirty is not None:
+            self._reprocess()
+        self._run_epoch(t, self._take(t))
         if self.transport is not None and self.publish_estimates:
             self.publish()
         return self
+
+    def _run_epoch(self, t: float, inputs: list[dict]) -> None:
+        lag = self.config.lag_window_s
+        if lag <= 0:
+            self.process(t, self._observations(inputs))
+            return
+        if self.t_gps_s is not None and t < self.t_gps_s:
+            raise ValueError(f"t_gps_s must not go back: {t} < {self.t_gps_s}")
+        snap = self._snapshot()
+        before = self.counters.copy()
+        self.process(t, self._observations(inputs))
+        self._hist.append(_Epoch(t, snap, inputs, self.counters - before))
+        cut = 0
+        while cut < len(self._hist) and self._hist[cut].t < t - lag - 1e-6:
+            cut += 1
+        if cut:
+            del self._hist[:cut]
+
+    def _reprocess(self) -> None:
+        """Back to the state before the earliest epoch completed by late messages, then re-run
+        that epoch and the later ones of the history with their (completed) inputs -- every
+        trial of the batch together (an untouched trial re-runs to the identical result)."""
+        t0, self._dirty = self._dirty, None
+        i = next((j for j, e in enumerate(self._hist) if e.t >= t0 - 1e-6), None)
+        if i is None:
+            return
+        redo = self._hist[i:]
+        del self._hist[i:]
+        self._restore(redo[0].snap)
+        for e in redo:
+            self.counters.subtract(e.added)
+        pub = self.integrity_events
+        keep = None if pub is None else pub.transport
+        if pub is not None:
+            pub.transport = None  # events of past epochs went out already: not again
+        try:
+            for e in redo:
+                self._run_epoch(e.t, e.inputs)
+        finally:
+            if pub is not None:
+                pub.transport = keep
+        self.counters["reprocess_runs"] += 1
+        self.counters["reprocessed_epochs"] += len(redo)
+
+    _SNAP = ("y", "P", "initialised", "init_t_gps_s", "nis", "n_used", "coast_s", "mode", "vel_doppler",
+             "vel_doppler_cov", "start_side")
+    _SNAP_ALT = ("alt_active", "alt_y", "alt_P", "alt_vel", "score", "alt_score", "resolve_at")
+    _SNAP_CONSIDER = ("C", "alt_C", "uav_cov_prev")
+
+    def _snapshot(self) -> dict:
+        """The state the next epoch changes, copied (only what a step writes: the arrays of the
+        filters, the mirror hypotheses while any is alive, the consider states with "consider",
+        the start windows; the integrity monitor's state is replaced, never written, per epoch)."""
+        d = {name: getattr(self, name).copy() for name in self._SNAP}
+        d["t_gps_s"] = self.t_gps_s
+        d["frame"] = Frame(*(u.copy() for u in self.frame))
+        if self.alt_active.any():  # rows of inactive hypotheses are never read
+            for name in self._SNAP_ALT:
+                d[name] = getattr(self, name).copy()
+            d["alt_frame"] = Frame(*(u.copy() for u in self.alt_frame))
+        else:
+            d["alt_active"] = self.alt_active.copy()
+        if self.config.observer_uncertainty == "consider":
+            for name in self._SNAP_CONSIDER:
+                d[name] = getattr(self, name).copy()
+        if not self.initialised.all():
+            d["_window"] = [list(w) for w in self._window]
+            d["init_info"] = list(self.init_info)
+            d["init_window_last"] = list(self.init_window_last)
+        if self._mon is not None:
+            d["_mon_state"] = self._mon_state
+        return d
+
+    def _restore(self, d: dict) -> None:
+        for name, v in d.items():
+            setattr(self, name, v)
+        self._report = None
 
     def _filter(self, y, P, fr, obs, dt, loglik, C=None, Pu=None, acq=None, judge=None):
         """One filter step on stacked rows; returns (y, P, frame, nis, used, gated, m2ll, V)

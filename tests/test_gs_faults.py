@@ -1,0 +1,162 @@
+"""The ground station on a bad network (issue 8): out-of-sequence measurements re-processed
+within the lag window, duplicates discarded by (source, seq), too-late ones counted -- for the
+beacon locator and the sonde tracker -- with the faults injected by sitl.netfault.KeyFaults
+on the in-memory bus."""
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+from test_beacon_locator import _epochs, _publish_epoch, _scene
+
+from ground_station.beacon_locator import BeaconLocator, LocatorConfig
+from sitl.bus import Estimate, InMemoryTransport
+from sitl.netfault import KeyFaults
+
+BEACON_KEYS = "*/uav/*/beacon/**"
+LAG_COUNTERS = ("late_accepted", "reprocess_runs", "reprocessed_epochs", "duplicate", "published")  # real-time only
+
+
+def _beacon_run(eps, t, trials, config, faults=None, steps_after=0, present=range(5), feed_until=None):
+    """Publish every epoch's measurements (all trials), drain, step; steps continue
+    ``steps_after`` epochs after the last measurement. Returns the locator, the Estimates
+    published per step {k: {run: Estimate}}, and the transport. feed_until(k_step) -> the
+    last measurement epoch published (None: all)."""
+    bus = InMemoryTransport(faults=[faults] if faults is not None else [])
+    runs = [f"r{j}" for j in range(trials)]
+    loc = BeaconLocator(bus, run_ids=runs, config=config)
+    got: dict = {}
+    cur = {"k": None}
+    bus.subscribe("*/gs/estimate/beacon/*", lambda key, m: got.setdefault(cur["k"], {}).__setitem__(
+        key.split("/", 1)[0], m))
+    K = len(eps)
+    dt = t[1] - t[0]
+    for k in range(K + steps_after):
+        tk = float(t[0] + k * dt)
+        if k < K and (feed_until is None or k <= feed_until):
+            for j, run in enumerate(runs):
+                _publish_epoch(bus, run, k, tk, eps[k], j, present)
+        cur["k"] = k
+        bus.drain(tk)
+        loc.step(tk)
+        bus.drain(tk)
+    return loc, got, bus
+
+
+def _counters(loc):
+    return {k: v for k, v in loc.counters.items() if k not in LAG_COUNTERS and k != "accepted"}
+
+
+CONFIGS = {
+    "blind_start": LocatorConfig(uav_error_corr_s=0.0),  # multilateration window + mirror hypotheses
+    "consider_integrity": LocatorConfig(observer_uncertainty="consider", acquire_s=5.0, uav_error_corr_s=20.0,
+                                        uav_vel_error_corr_s=5.0),
+}
+
+
+@pytest.fixture(scope="module")
+def beacon_world():
+    K, trials = 30, 3
+    scene = _scene(K)
+    return scene, _epochs(np.random.default_rng(21), scene, trials), trials
+
+
+@pytest.mark.parametrize("name", list(CONFIGS))
+def test_beacon_delay_within_window_reprocesses_to_the_undelayed_state(beacon_world, name):
+    """Every beacon measurement 2 s late (window 5 s): once all have arrived the re-processed
+    state equals the state of the run without delay (and so do the counters), and re-runs
+    published nothing old."""
+    scene, eps, trials = beacon_world
+    cfg = CONFIGS[name]
+    if name == "consider_integrity":
+        from filters.integrity import IntegrityConfig
+        cfg = dataclasses.replace(cfg, integrity=IntegrityConfig())
+    ref, got_ref, _ = _beacon_run(eps, scene[0], trials, cfg, steps_after=3)
+    kf = KeyFaults([(BEACON_KEYS, "delay=2s")], seed=1)
+    loc, got, bus = _beacon_run(eps, scene[0], trials, cfg, faults=kf, steps_after=3)
+    assert loc.initialised.all() and ref.initialised.all()
+    x, P = loc.state_ecef()
+    xr, Pr = ref.state_ecef()
+    np.testing.assert_allclose(x, xr, rtol=1e-9, atol=1e-9)
+    np.testing.assert_allclose(P, Pr, rtol=1e-9, atol=1e-12)
+    assert loc.counters["late_accepted"] == 5 * trials * len(eps) == ref.counters["accepted"]
+    assert loc.counters["reprocessed_epochs"] > 0 and loc.rejected.get("too_late", 0) == 0
+    assert _counters(loc) == _counters(ref)
+    # one Estimate per step and initialised trial, never an old one again
+    for k, ests in got.items():
+        assert all(e.t_gps_s == float(scene[0][0] + k) for e in ests.values())
+    assert loc.counters["published"] == sum(len(v) for v in got.values())
+
+
+def test_beacon_real_time_estimate_is_the_fixed_lag_one(beacon_world):
+    """What goes out at t (2 s delay) equals a run given only the measurements of t - 2 s and
+    before: honest real time, no look-ahead, nothing lost."""
+    scene, eps, trials = beacon_world
+    cfg = CONFIGS["blind_start"]
+    kf = KeyFaults([(BEACON_KEYS, "delay=2s")], seed=1)
+    _, got, _ = _beacon_run(eps, scene[0], trials, cfg, faults=kf)
+    checked = 0
+    for k in (8, 17, len(eps) - 1):
+        _, got_ref, _ = _beacon_run(eps[:k + 1], scene[0], trials, cfg, feed_until=k - 2)
+        for run, e in got[k].items():
+            r = got_ref[k][run]
+            np.testing.assert_allclose(e.pos_ecef_m, r.pos_ecef_m, rtol=0, atol=1e-9)
+            np.testing.assert_allclose(e.vel_ecef_m_s, r.vel_ecef_m_s, rtol=0, atol=1e-9)
+            np.testing.assert_allclose(e.cov, r.cov, rtol=1e-9, atol=1e-12)
+            assert e.mode == r.mode
+            checked += 1
+    assert checked >= 3 * trials
+
+
+def test_beacon_untouched_trials_rerun_to_identical_results(beacon_world):
+    """Only trial r1's links are delayed: the batch re-runs every trial together, and r0, r2
+    publish bit for bit what they publish without any fault, at every epoch."""
+    scene, eps, trials = beacon_world
+    cfg = CONFIGS["blind_start"]
+    _, got_ref, _ = _beacon_run(eps, scene[0], trials, cfg)
+    kf = KeyFaults([("r1/uav/*/beacon/**", "delay=1s~600ms")], seed=4)
+    loc, got, _ = _beacon_run(eps, scene[0], trials, cfg, faults=kf)
+    assert loc.counters["reprocessed_epochs"] > 0
+    for k in got_ref:
+        for run in ("r0", "r2"):
+            a, b = got[k][run], got_ref[k][run]
+            assert np.array_equal(a.pos_ecef_m, b.pos_ecef_m) and np.array_equal(a.cov, b.cov), (k, run)
+    assert not np.array_equal(got[len(eps) - 1]["r1"].cov, got_ref[len(eps) - 1]["r1"].cov)
+
+
+def test_beacon_duplicates_discarded_and_counted_exactly(beacon_world):
+    scene, eps, trials = beacon_world
+    cfg = CONFIGS["blind_start"]
+    ref, got_ref, _ = _beacon_run(eps, scene[0], trials, cfg)
+    kf = KeyFaults([(BEACON_KEYS, "duplicate=50%")], seed=5)
+    loc, got, bus = _beacon_run(eps, scene[0], trials, cfg, faults=kf)
+    injected = sum(tr.duplicated for tr in kf.truths().values())
+    assert injected > 100
+    assert loc.counters["duplicate"] == injected
+    assert loc.counters["accepted"] == ref.counters["accepted"]
+    for k in got_ref:
+        for run in got_ref[k]:
+            assert got[k][run] == got_ref[k][run]  # bit-identical Estimates (== compares every field)
+    # with a delay too (the copies arrive at different times, some after their epoch)
+    kf = KeyFaults([(BEACON_KEYS, "duplicate=50% delay=1s~700ms")], seed=6)
+    loc, _, _ = _beacon_run(eps, scene[0], trials, cfg, faults=kf, steps_after=5)
+    assert loc.counters["duplicate"] == sum(tr.duplicated for tr in kf.truths().values())
+    np.testing.assert_allclose(loc.state_ecef()[0], _beacon_run(eps, scene[0], trials, cfg, steps_after=5)[0]
+                               .state_ecef()[0], rtol=1e-9, atol=1e-9)
+
+
+def test_beacon_older_than_the_window_counted_too_late_and_window_zero_is_the_old_behaviour(beacon_world):
+    scene, eps, trials = beacon_world
+    eps = eps[:15]
+    kf = KeyFaults([(BEACON_KEYS, "delay=8s")], seed=1)
+    loc, _, _ = _beacon_run(eps, scene[0], trials, CONFIGS["blind_start"], faults=kf, steps_after=10)
+    assert loc.rejected["too_late"] == 5 * trials * len(eps) and loc.counters["late_accepted"] == 0
+    assert not loc.initialised.any()
+    # window 0: no history; a late one is dropped as stale, as before issue 8
+    cfg0 = LocatorConfig(uav_error_corr_s=0.0, lag_window_s=0.0)
+    kf = KeyFaults([(BEACON_KEYS, "delay=2s")], seed=1)
+    loc0, _, _ = _beacon_run(eps, scene[0], trials, cfg0, faults=kf, steps_after=3)
+    assert loc0.rejected["stale"] == 5 * trials * len(eps) and loc0._hist == []
+    with pytest.raises(ValueError, match="lag_window_s"):
+        LocatorConfig(lag_window_s=-1.0)
