@@ -16,6 +16,8 @@ raises is logged (rate-limited) and counted in `errors`, and the loop goes on.
 
 from __future__ import annotations
 
+import copy
+import dataclasses
 import heapq
 import itertools
 import logging
@@ -23,6 +25,7 @@ import math
 import selectors
 import socket
 import threading
+from array import array
 from collections import Counter, deque
 from collections.abc import Callable
 from concurrent.futures import Future
@@ -79,6 +82,11 @@ class ProxyLoop:
         self._last_log: dict[str, int] = {}
         self._thread = threading.Thread(target=self._run, name=name, daemon=True)
         self._thread.start()
+
+    @classmethod
+    def from_pacer(cls, pacer, *, name: str = "netfault-proxy") -> ProxyLoop:
+        """A loop on a `sitl.live.pacer.Pacer`'s time (its ``sim_now`` and ``speed``)."""
+        return cls(pacer.sim_now, pacer.speed, name=name)
 
     # ---- used on the loop thread -------------------------------------------------------
     def now(self) -> float:
@@ -226,4 +234,17 @@ class ProxyLoop:
                     self.report("timer", e)
 
 
-__all__ = ["ProxyLoop", "TimerHandle", "default_clock"]
+def truth_copy(truth, schedule: bool = True):
+    """A copy of a `LinkTruth`; without ``schedule`` its per-packet arrays are left out (empty):
+    the counters only, at a cost that does not grow with the packets seen."""
+    if schedule:
+        return copy.deepcopy(truth)
+    out = copy.copy(truth)
+    for f in dataclasses.fields(out):
+        v = getattr(out, f.name)
+        if isinstance(v, array):
+            setattr(out, f.name, array(v.typecode))
+    return out
+
+
+__all__ = ["ProxyLoop", "TimerHandle", "default_clock", "truth_copy"]

@@ -45,7 +45,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ._proxyloop import ProxyLoop, TimerHandle
+from ._proxyloop import ProxyLoop, TimerHandle, truth_copy
 from .udp_proxy import as_rng, as_spec, parse_addr
 
 MODES = ("silent", "reset")
@@ -218,13 +218,14 @@ class TcpProxy:
             self._update_partition()
         self.loop.call(apply)
 
-    def stats(self) -> TcpProxyStats:
+    def stats(self, schedule: bool = True) -> TcpProxyStats:
+        """A consistent snapshot (schedule: as `UdpProxy.stats`)."""
         def snap():
             st = copy.copy(self._st)
             st.active = len(self._conns)
             st.partitioned = self._part is not None
-            st.truth_up = copy.deepcopy(self._lf_up.truth)
-            st.truth_down = copy.deepcopy(self._lf_down.truth)
+            st.truth_up = truth_copy(self._lf_up.truth, schedule)
+            st.truth_down = truth_copy(self._lf_down.truth, schedule)
             st.loop_errors = dict(self.loop.errors)
             return st
         return self.loop.call(snap)

@@ -40,7 +40,7 @@ import numpy as np
 
 from sitl.bus.transport import SeqCounters, SequenceTracker
 
-from ._proxyloop import ProxyLoop
+from ._proxyloop import ProxyLoop, truth_copy
 
 log = logging.getLogger("sitl.netfault.proxy")
 
@@ -201,9 +201,9 @@ class _Direction:
         self.tap = MavlinkTap() if tap else None
         self.received = self.forwarded = self.send_errors = self.no_client = self.pending = 0
 
-    def stats(self) -> DirectionStats:
+    def stats(self, schedule: bool) -> DirectionStats:
         return DirectionStats(self.received, self.forwarded, self.send_errors, self.no_client, self.pending,
-                              copy.deepcopy(self.fault.truth), self.tap.snapshot() if self.tap else None)
+                              truth_copy(self.fault.truth, schedule), self.tap.snapshot() if self.tap else None)
 
 
 class UdpProxy:
@@ -266,9 +266,12 @@ class UdpProxy:
                 d.fault.set(s, t)
         self.loop.call(apply)
 
-    def stats(self) -> UdpProxyStats:
+    def stats(self, schedule: bool = True) -> UdpProxyStats:
+        """A consistent snapshot. schedule=False: the truths without their per-packet schedule
+        (counters only; `LinkTruth.reordered` then reads 0), cheap however long the run."""
         def snap():
-            return UdpProxyStats(self._up.stats(), self._down.stats(), self.client, dict(self.loop.errors))
+            return UdpProxyStats(self._up.stats(schedule), self._down.stats(schedule), self.client,
+                                 dict(self.loop.errors))
         return self.loop.call(snap)
 
     @property
