@@ -164,7 +164,7 @@ class FaultSpec:
         if self.corrupt or self.corrupt_corr:
             out.append("corrupt=" + pc(self.corrupt, self.corrupt_corr))
         if self.rate_bps:
-            out.append("rate=" + _fmt_num(self.rate_bps) + "bit")
+            out.append("rate=" + _fmt_rate(self.rate_bps))
         if self.limit is not None:
             out.append(f"limit={self.limit}")
         if self.partitions:
@@ -198,15 +198,31 @@ def _fmt_frac(x: float) -> str:
 
 
 def _fmt_dur(x: float) -> str:
-    for unit, scale in (("ms", 1e3), ("us", 1e6), ("s", 1.0)):
-        for cand in (round(x * scale, 9), x * scale):
-            s = _fmt_num(cand) + unit
+    """Shortest of s / ms / us that reads back exactly."""
+    cands = []
+    for unit, scale in (("s", 1.0), ("ms", 1e3), ("us", 1e6)):
+        for v in (round(x * scale, 9), x * scale):
+            s = _fmt_num(v) + unit
             try:
                 if _parse_dur(s, "x") == x:
-                    return s
+                    cands.append(s)
             except FaultSpecError:
                 pass
-    return _fmt_num(x) + "s"
+    return min(cands, key=len) if cands else _fmt_num(x) + "s"
+
+
+def _fmt_rate(x: float) -> str:
+    """Shortest of bit / kbit / mbit / gbit that reads back exactly."""
+    cands = []
+    for unit, scale in (("bit", 1.0), ("kbit", 1e3), ("mbit", 1e6), ("gbit", 1e9)):
+        for v in (round(x / scale, 9), x / scale):
+            s = _fmt_num(v) + unit
+            try:
+                if _parse_rate(s, "x") == x:
+                    cands.append(s)
+            except FaultSpecError:
+                pass
+    return min(cands, key=len) if cands else _fmt_num(x) + "bit"
 
 
 _NUM = r"[+-]?(?:\d+\.?\d*|\.\d+)(?:[eE][+-]?\d+)?"
