@@ -491,3 +491,22 @@ def test_keyfaults_rules_rng_and_transport():
     assert len(seqs) == tr.delivered
     assert seqs == list(tr.delivery_order()[0])
     assert 5000 - len(set(seqs)) == tr.dropped
+
+
+def test_online_reorder_count_equals_schedule_and_record_false():
+    for spec, seed in ((FULL, 24), ("delay=100ms~80ms distribution=pareto duplicate=20%", 25)):
+        a, outs_a = run(spec, n=20_000, seed=seed)
+        assert a.truth.reordered == a.truth.reordered_indices().size > 0
+        lf = LinkFault(spec, rng=np.random.default_rng(seed), record=False)
+        outs = [lf.process(i * 1e-3, b"0123456789abcdef") for i in range(20_000)]
+        assert outs == outs_a
+        ca, cb = a.truth.counters(), lf.truth.counters()
+        assert ca == cb
+        assert len(lf.truth.copy_index) == 0 and not lf.truth.recorded
+        with pytest.raises(ValueError, match="not recorded"):
+            lf.truth.receiver_view()
+    # send times out of order (a live proxy's clock never goes back, but a caller may)
+    lf = LinkFault("delay=10ms~10ms", rng=np.random.default_rng(1))
+    for t in np.random.default_rng(2).uniform(0, 5, 3000):
+        lf.process(t, b"x")
+    assert lf.truth.reordered == lf.truth.reordered_indices().size

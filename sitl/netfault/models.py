@@ -186,8 +186,13 @@ class LinkTruth:
     bit; ``sent_at_once`` packets the reorder rule sent without delay; ``clone_lost``,
     ``clone_queue`` duplicate clones removed by the loss model / queue limit (their packet
     went out once); ``delay_s_sum`` / ``delay_s_max`` over delivered copies.
-    ``reordered`` (computed from the delivery schedule): packets whose first delivered copy
-    arrives after a copy of a packet sent later (ties: delivered in the order handed out).
+    ``reordered``: packets whose first delivered copy arrives after a copy of a packet sent
+    later (ties: delivered in the order handed out), counted online (equal to
+    ``reordered_indices().size``, which reads it from the delivery schedule).
+
+    The schedule (``copy_*``, ``drop_*`` arrays: the index lists and `receiver_view`) is kept
+    unless the link was made with ``record=False`` (long live runs: ~26 bytes a packet);
+    ``recorded`` says which.
     """
 
     sent: int = 0
@@ -202,6 +207,8 @@ class LinkTruth:
     clone_queue: int = 0
     delay_s_sum: float = 0.0
     delay_s_max: float = 0.0
+    reordered: int = 0
+    recorded: bool = True
     # schedule: one entry per delivered copy, in the order handed out
     copy_index: array = field(default_factory=lambda: array("q"), repr=False)
     copy_at_s: array = field(default_factory=lambda: array("d"), repr=False)
@@ -232,13 +239,19 @@ class LinkTruth:
     # ---- index lists ----------------------------------------------------------------
     def dropped_indices(self, cause: str | None = None) -> np.ndarray:
         """Indices of packets that produced no copy (of one cause, or all), ascending."""
+        self._need_schedule()
         idx = np.frombuffer(self.drop_index, dtype=np.int64) if self.drop_index else np.zeros(0, np.int64)
         if cause is not None:
             c = np.frombuffer(self.drop_cause, dtype=np.int8) if self.drop_cause else np.zeros(0, np.int8)
             idx = idx[c == self.CAUSES.index(cause)]
         return idx.copy()
 
+    def _need_schedule(self) -> None:
+        if not self.recorded:
+            raise ValueError("link truth: the per-packet schedule was not recorded (record=False)")
+
     def _copies(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        self._need_schedule()
         n = len(self.copy_index)
         if n == 0:
             return np.zeros(0, np.int64), np.zeros(0), np.zeros(0, bool)
@@ -279,9 +292,6 @@ class LinkTruth:
         idx, _, _ = self.delivery_order()
         return self._late_first(idx)
 
-    @property
-    def reordered(self) -> int:
-        return int(self.reordered_indices().size)
 
     def receiver_view(self, reject_corrupted: bool = True, until_s: float = math.inf) -> dict:
         """What a receiver counting sequence numbers (seq = packet index) sees of the copies
@@ -323,13 +333,14 @@ class LinkFault:
     sent at or after ``t_s``."""
 
     def __init__(self, spec: FaultSpec | str | None = None, *, rng: np.random.Generator,
-                 name: str = ""):
+                 name: str = "", record: bool = True):
         if not isinstance(rng, np.random.Generator):
             raise TypeError(f"rng must be a numpy.random.Generator, got {type(rng).__name__}")
         self.name = name
         self.rng = rng
         self.spec = parse_spec(spec)
-        self.truth = LinkTruth()
+        self.record = bool(record)
+        self.truth = LinkTruth(recorded=self.record)
         s = self.spec
         self._loss = _Stream(rng, s.loss_corr)
         self._dup = _Stream(rng, s.duplicate_corr)
@@ -345,6 +356,11 @@ class LinkFault:
         self._pending_n = 0
         self._last_t = -math.inf
         self._identity = self.spec.is_identity
+        # online reorder count: max-heap of (-first delivery time, index) of packets not
+        # (yet) overtaken; pruned of entries no later packet can overtake (monotone times)
+        self._waiting: list[tuple[float, int]] = []
+        self._prune_at = 1024
+        self._monotone = True
 
     def __repr__(self) -> str:
         return f"LinkFault({self.name!r}, {self.spec.to_text()!r})"
@@ -392,6 +408,8 @@ class LinkFault:
             self._apply(heapq.heappop(self._pending)[2])
         if t > self._last_t:
             self._last_t = t
+        elif t < self._last_t:
+            self._monotone = False
         tr = self.truth
         idx = tr.sent
         tr.sent += 1
@@ -401,6 +419,7 @@ class LinkFault:
             return []
         if self._identity:
             self._record(idx, t, t, False)
+            self._overtake(idx, t, t)
             return [(t, payload)]
         out, cause = self._enqueue(t, payload, spec, True)
         if not out:
@@ -408,14 +427,31 @@ class LinkFault:
             return []
         if len(out) > 1:
             tr.duplicated += 1
+            first = min(out[0][0], out[1][0])
+        else:
+            first = out[0][0]
         for at, p, bad in out:
             self._record(idx, t, at, bad)
+        self._overtake(idx, t, first)
         return [(at, p) for at, p, _ in out]
+
+    def _overtake(self, idx: int, t: float, first: float) -> None:
+        """Count the earlier packets this one (first copy at ``first``) overtakes."""
+        w = self._waiting
+        while w and -w[0][0] > first:
+            heapq.heappop(w)
+            self.truth.reordered += 1
+        heapq.heappush(w, (-first, idx))
+        if len(w) > self._prune_at and self._monotone:
+            w[:] = [e for e in w if -e[0] > t]  # later packets are sent at >= t
+            heapq.heapify(w)
+            self._prune_at = max(1024, 2 * len(w))
 
     def _drop(self, idx: int, cause: int) -> None:
         tr = self.truth
-        tr.drop_index.append(idx)
-        tr.drop_cause.append(cause)
+        if self.record:
+            tr.drop_index.append(idx)
+            tr.drop_cause.append(cause)
         if cause == 0:
             tr.dropped_loss += 1
         elif cause == 1:
@@ -426,9 +462,10 @@ class LinkFault:
     def _record(self, idx: int, t: float, at: float, bad: bool) -> None:
         tr = self.truth
         tr.delivered += 1
-        tr.copy_index.append(idx)
-        tr.copy_at_s.append(at)
-        tr.copy_corrupt.append(1 if bad else 0)
+        if self.record:
+            tr.copy_index.append(idx)
+            tr.copy_at_s.append(at)
+            tr.copy_corrupt.append(1 if bad else 0)
         if bad:
             tr.corrupted += 1
         d = at - t
