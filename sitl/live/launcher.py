@@ -15,6 +15,12 @@ run / demo:
      stop it early; in both cases every worker is stopped (process groups, SIGTERM then
      SIGKILL) and every session and port closed. OUT/report.json and a printed summary.
 
+Network faults (issue 8, sitl.live.netfaults): with a [faults] table in the scenario the
+launcher puts a fault proxy on every worker's Zenoh link and every vehicle's MAVLink link and
+the workers filter their own publications; ``<run>/ctl/fault`` changes any of them while the
+run goes (`skyfuse fault set`, which finds the router in OUT/run.json). report.json gets a
+``faults`` block: per link the specs applied over time and the truth counters.
+
 replay LOG: the recorded bus log through the batch ground station (GroundStationNode on the
 in-memory transport), in the recorded order, an epoch processed under the live rule (once
 every source publishing has delivered it, at the latest hold_wall_s x speed after it); prints the replayed
@@ -28,6 +34,7 @@ from __future__ import annotations
 import argparse
 import importlib
 import json
+import os
 import signal
 import sys
 import threading
@@ -165,7 +172,8 @@ def launch(scn, out: Path, *, quiet: bool = False, stop: threading.Event | None 
     restore = _install_signals(stop)
     run = scn.run
     t_wall0 = perf_now()
-    router = bus = recorder = sup = warm = None
+    router = bus = recorder = sup = warm = live_faults = None
+    board = run_json = None
     report: dict = {"mode": "live", "scenario": scn.to_dict(), "ok": False, "events": []}
     shutdown = {}
     try:
@@ -183,6 +191,21 @@ def launch(scn, out: Path, *, quiet: bool = False, stop: threading.Event | None 
         except (RouterError, ZenohTransportError, ZenohConfigError) as e:
             report["error"] = " ".join(str(e).split())
             return report
+        from sitl.netfault.control import FaultBoard, serve
+        if scn.faults:
+            from sitl.live.netfaults import LiveFaults
+            try:
+                live_faults = LiveFaults(scn, endpoints)
+            except (OSError, ValueError) as e:
+                report["error"] = "network faults: " + " ".join(str(e).split())
+                return report
+            board = live_faults.board
+        else:
+            board = FaultBoard()
+        serve(board, bus, run.id, on_line=lambda line: _say(status_stream, tty, line))
+        run_json = _RunJson(out / "run.json", run.id, endpoints, board)
+        run_json.write()
+        board.on_change = run_json.write
         scorer = ErrorTracker(t0_gps_s=run.t0_gps_s)
         scorer.subscribe(bus, run.id)
         if scn.bus.log:
@@ -192,7 +215,7 @@ def launch(scn, out: Path, *, quiet: bool = False, stop: threading.Event | None 
         spec_dir = out / "specs"
         spec_dir.mkdir(exist_ok=True)
         sup = Supervisor(out / "logs", grace_s=3.0)  # closing a Zenoh session + interpreter exit: ~1 s
-        for spec in worker_specs(scn, endpoints, out):
+        for spec in worker_specs(scn, endpoints, out, live_faults.overrides if live_faults is not None else None):
             path = spec.write(spec_dir / f"{spec.name}.json")
             sup.add_module(spec.name, spec.module, str(path), restart=True)
         sup.start_all()
@@ -213,11 +236,15 @@ def launch(scn, out: Path, *, quiet: bool = False, stop: threading.Event | None 
                                    ", ".join(c.name for c in sup.children.values() if not c.ready.is_set()))
             return report
         wall_start = wall_now() + 0.2
+        if live_faults is not None:
+            live_faults.start(wall_start)
         sup.broadcast_start(wall_start)
         pacer = Pacer(run.speed, run.t0_gps_s, wall_start, stop=stop)
         t_end = run.t0_gps_s + run.duration_s
         if on_started is not None:
             sup.zenoh_endpoints = list(endpoints)
+            sup.fault_board = board
+            sup.live_faults = live_faults
             on_started(sup)
         board = StatusBoard()
         next_status = perf_now()
@@ -253,6 +280,17 @@ def launch(scn, out: Path, *, quiet: bool = False, stop: threading.Event | None 
             warm.wait()
         if sup is not None:
             shutdown = sup.stop()
+        if live_faults is not None:
+            try:
+                report["faults"] = live_faults.report(sup)
+            finally:
+                live_faults.close()
+        elif board is not None:
+            report["faults"] = board.report()
+        if board is not None:
+            board.on_change = None
+        if run_json is not None:
+            run_json.write(finished=True)
         if recorder is not None:
             recorder.close()
         if bus is not None:
@@ -271,6 +309,24 @@ def launch(scn, out: Path, *, quiet: bool = False, stop: threading.Event | None 
             _fill_report(report, sup, scorer if bus is not None else None, bus, recorder)
         (out / "report.json").write_text(json.dumps(strict(report), indent=1, allow_nan=False))
     return report
+
+
+class _RunJson:
+    """OUT/run.json: where `skyfuse fault set` finds the running launcher (router endpoints,
+    run id, links and their current faults); rewritten on every change, ``finished`` at the end."""
+
+    def __init__(self, path: Path, run_id: str, endpoints: list, board):
+        self.path, self.run_id, self.endpoints, self.board = path, run_id, list(endpoints), board
+
+    def write(self, finished: bool = False) -> None:
+        doc = {"run_id": self.run_id, "zenoh": self.endpoints, "pid": os.getpid(), "finished": finished,
+               "links": sorted(self.board.links), "faults": self.board.current()}
+        tmp = self.path.with_suffix(".json.tmp")
+        try:
+            tmp.write_text(json.dumps(doc, indent=1))
+            os.replace(tmp, self.path)
+        except OSError as e:  # the run goes on without it
+            print(f"[launcher] cannot write {self.path}: {e}", file=sys.stderr)
 
 
 def _start_warm_up(scenario_json: Path, log_dir: Path):

@@ -48,6 +48,7 @@ class Child:
     stderr_path: Path | None = None
     history: list = field(default_factory=list)  # status lines of earlier incarnations (last of each)
     fatal: str | None = None  # a configuration error the worker reported (exit 2): not restarted
+    netfault: dict = field(default_factory=dict)  # incarnation -> its latest "netfault" block (bus-fault truths)
 
     @property
     def pid(self):
@@ -128,6 +129,8 @@ class Supervisor:
                 c.bad_lines += 1
                 continue
             ev = obj.get("event")
+            if isinstance(obj.get("netfault"), dict):
+                c.netfault[c.restarts] = obj["netfault"]
             if ev == "ready":
                 c.ready.set()
                 with self._lock:

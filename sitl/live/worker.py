@@ -9,6 +9,12 @@ Protocol (one JSON object per line):
       time origin), ``{"cmd": "stop"}``. End of stdin (the launcher died) stops the worker too,
       so a worker never outlives its launcher.
 SIGTERM and SIGINT stop the worker cleanly (sessions closed, logs flushed).
+
+Network faults (issue 8): when the scenario has a [faults] table, `open_bus` gives the
+worker's session a publisher fault filter (`sitl.netfault.KeyFaults` with the scenario's
+``bus:`` rules) and listens on ``<run>/ctl/fault`` for run-time changes of them; the status
+and done lines then carry ``"netfault"``: per rule the summed truth counters of the keys it
+took, and the filter's publish counters.
 """
 from __future__ import annotations
 
@@ -21,6 +27,9 @@ from pathlib import Path
 
 from sitl.live.pacer import Pacer, perf_now
 from sitl.scenario import WorkerSpec
+
+
+NETFAULT_STATUS_WALL_S = 5.0  # the status lines carry the bus-fault truths at most this often
 
 
 class WorkerRuntime:
@@ -38,6 +47,11 @@ class WorkerRuntime:
         self.bad_commands = Counter()
         self._out_lock = threading.Lock()
         self._last_status = -1e18
+        self.fault_control = None  # a sitl.netfault.control.WorkerFaultControl (open_bus sets it)
+        self._next_netfault = 0.0
+        self.bus = None
+        global _RUNTIME
+        _RUNTIME = self
         if install_signals:
             for sig in (signal.SIGTERM, signal.SIGINT):
                 signal.signal(sig, lambda *_: self.stop.set())
@@ -74,6 +88,16 @@ class WorkerRuntime:
     # -- worker -> launcher
     def emit(self, obj: dict) -> None:
         obj.setdefault("worker", self.name)
+        ev = obj.get("event")
+        if self.fault_control is not None and (ev == "done" or (ev == "status" and perf_now() >= self._next_netfault)):
+            self._next_netfault = perf_now() + NETFAULT_STATUS_WALL_S  # truths cost O(packets): not every line
+            try:
+                obj["netfault"] = {"truth": self.fault_control.truths(),
+                                   "filter": dict(self.bus.fault_stats) if self.bus is not None else {},
+                                   "control_applied": self.fault_control.applied,
+                                   "control_bad": dict(self.fault_control.bad)}
+            except Exception as e:  # the status line must go out anyway
+                obj["netfault"] = {"error": f"{type(e).__name__}: {e}"}
         line = json.dumps(obj, allow_nan=False, default=_jsonable)
         with self._out_lock:
             try:
@@ -121,10 +145,35 @@ def _jsonable(v):
     return str(v)
 
 
+_RUNTIME: WorkerRuntime | None = None  # this process's runtime (open_bus attaches the fault control to it)
+
+
 def open_bus(spec: WorkerSpec, lease_ms: int | None = None):
-    """The worker's Zenoh session (a client of the run's routers)."""
+    """The worker's Zenoh session (a client of the run's routers; through the launcher's fault
+    proxy when the scenario has faults: ``spec.zenoh_connect`` says where). With a [faults]
+    table: the bus-key fault filter and its run-time control (module text)."""
     from sitl.bus.zenoh_transport import ZenohTransport
-    return ZenohTransport(connect=list(spec.zenoh_connect), mode="client", lease_ms=lease_ms)
+    scn = spec.scenario_obj()
+    if not scn.faults:
+        return ZenohTransport(connect=list(spec.zenoh_connect), mode="client", lease_ms=lease_ms)
+    from sitl.netfault import KeyFaults
+    from sitl.netfault.control import WorkerFaultControl, control_key
+    rules = [(link[4:], text) for link, text in scn.faults.of_kind("bus")]
+    kf = KeyFaults(rules, seed=fault_seed(scn.run.seed, spec.name))
+    bus = ZenohTransport(connect=list(spec.zenoh_connect), mode="client", lease_ms=lease_ms, faults=[kf],
+                         fault_t0_s=scn.run.t0_gps_s, speed=scn.run.speed)
+    ctl = WorkerFaultControl(bus, spec.run_id, kf)
+    bus.subscribe_async(control_key(spec.run_id), ctl.on_control)
+    if _RUNTIME is not None and _RUNTIME.spec.name == spec.name:
+        _RUNTIME.fault_control, _RUNTIME.bus = ctl, bus
+    return bus
+
+
+def fault_seed(run_seed: int, worker: str) -> int:
+    """The seed of a worker's bus-key fault draws (its keys are its own: KeyFaults derives one
+    generator per key from it)."""
+    import zlib
+    return (int(run_seed) * 1_000_003 + zlib.crc32(b"netfault:" + worker.encode())) % 2**63
 
 
 def bus_counters(bus) -> dict:

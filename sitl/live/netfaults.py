@@ -1,0 +1,287 @@
+"""The live launcher's network-fault wiring (issue 8): proxies, the control board, the report.
+
+When a scenario has a [faults] table (even an empty one), `LiveFaults` starts, in the
+launcher, on one shared proxy thread (`sitl.netfault._proxyloop.ProxyLoop`):
+
+* per worker a `TcpProxy` between that worker's Zenoh session and the router: the worker's
+  spec connects to the proxy (link ``zenoh:<worker>``: partitions, delay, rate);
+* with MAVLink on, per vehicle a `UdpProxy` between its endpoint and the GCS (link
+  ``mav:<sysid>``, directions ``:up`` vehicle->GCS and ``:down``). The vehicle workers' specs
+  name one front socket as their GCS (`MavFront`); the front tells the vehicles apart by
+  their source address (vehicle i sends from base_port + 10 i) and hands each one's traffic
+  to its proxy from a socket of its own, so replies come back to the right vehicle and the
+  vehicles see them come from their GCS address;
+* bus-key faults (``bus:<expr>``) are the workers' own publisher filters (`sitl.live.worker`).
+
+Every link is started, with no fault where the scenario names none, so that
+``skyfuse fault set`` can add one to any link while the run goes. The board
+(`sitl.netfault.control.FaultBoard`) answers the control key; `report` gives the report's
+``faults`` block. `close` closes every proxy, the front and the loop (no thread, no port left).
+
+Time (`RunClock`): simulated seconds since the run's start, what a spec's ``partition=T1-T2``
+means. Before the start it runs at the run's speed but far below zero (so that the switch to
+the run's own clock at the start only ever jumps forward: nothing scheduled waits longer).
+"""
+from __future__ import annotations
+
+import selectors
+import socket
+
+from sitl.live.pacer import wall_now
+
+PRESTART_OFFSET_S = 1e6  # simulated seconds below zero before the start (module text)
+
+
+class RunClock:
+    """Simulated seconds since the run's start (module text)."""
+
+    def __init__(self, speed: float):
+        self.speed = float(speed)
+        self._w0 = wall_now()
+        self._start: float | None = None
+
+    def start(self, wall_start_s: float) -> None:
+        self._start = float(wall_start_s)
+
+    @property
+    def started(self) -> bool:
+        return self._start is not None
+
+    def __call__(self) -> float:
+        if self._start is None:
+            return -PRESTART_OFFSET_S + self.speed * (wall_now() - self._w0)
+        return self.speed * (wall_now() - self._start)
+
+
+def _addr(endpoint: str) -> tuple[str, int]:
+    """"tcp/HOST:PORT" -> (HOST, PORT)."""
+    rest = endpoint.split("/", 1)[1]
+    host, _, port = rest.rpartition(":")
+    return host.strip("[]"), int(port)
+
+
+class MavFront:
+    """One UDP socket the vehicles take for their GCS; demultiplexes by source address to a
+    socket per vehicle that talks to that vehicle's `UdpProxy` (module text). Runs on the
+    proxy loop's thread. ``counters``: forwarded each way, ``unknown_source`` (datagrams from
+    an address that is no vehicle: dropped), send errors."""
+
+    def __init__(self, loop, vehicles: dict[tuple, tuple]):
+        """vehicles: {vehicle endpoint address: its proxy's listen address}."""
+        self.loop = loop
+        self.counters = {"to_proxy": 0, "to_vehicle": 0, "unknown_source": 0, "send_errors": 0}
+        self._front = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        self._socks: dict[tuple, socket.socket] = {}
+        self._by_sock: dict[socket.socket, tuple] = {}
+        self._proxy_of: dict[tuple, tuple] = {}
+        try:
+            self._front.bind(("127.0.0.1", 0))
+            self._front.setblocking(False)
+            for vaddr, paddr in vehicles.items():
+                s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+                self._socks[vaddr] = s
+                s.bind(("127.0.0.1", 0))
+                s.setblocking(False)
+                self._by_sock[s] = vaddr
+                self._proxy_of[vaddr] = paddr
+            self.addr = self._front.getsockname()
+            loop.call(self._register)
+        except BaseException:
+            self._close_sockets()
+            raise
+        self._closed = False
+
+    def _register(self) -> None:
+        self.loop.interest(self._front, selectors.EVENT_READ, self._on_front)
+        for s in self._socks.values():
+            self.loop.interest(s, selectors.EVENT_READ, lambda _m, s=s: self._on_back(s))
+
+    def _on_front(self, _mask) -> None:
+        for _ in range(64):
+            try:
+                data, src = self._front.recvfrom(65535)
+            except (BlockingIOError, InterruptedError):
+                return
+            except OSError as e:
+                self.loop.report("mav front: recv", e)
+                return
+            s = self._socks.get(src)
+            if s is None:
+                self.counters["unknown_source"] += 1
+                continue
+            try:
+                s.sendto(data, self._proxy_of[src])
+                self.counters["to_proxy"] += 1
+            except OSError as e:
+                self.counters["send_errors"] += 1
+                self.loop.report("mav front: send", e)
+
+    def _on_back(self, s) -> None:
+        vaddr = self._by_sock[s]
+        for _ in range(64):
+            try:
+                data, _src = s.recvfrom(65535)
+            except (BlockingIOError, InterruptedError):
+                return
+            except OSError as e:  # ICMP port unreachable from a vehicle not up yet
+                self.loop.report("mav front: recv", e)
+                return
+            try:
+                self._front.sendto(data, vaddr)
+                self.counters["to_vehicle"] += 1
+            except OSError as e:
+                self.counters["send_errors"] += 1
+                self.loop.report("mav front: send", e)
+
+    def _close_sockets(self) -> None:
+        for s in [self._front, *self._socks.values()]:
+            try:
+                if not self.loop.closed and self.loop.on_loop_thread:
+                    self.loop.forget(s)
+                else:
+                    s.close()
+            except OSError:
+                pass
+
+    def close(self) -> None:
+        if getattr(self, "_closed", True):
+            return
+        self._closed = True
+        try:
+            if not self.loop.closed:
+                self.loop.call(self._close_sockets)
+        finally:
+            self._close_sockets()
+
+
+class LiveFaults:
+    """Everything the launcher runs for the network faults of one live run (module text)."""
+
+    def __init__(self, scn, router_endpoints: list[str]):
+        from sitl.netfault._proxyloop import ProxyLoop
+        from sitl.netfault.control import FaultBoard
+        self.scn = scn
+        self.clock = RunClock(scn.run.speed)
+        self.board = FaultBoard(self.clock)
+        self.loop = ProxyLoop(self.clock, scn.run.speed, name="netfault-proxies")
+        self.tcp: dict[str, object] = {}  # worker -> TcpProxy
+        self.udp: dict[int, object] = {}  # sysid -> UdpProxy
+        self.front: MavFront | None = None
+        self.overrides: dict[str, dict] = {}  # worker -> WorkerSpec overrides
+        try:
+            self._start(router_endpoints)
+        except BaseException:
+            self.close()
+            raise
+
+    def _start(self, endpoints: list[str]) -> None:
+        import numpy as np
+
+        from sitl.netfault.tcp_proxy import TcpProxy
+        from sitl.netfault.udp_proxy import UdpProxy
+        scn = self.scn
+        faults = scn.faults
+        seeds = np.random.SeedSequence([scn.run.seed, 0xFA17])
+        target = _addr(endpoints[0])
+        workers = scn.worker_names()
+        for w, ss in zip(workers, seeds.spawn(len(workers))):
+            link = f"zenoh:{w}"
+            p = TcpProxy(target, spec=faults.get(link), rng=np.random.default_rng(ss), loop=self.loop, name=link)
+            self.tcp[w] = p
+            host, port = p.addr[0], p.addr[1]
+            self.overrides.setdefault(w, {})["zenoh_connect"] = [f"tcp/{host}:{port}"]
+            self.board.add_link(link, lambda spec, t, p=p: p.set(spec),
+                                lambda p=p: _tcp_truth(p))
+        m = scn.mavlink
+        if m.enabled and scn.n_vehicles:
+            ghost, gport = m.gcs.rsplit(":", 1)
+            vehicles = {}
+            for i, ss in zip(range(scn.n_vehicles), seeds.spawn(scn.n_vehicles)):
+                sysid = i + 1
+                link = f"mav:{sysid}"
+                both = faults.get(link)
+                up, down = faults.get(f"{link}:up", both), faults.get(f"{link}:down", both)
+                p = UdpProxy((ghost, int(gport)), up=up, down=down, rng=np.random.default_rng(ss),
+                             loop=self.loop, name=link, tap=True)
+                self.udp[sysid] = p
+                vehicles[("127.0.0.1", m.base_port + 10 * i)] = p.addr
+                self.board.add_link(f"{link}:up", lambda spec, t, p=p: p.set(up=spec),
+                                    lambda p=p: _udp_truth(p, "up"))
+                self.board.add_link(f"{link}:down", lambda spec, t, p=p: p.set(down=spec),
+                                    lambda p=p: _udp_truth(p, "down"))
+            self.front = MavFront(self.loop, vehicles)
+            for w in workers:
+                if w != "gs":
+                    self.overrides.setdefault(w, {})["mavlink_gcs"] = f"{self.front.addr[0]}:{self.front.addr[1]}"
+        # what the scenario sets, as the first entry of each link's history (t = 0: the start)
+        for name, rec in self.board.links.items():
+            kind, _, rest = name.partition(":")
+            text = faults.get(name)
+            if text is None and kind == "mav":
+                text = faults.get(name.rsplit(":", 1)[0])
+            rec.current = _canon(text)
+            rec.history.append({"t_s": 0.0, "spec": rec.current, "by": "scenario"})
+        for name, text in faults.of_kind("bus"):
+            self.board.set(name, text, by="scenario")
+            self.board.bus_rules[name].history[-1]["t_s"] = 0.0
+
+    def start(self, wall_start_s: float) -> None:
+        self.clock.start(wall_start_s)
+
+    def links(self) -> list[str]:
+        return sorted(self.board.links)
+
+    def report(self, sup=None) -> dict:
+        """The report's ``faults`` block (bus-key truths summed over the workers' last status
+        lines of every incarnation)."""
+        from sitl.netfault.control import add_truths
+        bus_truths: dict[str, dict] = {}
+        filters: dict[str, dict] = {}
+        if sup is not None:
+            for c in sup.children.values():
+                for nf in getattr(c, "netfault", {}).values():  # the latest of each incarnation
+                    for link, t in (nf.get("truth") or {}).items():
+                        bus_truths[link] = add_truths(bus_truths.get(link, {}), t)
+                    filters[c.name] = add_truths(filters.get(c.name, {}), nf.get("filter") or {})
+        out = self.board.report(bus_truths)
+        out["bus_filters"] = filters
+        if self.front is not None:
+            out["mav_front"] = dict(self.front.counters)
+        out["proxy_errors"] = dict(self.loop.errors)
+        return out
+
+    def close(self) -> None:
+        for p in list(self.udp.values()) + list(self.tcp.values()):
+            try:
+                p.close()
+            except Exception:
+                pass
+        if self.front is not None:
+            self.front.close()
+        self.loop.close()
+
+
+def _canon(text) -> str:
+    from sitl.netfault import parse_spec
+    from sitl.netfault.control import spec_text
+    return "none" if text is None else spec_text(parse_spec(text))
+
+
+def _udp_truth(p, direction: str) -> dict:
+    from sitl.netfault.control import truth_dict
+    if p.closed:
+        return getattr(p, "_final_stats", {}).get(direction, {})
+    st = getattr(p.stats(), direction)
+    d = {"received": st.received, "forwarded": st.forwarded, "send_errors": st.send_errors,
+         "no_client": st.no_client, "pending": st.pending, "truth": truth_dict(st.truth)}
+    if st.tap is not None:
+        d["tap"] = truth_dict(st.tap)
+    return d
+
+
+def _tcp_truth(p) -> dict:
+    from sitl.netfault.control import truth_dict
+    if p.closed:
+        return getattr(p, "_final_stats", {})
+    st = p.stats()
+    return truth_dict(st)
