@@ -281,6 +281,7 @@ class SondeTrackerParams:
     integrity_sat_channels: int = 48  # relayed-satellite channels of the monitor (>= satellites seen in its memory)
     integrity_warmup_s: float = 10.0  # a track is not judged this long after its (re)initialisation or a manoeuvre
     integrity_common_fraction: float = 0.25  # jumps on more than this fraction of a sonde's rows: a manoeuvre
+    lag_window_s: float = 5.0  # out-of-sequence messages this old are used by re-processing (0: dropped as stale)
 
     def __post_init__(self):
         if self.mode not in MODES:
@@ -330,6 +331,7 @@ class SondeTrackerParams:
         if isinstance(v, bool) or not isinstance(v, int) or v < 1:
             raise ValueError(f"integrity_sat_channels must be an integer >= 1, got {v!r}")
         _finite("integrity_warmup_s", self.integrity_warmup_s, 0.0)
+        _finite("lag_window_s", self.lag_window_s, 0.0)
         f = _finite("integrity_common_fraction", self.integrity_common_fraction, 0.0, lo_open=True)
         if f > 1.0:
             raise ValueError(f"integrity_common_fraction must lie in (0, 1], got {self.integrity_common_fraction!r}")
@@ -871,7 +873,11 @@ class TrackerCounters:
     messages: int = 0  # bus messages handed to on_message
     ignored: int = 0  # other runs, kinds or sondes this tracker does not follow, other radars
     duplicates: int = 0  # (source, seq) seen before
-    stale: int = 0  # older than (or at) the sonde's filter time
+    stale: int = 0  # older than (or at) the sonde's filter time (lag_window_s = 0)
+    late_accepted: int = 0  # out of sequence, within the lag window: used by re-processing
+    too_late: int = 0  # out of sequence, older than the lag window: dropped
+    reprocess_runs: int = 0  # steps that went back to re-run epochs completed by late messages
+    reprocessed_epochs: int = 0  # steps re-run (their Estimates are not published again)
     superseded: int = 0  # a second message of the same kind, sonde and epoch (the later wins)
     epochs: int = 0  # sonde-epochs processed
     relay_updates: int = 0
@@ -902,6 +908,17 @@ class TrackerCounters:
 
     def as_dict(self) -> dict:
         return {f.name: getattr(self, f.name) for f in fields(self)}
+
+
+class _Step(NamedTuple):
+    """One step in the lag window: its time, the previous step's, the tracker's state before
+    it, the epochs it processed ({tau: {sonde: [relay, radar]}}) and the counters it added."""
+
+    t: float
+    t_prev: float
+    snap: dict
+    epochs: dict
+    added: dict
 
 
 class SondeTracker:
@@ -951,6 +968,11 @@ class SondeTracker:
         self._win_k = np.zeros(0, dtype=np.int64)
         self._win_S, self._win_M = np.zeros(0), np.zeros(0, dtype=np.int64)
         self._pending: dict[float, dict[str, list]] = defaultdict(dict)
+        # lag window (params.lag_window_s): per step, the state before it, the epochs it processed
+        # ({tau: {sonde: [relay, radar]}}, completed by late messages) and the counters it added
+        self._hist: list[_Step] = []
+        self._dirty: float | None = None  # the earliest step a late message completed
+        self._t_last = -math.inf  # the last step's time
         self._gates: dict[int, float] = {}
         # per-satellite error states, per sonde: sat_id -> slot, slot -> sat_id, last use, last epoch's columns
         self._bias_map: list[dict] = []
@@ -1025,11 +1047,25 @@ class SondeTracker:
         else:
             c.ignored += 1
             return
-        if self._seqtrack.update(msg.source_id, msg.seq).duplicate:
+        if self._seqtrack.update(f"{key}|{msg.source_id}", msg.seq).duplicate:  # per stream
             c.duplicates += 1
             return
         t = float(msg.t_gps_s)
         slot = self._slots.get(sonde)
+        lag = self.params.lag_window_s
+        if lag > 0 and self._hist and (t <= self._hist[-1].t and (slot is None or not self._t[slot] < t)):
+            # out of sequence (a step at or after t has run): re-processed at the next step
+            e = self._hist_for(t) if t >= self._hist[-1].t - lag - 1e-9 else None
+            if e is None:
+                c.too_late += 1
+                return
+            entry = e.epochs.setdefault(t, {}).setdefault(sonde, [None, None])
+            if entry[kind] is not None:
+                c.superseded += 1
+            entry[kind] = msg
+            c.late_accepted += 1
+            self._dirty = e.t if self._dirty is None else min(self._dirty, e.t)
+            return
         if slot is not None and self._t[slot] >= t:  # NaN (not initialised yet) compares False
             c.stale += 1
             return
@@ -1040,20 +1076,101 @@ class SondeTracker:
 
     def step(self, t_gps_s: float) -> list[Estimate]:
         """Process every buffered epoch <= t, predict every initialised sonde to t and publish
-        (and return) one Estimate per sonde."""
+        (and return) one Estimate per sonde. Late messages taken in since the last step (lag
+        window) are used first: the state goes back to before the step that would have
+        processed them and the steps since are re-run (their Estimates not published again)."""
         t = float(t_gps_s)
         if not math.isfinite(t):
             raise ValueError(f"t_gps_s must be finite, got {t_gps_s!r}")
-        for tau in sorted(k for k in self._pending if k <= t):
-            self._process(tau, self._pending.pop(tau))
-        live = np.flatnonzero(self._t < t)  # initialised and behind (NaN excluded)
-        if live.size:
-            self._predict(live, t)
-            self._nis[live] = np.nan
+        if self._dirty is not None:
+            self._reprocess()
+        epochs = {tau: self._pending.pop(tau) for tau in sorted(k for k in self._pending if k <= t)}
+        self._run_step(t, epochs)
         out = []
         for slot in np.flatnonzero(self._t == t):
             out.append(self._estimate(int(slot), t))
         return out
+
+    def _step_core(self, t: float, epochs: dict) -> None:
+        for tau in sorted(epochs):  # (a late message may have added an earlier epoch)
+            self._process(tau, epochs[tau])
+        live = np.flatnonzero(self._t < t)  # initialised and behind (NaN excluded)
+        if live.size:
+            self._predict(live, t)
+            self._nis[live] = np.nan
+
+    def _run_step(self, t: float, epochs: dict) -> None:
+        """One step's filtering (no output); with a lag window, recorded in the history."""
+        lag = self.params.lag_window_s
+        if lag <= 0:
+            self._step_core(t, epochs)
+            return
+        snap = self._snapshot()
+        before = self.counters.as_dict()
+        t_prev = self._t_last
+        self._step_core(t, epochs)
+        self._t_last = t
+        after = self.counters.as_dict()
+        self._hist.append(_Step(t, t_prev, snap, epochs, {k: after[k] - before[k] for k in after if after[k] != before[k]}))
+        cut = 0
+        while cut < len(self._hist) and self._hist[cut].t < t - lag - 1e-9:
+            cut += 1
+        if cut:
+            del self._hist[:cut]
+
+    def _hist_for(self, tau: float):
+        """The step of the history that processes epoch tau (t_prev < tau <= t), or None."""
+        for e in self._hist:
+            if e.t_prev < tau <= e.t:
+                return e
+        return None
+
+    def _reprocess(self) -> None:
+        t0, self._dirty = self._dirty, None
+        i = next((j for j, e in enumerate(self._hist) if e.t >= t0), None)
+        if i is None:
+            return
+        redo = self._hist[i:]
+        del self._hist[i:]
+        self._restore(redo[0].snap)
+        self._t_last = redo[0].t_prev
+        c = self.counters
+        for e in redo:
+            for k, v in e.added.items():
+                setattr(c, k, getattr(c, k) - v)
+        ev = self._events
+        keep = None if ev is None else ev.transport
+        if ev is not None:
+            ev.transport = None  # events of past epochs went out already: not again
+        try:
+            for e in redo:
+                self._run_step(e.t, e.epochs)
+        finally:
+            if ev is not None:
+                ev.transport = keep
+        c.reprocess_runs += 1
+        c.reprocessed_epochs += len(redo)
+
+    _SNAP_ARRAYS = ("_x", "_P", "_t", "_t_init", "_nis", "_rejects", "_win_nis", "_win_m", "_win_k", "_win_S",
+                    "_win_M", "_bias_last")
+
+    def _snapshot(self) -> dict:
+        """Copies of what a step writes (the per-sonde arrays, the sondes' satellite error-state
+        maps, the integrity monitor's bookkeeping); caches and the model are kept."""
+        d = {name: getattr(self, name).copy() for name in self._SNAP_ARRAYS}
+        d["_slots"], d["_ids"], d["_keys"] = dict(self._slots), list(self._ids), list(self._keys)
+        d["_bias_map"] = [dict(m) for m in self._bias_map]
+        d["_bias_owner"] = [list(o) for o in self._bias_owner]
+        d["_bias_prev"] = list(self._bias_prev)
+        if self._mon is not None:
+            d["_chan_of"], d["_chan_sat"] = dict(self._chan_of), list(self._chan_sat)
+            d["_chan_last"], d["_mon_k"] = self._chan_last.copy(), self._mon_k
+            d["_cohorts"] = [list(co) for co in self._cohorts]  # each state is replaced by a step, not written
+        return d
+
+    def _restore(self, d: dict) -> None:
+        for name, v in d.items():
+            setattr(self, name, v)
 
     def _estimate(self, slot: int, t: float) -> Estimate:
         x, P = self._x[slot], self._P[slot]

@@ -9,9 +9,11 @@ import dataclasses
 import numpy as np
 import pytest
 from test_beacon_locator import _epochs, _publish_epoch, _scene
+from test_sonde_tracker import RADAR_KEY, RELAY_KEY, RUN, radar_msg, relay_msg, world  # noqa: F401 (fixture)
 
 from ground_station.beacon_locator import BeaconLocator, LocatorConfig
-from sitl.bus import Estimate, InMemoryTransport
+from ground_station.sonde_tracker import SondeTracker, SondeTrackerParams
+from sitl.bus import InMemoryTransport
 from sitl.netfault import KeyFaults
 
 BEACON_KEYS = "*/uav/*/beacon/**"
@@ -46,6 +48,13 @@ def _beacon_run(eps, t, trials, config, faults=None, steps_after=0, present=rang
 
 def _counters(loc):
     return {k: v for k, v in loc.counters.items() if k not in LAG_COUNTERS and k != "accepted"}
+
+
+def _prior_config(scene, **kw):
+    B, VB = scene[1], scene[2]
+    return LocatorConfig(init="prior", prior_mean=tuple(np.r_[B[0] + 50.0, VB[0] + 2.0]),
+                         prior_cov=tuple(map(tuple, np.diag([200.0 ** 2] * 3 + [20.0 ** 2] * 3))),
+                         uav_error_corr_s=0.0, **kw)
 
 
 CONFIGS = {
@@ -93,7 +102,7 @@ def test_beacon_real_time_estimate_is_the_fixed_lag_one(beacon_world):
     """What goes out at t (2 s delay) equals a run given only the measurements of t - 2 s and
     before: honest real time, no look-ahead, nothing lost."""
     scene, eps, trials = beacon_world
-    cfg = CONFIGS["blind_start"]
+    cfg = _prior_config(scene)
     kf = KeyFaults([(BEACON_KEYS, "delay=2s")], seed=1)
     _, got, _ = _beacon_run(eps, scene[0], trials, cfg, faults=kf)
     checked = 0
@@ -113,7 +122,7 @@ def test_beacon_untouched_trials_rerun_to_identical_results(beacon_world):
     """Only trial r1's links are delayed: the batch re-runs every trial together, and r0, r2
     publish bit for bit what they publish without any fault, at every epoch."""
     scene, eps, trials = beacon_world
-    cfg = CONFIGS["blind_start"]
+    cfg = _prior_config(scene)
     _, got_ref, _ = _beacon_run(eps, scene[0], trials, cfg)
     kf = KeyFaults([("r1/uav/*/beacon/**", "delay=1s~600ms")], seed=4)
     loc, got, _ = _beacon_run(eps, scene[0], trials, cfg, faults=kf)
@@ -127,7 +136,7 @@ def test_beacon_untouched_trials_rerun_to_identical_results(beacon_world):
 
 def test_beacon_duplicates_discarded_and_counted_exactly(beacon_world):
     scene, eps, trials = beacon_world
-    cfg = CONFIGS["blind_start"]
+    cfg = _prior_config(scene)
     ref, got_ref, _ = _beacon_run(eps, scene[0], trials, cfg)
     kf = KeyFaults([(BEACON_KEYS, "duplicate=50%")], seed=5)
     loc, got, bus = _beacon_run(eps, scene[0], trials, cfg, faults=kf)
@@ -160,3 +169,84 @@ def test_beacon_older_than_the_window_counted_too_late_and_window_zero_is_the_ol
     assert loc0.rejected["stale"] == 5 * trials * len(eps) and loc0._hist == []
     with pytest.raises(ValueError, match="lag_window_s"):
         LocatorConfig(lag_window_s=-1.0)
+
+
+# ---------------------------------------------------------------- the sonde tracker
+
+def _sonde_run(world, K, faults=None, steps_after=0, feed_until=None, params=None):
+    """Relay and radar of epochs 0..K-1 published, drained and stepped (1 Hz); returns the
+    tracker, {k: Estimate} published per step and the transport."""
+    tr, rad, rt = world
+    bus = InMemoryTransport(faults=[faults] if faults is not None else [])
+    trk = SondeTracker(RUN, params or SondeTrackerParams(mode="fused"))
+    trk.attach(bus)
+    got, cur = {}, {"k": None}
+    bus.subscribe(f"{RUN}/gs/estimate/sonde/*", lambda key, m: got.__setitem__(cur["k"], m))
+    for k in range(K + steps_after):
+        tk = float(rt.t_gps_s[0] + k)
+        if k < K and (feed_until is None or k <= feed_until):
+            bus.publish(RELAY_KEY, relay_msg(rt, k, k))
+            if np.isfinite(rad[k].slant_range_m[0]):  # (no message without a valid range)
+                bus.publish(RADAR_KEY, radar_msg(rad[k], k, k))
+        cur["k"] = k
+        bus.drain(tk)
+        trk.step(tk)
+        bus.drain(tk)
+    return trk, got, bus
+
+
+SONDE_LAG = ("late_accepted", "reprocess_runs", "reprocessed_epochs", "duplicates", "messages", "estimates")
+
+
+def _sonde_counters(trk):
+    return {k: v for k, v in trk.counters.as_dict().items() if k not in SONDE_LAG}
+
+
+@pytest.mark.parametrize("spec", ["delay=2s", "delay=1500ms~900ms"])
+def test_sonde_delay_within_window_reprocesses_to_the_undelayed_state(world, spec):
+    K = 60
+    ref, _, _ = _sonde_run(world, K, steps_after=4)
+    kf = KeyFaults([(f"{RUN}/sonde/**", spec), (f"{RUN}/radar/**", spec)], seed=2)
+    trk, got, _ = _sonde_run(world, K, faults=kf, steps_after=4)
+    t, x, P = trk.state("s1")
+    tr_, xr, Pr = ref.state("s1")
+    assert t == tr_
+    np.testing.assert_allclose(x, xr, rtol=1e-9, atol=1e-9)
+    np.testing.assert_allclose(P, Pr, rtol=1e-9, atol=1e-12)
+    assert trk.counters.late_accepted > K and trk.counters.too_late == 0 and trk.counters.stale == 0
+    assert _sonde_counters(trk) == _sonde_counters(ref)
+    for k, e in got.items():  # only the current epoch goes out, once
+        assert e.t_gps_s == float(world[2].t_gps_s[0] + k)
+    assert trk.counters.estimates == len(got)
+
+
+def test_sonde_real_time_estimate_is_the_fixed_lag_one(world):
+    K = 50
+    kf = KeyFaults([(f"{RUN}/sonde/**", "delay=2s"), (f"{RUN}/radar/**", "delay=2s")], seed=2)
+    _, got, _ = _sonde_run(world, K, faults=kf)
+    for k in (10, 31, K - 1):
+        _, got_ref, _ = _sonde_run(world, k + 1, feed_until=k - 2)
+        e, r = got[k], got_ref[k]
+        np.testing.assert_allclose(e.pos_ecef_m, r.pos_ecef_m, rtol=0, atol=1e-9)
+        np.testing.assert_allclose(e.cov, r.cov, rtol=1e-9, atol=1e-12)
+
+
+def test_sonde_duplicates_discarded_and_counted_exactly(world):
+    K = 60
+    _, got_ref, _ = _sonde_run(world, K)
+    kf = KeyFaults([(f"{RUN}/sonde/**", "duplicate=50%"), (f"{RUN}/radar/**", "duplicate=50%")], seed=3)
+    trk, got, _ = _sonde_run(world, K, faults=kf)
+    injected = sum(tr.duplicated for tr in kf.truths().values())
+    assert injected > 30 and trk.counters.duplicates == injected
+    assert got.keys() == got_ref.keys() and all(got[k] == got_ref[k] for k in got)
+
+
+def test_sonde_older_than_the_window_counted_too_late(world):
+    K = 20
+    kf = KeyFaults([(f"{RUN}/radar/**", "delay=8s")], seed=3)
+    trk, _, _ = _sonde_run(world, K, faults=kf, steps_after=10)
+    n_radar = sum(bool(np.isfinite(world[1][k].slant_range_m[0])) for k in range(K))
+    assert trk.counters.too_late == n_radar > 10 and trk.counters.late_accepted == 0
+    trk0, _, _ = _sonde_run(world, K, faults=KeyFaults([(f"{RUN}/radar/**", "delay=2s")], seed=3), steps_after=3,
+                            params=SondeTrackerParams(mode="fused", lag_window_s=0.0))
+    assert trk0.counters.stale == n_radar and trk0._hist == []
