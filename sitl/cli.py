@@ -99,6 +99,9 @@ EXPERIMENTS = {
                                           "over the in-memory bus; decomposed vs centralised, against the PCRB"),
     "integrity": ("sitl.experiments.integrity", "seed 003: fault detection/isolation on faulty GNSS data, plain vs "
                                                 "adaptive-robust EKF (+ bias estimation), Pd/Pfa, ROC"),
+    "faults": ("sitl.experiments.faults", "network faults on the measurement links (loss, burst loss, delay, "
+                                          "partitions) of the beacon and sonde scenarios: RMSE against the baseline, "
+                                          "recovery after partitions"),
 }
 
 BENCHES = {
@@ -323,6 +326,12 @@ def build_parser() -> argparse.ArgumentParser:
                                          description="Run a recorded bus log (OUT/bus.log) through the batch "
                                                      "ground station and compare its estimates with the recorded ones."))
 
+    from sitl.netfault import cli as _fault
+
+    _fault.add_fault_args(sub.add_parser(
+        "fault", help="change or list a running live run's network faults (set LINK SPEC..., list)",
+        description="Change or list the network faults of a running live run through its control key."))
+
     exp = sub.add_parser("experiment", help="run a reproducible experiment of a seed paper",
                          description="Run an experiment; each writes DIR/result.json and PNG figures.")
     exp_sub = exp.add_subparsers(dest="experiment", metavar="EXPERIMENT", parser_class=_Parser)
@@ -339,6 +348,10 @@ def build_parser() -> argparse.ArgumentParser:
             _add_beacon_args(p)
         elif name == "integrity":
             _add_integrity_args(p)
+        else:  # newer experiments declare their own flags: add_args(parser) in their module
+            import importlib
+
+            importlib.import_module(EXPERIMENTS[name][0]).add_args(p)
 
     bench = sub.add_parser("bench", help="speed benchmarks, each against a peer measured in the same run",
                            description="Benchmarks report ratios against a peer measured in the same run.")
@@ -388,6 +401,8 @@ def _run(args: argparse.Namespace, importlib) -> int:
     if args.command in ("demo", "run", "replay"):
         live = importlib.import_module("sitl.live.launcher")
         return {"demo": live.demo_main, "run": live.run_main, "replay": live.replay_main}[args.command](args)
+    if args.command == "fault":
+        return importlib.import_module("sitl.netfault.cli").fault_main(args)
     if args.command == "experiment":
         mod = importlib.import_module(EXPERIMENTS[args.experiment][0])
         return mod.main(args)
