@@ -13,8 +13,15 @@ order): the live process calls it with its paced clock minus a hold time (the lo
 epoch waits for its messages) and processes an epoch sooner once every source that is
 publishing has delivered it (each source's messages arrive in order); replay calls it with the
 recorded messages' times.
-Messages for an epoch already processed are counted (``late``) and passed on (the
-components count them as stale).
+Messages for an epoch already processed are counted (``late``) and passed on: the
+components re-process them within their lag window (``lag_window_s``) or count them too late.
+
+Link statistics (issue 8): every input message is counted per link ((run, source id)) by a
+`sitl.bus.LinkMonitor` -- received, missing from sequence numbers, duplicates, out of order,
+gaps, latency (arrival minus ``t_gps_s``; the arrival clock is ``now_s`` given to `advance`,
+else its ``t_until``) -- and a link silent for more than ``stale_after_s`` is flagged stale.
+`LinkStats` go out on ``<run>/gs/link/<source id>`` every ``link_stats_every_s`` and at once
+when a link turns stale or comes back (those also in ``link_changes`` for the caller).
 """
 from __future__ import annotations
 
@@ -23,7 +30,7 @@ import threading
 from collections import Counter, deque
 from dataclasses import dataclass
 
-from sitl.bus import Estimate, key_matches
+from sitl.bus import Estimate, LinkMonitor, key_matches
 
 
 @dataclass(frozen=True)
@@ -36,6 +43,8 @@ class GsConfig:
     gcpp_offset_m: float = 300.0
     gcpp_bearing_deg: float = 140.0
     sonde_integrity: bool = False
+    stale_after_s: float = 3.0  # a link silent this long (simulation time) is flagged stale
+    link_stats_every_s: float = 10.0  # LinkStats of every link this often (and on stale / back)
 
     @classmethod
     def from_scenario(cls, scn) -> GsConfig:
@@ -131,10 +140,16 @@ class GroundStationNode:
             self.tracker.attach(self.bus)
         self.estimates: dict[tuple[str, str], Estimate] = {}
         self.events: list = []  # (key, IntegrityEvent) published by the components; the caller takes them
+        self.links = LinkMonitor(stale_after_s=c.stale_after_s)
+        self.link_changes: list = []  # (key, LinkStats) of links that turned stale or came back; the caller takes them
+        self.link_messages: list = []  # (key, LinkStats) published; the caller takes them
+        self._arrival_s = -math.inf  # the arrival clock of what the next pump takes in
+        self._links_due = -math.inf
 
     def _on_input(self, key, msg) -> None:
         t = float(msg.t_gps_s)
         self.counters["inputs"] += 1
+        self.links.observe(key, msg, self._arrival_s if math.isfinite(self._arrival_s) else t)
         if self._t_first is None or t < self._t_first:
             self._t_first = t
         last = self._src_last.get(msg.source_id)
@@ -162,15 +177,21 @@ class GroundStationNode:
     def pending_epochs(self) -> int:
         return len(self._epochs)
 
-    def advance(self, t_until_gps_s: float, *, early_window_s: float | None = None) -> list:
+    def advance(self, t_until_gps_s: float, *, early_window_s: float | None = None,
+                now_s: float | None = None) -> list:
         """Take in what has arrived and process every epoch <= t_until; returns the
         (key, Estimate) published meanwhile (other messages they published, integrity events,
         are appended to ``events``).
 
         early_window_s (live): also process, in time order, the later epochs that are complete
         already: every input source heard within early_window_s before the epoch has delivered
-        it (or a later one). t_until is then only the longest an epoch waits for a silent source."""
+        it (or a later one). t_until is then only the longest an epoch waits for a silent source.
+
+        now_s: the simulation time now (live: the paced clock), the arrival time of what is
+        taken in and the clock of the links' silence; default t_until."""
+        now = t_until_gps_s if now_s is None else now_s
         with self._lock:
+            self._arrival_s = now
             self.bus.pump()
             for tau in sorted(self._epochs):
                 if tau > t_until_gps_s and (early_window_s is None or not self._complete(tau, early_window_s)):
@@ -189,7 +210,28 @@ class GroundStationNode:
                 else:  # integrity events of the trackers' monitors (opt-in)
                     self.events.append((key, msg))
             self.counters["estimates"] += len(out)
+            if math.isfinite(now):
+                self._link_stats(now)
             return out
+
+    def _link_stats(self, now: float) -> None:
+        """LinkStats of the links that turned stale or came back, and of every link when due."""
+        changed = self.links.check(now)
+        due = now >= self._links_due
+        if due:
+            self._links_due = now + self.config.link_stats_every_s
+        if not (due or changed):
+            return
+        ids = {id(lk) for lk in changed}
+        for lk in (self.links.states() if due else changed):
+            key, m = self.links.message(lk, now, source_id="gs")
+            if self.bus.transport is not None:
+                self.bus.transport.publish(key, m)
+            self.link_messages.append((key, m))
+            self.counters["link_stats"] += 1
+            if id(lk) in ids:
+                self.link_changes.append((key, m))
+                self.counters["links_stale" if lk.stale else "links_back"] += 1
 
     def _step(self, tau: float) -> None:
         self.locator.step(tau)  # publishes through self.bus
@@ -204,7 +246,7 @@ class GroundStationNode:
 
     def stats(self) -> dict:
         d = {"node": dict(self.counters), "beacon_locator": dict(self.locator.counters),
-             "beacon_rejected": dict(self.locator.rejected)}
+             "beacon_rejected": dict(self.locator.rejected), "links": self.links.as_dict()}
         if self.tracker is not None:
             d["sonde_tracker"] = self.tracker.counters.as_dict()
         return d

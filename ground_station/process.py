@@ -6,7 +6,8 @@ that are complete (every source publishing has delivered them) or older than
 ``ground_station.hold_wall_s`` (x speed, in simulated time), publishing the
 Estimates on ``<run>/gs/estimate/**``. It also speaks MAVLink to the ground-control
 endpoint (pymavlink): the beacon and sonde estimates as ADSB_VEHICLE (so that the GCS map
-shows them) and the integrity events its trackers publish (``<run>/gs/integrity/**``) as STATUSTEXT, from its
+shows them), the integrity events its trackers publish (``<run>/gs/integrity/**``) and its input links
+turning stale or coming back (``<run>/gs/link/**``, "link uav2: stale") as STATUSTEXT, from its
 own system id (250, component MAV_COMP_ID_ONBOARD_COMPUTER); ``mav_gs.tlog`` records them.
 """
 from __future__ import annotations
@@ -130,7 +131,7 @@ def main(argv=None) -> int:
             bus.drain()
             horizon = min(pacer.sim_now(), t_end + hold_sim) - hold_sim
             try:
-                out = node.advance(horizon, early_window_s=early_window)
+                out = node.advance(horizon, early_window_s=early_window, now_s=min(pacer.sim_now(), t_end + hold_sim))
             except Exception as e:  # counted, reported, the node keeps running
                 errors += 1
                 out = []
@@ -143,11 +144,16 @@ def main(argv=None) -> int:
                         gcs.adsb(parts[-2], parts[-1], est)
                     for _key, ev in node.events:
                         gcs.statustext(f"integrity {ev.channel}: {ev.event}")
+                    for _key, ls in node.link_changes:  # a silent UAV / radar / relay stream, or back
+                        gcs.statustext(f"link {ls.link}: {'stale' if ls.stale else 'back'}",
+                                       severity=4 if ls.stale else 6)
                 except Exception as e:  # the GCS side must not stop the fusion
                     errors += 1
                     if errors <= 10 or errors % 100 == 0:
                         print(f"gs: MAVLink send failed ({errors} so far): {type(e).__name__}: {e}", file=sys.stderr)
             node.events.clear()
+            node.link_changes.clear()
+            node.link_messages.clear()
             tick_s.append(perf_now() - w0)
             if rt.status_due():
                 rt.emit(_status(node, bus, gcs, errors, horizon, tick_s))
@@ -170,7 +176,8 @@ def _status(node, bus, gcs, errors, t, tick_s=()) -> dict:
     from sitl.live.pacer import cpu_now
     from sitl.live.worker import bus_counters
     d = {"event": "status", "t_sim_s": t, "cpu_s": cpu_now(), "epochs": node.counters["epochs"], "estimates": node.counters["estimates"],
-         "late": node.counters["late"], "step_errors": errors, **bus_counters(bus)}
+         "late": node.counters["late"], "step_errors": errors, **bus_counters(bus),
+         "links_stale": sum(lk.stale for lk in node.links.states())}
     if gcs is not None:
         d["mavlink"] = {"sent": dict(gcs.sent), "errors": gcs.errors}
     if tick_s:

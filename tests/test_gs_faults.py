@@ -279,3 +279,41 @@ def test_sonde_older_than_the_window_counted_too_late(world):
     trk0, _, _ = _sonde_run(world, K, faults=KeyFaults([(f"{RUN}/radar/**", "delay=2s")], seed=3), steps_after=3,
                             params=SondeTrackerParams(mode="fused", lag_window_s=0.0))
     assert trk0.counters.stale == n_radar and trk0._hist == []
+
+
+# ---------------------------------------------------------------- the ground-station node
+
+
+def test_node_publishes_link_stats_and_flags_a_partitioned_uav_stale_then_back(beacon_world):
+    from ground_station.node import GroundStationNode, GsConfig
+    from sitl.bus import LinkStats
+
+    scene, eps, _ = beacon_world
+    t = scene[0]
+    kf = KeyFaults([("r/uav/2/beacon/**", "partition=10-20")], seed=1)
+    bus = InMemoryTransport(faults=[kf])
+    node = GroundStationNode(bus, "r", GsConfig(sonde=False, link_stats_every_s=10.0))
+    seen = []
+    bus.subscribe("r/gs/link/*", lambda key, m: seen.append((key, m)))
+    changes = []
+    for k in range(len(eps)):
+        _publish_epoch(bus, "r", k, t[k], eps[k], 0, range(5))
+        bus.drain(t[k])
+        node.advance(float(t[k]))
+        changes += [(float(m.t_gps_s), m.link, m.stale) for _, m in node.link_changes]
+        node.link_changes.clear()
+        bus.drain(t[k])
+    assert changes == [(13.0, "uav2", True), (20.0, "uav2", False)]
+    lk = node.links.state("r", "uav2")
+    assert lk.missing == 10 == kf.truth("r/uav/2/beacon/b1").dropped_partition and lk.gaps == 1
+    assert node.links.state("r", "uav1").missing == 0
+    # on the bus: every link at 0, 10, 20 s (periodic) and uav2 at 13 s (stale); 20 s once per link
+    by_t = {}
+    for key, m in seen:
+        assert isinstance(m, LinkStats) and key == f"r/gs/link/{m.link}"
+        by_t.setdefault(m.t_gps_s, []).append((m.link, m.stale))
+    assert sorted(by_t) == [0.0, 10.0, 13.0, 20.0]
+    assert by_t[13.0] == [("uav2", True)] and len(by_t[20.0]) == 5 and ("uav2", False) in by_t[20.0]
+    assert node.stats()["links"]["r/uav2"]["missing"] == 10
+    assert node.locator.counters["epochs_fused"] > 0
+    node.close()

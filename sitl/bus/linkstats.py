@@ -78,6 +78,9 @@ class LinkMonitor:
         """(run id, source id) of every link heard, in the order first heard."""
         return list(self._links)
 
+    def states(self) -> list[LinkState]:
+        return list(self._links.values())
+
     def state(self, run_id: str, source_id: str) -> LinkState:
         return self._links[(run_id, source_id)]
 
