@@ -26,8 +26,10 @@ linux ``net/sched/sch_netem.c`` ``netem_enqueue``, in its order:
 Correlated draws are netem's ``get_crandom``: ``u_n = (1 - rho) v_n + rho u_{n-1}`` with v
 uniform (the kernel's fixed-point version, in floating point), computed in blocks with
 `scipy.signal.lfilter`. As in netem this makes u less spread than uniform, so a correlated
-loss rate differs from ``loss`` (e.g. loss=10%,50% loses ~3.7 %); the tests check the
-model's analytic values, not the nominal ones.
+loss rate is not ``loss`` (netem's known flaw, reproduced): loss=20%,25% loses 10.2 %,
+loss=10%,25% 1.75 %, loss=10%,50% 0.11 % (exact values of the chain; use gemodel for bursty
+loss at a given rate); the tests check the chain's exact values, not the nominal ones.
+Likewise a correlated delay jitter is narrower than the uncorrelated one.
 
 Delay distributions (netem's tables, table-free: the inverse CDF applied to the correlated
 uniform, as netem indexes its table with it; ``sigma`` = jitter; t clipped to netem's int16
@@ -45,7 +47,12 @@ paretonormal               ``mu + sigma (Phi^-1(u) + 3 pareto(u)) / 4``: iproute
 Gilbert-Elliott (``gemodel p r 1-h 1-k``): the loss of packet n uses the state it finds
 (good: loss prob 1-k, bad: 1-h), then the state moves (good->bad p, bad->good r), starting
 good, as the kernel's ``loss_gilb_ell``; stationary loss ``(r (1-k) + p (1-h)) / (p + r)``;
-with 1-h = 1, 1-k = 0 the mean burst is 1/r packets and the mean gap 1/p + ... (see tests).
+with 1-h = 1, 1-k = 0 bursts are geometric with mean 1/r packets and gaps with mean 1/p.
+Defaults as tc-netem(8) (and iproute2's q_netem.c): r = 1-p (Bernoulli), 1-h = 100 %, 1-k = 0.
+
+Rate: ``len(payload) * 8 / rate`` per packet, the payload as given (netem counts the L2
+frame and optional overheads; a caller that wants headers counted adds them to the rate).
+Pareto's t has standard deviation 2/sqrt(3) ~ 1.15 (netem's table is not unit-variance).
 
 The models, their parameters, their netem equivalent and what tests/test_netfault_models.py
 checks (100,000 packets each):
@@ -398,54 +405,63 @@ class LinkFault:
         t = float(t_s)
         if not math.isfinite(t):
             raise ValueError(f"link {self.name!r}: send time must be finite, got {t_s!r}")
-        if not isinstance(payload, bytes):
-            if isinstance(payload, (bytearray, memoryview)):
+        if type(payload) is not bytes:
+            if isinstance(payload, (bytes, bytearray, memoryview)):
                 payload = bytes(payload)
             else:
                 raise TypeError(f"link {self.name!r}: payload must be bytes, got "
                                 f"{type(payload).__name__}")
-        while self._pending and self._pending[0][0] <= t:
-            self._apply(heapq.heappop(self._pending)[2])
-        if t > self._last_t:
+        if self._pending and self._pending[0][0] <= t:
+            while self._pending and self._pending[0][0] <= t:
+                self._apply(heapq.heappop(self._pending)[2])
+        if t >= self._last_t:
             self._last_t = t
-        elif t < self._last_t:
+        else:
             self._monotone = False
         tr = self.truth
         idx = tr.sent
-        tr.sent += 1
+        tr.sent = idx + 1
         spec = self.spec
         if spec.partitions and spec.down(t):
             self._drop(idx, 1)
             return []
         if self._identity:
-            self._record(idx, t, t, False)
-            self._overtake(idx, t, t)
-            return [(t, payload)]
-        out, cause = self._enqueue(t, payload, spec, True)
-        if not out:
-            self._drop(idx, cause)
-            return []
-        if len(out) > 1:
-            tr.duplicated += 1
-            first = min(out[0][0], out[1][0])
+            out = [(t, payload, False)]
         else:
-            first = out[0][0]
-        for at, p, bad in out:
-            self._record(idx, t, at, bad)
-        self._overtake(idx, t, first)
-        return [(at, p) for at, p, _ in out]
-
-    def _overtake(self, idx: int, t: float, first: float) -> None:
-        """Count the earlier packets this one (first copy at ``first``) overtakes."""
+            out, cause = self._enqueue(t, payload, spec, True)
+            if not out:
+                self._drop(idx, cause)
+                return []
+        # the truth: counters, schedule, online reorder count
+        record = self.record
+        first = math.inf
+        for at, _p, bad in out:
+            tr.delivered += 1
+            if record:
+                tr.copy_index.append(idx)
+                tr.copy_at_s.append(at)
+                tr.copy_corrupt.append(bad)
+            if bad:
+                tr.corrupted += 1
+            d = at - t
+            tr.delay_s_sum += d
+            if d > tr.delay_s_max:
+                tr.delay_s_max = d
+            if at < first:
+                first = at
         w = self._waiting
         while w and -w[0][0] > first:
             heapq.heappop(w)
-            self.truth.reordered += 1
+            tr.reordered += 1
         heapq.heappush(w, (-first, idx))
         if len(w) > self._prune_at and self._monotone:
             w[:] = [e for e in w if -e[0] > t]  # later packets are sent at >= t
             heapq.heapify(w)
             self._prune_at = max(1024, 2 * len(w))
+        if len(out) == 1:
+            return [(out[0][0], out[0][1])]
+        tr.duplicated += 1
+        return [(at, p) for at, p, _ in out]
 
     def _drop(self, idx: int, cause: int) -> None:
         tr = self.truth
@@ -458,20 +474,6 @@ class LinkFault:
             tr.dropped_partition += 1
         else:
             tr.dropped_queue += 1
-
-    def _record(self, idx: int, t: float, at: float, bad: bool) -> None:
-        tr = self.truth
-        tr.delivered += 1
-        if self.record:
-            tr.copy_index.append(idx)
-            tr.copy_at_s.append(at)
-            tr.copy_corrupt.append(1 if bad else 0)
-        if bad:
-            tr.corrupted += 1
-        d = at - t
-        tr.delay_s_sum += d
-        if d > tr.delay_s_max:
-            tr.delay_s_max = d
 
     def _loss_event(self, spec: FaultSpec) -> bool:
         if spec.ge is not None:
@@ -546,44 +548,60 @@ class KeyFaults:
     """Per-key faults for a bus: ``rules`` [(key expression, spec)], first match wins; one
     independent `LinkFault` per concrete key, its rng ``default_rng([seed, crc32(key)])``.
     Keys matching no rule pass untouched (and get no truth). A ``FaultFilter``:
-    ``InMemoryTransport(faults=[kf])``."""
+    ``InMemoryTransport(faults=[kf])``. ``record=False``: counters only (see `LinkTruth`).
 
-    def __init__(self, rules: Iterable[tuple[str, FaultSpec | str]] = (), *, seed: int = 0):
+    ``set(key_expr, spec, t_s)`` changes that rule, or adds it ahead of the others, for
+    packets sent at ``t_s`` or later (None: now): links that exist then switch to the spec
+    their key now matches first (the identity if none), and keys seen later follow the new
+    rules."""
+
+    def __init__(self, rules: Iterable[tuple[str, FaultSpec | str]] = (), *, seed: int = 0,
+                 record: bool = True):
         self.seed = int(seed)
+        self.record = bool(record)
         self._rules: list[tuple[str, FaultSpec]] = []
         for expr, spec in rules:
             self._rules.append((validate_key_expr(expr), parse_spec(spec)))
         self._links: dict[str, LinkFault] = {}
-        self._rule_of: dict[str, str | None] = {}
+        self._nomatch: set[str] = set()
+        self._pending: list[tuple[float, int, str, FaultSpec]] = []
+        self._pending_n = 0
+        self._last_t = -math.inf
+
+    def __repr__(self) -> str:
+        rules = ", ".join(f"{e}: {s.to_text()}" for e, s in self._rules)
+        return f"KeyFaults([{rules}], seed={self.seed})"
 
     @property
     def rules(self) -> list[tuple[str, FaultSpec]]:
         return list(self._rules)
 
-    def _match(self, key: str) -> tuple[str, FaultSpec] | None:
+    def _match(self, key: str) -> FaultSpec | None:
         for expr, spec in self._rules:
             if key_matches(expr, key):
-                return expr, spec
+                return spec
         return None
 
     def link(self, key: str) -> LinkFault | None:
         """The LinkFault of a concrete key (created on first use), None if no rule matches."""
         lf = self._links.get(key)
-        if lf is not None:
+        if lf is not None or key in self._nomatch:
             return lf
-        if key in self._rule_of:  # known: matched no rule
-            return None
-        m = self._match(validate_key(key))
-        if m is None:
-            self._rule_of[key] = None
+        spec = self._match(validate_key(key))
+        if spec is None:
+            self._nomatch.add(key)
             return None
         rng = np.random.default_rng([self.seed, zlib.crc32(key.encode())])
-        lf = LinkFault(m[1], rng=rng, name=key)
-        self._links[key] = lf
-        self._rule_of[key] = m[0]
+        lf = self._links[key] = LinkFault(spec, rng=rng, name=key, record=self.record)
         return lf
 
     def __call__(self, key: str, payload: bytes, t_s: float) -> list[tuple[float, bytes]]:
+        if self._pending and self._pending[0][0] <= t_s:
+            while self._pending and self._pending[0][0] <= t_s:
+                t_c, _, expr, spec = heapq.heappop(self._pending)
+                self._apply(expr, spec, t_c)
+        if t_s > self._last_t:
+            self._last_t = t_s
         lf = self._links.get(key)
         if lf is None:
             lf = self.link(key)
@@ -592,9 +610,16 @@ class KeyFaults:
         return lf.process(t_s, payload)
 
     def set(self, key_expr: str, spec: FaultSpec | str | None, t_s: float | None = None) -> None:
-        """Change the rule ``key_expr`` (or add it, ahead of the others) from ``t_s`` on."""
+        """Change the rule ``key_expr`` (or add it ahead of the others) from ``t_s`` on."""
         expr = validate_key_expr(key_expr)
         spec = parse_spec(spec)
+        if t_s is None or t_s <= self._last_t:
+            self._apply(expr, spec, t_s)
+        else:
+            self._pending_n += 1
+            heapq.heappush(self._pending, (float(t_s), self._pending_n, expr, spec))
+
+    def _apply(self, expr: str, spec: FaultSpec, t_s: float | None) -> None:
         for i, (e, _) in enumerate(self._rules):
             if e == expr:
                 self._rules[i] = (expr, spec)
@@ -602,13 +627,9 @@ class KeyFaults:
         else:
             self._rules.insert(0, (expr, spec))
         for key, lf in self._links.items():
-            m = self._match(key)
-            new = m[1] if m is not None else FaultSpec()
-            self._rule_of[key] = m[0] if m is not None else None
-            lf.set(new, t_s)
-        # keys that matched nothing may match now
-        for key in [k for k, r in self._rule_of.items() if r is None and k not in self._links]:
-            del self._rule_of[key]
+            new = self._match(key)
+            lf.set(new if new is not None else FaultSpec(), t_s)
+        self._nomatch.clear()  # keys that matched nothing may match now
 
     def truth(self, key: str) -> LinkTruth:
         lf = self._links.get(key)
