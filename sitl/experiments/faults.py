@@ -33,7 +33,13 @@ stops), against the truth at that epoch; the 3-D position error per trial and ep
     window, up to the end of the run, is within 2x (``recovery_factor``) the baseline's:
     ``recovery_s`` with the window starting at that time (``[heal + s, heal + s + 10)``), and
     ``recovery_trailing_s`` with the window ending there (``(heal + s - 10, heal + s]``, what a
-    running 10 s monitor would say; >= the former).  None: not back within the run.
+    running 10 s monitor would say; >= the former).  None: not back within the run.  Beside
+    them ``recovery_per_epoch_s`` (a 1-epoch window) and ``ratio_at_heal_epoch``;
+  * ``per_trial``: each trial's RMSE against its own baseline (median ratio, trials above 2x):
+    one diverged trial dominates a pooled RMSE;
+  * ``checks``: one run with duplication (``duplicate_check``): the ground station must
+    discard every duplicate once (its count = the injected one) and publish exactly the
+    fault-free run's estimates.
 
 result.json: ``conditions`` [{scenario, fault, value, rmse_m, baseline_rmse_m, ratio, spec,
 link truth counts (sent / lost / partitioned / duplicated / reordered / delay), the ground
@@ -280,6 +286,13 @@ def recovery(t_s, err2, base_err2, heal_s: float, window_s: float, factor: float
     }
 
 
+def _mse_ratio_at(err2, base_err2, t_s, at_s) -> float:
+    """MSE over the trials at the epoch ``at_s`` against the baseline's (squared RMS ratio)."""
+    k = int(np.searchsorted(t_s, at_s - 1e-9))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return float(np.nanmean(err2[k]) / np.nanmean(base_err2[k]))
+
+
 def _link_counts(link: dict | None) -> dict:
     """The injected truth summed over the links, in the result's words."""
     if not link:
@@ -370,9 +383,12 @@ def summarise(raw: dict, plan: Plan) -> dict:
                 row["rmse_after_heal_m"] = rmse(r.err2, after)
                 row["baseline_rmse_after_heal_m"] = rmse(base.err2, after)
                 rc = recovery(r.t_s, r.err2, base.err2, heal, plan.window_s, plan.recovery_factor)
+                r1 = recovery(r.t_s, r.err2, base.err2, heal, 1.0, plan.recovery_factor)
                 recov.append({"scenario": name, "partition_s": value, "recovery_s": rc["recovery_s"],
                               "partition_start_s": setup.partition_at_s, "heal_s": heal,
                               "recovery_trailing_s": rc["recovery_trailing_s"],
+                              "recovery_per_epoch_s": r1["recovery_s"],
+                              "ratio_at_heal_epoch": math.sqrt(_mse_ratio_at(r.err2, base.err2, r.t_s, heal)),
                               "peak_window_ratio_after_heal": rc["peak_window_ratio_after_heal"],
                               "max_error_after_heal_m": rc["max_error_after_heal_m"],
                               "window_s": plan.window_s, "factor": plan.recovery_factor})
@@ -657,7 +673,9 @@ def table(doc) -> str:
         rows.append(f"recovery {r['scenario']:<7} partition {r['partition_s']:>4g} s (from {r['partition_start_s']:g} s): "
                     f"{'not back' if r['recovery_s'] is None else format(r['recovery_s'], 'g') + ' s'} "
                     f"(trailing window: {'not back' if r['recovery_trailing_s'] is None else format(r['recovery_trailing_s'], 'g') + ' s'}; "
-                    f"peak 10 s ratio after heal {r['peak_window_ratio_after_heal'] or float('nan'):.3g})")
+                    f"peak 10 s ratio after heal {r['peak_window_ratio_after_heal'] or float('nan'):.3g}; "
+                    f"error ratio at the heal epoch {r['ratio_at_heal_epoch'] or float('nan'):.3g}, per-epoch "
+                    f"recovery {'not back' if r['recovery_per_epoch_s'] is None else format(r['recovery_per_epoch_s'], 'g') + ' s'})")
     for c in doc.get("checks", []):
         rows.append(f"check {c['scenario']:<7} {c['spec']}: injected {c['injected_duplicates']} duplicates, ground station "
                     f"counted {c['ground_station_duplicates']}; estimates identical to the fault-free run: "
