@@ -657,9 +657,9 @@ def _worker_specs(scn: Scenario, zenoh_connect, out_dir) -> list[WorkerSpec]:
 __all__ = [
     "DEFAULT_SCENARIO_TOML",
     "DEFAULT_T0_GPS_S",
+    "FaultsSection",
     "Scenario",
     "ScenarioError",
-    "FaultsSection",
     "WorkerSpec",
     "default_scenario",
     "fault_spec_text",

@@ -116,7 +116,7 @@ enabled = false
         while time.monotonic() < deadline and 2 not in got:
             for i, (s, _) in enumerate(vehicles):
                 try:
-                    data, addr = s.recvfrom(4096)
+                    _data, addr = s.recvfrom(4096)
                     got[i] = addr
                 except TimeoutError:
                     pass

@@ -173,7 +173,7 @@ def launch(scn, out: Path, *, quiet: bool = False, stop: threading.Event | None 
     run = scn.run
     t_wall0 = perf_now()
     router = bus = recorder = sup = warm = live_faults = None
-    board = run_json = None
+    fault_board = run_json = None
     report: dict = {"mode": "live", "scenario": scn.to_dict(), "ok": False, "events": []}
     shutdown = {}
     try:
@@ -199,13 +199,13 @@ def launch(scn, out: Path, *, quiet: bool = False, stop: threading.Event | None 
             except (OSError, ValueError) as e:
                 report["error"] = "network faults: " + " ".join(str(e).split())
                 return report
-            board = live_faults.board
+            fault_board = live_faults.board
         else:
-            board = FaultBoard()
-        serve(board, bus, run.id, on_line=lambda line: _say(status_stream, tty, line))
-        run_json = _RunJson(out / "run.json", run.id, endpoints, board)
+            fault_board = FaultBoard()
+        serve(fault_board, bus, run.id, on_line=lambda line: _say(status_stream, tty, line))
+        run_json = _RunJson(out / "run.json", run.id, endpoints, fault_board)
         run_json.write()
-        board.on_change = run_json.write
+        fault_board.on_change = run_json.write
         scorer = ErrorTracker(t0_gps_s=run.t0_gps_s)
         scorer.subscribe(bus, run.id)
         if scn.bus.log:
@@ -243,7 +243,7 @@ def launch(scn, out: Path, *, quiet: bool = False, stop: threading.Event | None 
         t_end = run.t0_gps_s + run.duration_s
         if on_started is not None:
             sup.zenoh_endpoints = list(endpoints)
-            sup.fault_board = board
+            sup.fault_board = fault_board
             sup.live_faults = live_faults
             on_started(sup)
         board = StatusBoard()
@@ -285,10 +285,10 @@ def launch(scn, out: Path, *, quiet: bool = False, stop: threading.Event | None 
                 report["faults"] = live_faults.report(sup)
             finally:
                 live_faults.close()
-        elif board is not None:
-            report["faults"] = board.report()
-        if board is not None:
-            board.on_change = None
+        elif fault_board is not None:
+            report["faults"] = fault_board.report()
+        if fault_board is not None:
+            fault_board.on_change = None
         if run_json is not None:
             run_json.write(finished=True)
         if recorder is not None:

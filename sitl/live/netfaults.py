@@ -215,7 +215,7 @@ class LiveFaults:
                     self.overrides.setdefault(w, {})["mavlink_gcs"] = f"{self.front.addr[0]}:{self.front.addr[1]}"
         # what the scenario sets, as the first entry of each link's history (t = 0: the start)
         for name, rec in self.board.links.items():
-            kind, _, rest = name.partition(":")
+            kind, _, _rest = name.partition(":")
             text = faults.get(name)
             if text is None and kind == "mav":
                 text = faults.get(name.rsplit(":", 1)[0])

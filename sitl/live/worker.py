@@ -28,7 +28,6 @@ from pathlib import Path
 from sitl.live.pacer import Pacer, perf_now
 from sitl.scenario import WorkerSpec
 
-
 NETFAULT_STATUS_WALL_S = 5.0  # the status lines carry the bus-fault truths at most this often
 
 

@@ -91,7 +91,7 @@ def add_truths(a: dict, b: dict) -> dict:
 
 
 class _Link:
-    __slots__ = ("name", "apply", "truth", "history", "current")
+    __slots__ = ("apply", "current", "history", "name", "truth")
 
     def __init__(self, name, apply, truth):
         self.name = name
@@ -208,9 +208,9 @@ def serve(board: FaultBoard, bus, run_id: str, *, on_line: Callable[[str], None]
     """Subscribe the launcher's bus to the control key: each request is applied through the
     board and acknowledged on the ack key (same seq). Returns the subscription (queue mode:
     requests are handled when the launcher drains its bus)."""
-    from sitl.bus.schema import FaultControl
-
     from collections import OrderedDict
+
+    from sitl.bus.schema import FaultControl
     done: OrderedDict = OrderedDict()  # (source_id, seq) -> answer: a repeated request is answered, not re-applied
 
     def on_request(key: str, msg) -> None:
