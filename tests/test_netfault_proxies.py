@@ -308,6 +308,7 @@ def test_udp_bad_input_is_counted_not_fatal():
             assert s.up.tap.messages == 0 and s.up.tap.rejected_datagrams == len(junk)
             assert s.up.tap.bad_other + s.up.tap.truncated >= 2
         assert udp_free(p.addr[1]) and udp_free(p.upstream_addr[1]) and p.closed
+        assert p.stats().up.tap.rejected_datagrams == len(junk)  # the final figures stay readable
         assert parse_addr("127.0.0.1:14550") == ("127.0.0.1", 14550)
     finally:
         gcs.close()
@@ -472,6 +473,8 @@ def test_tcp_reset_partition_from_spec_window_then_new_connections_work():
             assert st.resets == 1 and st.refused == 1 and st.accepted == 3 and st.partitions == 1
             port = p.addr[1]
         assert tcp_free(port)
+        final = p.stats()  # the final figures stay readable after close
+        assert (final.accepted, final.resets, final.refused, final.active) == (3, 1, 1, 0)
         with pytest.raises(ValueError, match="cannot apply to a TCP stream"):
             TcpProxy(srv.addr, spec="loss=1%")
     finally:

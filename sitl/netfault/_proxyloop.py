@@ -211,6 +211,16 @@ class ProxyLoop:
             except OSError as e:  # pragma: no cover - a socket closed under the selector
                 self.report("select", e)
                 events = []
+            # what fell due before these events happened goes first
+            now = self.clock()
+            while self._timers and (self._timers[0][0] <= now or self._timers[0][2].cancelled):
+                _t, _n, h = heapq.heappop(self._timers)
+                if h.cancelled:
+                    continue
+                try:
+                    h.fn()
+                except Exception as e:
+                    self.report("timer", e)
             for key, mask in events:
                 try:
                     key.data(mask)
@@ -223,15 +233,6 @@ class ProxyLoop:
                         fut.set_result(fn())
                     except BaseException as e:
                         fut.set_exception(e)
-            now = self.clock()
-            while self._timers and (self._timers[0][0] <= now or self._timers[0][2].cancelled):
-                _t, _n, h = heapq.heappop(self._timers)
-                if h.cancelled:
-                    continue
-                try:
-                    h.fn()
-                except Exception as e:
-                    self.report("timer", e)
 
 
 def truth_copy(truth, schedule: bool = True):

@@ -219,7 +219,7 @@ class TcpProxy:
         self.loop.call(apply)
 
     def stats(self, schedule: bool = True) -> TcpProxyStats:
-        """A consistent snapshot (schedule: as `UdpProxy.stats`)."""
+        """A consistent snapshot, also after `close` (schedule: as `UdpProxy.stats`)."""
         def snap():
             st = copy.copy(self._st)
             st.active = len(self._conns)
@@ -228,7 +228,8 @@ class TcpProxy:
             st.truth_down = truth_copy(self._lf_down.truth, schedule)
             st.loop_errors = dict(self.loop.errors)
             return st
-        return self.loop.call(snap)
+        # after close (and its loop's) nothing changes any more: the final figures
+        return snap() if self.loop.closed else self.loop.call(snap)
 
     @property
     def closed(self) -> bool:
@@ -294,6 +295,7 @@ class TcpProxy:
 
     # ---- loop thread: connections ----------------------------------------------------------------
     def _on_accept(self, _mask: int) -> None:
+        self._update_partition()  # a window may have begun or ended since its timer ran
         for _ in range(64):
             try:
                 cs, _addr = self._lsock.accept()
@@ -345,12 +347,16 @@ class TcpProxy:
         self.loop.interest(c.server, ev_s, c.on_server)
 
     def _on_client(self, c: _Conn, mask: int) -> None:
+        if c.closed:  # closed by an earlier event of the same select round
+            return
         if mask & _R:
             self._read(c, c.up)
         if mask & _W and not c.closed:
             self._pump(c, c.down)
 
     def _on_server(self, c: _Conn, mask: int) -> None:
+        if c.closed:  # closed by an earlier event of the same select round
+            return
         if c.connecting:
             err = c.server.getsockopt(socket.SOL_SOCKET, socket.SO_ERROR)
             if err:
@@ -368,6 +374,10 @@ class TcpProxy:
             self._pump(c, c.up)
 
     def _read(self, c: _Conn, p: _Pipe) -> None:
+        if self._windows:
+            self._update_partition()
+            if c.closed or self._part is not None:
+                return
         try:
             data = p.src.recv(READ_SIZE)
         except (BlockingIOError, InterruptedError):

@@ -267,12 +267,13 @@ class UdpProxy:
         self.loop.call(apply)
 
     def stats(self, schedule: bool = True) -> UdpProxyStats:
-        """A consistent snapshot. schedule=False: the truths without their per-packet schedule
+        """A consistent snapshot (also after `close`: the final figures). schedule=False: the truths without their per-packet schedule
         (counters only; `LinkTruth.reordered` then reads 0), cheap however long the run."""
         def snap():
             return UdpProxyStats(self._up.stats(schedule), self._down.stats(schedule), self.client,
                                  dict(self.loop.errors))
-        return self.loop.call(snap)
+        # after close (and its loop's) nothing changes any more: the final figures
+        return snap() if self.loop.closed else self.loop.call(snap)
 
     @property
     def closed(self) -> bool:
