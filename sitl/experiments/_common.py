@@ -10,11 +10,11 @@ import os
 import sys
 from pathlib import Path
 
-import numpy as np
-
 
 def strict(v):
     """A JSON-able copy: numpy to Python, inf / nan to None (json.dump(allow_nan=False) works)."""
+    import numpy as np
+
     if isinstance(v, dict):
         return {str(k): strict(x) for k, x in v.items()}
     if isinstance(v, (list, tuple)):

@@ -56,10 +56,14 @@ import time
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
-
-import numpy as np
+from typing import TYPE_CHECKING
 
 from sitl.experiments._common import component, prepare_out, progress_printer, save_figure, strict
+
+# numpy and the components are imported inside the functions: the CLI imports this module to
+# build its parser (add_args), and `skyfuse --help` must stay instant
+if TYPE_CHECKING:
+    import numpy as np
 
 SCENARIOS = ("beacon", "sonde")
 FAULTS = ("loss", "burst_loss", "delay_s", "partition_s")
@@ -169,6 +173,7 @@ class RunResult:
 def _held(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Forward-fill along axis 0 the rows that hold NaN (no estimate published that epoch):
     what a display shows is the latest estimate. Returns (filled, fresh)."""
+    import numpy as np
     fresh = np.all(np.isfinite(x), axis=-1)
     idx = np.where(fresh, np.arange(x.shape[0])[:, None], 0)
     np.maximum.accumulate(idx, axis=0, out=idx)
@@ -182,12 +187,14 @@ class BeaconRunner:
     geometry, BEACON_CASE, BEACON_UAVS UAVs); the world is the same for every condition."""
 
     def __init__(self, setup: Setup, trials: int, seed: int):
+        import numpy as np
         be = component("sitl.experiments.beacon")
         self.be, self.setup, self.trials, self.seed = be, setup, int(trials), int(seed)
         rng = np.random.default_rng([seed, 77, BEACON_UAVS, trials])  # as experiment beacon draws its starts
         self.tracks, self.prior = be.scenario("printed", BEACON_UAVS, setup.duration_s, trials, rng)
 
     def __call__(self, rules) -> RunResult:
+        import numpy as np
         be = self.be
         w0 = time.perf_counter()
         res = be.run_case(BEACON_CASE, self.tracks, self.trials, self.seed, locators=(be.PRODUCTION,),
@@ -208,6 +215,7 @@ class SondeRunner:
         self.scn = so.SondeScenario(duration_s=setup.duration_s, white_baseline=False)
 
     def __call__(self, rules) -> RunResult:
+        import numpy as np
         w0 = time.perf_counter()
         raw = self.so.run_trials(self.scn, self.seed, range(self.trials), modes=("fused",), bus_faults=rules)
         pos = np.swapaxes(raw["pos"][0], 0, 1)  # (K, T, 3)
@@ -225,6 +233,7 @@ RUNNERS = {"beacon": BeaconRunner, "sonde": SondeRunner}
 # ------------------------------------------------------------------ metrics
 def rmse(err2: np.ndarray, sel) -> float | None:
     """RMS over trials and the selected epochs (NaN: no estimate yet, left out)."""
+    import numpy as np
     e = err2[sel]
     e = e[np.isfinite(e)]
     return float(math.sqrt(e.mean())) if e.size else None
@@ -232,6 +241,7 @@ def rmse(err2: np.ndarray, sel) -> float | None:
 
 def per_trial_rmse(err2: np.ndarray, sel) -> np.ndarray:
     """RMS over the selected epochs of each trial (T,) (NaN: a trial without any estimate)."""
+    import numpy as np
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)
         return np.sqrt(np.nanmean(err2[sel], axis=0))
@@ -240,6 +250,7 @@ def per_trial_rmse(err2: np.ndarray, sel) -> np.ndarray:
 def windowed_mse(err2: np.ndarray, w: int) -> np.ndarray:
     """Mean over the trials and the epochs k .. k+w-1 of err2 (K, T), for each k (NaN where the
     window runs past the end or holds no estimate)."""
+    import numpy as np
     K = err2.shape[0]
     ok = np.isfinite(err2)
     s = np.concatenate([[0.0], np.cumsum(np.where(ok, err2, 0.0).sum(axis=1))])
@@ -254,6 +265,7 @@ def windowed_mse(err2: np.ndarray, w: int) -> np.ndarray:
 
 def _first_stay(r: np.ndarray, factor: float):
     """Smallest s with r[s:] <= factor throughout (NaN counts as not within); None if r[-1] is not."""
+    import numpy as np
     bad = ~(r <= factor)
     if not r.size or bad[-1]:
         return None
@@ -266,6 +278,7 @@ def recovery(t_s, err2, base_err2, heal_s: float, window_s: float, factor: float
     same window up to the end of the run: with the window [heal+s, heal+s+w) (``recovery_s``)
     and (heal+s-w, heal+s] (``recovery_trailing_s``).  Also the peak windowed ratio after the
     heal and the largest error of any trial after it."""
+    import numpy as np
     K = err2.shape[0]
     w = max(1, round(window_s / dt_s))
     with np.errstate(invalid="ignore", divide="ignore"):
@@ -288,6 +301,7 @@ def recovery(t_s, err2, base_err2, heal_s: float, window_s: float, factor: float
 
 def _mse_ratio_at(err2, base_err2, t_s, at_s) -> float:
     """MSE over the trials at the epoch ``at_s`` against the baseline's (squared RMS ratio)."""
+    import numpy as np
     k = int(np.searchsorted(t_s, at_s - 1e-9))
     with np.errstate(invalid="ignore", divide="ignore"):
         return float(np.nanmean(err2[k]) / np.nanmean(base_err2[k]))
@@ -349,6 +363,7 @@ def sweep(scenarios=SCENARIOS, trials: int = 8, seed: int = 1, plan: Plan = DEFA
 
 def summarise(raw: dict, plan: Plan) -> dict:
     """conditions, recovery, targets and the plot series from sweep()'s output."""
+    import numpy as np
     conditions, recov, series, checks = [], [], {}, []
     for name, d in raw.items():
         setup, base = d["setup"], d["baseline"]
@@ -410,6 +425,7 @@ def summarise(raw: dict, plan: Plan) -> dict:
 
 
 def _rms_series(err2):
+    import numpy as np
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)
         return np.sqrt(np.nanmean(err2, axis=1))
@@ -447,6 +463,7 @@ COLORS = {"beacon": "C0", "sonde": "C3"}
 
 def plot(out: Path, summ: dict, meta: str) -> list[Path]:
     import matplotlib
+    import numpy as np
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
@@ -456,6 +473,7 @@ def plot(out: Path, summ: dict, meta: str) -> list[Path]:
     files = []
 
     def curve(fault, name):
+        import numpy as np
         rows = sorted((c for c in conds if c["scenario"] == name and c["fault"] == fault), key=lambda c: c["value"])
         return np.array([c["value"] for c in rows]), np.array([np.nan if c["ratio"] is None else c["ratio"]
                                                                for c in rows])
