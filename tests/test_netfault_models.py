@@ -518,3 +518,14 @@ def test_online_reorder_count_equals_schedule_and_record_false():
     for t in np.random.default_rng(2).uniform(0, 5, 3000):
         lf.process(t, b"x")
     assert lf.truth.reordered == lf.truth.reordered_indices().size
+
+
+def test_reordered_ties_follow_hand_out_order():
+    """delay 0.75 s on 0.25 s spacing, every 4th packet at once: packet 4k arrives exactly
+    when 4k+3 is sent at once (a tie: handed out first, delivered first, not reordered);
+    4k+1 and 4k+2 arrive after 4k+3 (reordered)."""
+    lf, outs = run("delay=750ms reorder=100% gap=4", n=400, dt=0.25)
+    expected = [i for i in range(400) if i % 4 in (1, 2)]
+    assert list(lf.truth.reordered_indices()) == expected
+    assert lf.truth.reordered == len(expected)
+    assert outs[0][0][0] == outs[3][0][0] == 0.75
