@@ -136,7 +136,7 @@ class _Stream:
     """A correlated (or plain) uniform stream (netem's crndstate), drawn in blocks; ``fn``
     maps the uniforms to the values handed out (a delay quantile), also per block."""
 
-    __slots__ = ("rng", "rho", "fn", "last0", "raw", "u", "buf", "i", "n")
+    __slots__ = ("buf", "fn", "i", "last0", "n", "raw", "rho", "rng", "u")
 
     def __init__(self, rng: np.random.Generator, rho: float, fn=None):
         self.rng = rng
@@ -445,10 +445,8 @@ class LinkFault:
                 tr.corrupted += 1
             d = at - t
             tr.delay_s_sum += d
-            if d > tr.delay_s_max:
-                tr.delay_s_max = d
-            if at < first:
-                first = at
+            tr.delay_s_max = max(tr.delay_s_max, d)
+            first = min(first, at)
         w = self._waiting
         while w and -w[0][0] > first:
             heapq.heappop(w)
@@ -527,8 +525,7 @@ class LinkFault:
             delay = spec.delay_s
             if spec.jitter_s > 0:
                 delay += spec.jitter_s * self._delay.next()
-                if delay < 0.0:
-                    delay = 0.0
+                delay = max(delay, 0.0)
             at = t + delay
             if spec.rate_bps > 0:
                 at = max(self._busy_until, at) + len(payload) * 8.0 / spec.rate_bps
@@ -600,8 +597,7 @@ class KeyFaults:
             while self._pending and self._pending[0][0] <= t_s:
                 t_c, _, expr, spec = heapq.heappop(self._pending)
                 self._apply(expr, spec, t_c)
-        if t_s > self._last_t:
-            self._last_t = t_s
+        self._last_t = max(self._last_t, t_s)
         lf = self._links.get(key)
         if lf is None:
             lf = self.link(key)

@@ -184,7 +184,7 @@ _IDENTITY = FaultSpec()
 
 def _fmt_num(x: float) -> str:
     r = repr(float(x))
-    return r[:-2] if r.endswith(".0") else r
+    return r.removesuffix(".0")
 
 
 def _fmt_frac(x: float) -> str:
