@@ -496,6 +496,16 @@ def test_zenoh_session_through_proxy_loses_link_in_silent_partition_and_recovers
             pub_s = zenoh.open(make_config("client", connect=[p.endpoint], lease_ms=lease_ms))
             sub = sub_s.declare_subscriber("nf/test/seq")
             pub = pub_s.declare_publisher("nf/test/seq", reliability=zenoh.Reliability.RELIABLE)
+            # the route exists once a first message gets through (the subscription has to reach
+            # the publisher's session first)
+            deadline = time.perf_counter() + 5.0
+            while sub.try_recv() is None:
+                assert time.perf_counter() < deadline, "no route from the publisher to the subscriber"
+                pub.put(b"-1")
+                time.sleep(0.02)
+            time.sleep(0.1)
+            while sub.try_recv() is not None:
+                pass
             t1 = clock() + 0.8
             t2 = t1 + part_s
             p.set(f"partition={t1}-{t2}")

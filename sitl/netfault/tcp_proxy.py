@@ -165,6 +165,7 @@ class TcpProxy:
             s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
             s.bind(listen)
             s.listen(backlog)
+            self._backlog = backlog
             s.setblocking(False)
             self.addr: tuple[str, int] = s.getsockname()
             self.loop.call(self._start)
@@ -289,6 +290,10 @@ class TcpProxy:
                     self._st.resets += 1
                     self._close_conn(c, reset=True)
         self.loop.interest(self._lsock, 0 if part == "silent" else _R, self._on_accept)
+        try:  # silent: a full accept queue makes the kernel drop SYNs (the client retries them)
+            self._lsock.listen(0 if part == "silent" else self._backlog)
+        except OSError as e:
+            self.loop.report(f"{self.name}: listen", e)
         for c in list(self._conns):
             self._pump(c, c.up)
             self._pump(c, c.down)
