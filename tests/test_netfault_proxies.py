@@ -3,6 +3,7 @@
 and the TCP proxy on a Zenoh session's link (an embedded router, silent partitions)."""
 from __future__ import annotations
 
+import os
 import socket
 import threading
 import time
@@ -258,6 +259,7 @@ def test_udp_delay_wall_latency_is_delay_over_speed():
 def test_udp_many_proxies_share_one_thread_and_close_clean():
     n = 40
     before = proxy_threads()
+    fds = len(os.listdir("/proc/self/fd"))
     gcs = udp()
     clients = [udp() for _ in range(n)]
     loop = ProxyLoop.from_pacer(Pacer(1.0, 0.0))
@@ -286,6 +288,7 @@ def test_udp_many_proxies_share_one_thread_and_close_clean():
         for c in clients:
             c.close()
     assert wait_for(lambda: proxy_threads() == before, 2.0)
+    assert len(os.listdir("/proc/self/fd")) == fds  # every socket closed (the loop's wake-up pair too)
 
 
 def test_udp_bad_input_is_counted_not_fatal():
