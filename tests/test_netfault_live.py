@@ -234,6 +234,36 @@ def test_launcher_refuses_and_counts_what_it_cannot_apply_and_goes_on(control_se
     assert time.monotonic() - t0 < 1.0
 
 
+def test_a_run_without_faults_refuses_changes_and_loads_no_fault_models(tmp_path, capsys):
+    """A launcher whose scenario has no [faults] answers every change with one line (exit 2),
+    counts it, and its control side does not import sitl.netfault (numpy/scipy models)."""
+    import subprocess
+    import sys
+
+    from sitl.bus import Router, ZenohTransport
+    from sitl.live.netfaults import NoFaultBoard, serve
+    from sitl.netfault.cli import main
+    code = ("import sys, sitl.live.launcher, sitl.live.netfaults; "
+            "sys.exit(any(m.startswith('sitl.netfault') for m in sys.modules))")
+    assert subprocess.run([sys.executable, "-c", code], timeout=60, check=False).returncode == 0
+    board = NoFaultBoard()
+    with Router(listen=["tcp/127.0.0.1:0"]) as router, ZenohTransport(connect=router.endpoints) as bus:
+        serve(board, bus, "plain")
+        stop = threading.Event()
+        th = threading.Thread(target=lambda: [bus.drain() or stop.wait(0.02) for _ in iter(stop.is_set, True)])
+        th.start()
+        try:
+            ep = router.endpoints[0]
+            assert main(["set", "bus:plain/uav/**", "loss=5%", "--zenoh", ep, "--run", "plain"]) == 2
+            assert main(["list", "--zenoh", ep, "--run", "plain"]) == 0
+        finally:
+            stop.set()
+            th.join(2.0)
+    err = capsys.readouterr().err
+    assert "no [faults] table" in err and len(err.strip().splitlines()) == 1
+    assert board.report()["bad_requests"] == {"no faults in this run": 1}
+
+
 # ------------------------------------------------------------------ a short live run
 
 
@@ -274,6 +304,7 @@ hold_wall_s = 0.3
         def control():
             time.sleep(0.5)  # into the run (~4 simulated s)
             seen["set"] = fault_main(["set", "zenoh:vehicles0", "delay=20ms", "--out", str(tmp_path)])
+            seen["set_bus"] = fault_main(["set", "bus:nfl/uav/3/nav", "loss=100%", "--out", str(tmp_path)])
             seen["bad"] = fault_main(["set", "mav:1", "loss=1%", "--out", str(tmp_path)])
         th = threading.Thread(target=control)
         th.start()
@@ -283,7 +314,7 @@ hold_wall_s = 0.3
     seen["thread"].join(10.0)
     assert report["ok"], report.get("error")
     assert report["restarts"] == 0 and not report["orphans"]
-    assert seen["set"] == 0 and seen["bad"] == 2
+    assert seen["set"] == 0 and seen["set_bus"] == 0 and seen["bad"] == 2
     f = report["faults"]["links"]
     gs = f["zenoh:gs"]["truth"]
     assert gs["partitions"] == 1 and gs["accepted"] >= 2, gs  # the session was lost and came back
@@ -294,6 +325,11 @@ hold_wall_s = 0.3
     bus_rule = f["bus:nfl/uav/2/beacon/**"]["truth"]
     assert bus_rule["sent"] > 0 and bus_rule["dropped_loss"] > 0
     assert bus_rule["sent"] == bus_rule["delivered"] + bus_rule["dropped"]
+    # a bus rule added at run time by the control key reached the publishing worker
+    added = f["bus:nfl/uav/3/nav"]
+    assert [h["by"] for h in added["history"]] == ["control"]
+    assert added["truth"]["sent"] > 0 and added["truth"]["dropped_loss"] == added["truth"]["sent"]
+    assert report["faults"]["requests"] == 2
     # the GS's estimates: some before the partition, none published while it lasted reach
     # the launcher, and they resume after it heals
     pts = report["error_series"]["beacon/b1"]
@@ -301,7 +337,7 @@ hold_wall_s = 0.3
     assert any(t < 18 for t in ts) and any(t > 32 for t in ts), ts
     after = [e for t, e in pts if t > 34]
     assert after and max(after) < 200.0, after
-    assert report["faults"]["requests"] == 1 and report["faults"]["bad_requests"] == {}  # mav:1: refused by the CLI
+    assert report["faults"]["bad_requests"] == {}  # mav:1: refused by the CLI (not in run.json's links)
     for pid in seen["pids"]:
         assert _dead(pid)
     assert all(_tcp_free(p) for p in seen["proxy_ports"])

@@ -191,7 +191,7 @@ def launch(scn, out: Path, *, quiet: bool = False, stop: threading.Event | None 
         except (RouterError, ZenohTransportError, ZenohConfigError) as e:
             report["error"] = " ".join(str(e).split())
             return report
-        from sitl.netfault.control import FaultBoard, serve
+        from sitl.live.netfaults import NoFaultBoard, serve
         if scn.faults:
             from sitl.live.netfaults import LiveFaults
             try:
@@ -201,7 +201,7 @@ def launch(scn, out: Path, *, quiet: bool = False, stop: threading.Event | None 
                 return report
             fault_board = live_faults.board
         else:
-            fault_board = FaultBoard()
+            fault_board = NoFaultBoard()
         serve(fault_board, bus, run.id, on_line=lambda line: _say(status_stream, tty, line))
         run_json = _RunJson(out / "run.json", run.id, endpoints, fault_board)
         run_json.write()

@@ -24,18 +24,17 @@ from collections.abc import Callable
 from dataclasses import asdict, is_dataclass
 from typing import Any
 
-CTL_SUFFIX = "ctl/fault"
-ACK_SUFFIX = "ctl/fault/ack"
-LIST_LINK = "?"
-ERROR_PREFIX = "error: "
-
-
-def control_key(run_id: str) -> str:
-    return f"{run_id}/{CTL_SUFFIX}"
-
-
-def ack_key(run_id: str) -> str:
-    return f"{run_id}/{ACK_SUFFIX}"
+# the control keys and the launcher's request loop live with the launcher's wiring (no numpy /
+# scipy import: a run without faults must not pay for this package); re-exported here
+from sitl.live.netfaults import (  # noqa: E402
+    ACK_SUFFIX,
+    CTL_SUFFIX,
+    ERROR_PREFIX,
+    LIST_LINK,
+    ack_key,
+    control_key,
+    serve,
+)
 
 
 def canonical_link(link: str) -> str:
@@ -202,40 +201,6 @@ class FaultBoard:
             links.setdefault(n, {"current": None, "history": [], "truth": t})
         return {"links": links, "requests": self.requests, "bad_requests": dict(self.bad),
                 "errors": self.errors}
-
-
-def serve(board: FaultBoard, bus, run_id: str, *, on_line: Callable[[str], None] | None = None):
-    """Subscribe the launcher's bus to the control key: each request is applied through the
-    board and acknowledged on the ack key (same seq). Returns the subscription (queue mode:
-    requests are handled when the launcher drains its bus)."""
-    from collections import OrderedDict
-
-    from sitl.bus.schema import FaultControl
-    done: OrderedDict = OrderedDict()  # (source_id, seq) -> answer: a repeated request is answered, not re-applied
-
-    def on_request(key: str, msg) -> None:
-        if not isinstance(msg, FaultControl) or key != control_key(run_id):
-            return
-        rid = (msg.source_id, msg.seq)
-        if rid in done:
-            reply = done[rid]
-        else:
-            ok, text = board.handle(msg)
-            if on_line is not None and msg.link != LIST_LINK:
-                on_line(f"[fault] {msg.link} = {text}" if ok else f"[fault] refused {msg.link!r}: {text}")
-            reply = text if ok else ERROR_PREFIX + text
-            done[rid] = reply
-            while len(done) > 256:
-                done.popitem(last=False)
-        try:
-            bus.publish(ack_key(run_id), FaultControl(t_gps_s=msg.t_gps_s, source_id="launcher", seq=msg.seq,
-                                                      link=msg.link, spec=reply[:1000]))
-        except Exception as e:  # the answer is best effort; the change is applied and logged
-            board.bad["ack failed"] += 1
-            if on_line is not None:
-                on_line(f"[fault] ack failed: {type(e).__name__}: {e}")
-
-    return bus.subscribe(control_key(run_id), on_request)
 
 
 class WorkerFaultControl:
