@@ -24,7 +24,15 @@ The receiver-side tap (``tap=True``) parses each forwarded datagram as the recei
 (pymavlink, MAVLink 2 ardupilotmega dialect) and keeps, per (sysid, compid), the sequence
 statistics of the uint8 MAVLink seq (unwrapped, then `sitl.bus.transport.SequenceTracker`):
 received, missing (loss), duplicates, out_of_order, and the packets its CRC rejected. So the
-link statistics a receiver can see are comparable with the injected `LinkTruth`.
+link statistics a receiver can see are comparable with the injected `LinkTruth`. It parses
+one datagram at a time, as the vehicle endpoint does; a receiver whose parser runs across
+datagrams (mavutil's) can lose good packets after a corrupted one (measured: at corrupt=20 %
+mavutil accepted 759 of the 792 intact HEARTBEATs), never accept a corrupted one.
+
+Cost (measured, 200 proxies on one loop at 20 Hz each = 4000 datagrams/s, one direction,
+load ~5 on 2 cores): ~27 us of CPU per datagram without the tap, ~50 us with
+"loss=10% delay=50ms~10ms", ~80 us with the tap (pymavlink's pure-Python parse and CRC):
+10 %, 17 % and 28 % of a core. For large swarms pass ``tap=False``.
 """
 
 from __future__ import annotations
