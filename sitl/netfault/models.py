@@ -349,12 +349,16 @@ class LinkFault:
         self.record = bool(record)
         self.truth = LinkTruth(recorded=self.record)
         s = self.spec
-        self._loss = _Stream(rng, s.loss_corr)
-        self._dup = _Stream(rng, s.duplicate_corr)
-        self._corrupt = _Stream(rng, s.corrupt_corr)
-        self._reorder = _Stream(rng, s.reorder_corr)
-        self._delay = _Stream(rng, s.delay_corr, _QUANTILES[s.distribution])
-        self._ge_u = _Stream(rng, 0.0)
+        # one child generator per random stream (numpy's spawn, deterministic from rng): a
+        # model's draws do not depend on which other models are on (common random numbers:
+        # loss=20% drops a subset of what loss=30% drops, with or without a delay jitter)
+        g_loss, g_dup, g_corrupt, g_reorder, g_delay, g_ge, self._bit_rng = rng.spawn(7)
+        self._loss = _Stream(g_loss, s.loss_corr)
+        self._dup = _Stream(g_dup, s.duplicate_corr)
+        self._corrupt = _Stream(g_corrupt, s.corrupt_corr)
+        self._reorder = _Stream(g_reorder, s.reorder_corr)
+        self._delay = _Stream(g_delay, s.delay_corr, _QUANTILES[s.distribution])
+        self._ge_u = _Stream(g_ge, 0.0)
         self._ge_bad = False
         self._counter = 0
         self._busy_until = -math.inf
@@ -509,7 +513,7 @@ class LinkFault:
         bad = False
         if spec.corrupt > 0 and self._corrupt.next() < spec.corrupt and payload:
             b = bytearray(payload)
-            bit = int(self.rng.integers(len(b) * 8))
+            bit = int(self._bit_rng.integers(len(b) * 8))
             b[bit >> 3] ^= 1 << (bit & 7)
             payload = bytes(b)
             bad = True
