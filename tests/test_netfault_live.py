@@ -330,6 +330,10 @@ hold_wall_s = 0.3
     assert [h["by"] for h in added["history"]] == ["control"]
     assert added["truth"]["sent"] > 0 and added["truth"]["dropped_loss"] == added["truth"]["sent"]
     assert report["faults"]["requests"] == 2
+    # ... and is in the workers' spec files, ahead of the scenario's rule: a restarted worker has it
+    from sitl.scenario import WorkerSpec
+    respec = WorkerSpec.read(tmp_path / "specs" / "vehicles0.json").scenario_obj().faults.of_kind("bus")
+    assert respec == [("bus:nfl/uav/3/nav", "loss=100%"), ("bus:nfl/uav/2/beacon/**", "loss=25%")]
     # the GS's estimates: some before the partition, none published while it lasted reach
     # the launcher, and they resume after it heals
     pts = report["error_series"]["beacon/b1"]

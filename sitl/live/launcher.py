@@ -215,9 +215,13 @@ def launch(scn, out: Path, *, quiet: bool = False, stop: threading.Event | None 
         spec_dir = out / "specs"
         spec_dir.mkdir(exist_ok=True)
         sup = Supervisor(out / "logs", grace_s=3.0)  # closing a Zenoh session + interpreter exit: ~1 s
+        spec_paths = []
         for spec in worker_specs(scn, endpoints, out, live_faults.overrides if live_faults is not None else None):
             path = spec.write(spec_dir / f"{spec.name}.json")
+            spec_paths.append(path)
             sup.add_module(spec.name, spec.module, str(path), restart=True)
+        if live_faults is not None:  # a restarted worker starts with the bus rules of the moment
+            fault_board.on_change = lambda: (run_json.write(), live_faults.respec(spec_paths))
         sup.start_all()
         ready = sup.wait_ready(ready_timeout_s, stop)
         if warm is not None:

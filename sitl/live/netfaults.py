@@ -308,6 +308,26 @@ class LiveFaults:
     def start(self, wall_start_s: float) -> None:
         self.clock.start(wall_start_s)
 
+    def respec(self, spec_paths) -> None:
+        """Write the current bus-key rules into the workers' spec files, so that a worker
+        restarted later starts with the rules changed at run time (in KeyFaults' order; a rule
+        set to "none" stays, it still takes its keys)."""
+        import json
+        import os
+        b = self.board
+        bus = {n: b.bus_rules[n].current for n in b.bus_order}
+        for path in spec_paths:
+            try:
+                doc = json.loads(path.read_text(encoding="utf-8"))
+                faults = doc["scenario"].get("faults", {})
+                faults = {k: v for k, v in faults.items() if not k.startswith("bus:")}
+                doc["scenario"]["faults"] = {**faults, **bus}
+                tmp = path.with_suffix(".json.tmp")
+                tmp.write_text(json.dumps(doc, indent=1), encoding="utf-8")
+                os.replace(tmp, path)
+            except (OSError, ValueError, KeyError, TypeError) as e:
+                self.loop.report(f"respec {path}", e)
+
     def links(self) -> list[str]:
         return sorted(self.board.links)
 

@@ -109,6 +109,7 @@ class FaultBoard:
         self.clock = clock
         self.links: dict[str, _Link] = {}
         self.bus_rules: dict[str, _Link] = {}  # "bus:<expr>" -> its record (applied by the workers)
+        self.bus_order: list[str] = []  # the rules in KeyFaults' order (a rule added at run time goes first)
         self.bad: Counter = Counter()
         self.requests = 0
         self.errors: list[str] = []  # the last few error lines
@@ -139,6 +140,10 @@ class FaultBoard:
                 rec = self.bus_rules.get(name)
                 if rec is None:
                     rec = self.bus_rules[name] = _Link(name, None, None)
+                    if by == "scenario":
+                        self.bus_order.append(name)
+                    else:  # as KeyFaults.set: a new rule goes ahead of the others
+                        self.bus_order.insert(0, name)
                 self._record(rec, spec, t, by)
                 return rec.current
             targets = [name]
