@@ -352,7 +352,11 @@ class LinkFault:
         # one child generator per random stream (numpy's spawn, deterministic from rng): a
         # model's draws do not depend on which other models are on (common random numbers:
         # loss=20% drops a subset of what loss=30% drops, with or without a delay jitter)
-        g_loss, g_dup, g_corrupt, g_reorder, g_delay, g_ge, self._bit_rng = rng.spawn(7)
+        try:
+            children = rng.spawn(7)
+        except TypeError:  # a bit generator without a SeedSequence: seed children from it
+            children = [np.random.default_rng(int(x)) for x in rng.integers(2**63, size=7)]
+        g_loss, g_dup, g_corrupt, g_reorder, g_delay, g_ge, self._bit_rng = children
         self._loss = _Stream(g_loss, s.loss_corr)
         self._dup = _Stream(g_dup, s.duplicate_corr)
         self._corrupt = _Stream(g_corrupt, s.corrupt_corr)
