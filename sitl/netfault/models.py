@@ -15,7 +15,8 @@ linux ``net/sched/sch_netem.c`` ``netem_enqueue``, in its order:
    the clone is taken before the corruption;
 4. queue limit: a packet finding ``limit`` or more packets in the link (sent, not yet
    delivered) is dropped with its clone (netem: ``qlen >= limit``); netem's default limit is
-   1000 packets, ours is none (a simulated bus with a 2 s delay would hit it);
+   1000 packets, ours is none (a simulated bus with a 2 s delay would hit it); the link
+   counts its packets while it has a limit (one set at run time starts from an empty count);
 5. reorder / delay: unless reordering, ``delay = tabledist(latency, jitter)``; with a rate,
    ``deliver = max(link busy until, t + delay) + len * 8 / rate`` (netem's "last packet in
    queue is the reference" rule: one packet on the wire at a time); otherwise
@@ -55,7 +56,7 @@ frame and optional overheads; a caller that wants headers counted adds them to t
 Pareto's t has standard deviation 2/sqrt(3) ~ 1.15 (netem's table is not unit-variance).
 
 The models, their parameters, their netem equivalent and what tests/test_netfault_models.py
-checks (100,000 packets each):
+checks (100,000 packets for each model's statistics, 50,000 for some of the rules):
 
 ==============  =====================  ======================  ===============================
 model           spec text              netem                   test
