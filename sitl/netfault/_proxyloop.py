@@ -236,15 +236,18 @@ class ProxyLoop:
 
 
 def truth_copy(truth, schedule: bool = True):
-    """A copy of a `LinkTruth`; without ``schedule`` its per-packet arrays are left out (empty):
-    the counters only, at a cost that does not grow with the packets seen."""
-    if schedule:
+    """A copy of a `LinkTruth`; without ``schedule`` its per-packet schedule is left out (as
+    ``record=False`` truths: ``recorded`` False): the counters only, at a cost that does not
+    grow with the packets seen."""
+    if schedule or not getattr(truth, "recorded", True):
         return copy.deepcopy(truth)
     out = copy.copy(truth)
     for f in dataclasses.fields(out):
         v = getattr(out, f.name)
         if isinstance(v, array):
             setattr(out, f.name, array(v.typecode))
+    if hasattr(out, "recorded"):
+        out.recorded = False
     return out
 
 

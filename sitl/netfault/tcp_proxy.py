@@ -131,12 +131,14 @@ class TcpProxy:
     where clients connect (port 0: a free port; ``addr`` / ``endpoint`` give it); spec:
     FaultSpec or its text (delay, jitter, rate, partition); mode: "silent" or "reset" for the
     spec's partitions; rng: numpy Generator or int seed (jitter); clock / speed / loop as
-    `UdpProxy`; max_buffer: bytes held per direction and connection before reading stops."""
+    `UdpProxy`; max_buffer: bytes held per direction and connection before reading stops;
+    record: keep the timing models' per-chunk schedule (off: counters only)."""
 
     def __init__(self, target: str | tuple[str, int], *, listen: str | tuple[str, int] = ("127.0.0.1", 0),
                  spec=None, mode: str = "silent", rng: np.random.Generator | int | None = None,
                  clock: Callable[[], float] | None = None, speed: float = 1.0, loop: ProxyLoop | None = None,
-                 name: str = "tcp", max_buffer: int = DEFAULT_MAX_BUFFER, backlog: int = 128):
+                 name: str = "tcp", max_buffer: int = DEFAULT_MAX_BUFFER, backlog: int = 128,
+                 record: bool = False):
         self.name = name
         self.target = parse_addr(_strip_endpoint(target), f"{name}: target")
         listen = parse_addr(_strip_endpoint(listen), f"{name}: listen")
@@ -149,8 +151,8 @@ class TcpProxy:
         timing, self._windows = _stream_spec(as_spec(spec), name)
         from sitl.netfault import LinkFault
         r_up, r_down = as_rng(rng).spawn(2)
-        self._lf_up = LinkFault(timing, rng=r_up, name=f"{name}:up")
-        self._lf_down = LinkFault(timing, rng=r_down, name=f"{name}:down")
+        self._lf_up = LinkFault(timing, rng=r_up, name=f"{name}:up", record=record)
+        self._lf_down = LinkFault(timing, rng=r_down, name=f"{name}:down", record=record)
         self._manual: str | None = None  # mode of a manual partition, None if none
         self._part: str | None = None  # mode of the partition on now
         self._window_timers: list[TimerHandle] = []

@@ -203,9 +203,9 @@ class UdpProxyStats:
 
 
 class _Direction:
-    def __init__(self, name: str, spec, rng: np.random.Generator, tap: bool):
+    def __init__(self, name: str, spec, rng: np.random.Generator, tap: bool, record: bool):
         from sitl.netfault import LinkFault
-        self.fault = LinkFault(spec, rng=rng, name=name)
+        self.fault = LinkFault(spec, rng=rng, name=name, record=record)
         self.tap = MavlinkTap() if tap else None
         self.received = self.forwarded = self.send_errors = self.no_client = self.pending = 0
 
@@ -223,12 +223,14 @@ class UdpProxy:
     rng: a numpy Generator or an int seed (each direction gets its own child stream);
     clock / speed: simulation time and its speed (default: 0 now, real time), or
     loop: a shared `ProxyLoop` (its clock and speed are used); name: the link name
-    (e.g. "mav:3"); tap: keep the receiver-side MAVLink statistics."""
+    (e.g. "mav:3"); tap: keep the receiver-side MAVLink statistics; record: keep the truths'
+    per-packet schedule (``LinkFault(record=)``: ~26 bytes a packet; False for long runs)."""
 
     def __init__(self, target: str | tuple[str, int], *, listen: str | tuple[str, int] = ("127.0.0.1", 0),
                  up=None, down=None, client: str | tuple[str, int] | None = None,
                  rng: np.random.Generator | int | None = None, clock: Callable[[], float] | None = None,
-                 speed: float = 1.0, loop: ProxyLoop | None = None, name: str = "udp", tap: bool = True):
+                 speed: float = 1.0, loop: ProxyLoop | None = None, name: str = "udp", tap: bool = True,
+                 record: bool = True):
         self.name = name
         self.target = parse_addr(target, f"{name}: target")
         self.client = parse_addr(client, f"{name}: client") if client is not None else None
@@ -236,8 +238,8 @@ class UdpProxy:
         listen = parse_addr(listen, f"{name}: listen")
         up, down = as_spec(up), as_spec(down)
         r_up, r_down = as_rng(rng).spawn(2)
-        self._up = _Direction(f"{name}:up", up, r_up, tap)
-        self._down = _Direction(f"{name}:down", down, r_down, tap)
+        self._up = _Direction(f"{name}:up", up, r_up, tap, record)
+        self._down = _Direction(f"{name}:down", down, r_down, tap, record)
         self._own_loop = loop is None
         self.loop = loop if loop is not None else ProxyLoop(clock, speed, name=f"proxy-{name}")
         self._closed = False
@@ -275,8 +277,8 @@ class UdpProxy:
         self.loop.call(apply)
 
     def stats(self, schedule: bool = True) -> UdpProxyStats:
-        """A consistent snapshot (also after `close`: the final figures). schedule=False: the truths without their per-packet schedule
-        (counters only; `LinkTruth.reordered` then reads 0), cheap however long the run."""
+        """A consistent snapshot (also after `close`: the final figures). schedule=False: the
+        truths without their per-packet schedule (counters only), cheap however long the run."""
         def snap():
             return UdpProxyStats(self._up.stats(schedule), self._down.stats(schedule), self.client,
                                  dict(self.loop.errors))
