@@ -126,8 +126,8 @@ The transport has already rejected malformed / NaN payloads (counted by the tran
 outside plausible limits, a UAV position off the Earth's neighbourhood, a UAV covariance
 with a position sigma above ``max_uav_pos_sigma_m`` or a velocity sigma above
 ``max_uav_vel_sigma_m_s`` (an absurd navigation solution would be believed otherwise),
-a message older than the filter; ``counters`` has duplicates (same run, UAV and time) and
-messages of runs it does not track.  ``step`` gates each observer by its own 2-dof
+a message older than the lag window (``too_late``); ``counters`` has duplicates ((source,
+seq) seen before) and messages of runs it does not track.  ``step`` gates each observer by its own 2-dof
 normalised innovation (chi-square tail ``gate_prob``) and counts the rejections.
 
 Initialisation
@@ -242,6 +242,28 @@ through ``process`` without UAV ids); counters ``integrity_*``.  Recommended set
 bias test, no Huber, no adaptive R (``INTEGRITY``): the UAVs' navigation errors are
 correlated over tens of seconds, so the innovations are not white and the bias test would
 over-alarm.
+
+Late measurements, duplicates, a bad network (issue 8)
+------------------------------------------------------
+A measurement that arrives after its epoch was processed is used, not dropped, while it is at
+most ``lag_window_s`` (5 s) old: every step keeps a snapshot of what a step writes (the track
+and hypothesis arrays, the consider states with "consider", the start windows while a trial
+has not started; the integrity monitor's state is replaced per epoch, so kept by reference)
+and the epoch's inputs; a late measurement is added to its epoch's inputs and the next step
+restores the state from before that epoch and re-runs it and the later ones, every trial of
+the batch together (an untouched trial re-runs to the identical numbers), then processes the
+new epoch.  Only that epoch's Estimates are published: what went out at t used what had
+arrived by t (a fixed-lag filter's real-time output), re-runs publish nothing and their
+integrity events are not sent again (counted: ``late_accepted``, ``reprocess_runs``,
+``reprocessed_epochs``); the counters of the re-run epochs are taken back first, so each is
+counted once.  Older than the window: ``rejected["too_late"]``.  ``lag_window_s = 0`` keeps no
+history and drops a late one as ``stale`` (the behaviour before).  Cost: a step copies ~T (6 +
+36) floats (plus T N 36 x 3 with "consider"); see README for the bench figure.  Duplicates are
+discarded by (run/source id, seq) (``counters["duplicate"]``, each copy once), before any other
+check; a different message for a UAV and epoch already held counts ``duplicate_epoch``.
+After a partition (every UAV link silent) the tracks coast (mode "coast", "lost" after
+``max_coast_s``) with the covariance growing, and re-converge on the first epochs back: the
+per-observer gate is judged with that grown covariance, so the returning data are not refused.
 
 numpy/scipy plus sitl (bus, geodesy, multilateration, integrity events) and filters; never
 imports vehicles.
@@ -1004,7 +1026,9 @@ def _consider_update(y, P, C, nu, Hy, J, Pe, R0, mask, config, loglik, used_fixe
     Sjj = np.moveaxis(Sjj, 0, 1)
     if judge is not None and used_fixed is None:
         mask = judge(nu, np.stack([Sjj[..., 0, 0], Sjj[..., 1, 1]], axis=-1), mask)
-    s11, s21, s22 = _chol2(Sjj)
+    # absent slots (a lost message) keep their cross-covariances with the state, and their
+    # filler geometry can make their block indefinite: they are not used, so not factored
+    s11, s21, s22 = _chol2(np.where(mask[..., None, None], Sjj, np.eye(2)))
     w = _solve2(s11, s21, s22, nu[..., None])[..., 0]
     d = np.sum(w * w, axis=-1)
     if used_fixed is None:

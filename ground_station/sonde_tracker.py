@@ -158,6 +158,16 @@ range alone close to the radar, where the cross-range uncertainty reaches the ra
 and the EKF's linearisation breaks (NEES ~10^3 there with the EKF, ~5 with the UKF).
 ``filter="auto"`` picks per sonde and epoch: the UKF while sqrt(trace P_pos) exceeds
 ``auto_ukf_ratio`` (2 %) of the distance to the radar (or G), the EKF otherwise.
+
+Late messages and duplicates (issue 8). A relay or radar message for an epoch a step has
+already covered is used while it is at most ``lag_window_s`` (5 s) older than the last step:
+each step keeps a copy of what it writes (the per-sonde arrays, the satellites' error-state
+maps, the integrity monitor's bookkeeping) and the epochs it processed; the late message joins
+the step that would have processed it, and the next step restores the state from before that
+step and re-runs it and the later ones (only the new step's Estimates are published: what went
+out at t is what had arrived by t). Counters ``late_accepted``, ``reprocess_runs``,
+``reprocessed_epochs``; older ones ``too_late``; ``lag_window_s = 0``: dropped as ``stale`` (the
+behaviour before). Duplicates are discarded by (key, source id, seq), per stream.
 """
 from __future__ import annotations
 
