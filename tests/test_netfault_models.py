@@ -447,6 +447,12 @@ def test_receiver_view_equals_sequence_tracker():
     assert v["missing"] == c.missing
     assert v["received"] == c.new + c.out_of_order
     assert v["rejected_corrupt"] == int(bad.sum()) == tr.corrupted
+    # latency over the accepted copies; over all copies it is the truth's delay sum
+    v_all = tr.receiver_view(reject_corrupted=False)
+    assert v_all["copies"] == tr.delivered
+    assert v_all["latency_s_sum"] == pytest.approx(tr.delay_s_sum, rel=1e-12)
+    assert v_all["latency_s_max"] == tr.delay_s_max
+    assert v["copies"] == tr.delivered - tr.corrupted and v["latency_s_sum"] < v_all["latency_s_sum"]
     # the counters add up
     assert tr.sent == tr.dropped + len(np.unique(tr.copy_index))
     assert tr.delivered == tr.sent - tr.dropped + tr.duplicated

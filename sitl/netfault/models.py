@@ -221,6 +221,7 @@ class LinkTruth:
     copy_index: array = field(default_factory=lambda: array("q"), repr=False)
     copy_at_s: array = field(default_factory=lambda: array("d"), repr=False)
     copy_corrupt: array = field(default_factory=lambda: array("b"), repr=False)
+    sent_at_s: array = field(default_factory=lambda: array("d"), repr=False)  # per packet
     drop_index: array = field(default_factory=lambda: array("q"), repr=False)
     drop_cause: array = field(default_factory=lambda: array("b"), repr=False)
 
@@ -312,17 +313,20 @@ class LinkTruth:
         missing: seqs skipped and never accepted, counted from the first accepted seq
         (``highest - first + 1 - received``, as the tracker counts: leading losses are not
         seen); missing_total: ``sent - received`` (leading and trailing losses included);
-        rejected_corrupt: corrupted copies discarded."""
+        rejected_corrupt: corrupted copies discarded; copies, latency_s_sum, latency_s_max:
+        accepted copies (duplicates included) and their arrival minus send time."""
         idx, at, bad = self.delivery_order()
         keep = at <= until_s
         rejected = int(np.count_nonzero(bad & keep)) if reject_corrupted else 0
         if reject_corrupted:
             keep &= ~bad
-        idx = idx[keep]
+        idx, at = idx[keep], at[keep]
+        lat = at - np.frombuffer(self.sent_at_s, dtype=np.float64)[idx] if idx.size else at
         n_distinct = int(np.unique(idx).size)
         if idx.size == 0:
             return {"received": 0, "duplicates": 0, "out_of_order": 0, "gaps": 0, "missing": 0,
-                    "missing_total": self.sent, "rejected_corrupt": rejected, "highest_seq": -1}
+                    "missing_total": self.sent, "rejected_corrupt": rejected, "highest_seq": -1,
+                    "copies": 0, "latency_s_sum": 0.0, "latency_s_max": math.nan}
         prev_max = np.concatenate([[idx[0] - 1], np.maximum.accumulate(idx)[:-1]])
         gaps = int(np.count_nonzero(idx - prev_max > 1))
         highest = int(idx.max())
@@ -330,7 +334,8 @@ class LinkTruth:
                 "out_of_order": int(self._late_first(idx).size), "gaps": gaps,
                 "missing": highest - int(idx[0]) + 1 - n_distinct,
                 "missing_total": int(self.sent - n_distinct), "rejected_corrupt": rejected,
-                "highest_seq": highest}
+                "highest_seq": highest, "copies": int(idx.size),
+                "latency_s_sum": float(lat.sum()), "latency_s_max": float(lat.max())}
 
 
 class LinkFault:
@@ -430,6 +435,8 @@ class LinkFault:
         tr = self.truth
         idx = tr.sent
         tr.sent = idx + 1
+        if self.record:
+            tr.sent_at_s.append(t)
         spec = self.spec
         if spec.partitions and spec.down(t):
             self._drop(idx, 1)
