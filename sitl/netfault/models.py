@@ -199,7 +199,7 @@ class LinkTruth:
     ``reordered_indices().size``, which reads it from the delivery schedule).
 
     The schedule (``copy_*``, ``drop_*`` arrays: the index lists and `receiver_view`) is kept
-    unless the link was made with ``record=False`` (long live runs: ~26 bytes a packet);
+    unless the link was made with ``record=False`` (long live runs: ~34 bytes a packet);
     ``recorded`` says which.
     """
 
