@@ -294,6 +294,7 @@ hold_wall_s = 0.3
 [faults]
 "zenoh:gs" = "partition=18-30"
 "bus:nfl/uav/2/beacon/**" = "loss=25%"
+"mav:1" = "loss=5%"
 """)
     seen = {}
 
@@ -342,6 +343,7 @@ hold_wall_s = 0.3
     after = [e for t, e in pts if t > 34]
     assert after and max(after) < 200.0, after
     assert report["faults"]["bad_requests"] == {}  # mav:1: refused by the CLI (not in run.json's links)
+    assert report["faults"]["inactive"] == ["mav:1"]  # MAVLink is off: said, not silently dropped
     for pid in seen["pids"]:
         assert _dead(pid)
     assert all(_tcp_free(p) for p in seen["proxy_ports"])

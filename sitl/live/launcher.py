@@ -442,6 +442,12 @@ def summary_text(report: dict) -> str:
                      f"rejected inputs {sum((report.get('rejected') or {}).values())}")
         for reason, n in sorted((report.get("rejected") or {}).items()):
             lines.append(f"    rejected {reason}: {n}")
+    f = report.get("faults")
+    if f and (f.get("links") or f.get("requests")):
+        changes = sum(1 for ln in f["links"].values() for h in ln.get("history", []) if h.get("by") == "control")
+        lines.append(f"  network faults: {len(f['links'])} links, {changes} changed at run time, "
+                     f"{sum(f.get('bad_requests', {}).values())} requests refused"
+                     + (f"; not applied (no such link in this run): {', '.join(f['inactive'])}" if f.get("inactive") else ""))
     if report.get("bus_log"):
         lines.append(f"  bus log: {report['bus_log']['records']} records")
     if report.get("orphans"):

@@ -345,6 +345,10 @@ class LiveFaults:
                     filters[c.name] = add_truths(filters.get(c.name, {}), nf.get("filter") or {})
         out = self.board.report(bus_truths)
         out["bus_filters"] = filters
+        # scenario entries with no link in this run (e.g. mav:* with MAVLink off): not applied
+        out["inactive"] = [k for k, _ in self.scn.faults.links
+                           if not k.startswith("bus:") and k not in self.board.links
+                           and not {f"{k}:up", f"{k}:down"} <= set(self.board.links)]
         if self.front is not None:
             out["mav_front"] = dict(self.front.counters)
         out["proxy_errors"] = dict(self.loop.errors)

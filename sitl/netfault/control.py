@@ -123,7 +123,8 @@ class FaultBoard:
     def _record(self, rec: _Link, spec, t_s: float, by: str) -> None:
         text = spec_text(spec)
         rec.current = text
-        rec.history.append({"t_s": round(float(t_s), 6), "spec": text, "by": by})
+        # a change before the run's start (the clock is far below 0 then) holds from the start: 0
+        rec.history.append({"t_s": round(max(float(t_s), 0.0), 6), "spec": text, "by": by})
 
     def set(self, link: str, text: str, *, by: str = "control") -> str:
         """Apply ``text`` to ``link`` now; returns the canonical spec text. ValueError (one line)
