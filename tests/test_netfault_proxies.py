@@ -257,6 +257,41 @@ def test_udp_delay_wall_latency_is_delay_over_speed():
         veh.close()
 
 
+def test_udp_partition_window_in_simulation_time():
+    """A partition given in simulation seconds (GPS-like epoch, 5x real time) drops exactly
+    what the proxy received inside it, in that direction only."""
+    speed = 5.0
+    pacer = Pacer(speed, 1_400_000_000.0)
+    gcs, veh = udp(), udp()
+    try:
+        with UdpProxy(gcs.getsockname(), rng=0, clock=pacer.sim_now, speed=speed, name="mav:4") as p:
+            veh.sendto(b"first", p.addr)
+            assert recv_n(gcs, 1)
+            t1 = pacer.sim_now() + 0.6
+            t2 = t1 + 1.0  # 0.2 s of wall time
+            p.set(up=f"partition={t1}-{t2}", down=f"partition={t1}-{t2}")
+            sent = []
+            for i in range(50):  # 0.4 s of wall time around the window
+                t = pacer.sim_now()
+                veh.sendto(b"%d" % i, p.addr)
+                sent.append(t)
+                time.sleep(0.008)
+            got = {int(d) for d, _, _ in recv_n(gcs, 50, quiet_s=0.3)}
+            s = p.stats()
+        sent = np.array(sent)
+        lost = sorted(set(range(50)) - got)
+        tr = s.up.truth
+        assert tr.dropped_partition == len(lost) > 0 and tr.dropped == len(lost)
+        assert [i + 1 for i in lost] == tr.dropped_indices("partition").tolist()  # index 0 = "first"
+        slack = 0.05 * speed  # sent-to-received time (simulated s), generous
+        assert all(t1 - slack <= sent[i] < t2 for i in lost)
+        assert all(i in lost for i in np.flatnonzero((sent >= t1) & (sent < t2 - slack)))
+        assert s.down.truth.sent == 0  # the other direction saw nothing (and dropped nothing)
+    finally:
+        gcs.close()
+        veh.close()
+
+
 def test_udp_many_proxies_share_one_thread_and_close_clean():
     n = 40
     before = proxy_threads()
