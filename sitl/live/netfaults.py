@@ -24,10 +24,12 @@ the run's own clock at the start only ever jumps forward: nothing scheduled wait
 """
 from __future__ import annotations
 
+import argparse
 import selectors
 import socket
 from collections import Counter
 from collections.abc import Callable
+from pathlib import Path
 
 from sitl.live.pacer import wall_now
 
@@ -51,6 +53,40 @@ def control_key(run_id: str) -> str:
 
 def ack_key(run_id: str) -> str:
     return f"{run_id}/{ACK_SUFFIX}"
+
+
+# ---------------------------------------------------------------------- `skyfuse fault` arguments
+# (the parser is built at every `skyfuse` call: it lives here, light; sitl.netfault.cli runs it)
+
+DEFAULT_TIMEOUT_S = 5.0
+DEFAULT_OUTS = ("out/demo", "out/run")
+
+
+def add_fault_args(p: argparse.ArgumentParser) -> None:
+    """The `fault` command's subcommands (set, list) on the parser the lead's cli gives."""
+    sub = p.add_subparsers(dest="fault_command", metavar="ACTION", parser_class=type(p))
+    sub.required = True
+    s = sub.add_parser("set", help="change a link's fault while a live run goes",
+                       description="Change the network fault of one link of a running live run (0: acknowledged, "
+                                   "2: bad spec or unknown link, 1: no launcher answered).")
+    s.add_argument("link", help="mav:<sysid>[:up|:down], zenoh:<worker>, bus:<key expression>")
+    s.add_argument("spec", nargs="+", help='netem-like text, e.g. loss=10%% delay=100ms~20ms ("none": no fault)')
+    _where(s)
+    ls = sub.add_parser("list", help="the links of a live run and their current faults",
+                        description="List the links of a running live run and their current faults.")
+    _where(ls)
+
+
+def _where(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--out", type=Path, default=None, metavar="DIR",
+                   help="the run's output directory (its run.json names the router and the run; "
+                        f"default: the newest of {', '.join(DEFAULT_OUTS)})")
+    p.add_argument("--zenoh", action="append", default=None, metavar="tcp/HOST:PORT",
+                   help="the run's Zenoh router (instead of OUT/run.json; repeatable)")
+    p.add_argument("--run", default=None, metavar="ID", help="the run id (default: run.json's, else 'demo')")
+    p.add_argument("--timeout", type=float, default=DEFAULT_TIMEOUT_S, metavar="S",
+                   help=f"how long to wait for the launcher's answer (default {DEFAULT_TIMEOUT_S:g} s)")
+
 
 
 class NoFaultBoard:
@@ -366,7 +402,7 @@ class LiveFaults:
 
 
 __all__ = ["ACK_SUFFIX", "CTL_SUFFIX", "ERROR_PREFIX", "LIST_LINK", "LiveFaults", "MavFront", "NoFaultBoard",
-           "RunClock", "ack_key", "control_key", "serve"]
+           "RunClock", "ack_key", "add_fault_args", "control_key", "serve"]
 
 
 def _canon(text) -> str:

@@ -13,41 +13,17 @@ no launcher answers within --timeout seconds.
 """
 from __future__ import annotations
 
-import argparse
 import json
 import sys
 import time
 from pathlib import Path
 
+from sitl.live.netfaults import (  # the parser (light)
+    DEFAULT_OUTS,
+    add_fault_args,
+)
+
 EXIT_OK, EXIT_NO_ANSWER, EXIT_USAGE = 0, 1, 2
-DEFAULT_TIMEOUT_S = 5.0
-DEFAULT_OUTS = ("out/demo", "out/run")
-
-
-def add_fault_args(p: argparse.ArgumentParser) -> None:
-    """The `fault` command's subcommands (set, list) on the parser the lead's cli gives."""
-    sub = p.add_subparsers(dest="fault_command", metavar="ACTION", parser_class=type(p))
-    sub.required = True
-    s = sub.add_parser("set", help="change a link's fault while a live run goes",
-                       description="Change the network fault of one link of a running live run (0: acknowledged, "
-                                   "2: bad spec or unknown link, 1: no launcher answered).")
-    s.add_argument("link", help="mav:<sysid>[:up|:down], zenoh:<worker>, bus:<key expression>")
-    s.add_argument("spec", nargs="+", help='netem-like text, e.g. loss=10%% delay=100ms~20ms ("none": no fault)')
-    _where(s)
-    ls = sub.add_parser("list", help="the links of a live run and their current faults",
-                        description="List the links of a running live run and their current faults.")
-    _where(ls)
-
-
-def _where(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--out", type=Path, default=None, metavar="DIR",
-                   help="the run's output directory (its run.json names the router and the run; "
-                        f"default: the newest of {', '.join(DEFAULT_OUTS)})")
-    p.add_argument("--zenoh", action="append", default=None, metavar="tcp/HOST:PORT",
-                   help="the run's Zenoh router (instead of OUT/run.json; repeatable)")
-    p.add_argument("--run", default=None, metavar="ID", help="the run id (default: run.json's, else 'demo')")
-    p.add_argument("--timeout", type=float, default=DEFAULT_TIMEOUT_S, metavar="S",
-                   help=f"how long to wait for the launcher's answer (default {DEFAULT_TIMEOUT_S:g} s)")
 
 
 class _Usage(Exception):
