@@ -329,6 +329,7 @@ def test_udp_many_proxies_share_one_thread_and_close_clean():
 
 def test_udp_bad_input_is_counted_not_fatal():
     gcs, veh = udp(), udp()
+    before = proxy_threads()
     try:
         with pytest.raises(ValueError, match="target"):
             UdpProxy("no-port-here", name="mav:9")
@@ -349,6 +350,7 @@ def test_udp_bad_input_is_counted_not_fatal():
         assert udp_free(p.addr[1]) and udp_free(p.upstream_addr[1]) and p.closed
         assert p.stats().up.tap.rejected_datagrams == len(junk)  # the final figures stay readable
         assert parse_addr("127.0.0.1:14550") == ("127.0.0.1", 14550)
+        assert proxy_threads() == before  # the failed constructors left no loop running
     finally:
         gcs.close()
         veh.close()

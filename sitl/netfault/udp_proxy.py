@@ -38,6 +38,7 @@ load ~5 on 2 cores): ~27 us of CPU per datagram without the tap, ~50 us with
 from __future__ import annotations
 
 import copy
+import ipaddress
 import logging
 import selectors
 import socket
@@ -72,6 +73,15 @@ def parse_addr(addr: str | tuple[str, int], what: str = "address") -> tuple[str,
     if not isinstance(host, str) or not 0 <= port <= 65535:
         raise ValueError(f"{what}: expected HOST:PORT with a port 0..65535, got {addr!r}")
     return host, port
+
+
+def _bind_host_for(host: str) -> str:
+    """Where to bind a socket that sends to host: loopback for a loopback host (nothing
+    outside sees it), any interface otherwise."""
+    try:
+        return "127.0.0.1" if ipaddress.ip_address(socket.gethostbyname(host)).is_loopback else "0.0.0.0"
+    except (OSError, ValueError):
+        return "0.0.0.0"
 
 
 def as_spec(spec):
@@ -248,7 +258,7 @@ class UdpProxy:
             self._sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
             self._sock.bind(listen)
             self._up_sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-            self._up_sock.bind((listen[0], 0))
+            self._up_sock.bind((_bind_host_for(self.target[0]), 0))
             for s in (self._sock, self._up_sock):
                 s.setblocking(False)
                 try:
@@ -260,6 +270,8 @@ class UdpProxy:
             self.loop.call(self._register)
         except BaseException as e:
             self._release()
+            if self._own_loop:
+                self.loop.close()
             if isinstance(e, OSError):
                 raise OSError(e.errno, f"{name}: cannot listen on {listen[0]}:{listen[1]}: {e.strerror}") from None
             raise
