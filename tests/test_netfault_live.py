@@ -122,7 +122,20 @@ enabled = false
                     pass
         assert list(got) == [2] and tuple(got[2]) == front
         assert lf.front.counters["unknown_source"] == 1
+        # a run-time change through the board (what a `fault set mav:3 loss=100%` does): both directions
+        assert lf.board.set("mav:3", "loss=100%") == "loss=100%"
+        s3, mav3 = vehicles[2]
+        for _ in range(20):
+            s3.sendto(mav3.heartbeat_encode(2, 3, 0, 0, 4).pack(mav3), front)
+            mav3.seq = (mav3.seq + 1) % 256
+        deadline = time.monotonic() + 2.0
+        while time.monotonic() < deadline and lf.udp[3].stats().up.received < n + 20:
+            time.sleep(0.01)
+        st3 = lf.udp[3].stats()
+        assert st3.up.received == n + 20 and st3.up.forwarded == n and st3.up.truth.dropped_loss == 20
+        assert lf.udp[3].stats().down.truth.sent == 1  # the reply before the change
         rep = lf.report()
+        assert [h["spec"] for h in rep["links"]["mav:3:down"]["history"]] == ["none", "loss=100%"]
         assert rep["links"]["mav:2:up"]["current"] == "loss=30%"
         assert rep["links"]["mav:2:up"]["truth"]["truth"]["dropped_loss"] == truth2.truth.dropped_loss
         ports = [p.addr[1] for p in lf.udp.values()] + [front[1]]
