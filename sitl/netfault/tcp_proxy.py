@@ -303,6 +303,8 @@ class TcpProxy:
     # ---- loop thread: connections ----------------------------------------------------------------
     def _on_accept(self, _mask: int) -> None:
         self._update_partition()  # a window may have begun or ended since its timer ran
+        if self._part == "silent":
+            return
         for _ in range(64):
             try:
                 cs, _addr = self._lsock.accept()
