@@ -214,3 +214,27 @@ def test_faults_round_trip_through_the_worker_spec_json(tmp_path):
         # only the vehicles talk MAVLink through the front; the GS keeps the real GCS
         assert obj.mavlink.gcs == ("127.0.0.1:2222" if s.name == "vehicles0" else scn.mavlink.gcs)
     assert scn.mavlink.gcs == "127.0.0.1:14550"  # the scenario object itself is untouched
+
+
+_LINKS = st.one_of(st.builds(lambda i, d: f"mav:{i}{d}", st.integers(1, 4), st.sampled_from(["", ":up", ":down"])),
+                   st.sampled_from(["zenoh:gs", "zenoh:vehicles0"]),
+                   st.builds(lambda a, b: f"bus:{a}/{b}/**", st.sampled_from(["*", "demo"]),
+                             st.from_regex(r"[a-z][a-z0-9_]{0,5}", fullmatch=True)))
+_SPECS = st.builds(lambda d, j, p: f"delay={d}ms~{j}ms partition={p}-{p + 5}", st.integers(0, 500),
+                   st.integers(0, 50), st.integers(0, 100))
+
+
+@settings(max_examples=25, deadline=None)
+@given(entries=st.lists(st.tuples(_LINKS, _SPECS), max_size=6, unique_by=lambda e: e[0]))
+def test_any_faults_table_survives_the_spec_json_in_order(tmp_path_factory, entries):
+    """Whatever valid [faults] table: the worker sees the same entries in the same order
+    (first matching bus rule wins, so the order is part of the meaning)."""
+    import json as _json
+    doc = {"faults": dict(entries)}
+    scn = scenario_from_dict(doc)
+    assert list(scn.faults.links) == entries
+    d = tmp_path_factory.mktemp("spec")
+    for s in worker_specs(scn, ["tcp/127.0.0.1:7447"], d):
+        back = WorkerSpec.read(s.write(d / f"{s.name}.json")).scenario_obj()
+        assert list(back.faults.links) == entries
+        assert _json.loads((d / f"{s.name}.json").read_text())["scenario"]["faults"] == dict(entries)
