@@ -468,6 +468,36 @@ def test_tcp_rate_limit_throughput():
         srv.close()
 
 
+def test_tcp_back_pressure_bounds_what_the_proxy_holds_and_the_end_of_stream_flushes_all():
+    max_buffer = 1 << 20
+    srv = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+    srv.bind((LO, 0))
+    srv.listen()
+    try:
+        with TcpProxy(srv.getsockname(), spec="delay=10ms", max_buffer=max_buffer, name="zenoh:bp") as p:
+            c = socket.create_connection(p.addr, timeout=2)
+            conn, _ = srv.accept()  # a server that does not read for a while
+            with conn:
+                c.setblocking(False)
+                sent, blob, t0 = 0, b"x" * 65536, time.perf_counter()
+                while time.perf_counter() - t0 < 0.5:
+                    try:
+                        sent += c.send(blob)
+                    except BlockingIOError:
+                        time.sleep(0.01)
+                st = p.stats()
+                assert 0 < st.bytes_up_in - st.bytes_up_out <= max_buffer + 16384  # + one read
+                assert sent > st.bytes_up_in  # the rest waits in the sockets, not in the proxy
+                c.close()  # the end of stream reaches the server after every byte
+                conn.settimeout(3)
+                got = 0
+                while d := conn.recv(1 << 20):
+                    got += len(d)
+                assert got == sent
+    finally:
+        srv.close()
+
+
 def test_tcp_manual_silent_partition_holds_bytes_and_keeps_the_connection():
     srv = Server()
     try:
