@@ -145,6 +145,37 @@ def test_recovery_of_a_synthetic_error_burst():
     assert fx.recovery(t, base, base, heal_s=float(h), window_s=10.0, factor=2.0)["recovery_s"] == 0
 
 
+def test_summary_of_synthetic_runs_targets_and_outliers():
+    K, T = 240, 4
+    t = np.arange(K, dtype=float)
+    setup = fx.Setup("beacon", float(K - 1), 100.0, 150.0, margin_s=10.0)
+    fresh = np.ones((K, T), dtype=bool)
+
+    def run(e2):
+        return fx.RunResult(t, e2, fresh, {"sent": 10, "dropped_loss": 2, "links": 1}, {}, 0.0)
+
+    base = np.ones((K, T))
+    base[:, 3] = 1e4  # trial 3 diverged: 100 m against 1 m
+    part = base.copy()
+    part[150:180] *= 100.0  # 10x the error while partitioned (150-180 s), the baseline's after
+    raw = {"beacon": {"setup": setup, "baseline": run(base), "checks": {},
+                      "runs": {("loss", 0.2): ("loss=20%", run(base * 1.44)),
+                               ("partition_s", 30.0): ("partition=150-180", run(part))}}}
+    s = fx.summarise(raw, fx.Plan(loss=(0.2,), burst_loss=(), delay_s=(), partition_s=(30.0,)))
+    loss = next(c for c in s["conditions"] if c["fault"] == "loss" and c["value"] == 0.2)
+    assert math.isclose(loss["ratio"], 1.2) and math.isclose(loss["per_trial"]["ratio_median"], 1.2)
+    assert loss["link"]["lost_fraction"] == 0.2
+    p = next(c for c in s["conditions"] if c["fault"] == "partition_s")
+    assert math.isclose(p["rmse_during_partition_m"] / p["baseline_rmse_during_partition_m"], 10.0)
+    assert math.isclose(p["rmse_after_heal_m"], p["baseline_rmse_after_heal_m"])
+    (rec,) = s["recovery"]
+    # windows from the heal on hold no partition epoch; one ending at heal + s holds one while s <= 8
+    assert rec["recovery_s"] == 0 and rec["recovery_trailing_s"] == 9 and rec["heal_s"] == 180.0
+    assert len(s["targets"]) == 2 and all(tg["met"] for tg in s["targets"])
+    assert math.isclose(s["targets"][0]["measured_ratio"], 1.2)
+    assert s["baselines"][0]["outlier_trials"] == [3] and s["targets"][0]["baseline_outlier_trials"] == 1
+
+
 # ------------------------------------------------------------------ the scenarios with faults
 @pytest.fixture(scope="module")
 def beacon_runner():
@@ -211,7 +242,8 @@ def test_result_json_on_a_tiny_run(tmp_path, monkeypatch):
     out = tmp_path / "f"
     assert fx.main(_parse(["--out", str(out), "--quick", "--trials", "1", "--quiet"])) == 0
     doc = json.loads((out / "result.json").read_text())
-    for key in ("conditions", "recovery", "targets", "checks", "seed", "trials", "scenarios", "figures", "wall_s"):
+    for key in ("conditions", "recovery", "targets", "checks", "baselines", "seed", "trials", "scenarios", "figures",
+                "wall_s"):
         assert key in doc
     assert doc["trials"] == 1 and set(doc["scenarios"]) == {"beacon", "sonde"}
     for c in doc["conditions"]:

@@ -70,6 +70,7 @@ FAULTS = ("loss", "burst_loss", "delay_s", "partition_s")
 FIGURES = ("faults_loss.png", "faults_delay.png", "faults_recovery.png", "faults_partition_error.png")
 BEACON_CASE = "three_satellites"  # the seed's case (experiment beacon's first), printed geometry, 3 UAVs
 BEACON_UAVS = 3
+OUTLIER_FACTOR = 5.0  # a baseline trial this many times the median trial's RMSE has diverged
 LOSS_TARGET = {"scenario": "beacon", "fault": "loss", "value": 0.2, "max_ratio": 1.5}
 RECOVERY_TARGET = {"partition_s": 30.0, "max_recovery_s": 30.0}
 
@@ -364,11 +365,18 @@ def sweep(scenarios=SCENARIOS, trials: int = 8, seed: int = 1, plan: Plan = DEFA
 def summarise(raw: dict, plan: Plan) -> dict:
     """conditions, recovery, targets and the plot series from sweep()'s output."""
     import numpy as np
-    conditions, recov, series, checks = [], [], {}, []
+    conditions, recov, series, checks, baselines = [], [], {}, [], []
     for name, d in raw.items():
         setup, base = d["setup"], d["baseline"]
         sel = base.t_s >= setup.settle_s
         b = rmse(base.err2, sel)
+        pb = per_trial_rmse(base.err2, sel)
+        med = float(np.nanmedian(pb)) if np.isfinite(pb).any() else None
+        outliers = [int(j) for j in np.flatnonzero(~(pb <= OUTLIER_FACTOR * med))] if med else []
+        baselines.append({"scenario": name, "rmse_m": b, "per_trial_rmse_m": pb, "median_trial_rmse_m": med,
+                          "outlier_trials": outliers,
+                          "note": f"outlier: a trial whose fault-free RMSE exceeds {OUTLIER_FACTOR:g}x the median "
+                                  "trial's (a diverged track): it dominates the pooled baseline and every ratio"})
         n_meas = None
         for fault in FAULTS:
             if fault != "partition_s":  # the fault-free point of each curve
@@ -420,8 +428,12 @@ def summarise(raw: dict, plan: Plan) -> dict:
                            "passed": bool(same and gs_dup == lk.get("duplicated")),
                            "note": "every duplicate discarded once: the GS's duplicate count equals the injected "
                                    "one and the published estimates are bit-identical to the fault-free run's"})
-    return {"conditions": conditions, "recovery": recov, "targets": targets(conditions, recov), "series": series,
-            "checks": checks}
+    tg = targets(conditions, recov)
+    for t in tg:
+        bl = next((x for x in baselines if x["scenario"] == t["scenario"]), None)
+        t["baseline_outlier_trials"] = None if bl is None else len(bl["outlier_trials"])
+    return {"conditions": conditions, "recovery": recov, "targets": tg, "series": series, "checks": checks,
+            "baselines": baselines}
 
 
 def _rms_series(err2):
@@ -576,7 +588,7 @@ def add_args(p) -> None:
     p.add_argument("--out", type=output_dir, default=Path("out/faults"), metavar="DIR",
                    help="output directory for result.json and PNG figures (default out/faults)")
     p.add_argument("--trials", type=positive_int, default=None,
-                   help="Monte Carlo trials per condition (default 8; --quick 2)")
+                   help="Monte Carlo trials per condition (default 8; --quick 3)")
     p.add_argument("--seed", type=nonnegative_int, default=1, help="seed of the world and the faults (default 1)")
     p.add_argument("--duration", type=positive_float, default=None, metavar="S",
                    help="simulated time of every run, s at 1 Hz (default: beacon 300, sonde 600; --quick 250 / 460); "
@@ -584,7 +596,7 @@ def add_args(p) -> None:
     p.add_argument("--scenarios", default="beacon,sonde", metavar="NAMES",
                    help="comma-separated scenarios: beacon, sonde (default both)")
     p.add_argument("--quick", action="store_true",
-                   help="fewer levels (loss 20, 50 %%; burst 20 %%; delay 1 s; partitions 10, 30 s), 2 trials "
+                   help="fewer levels (loss 20, 50 %%; burst 20 %%; delay 1 s; partitions 10, 30 s), 3 trials "
                         "unless --trials, shorter runs")
     p.add_argument("--burst-len", type=positive_float, default=DEFAULT_PLAN.burst_len, metavar="N",
                    help=f"mean Gilbert-Elliott burst length, packets (default {DEFAULT_PLAN.burst_len:g})")
@@ -617,7 +629,7 @@ def _config(args):
             setups[n].check(plan)
         except ValueError as exc:
             raise UsageError(f"--duration: {exc}") from None
-    trials = args.trials if args.trials is not None else (2 if quick else 8)
+    trials = args.trials if args.trials is not None else (3 if quick else 8)
     return names, plan, setups, trials
 
 
@@ -661,6 +673,7 @@ def result_document(args, names, plan, setups, trials, raw, summ, wall, figs) ->
         "recovery": summ["recovery"],
         "targets": summ["targets"],
         "checks": summ["checks"],
+        "baselines": summ["baselines"],
         "all_targets_met": all(t["met"] for t in summ["targets"]) if summ["targets"] else None,
         "wall_s": wall,
         "wall_s_by_scenario": walls,
@@ -707,6 +720,11 @@ def table(doc) -> str:
         rows.append(f"check {c['scenario']:<7} {c['spec']}: injected {c['injected_duplicates']} duplicates, ground station "
                     f"counted {c['ground_station_duplicates']}; estimates identical to the fault-free run: "
                     f"{c['estimates_identical_to_baseline']} -> {'PASS' if c['passed'] else 'FAIL'}")
+    for bl in doc.get("baselines", []):
+        if bl["outlier_trials"]:
+            rows.append(f"WARNING {bl['scenario']}: fault-free trial(s) {bl['outlier_trials']} diverged (RMSE > "
+                        f"{OUTLIER_FACTOR:g}x the median trial's {bl['median_trial_rmse_m']:.3g} m): the pooled "
+                        "baseline and the ratios against it mean little; see the per-trial medians or use more trials")
     for t in doc["targets"]:
         v = t.get("measured_ratio", t.get("measured_recovery_s"))
         rows.append(f"TARGET {'MET' if t['met'] else ('NOT MET' if t['met'] is False else 'NOT RUN')}: {t['target']} "
