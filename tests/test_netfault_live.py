@@ -277,6 +277,44 @@ def test_a_run_without_faults_refuses_changes_and_loads_no_fault_models(tmp_path
     assert board.report()["bad_requests"] == {"no faults in this run": 1}
 
 
+def test_worker_applies_each_bus_request_once_and_counts_bad_ones():
+    """A worker's side of the control key (subscribe_async: no drain): a bus rule is applied
+    once however often the CLI repeats the request; a bad key expression or spec is counted,
+    other links are left to the launcher; the truths are summed per rule."""
+    from sitl.bus import Router, ZenohTransport
+    from sitl.bus.schema import FaultControl
+    from sitl.netfault import KeyFaults
+    from sitl.netfault.control import WorkerFaultControl, control_key
+    kf = KeyFaults([("w/uav/**", "none")], seed=3)
+    with Router(listen=["tcp/127.0.0.1:0"]) as router, \
+            ZenohTransport(connect=router.endpoints, faults=[kf]) as wbus, \
+            ZenohTransport(connect=router.endpoints) as cli:
+        ctl = WorkerFaultControl(wbus, "w", kf)
+        wbus.subscribe_async(control_key("w"), ctl.on_control)
+        assert cli.wait_for_subscribers(control_key("w"), 5.0)
+        reqs = [("bus:w/uav/2/**", "loss=100%", 1), ("bus:w/uav/2/**", "loss=100%", 1),  # a repeat
+                ("bus:w/**/*", "loss=1%", 2), ("bus:w/x", "loss=120%", 3), ("mav:1", "loss=1%", 4)]
+        for link, spec, seq in reqs:
+            cli.publish(control_key("w"), FaultControl(t_gps_s=0.0, source_id="cli", seq=seq, link=link, spec=spec))
+        deadline = time.monotonic() + 5.0
+        while time.monotonic() < deadline and ctl.applied + sum(ctl.bad.values()) < 3:
+            time.sleep(0.01)
+        time.sleep(0.1)  # the repeat and the mav request would have been handled by now too
+        assert ctl.applied == 1 and sum(ctl.bad.values()) == 2
+        for i in range(10):
+            for u in (1, 2):
+                wbus.publish(f"w/uav/{u}/nav", nav_msg(i))
+        assert [e for e, _ in kf.rules] == ["w/uav/2/**", "w/uav/**"]  # a new rule goes first
+        tr = ctl.truths()
+        assert tr["bus:w/uav/2/**"]["dropped_loss"] == tr["bus:w/uav/2/**"]["sent"] == 10
+        assert tr["bus:w/uav/**"]["delivered"] == tr["bus:w/uav/**"]["sent"] == 10
+
+
+def nav_msg(i):
+    from test_bus import nav
+    return nav(seq=i, t_gps_s=1.0 + i)
+
+
 # ------------------------------------------------------------------ a short live run
 
 

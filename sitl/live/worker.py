@@ -158,7 +158,7 @@ def open_bus(spec: WorkerSpec, lease_ms: int | None = None):
     from sitl.netfault import KeyFaults
     from sitl.netfault.control import WorkerFaultControl, control_key
     rules = [(link[4:], text) for link, text in scn.faults.of_kind("bus")]
-    kf = KeyFaults(rules, seed=fault_seed(scn.run.seed, spec.name))
+    kf = KeyFaults(rules, seed=fault_seed(scn.run.seed, spec.name), record=False)  # counters only: a long run
     bus = ZenohTransport(connect=list(spec.zenoh_connect), mode="client", lease_ms=lease_ms, faults=[kf],
                          fault_t0_s=scn.run.t0_gps_s, speed=scn.run.speed)
     ctl = WorkerFaultControl(bus, spec.run_id, kf)

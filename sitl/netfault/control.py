@@ -219,12 +219,19 @@ class WorkerFaultControl:
         self.kf = key_faults
         self.applied = 0
         self.bad: Counter = Counter()
+        self._seen: dict = {}  # (source_id, seq) of requests applied (the CLI repeats one until answered)
 
     def on_control(self, key: str, msg) -> None:
         from sitl.netfault import FaultSpecError, parse_spec
         link = getattr(msg, "link", "")
         if key != control_key(self.run_id) or not link.startswith("bus:"):
             return
+        rid = (msg.source_id, msg.seq)
+        if rid in self._seen:
+            return
+        self._seen[rid] = True
+        if len(self._seen) > 256:
+            del self._seen[next(iter(self._seen))]
         expr = link[4:]
         try:
             from sitl.bus import KeyExprError, validate_key_expr
