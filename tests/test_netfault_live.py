@@ -233,10 +233,12 @@ def test_launcher_refuses_and_counts_what_it_cannot_apply_and_goes_on(control_se
     ep = cs["router"].endpoints[0]
     assert main(["set", "mav:7", "loss=1%", "--zenoh", ep, "--run", "ctl"]) == 2
     assert "unknown link 'mav:7'" in capsys.readouterr().err
-    cs["board"].links["zenoh:gs"].apply = lambda spec, t: (_ for _ in ()).throw(
-        ValueError("zenoh:gs: loss cannot apply to a TCP stream"))
-    assert main(["set", "zenoh:gs", "loss=5%", "--out", str(cs["out"])]) == 2
+    assert main(["set", "zenoh:gs", "loss=5%", "--out", str(cs["out"])]) == 2  # refused here: a TCP link
     assert "TCP stream" in capsys.readouterr().err
+    cs["board"].links["zenoh:gs"].apply = lambda spec, t: (_ for _ in ()).throw(
+        ValueError("zenoh:gs: the proxy refused it"))  # a refusal only the launcher's side can see
+    assert main(["set", "zenoh:gs", "delay=5ms", "--out", str(cs["out"])]) == 2
+    assert "the proxy refused it" in capsys.readouterr().err
     assert cs["board"].bad == {"unknown link": 1, "bad spec": 1}
     assert any("refused" in line for line in cs["lines"])
     assert main(["set", "mav:1:up", "duplicate=1%", "--out", str(cs["out"])]) == 0

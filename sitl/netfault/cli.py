@@ -126,9 +126,15 @@ def fault_main(args) -> int:
         except ValueError as e:
             raise _usage(f"fault: {e}") from None
         try:
-            parse_spec(spec)
+            parsed = parse_spec(spec)
         except FaultSpecError as e:
             raise _usage(" ".join(str(e).split())) from None
+        if link.startswith("zenoh:"):  # a byte stream: delay, rate and partitions only
+            from sitl.netfault.tcp_proxy import _stream_spec
+            try:
+                _stream_spec(parsed, link)
+            except ValueError as e:
+                raise _usage(f"fault: {' '.join(str(e).split())}") from None
     else:
         link, spec = LIST_LINK, ""
     endpoints, run_id, doc = _target(args)
