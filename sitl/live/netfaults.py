@@ -37,6 +37,9 @@ PRESTART_OFFSET_S = 1e6  # simulated seconds below zero before the start (module
 # the proxies' receiver-side MAVLink tap (pymavlink parses every forwarded datagram: measured
 # ~35-70 us each in the launcher, beside ~40-70 us for front + proxy) only up to this many vehicles
 MAV_TAP_MAX_VEHICLES = 32
+# the MAVLink truths keep their per-packet schedule (~26 B a packet) only while vehicles x
+# simulated seconds stays below this (3 vehicles x 2 h at ~15 packets/s: ~8 MB); counters always
+MAV_RECORD_MAX_VEHICLE_S = 3 * 7200
 
 # ---------------------------------------------------------------------- the control key
 # (here rather than in sitl.netfault.control, which re-exports them: importing that package
@@ -321,7 +324,8 @@ class LiveFaults:
                 both = faults.get(link)
                 up, down = faults.get(f"{link}:up", both), faults.get(f"{link}:down", both)
                 p = UdpProxy((ghost, int(gport)), up=up, down=down, rng=np.random.default_rng(ss),
-                             loop=self.loop, name=link, tap=scn.n_vehicles <= MAV_TAP_MAX_VEHICLES)
+                             loop=self.loop, name=link, tap=scn.n_vehicles <= MAV_TAP_MAX_VEHICLES,
+                             record=scn.n_vehicles * scn.run.duration_s <= MAV_RECORD_MAX_VEHICLE_S)
                 self.udp[sysid] = p
                 vehicles[("127.0.0.1", m.base_port + 10 * i)] = p.addr
                 self.board.add_link(f"{link}:up", lambda spec, t, p=p: p.set(up=spec),
