@@ -2,18 +2,21 @@
 
 Per trial: innovation, diag(H P- H'), beta, the jump test, the window sums (running: + the new
 sample - the one leaving the ring), both window tests, the channel logic (jump runs,
-exclusion, readmission), the row mask, Huber weights, the R used by the update and the
-innovation-based R estimate.
+exclusion, readmission), the row mask, the Huber weight in R, the R used by the update and the
+innovation-based R estimate. The window statistics and Huber weights of the Report are not
+written here: the Report derives them from the new window sums and beta when read.
 
 Layout as in filters/_nbkernels.py: ``_block`` processes trials [lo, hi), LANES at a time, with
 its scratch allocated once per block; the drivers spread blocks over the cores (``*_par``) or
 run one block (``*_ser``). Every output is allocated by the caller and passed in. Everything a
 lane group needs is in that one function: a call per lane group would pay an atomic reference
-count on each of its ~45 arrays, shared by the threads (measured: a large part of the cost on
-two cores). With ``fuse`` the block then runs the EKF's sequential Joseph update on the lanes
-it has loaded (the arithmetic of _nbkernels._joseph_block), taking the monitor's innovations,
-mask and R as they are; without, the inert rows of H are zeroed in H and z, h are written out
-for a guarded model and any update.
+count on each of its ~40 arrays, shared by the threads (measured: a large part of the cost on
+two cores). The monitor works on [row, lane] scratch, loops over the lanes (vectorised); the
+batched arrays are touched only by one transposing load and one store per lane group. With
+``fuse`` the block then runs the EKF's sequential Joseph update on the lanes it has loaded (the
+arithmetic of _nbkernels._joseph_block), taking the monitor's innovations, mask and R as they
+are; without, the inert rows of H are zeroed in H and z, h are written out for a guarded model
+and any update.
 """
 from __future__ import annotations
 
@@ -27,18 +30,20 @@ from ._nbkernels import LANES, N_BLOCKS, _jit  # noqa: F401 (LANES: the caller r
 
 @nb.njit(**_jit)
 def _block(lo, hi, z, hx, H, P, r_nom, r_est, old_sq, old_b, stale, sum_sq, sum_b, jump_run, excluded, clean_run,
-           ch, prm, iprm, beta, jump, drift_stat, bias_stat, drift, inert, used, weight, r_used, y, new_sq, new_b,
-           sum_sq2, sum_b2, r_est2, excl2, newly, readmit, jr2, cr2, z_f, hx_g, fuse, x, xo, Po, nis, lanes):
+           ch, prm, iprm, beta, jump, drift, inert, used, r_used, y, new_sq, new_b, sum_sq2, sum_b2, r_est2, excl2,
+           newly, readmit, jr2, cr2, z_f, hx_g, fuse, x, xo, Po, nis, lanes):
     """The monitor (and with ``fuse`` the EKF's sequential Joseph update) on trials [lo, hi), LANES
-    trials at a time in the layout of _nbkernels._joseph_block (P[i, j, lane]): the lanes' P- and
-    H are loaded once, diag(H P- H') is computed on them (vectorised over the trials), the
-    monitor runs on the lane group, and the update takes its innovations, mask and R on the same
-    lanes. The update arithmetic is _joseph_block's (without the prediction), statement for
-    statement, so the result equals ekf_update on the guarded model (tested); H is then not
-    modified. Without ``fuse``: the inert rows of H are zeroed in H, z_f and hx_g written.
+    trials at a time in the layout of _nbkernels._joseph_block: every quantity of the lane group is
+    held as [row, lane] (P as [i, j, lane]) in scratch local to this function, so that each step of
+    the monitor is a loop over the lanes that LLVM vectorises (the batched arrays are only read and
+    written by the transposing loads and stores). diag(H P- H') runs over the columns of each row
+    that are nonzero in some lane (a pseudorange row has 4 of 8). The update arithmetic is
+    _joseph_block's (without the prediction), statement for statement, so the result equals
+    ekf_update on the guarded model (tested); H is then not modified. Without ``fuse``: the inert
+    rows of H are zeroed in H, z_f, hx_g, inert and r_used written.
 
     prm: (J, thr_ms, thr_b, huber_c, lam); iprm: (count, W, use_bias, persist, readmit_after,
-    use_huber, adapt_r, isolate, has_stale, write_zh). r_nom has 1 or N rows (shared or per
+    use_huber, adapt_r, isolate, has_stale, write_zh, min_channels). r_nom has 1 or N rows (shared or per
     trial). Returns the number of readmissions."""
     n = H.shape[2]
     m = z.shape[1]
@@ -46,18 +51,29 @@ def _block(lo, hi, z, hx, H, P, r_nom, r_est, old_sq, old_b, stale, sum_sq, sum_
     B = lanes
     J, thr_ms, thr_b, huber_c, lam = prm[0], prm[1], prm[2], prm[3], prm[4]
     count, W, use_bias, persist, readmit_after = iprm[0], iprm[1], iprm[2] != 0, iprm[3], iprm[4]
-    use_huber, adapt_r, isolate, has_stale, write_zh = iprm[5] != 0, iprm[6] != 0, iprm[7] != 0, iprm[8] != 0, \
-        iprm[9] != 0
+    use_huber, adapt_r, isolate, has_stale = iprm[5] != 0, iprm[6] != 0, iprm[7] != 0, iprm[8] != 0
+    min_ch = iprm[10]
+    glob = not fuse  # a guarded model follows: z_f, hx_g, the row mask and R go out, H rows are zeroed
     J2 = J * J
+    fW = float(W)
+    fc = float(count)
+    off = float(W - count)  # the unfilled window slots, each holding beta^2 = 1
     shared_r = r_nom.shape[0] == 1
-    glob = not fuse  # the row mask and R: batched outputs for a guarded model, else lane-group scratch
-    zero_h = glob
     Pl = np.empty((n, n, B))
     Hl = np.empty((m, n, B))
-    yl = np.empty((m, B))
-    rl = np.empty((m, B))
     hl = np.empty((m, B))
     gl = np.empty(B)
+    nzr = np.empty((m, n), np.int64)
+    nzc = np.empty(m, np.int64)
+    zl, hxl, nul, rl, bl, yl = (np.empty((m, B)), np.empty((m, B)), np.empty((m, B)), np.empty((m, B)),
+                                np.empty((m, B)), np.empty((m, B)))
+    sql, sbl, ssl, sbs, rel = np.empty((m, B)), np.empty((m, B)), np.empty((m, B)), np.empty((m, B)), np.empty((m, B))
+    missl, jmpl, drfl, inl = (np.empty((m, B), np.bool_), np.empty((m, B), np.bool_), np.empty((m, B), np.bool_),
+                              np.empty((m, B), np.bool_))
+    jcl, dcl, exl, pcl = (np.empty((C, B), np.bool_), np.empty((C, B), np.bool_), np.empty((C, B), np.bool_),
+                          np.empty((C, B), np.bool_))
+    fl, rdl = np.empty(C, np.bool_), np.empty(C, np.bool_)
+    model_ = np.empty(B, np.int64)  # per lane: the isolation mode of the epoch
     dx = np.empty((n, B))
     b = np.empty((n, B))
     k = np.empty((n, B))
@@ -65,13 +81,6 @@ def _block(lo, hi, z, hx, H, P, r_nom, r_est, old_sq, old_b, stale, sum_sq, sum_
     sv = np.empty(B)
     acc = np.empty(B)
     idx = np.empty(n, np.int64)
-    hq = np.empty((B, m))
-    nu_t, rf, q2, qb = np.empty((B, m)), np.empty((B, m)), np.empty((B, m)), np.empty((B, m))
-    r_q, inert_q = np.empty((B, m)), np.empty((B, m), np.bool_)
-    inert_m = inert if glob else inert_q
-    r_m = r_used if glob else r_q
-    miss, jmp, drf = np.empty((B, m), np.bool_), np.empty((B, m), np.bool_), np.empty((B, m), np.bool_)
-    jump_ch, drift_ch = np.empty((B, C), np.bool_), np.empty((B, C), np.bool_)
     tot = 0
     for t0 in range(lo, hi, B):
         nl = min(B, hi - t0)
@@ -92,161 +101,193 @@ def _block(lo, hi, z, hx, H, P, r_nom, r_est, old_sq, old_b, stale, sum_sq, sum_
                 for a in range(m):
                     for i in range(n):
                         Hl[a, i, q] = 0.0
-        # diag(H P- H') per row, across the lanes: sum_i h_i (P_ii h_i + 2 sum_{l > i} P_il h_l)
-        for a in range(m):
-            for q in range(B):
-                hl[a, q] = 0.0
-            for i in range(n):
-                for q in range(B):
-                    gl[q] = Pl[i, i, q] * Hl[a, i, q]
-                for l in range(i + 1, n):
-                    for q in range(B):
-                        gl[q] += 2.0 * Pl[i, l, q] * Hl[a, l, q]
-                for q in range(B):
-                    hl[a, q] += Hl[a, i, q] * gl[q]
-        for q in range(nl):
-            for a in range(m):
-                hq[q, a] = hl[a, q]
-        # the monitor, in passes over the lane group (each pass touches a few batched arrays: one pass
-        # over all ~25 at once, trial by trial, defeats the hardware prefetcher, measured 2.4x slower)
-        # innovations (a NaN measurement is missing: 0 in its place) and the R in their variance: the
-        # nominal one, or the adaptive estimate when larger
+        # the per-row vectors of the lane group, transposed to [row, lane]
         for q in range(nl):
             t = t0 + q
             rt = 0 if shared_r else t
             for j in range(m):
-                zj = z[t, j]
+                zl[j, q] = z[t, j]
+                hxl[j, q] = hx[t, j]
+                rl[j, q] = r_nom[rt, j]
+                sql[j, q] = old_sq[t, j]
+                sbl[j, q] = old_b[t, j]
+                ssl[j, q] = sum_sq[t, j]
+                sbs[j, q] = sum_b[t, j]
+            if adapt_r:
+                for j in range(m):
+                    rel[j, q] = r_est[t, j]
+            if has_stale:  # a stale slot leaves the window as the healthy value it stands for
+                for j in range(m):
+                    if stale[t, j] > 0:
+                        sql[j, q] = 1.0
+                        sbl[j, q] = 0.0
+        # the columns of each row that are nonzero in some lane
+        for a in range(m):
+            nz = 0
+            for i in range(n):
+                any_ = False
+                for q in range(B):
+                    if Hl[a, i, q] != 0.0:
+                        any_ = True
+                if any_:
+                    nzr[a, nz] = i
+                    nz += 1
+            nzc[a] = nz
+        # per row, across the lanes: diag(H P- H') = sum_i h_i (P_ii h_i + 2 sum_{l > i} P_il h_l), the
+        # innovation (a NaN measurement is missing: 0 in its place), the R in its variance (the nominal
+        # one or the adaptive estimate when larger), beta, the jump test, the winsorised window samples,
+        # the running window sums (the new sample in, the oldest out) and both window tests
+        for a in range(m):
+            for q in range(nl):
+                hl[a, q] = 0.0
+            for c in range(nzc[a]):
+                i = nzr[a, c]
+                for q in range(nl):
+                    gl[q] = Pl[i, i, q] * Hl[a, i, q]
+                for d in range(c + 1, nzc[a]):
+                    l = nzr[a, d]
+                    for q in range(nl):
+                        gl[q] += 2.0 * Pl[i, l, q] * Hl[a, l, q]
+                for q in range(nl):
+                    hl[a, q] += Hl[a, i, q] * gl[q]
+            for q in range(nl):
+                zj = zl[a, q]
                 mj = not math.isfinite(zj)
-                if mj:
-                    zj = 0.0
-                miss[q, j] = mj
-                nu_t[q, j] = zj - hx[t, j]
-                if write_zh:
-                    z_f[t, j] = zj
-                r = r_nom[rt, j]
+                zj = 0.0 if mj else zj
+                v = zj - hxl[a, q]
+                r = rl[a, q]
                 if adapt_r:
-                    re = r_est[t, j]
-                    if math.isfinite(re) and re > r:
-                        r = re
-                rf[q, j] = r
-        # beta, the jump test and the (winsorised) window samples
-        for q in range(nl):
-            t = t0 + q
-            for j in range(m):
-                mj = miss[q, j]
-                bj = 0.0 if mj else nu_t[q, j] / math.sqrt(hq[q, j] + rf[q, j])
-                beta[t, j] = bj
-                jp = (abs(bj) >= J) and not mj
-                jmp[q, j] = jp
-                jump[t, j] = jp
+                    re = rel[a, q]
+                    r = re if (math.isfinite(re) & (re > r)) else r
+                bj = 0.0 if mj else v / math.sqrt(hl[a, q] + r)
+                jp = (abs(bj) >= J) & (not mj)
                 v2 = 1.0 if mj else min(bj * bj, J2)
                 vb = 0.0 if mj else min(max(bj, -J), J)
-                q2[q, j] = v2
-                qb[q, j] = vb
-                new_sq[t, j] = v2
-                new_b[t, j] = vb
-        # the window sums: the new sample in, the oldest out (a stale slot leaves as the healthy value)
+                ss = ssl[a, q] + v2 - sql[a, q]
+                sb = sbs[a, q] + vb - sbl[a, q]
+                ds = ss / fW if count == W else (ss - off) / fc
+                bs = sb * sb / fc
+                zl[a, q] = zj
+                nul[a, q] = v
+                rl[a, q] = r
+                bl[a, q] = bj
+                missl[a, q] = mj
+                jmpl[a, q] = jp
+                sql[a, q] = v2
+                sbl[a, q] = vb
+                ssl[a, q] = ss
+                sbs[a, q] = sb
+                drfl[a, q] = (ds > thr_ms) | (use_bias & (bs > thr_b))
+        # the channels: jump runs, exclusion, readmission; a member isolates only while at least
+        # min_channels of its present channels stay in (mode 2: rows and channels left out; 1: only
+        # the excluded channels, the jumped rows used; 0: detect only, nothing excluded)
+        for c in range(C):
+            for q in range(nl):
+                jcl[c, q] = False
+                dcl[c, q] = False
+                pcl[c, q] = False
+        for a in range(m):
+            c = ch[a]
+            for q in range(nl):
+                jcl[c, q] = jcl[c, q] | jmpl[a, q]
+                dcl[c, q] = dcl[c, q] | drfl[a, q]
+                pcl[c, q] = pcl[c, q] | (not missl[a, q])
         for q in range(nl):
             t = t0 + q
-            for j in range(m):
-                o2 = old_sq[t, j]
-                ob = old_b[t, j]
-                if has_stale and stale[t, j] > 0:
-                    o2, ob = 1.0, 0.0
-                sum_sq2[t, j] = sum_sq[t, j] + q2[q, j] - o2
-                sum_b2[t, j] = sum_b[t, j] + qb[q, j] - ob
-        # both window tests
-        for q in range(nl):
-            t = t0 + q
-            for j in range(m):
-                ss = sum_sq2[t, j]
-                sb = sum_b2[t, j]
-                ds = ss / W if count == W else (ss - (W - count)) / count
-                bs = sb * sb / count
-                drift_stat[t, j] = ds
-                bias_stat[t, j] = bs
-                dr = ds > thr_ms or (use_bias and bs > thr_b)
-                drf[q, j] = dr
-                drift[t, j] = dr
-        # the channels: jump runs, exclusion, readmission
-        for q in range(nl):
-            t = t0 + q
+            n_full = 0
+            n_in = 0
             for c in range(C):
-                jump_ch[q, c] = False
-                drift_ch[q, c] = False
-            for j in range(m):
-                c = ch[j]
-                if jmp[q, j]:
-                    jump_ch[q, c] = True
-                if drf[q, j]:
-                    drift_ch[q, c] = True
-            for c in range(C):
-                jc = jump_ch[q, c]
-                dc = drift_ch[q, c]
+                jc = jcl[c, q]
+                dc = dcl[c, q]
                 jr = jump_run[t, c] + 1 if jc else 0
                 jr2[t, c] = jr
                 fault = dc or jr >= persist
+                fl[c] = fault
                 ex = excluded[t, c]
                 clean = not (jc or (dc and not ex))  # out: the window tests do not apply
-                cr2[t, c] = clean_run[t, c] + 1 if clean else 0
-                if isolate:
-                    rd = ex and cr2[t, c] >= readmit_after
-                    readmit[t, c] = rd
-                    tot += rd
-                    excl2[t, c] = (ex or fault) and not rd
-                    newly[t, c] = fault and not ex
-                else:
+                cr = clean_run[t, c] + 1 if clean else 0
+                cr2[t, c] = cr
+                rd = isolate and ex and cr >= readmit_after
+                e2 = isolate and (ex or fault) and not rd
+                rdl[c] = rd
+                exl[c, q] = e2
+                if pcl[c, q] and not e2:
+                    n_in += 1
+                    if not jc:
+                        n_full += 1
+            mode = 0 if not isolate else (2 if n_full >= min_ch else (1 if n_in >= min_ch else 0))
+            model_[q] = mode
+            for c in range(C):
+                ex = excluded[t, c]
+                if not isolate:
                     readmit[t, c] = False
                     excl2[t, c] = False
-                    newly[t, c] = fault
-        # the row mask, Huber weights, the R and the innovations the update uses
+                    newly[t, c] = fl[c]
+                elif mode == 0:  # detect only: every fault reported, a channel that was out comes back
+                    rd = ex and isolate
+                    readmit[t, c] = rd
+                    tot += rd
+                    excl2[t, c] = False
+                    exl[c, q] = False
+                    newly[t, c] = fl[c]
+                else:
+                    rd = rdl[c]
+                    readmit[t, c] = rd
+                    tot += rd
+                    excl2[t, c] = exl[c, q]
+                    newly[t, c] = fl[c] and not ex
+        # the row mask, the Huber weight in R (R / w), the innovations the update uses and the
+        # innovation-based R estimate (admitted rows)
+        for a in range(m):
+            c = ch[a]
+            for q in range(nl):
+                it = missl[a, q] | (exl[c, q] | (jmpl[a, q] & (model_[q] == 2)))
+                inl[a, q] = it
+                if use_huber:
+                    ab = abs(bl[a, q])
+                    if ab > huber_c and not it:
+                        rl[a, q] = rl[a, q] * (1.0 / (huber_c / max(ab, 1e-300)))
+                yl[a, q] = 0.0 if it else nul[a, q]
+                if adapt_r:
+                    re = rel[a, q]
+                    v = nul[a, q]
+                    smp = v * v - hl[a, q]
+                    upd = (1.0 - lam) * re + lam * smp if math.isfinite(re) else smp
+                    rel[a, q] = re if it else upd
+        # the lane group's outputs, transposed back
         for q in range(nl):
             t = t0 + q
             for j in range(m):
-                it = miss[q, j]
-                if isolate:
-                    it = it or jmp[q, j] or excl2[t, ch[j]]
-                inert_m[t if glob else q, j] = it
-                used[t, j] = not it
-                w = 0.0 if it else 1.0
-                r = rf[q, j]
-                if use_huber and not it:
-                    ab = abs(beta[t, j])
-                    if ab > huber_c:
-                        w = huber_c / max(ab, 1e-300)
-                        r = r * (1.0 / w)
-                weight[t, j] = w
-                r_m[t if glob else q, j] = r
-                y[t, j] = 0.0 if it else nu_t[q, j]
-                # the innovation-based R estimate (admitted rows)
-                if adapt_r:
-                    re = r_est[t, j]
-                    if not it:
-                        sample = nu_t[q, j] * nu_t[q, j] - hq[q, j]
-                        re = (1.0 - lam) * re + lam * sample if math.isfinite(re) else sample
-                    r_est2[t, j] = re
-        if write_zh or zero_h:
-            for q in range(nl):
-                t = t0 + q
+                beta[t, j] = bl[j, q]
+                jump[t, j] = jmpl[j, q]
+                drift[t, j] = drfl[j, q]
+                used[t, j] = not inl[j, q]
+                y[t, j] = yl[j, q]
+                new_sq[t, j] = sql[j, q]
+                new_b[t, j] = sbl[j, q]
+                sum_sq2[t, j] = ssl[j, q]
+                sum_b2[t, j] = sbs[j, q]
+            if adapt_r:
                 for j in range(m):
-                    it = inert_m[t if glob else q, j]
-                    if write_zh:
-                        hx_g[t, j] = z_f[t, j] if it else hx[t, j]
-                    if zero_h and it:
+                    r_est2[t, j] = rel[j, q]
+            if glob:
+                for j in range(m):
+                    it = inl[j, q]
+                    inert[t, j] = it
+                    r_used[t, j] = rl[j, q]
+                    z_f[t, j] = zl[j, q]
+                    hx_g[t, j] = zl[j, q] if it else hxl[j, q]
+                    if it:
                         for a in range(n):
                             H[t, j, a] = 0.0
-        if not fuse:
+        if glob:
             continue
-        for q in range(nl):
-            t = t0 + q
-            for a in range(m):
-                yl[a, q] = y[t, a]
-                rl[a, q] = r_q[q, a]
-                if inert_q[q, a]:
+        for a in range(m):
+            for q in range(nl):
+                if inl[a, q]:
                     for i in range(n):
                         Hl[a, i, q] = 0.0
-        for q in range(nl, B):
-            for a in range(m):
+            for q in range(nl, B):
                 yl[a, q] = 0.0
                 rl[a, q] = 1.0
         # the sequential Joseph update (_nbkernels._joseph_block)
@@ -311,27 +352,25 @@ def _block(lo, hi, z, hx, H, P, r_nom, r_est, old_sq, old_b, stale, sum_sq, sum_
 
 @nb.njit(parallel=True, **_jit)
 def epoch_par(z, hx, H, P, r_nom, r_est, old_sq, old_b, stale, sum_sq, sum_b, jump_run, excluded, clean_run, ch,
-              prm, iprm, beta, jump, drift_stat, bias_stat, drift, inert, used, weight, r_used, y, new_sq, new_b,
-              sum_sq2, sum_b2, r_est2, excl2, newly, readmit, jr2, cr2, z_f, hx_g, fuse, x, xo, Po, nis, lanes):
+              prm, iprm, beta, jump, drift, inert, used, r_used, y, new_sq, new_b, sum_sq2, sum_b2, r_est2, excl2,
+              newly, readmit, jr2, cr2, z_f, hx_g, fuse, x, xo, Po, nis, lanes):
     N = z.shape[0]
     nb_ = min(N, N_BLOCKS)
     tot = 0
     for blk in nb.prange(nb_):
         lo, hi = blk * N // nb_, (blk + 1) * N // nb_
-        tot += _block(lo, hi, z, hx, H, P, r_nom, r_est, old_sq, old_b, stale, sum_sq, sum_b, jump_run,
-                                excluded, clean_run, ch, prm, iprm, beta, jump, drift_stat, bias_stat, drift, inert,
-                                used, weight, r_used, y, new_sq, new_b, sum_sq2, sum_b2, r_est2, excl2, newly,
-                                readmit, jr2, cr2, z_f, hx_g, fuse, x, xo, Po, nis, lanes)
+        tot += _block(lo, hi, z, hx, H, P, r_nom, r_est, old_sq, old_b, stale, sum_sq, sum_b, jump_run, excluded,
+                      clean_run, ch, prm, iprm, beta, jump, drift, inert, used, r_used, y, new_sq, new_b, sum_sq2,
+                      sum_b2, r_est2, excl2, newly, readmit, jr2, cr2, z_f, hx_g, fuse, x, xo, Po, nis, lanes)
     return tot
 
 
 @nb.njit(**_jit)
 def epoch_ser(z, hx, H, P, r_nom, r_est, old_sq, old_b, stale, sum_sq, sum_b, jump_run, excluded, clean_run, ch,
-              prm, iprm, beta, jump, drift_stat, bias_stat, drift, inert, used, weight, r_used, y, new_sq, new_b,
-              sum_sq2, sum_b2, r_est2, excl2, newly, readmit, jr2, cr2, z_f, hx_g, fuse, x, xo, Po, nis, lanes):
+              prm, iprm, beta, jump, drift, inert, used, r_used, y, new_sq, new_b, sum_sq2, sum_b2, r_est2, excl2,
+              newly, readmit, jr2, cr2, z_f, hx_g, fuse, x, xo, Po, nis, lanes):
     N = z.shape[0]
     # np.int64(0): a literal 0 would compile _block a second time, for the type Literal[int](0)
     return _block(np.int64(0), N, z, hx, H, P, r_nom, r_est, old_sq, old_b, stale, sum_sq, sum_b, jump_run,
-                  excluded, clean_run, ch, prm, iprm, beta, jump, drift_stat, bias_stat, drift, inert, used, weight,
-                  r_used, y, new_sq, new_b, sum_sq2, sum_b2, r_est2, excl2, newly, readmit, jr2, cr2, z_f,
-                  hx_g, fuse, x, xo, Po, nis, lanes)
+                  excluded, clean_run, ch, prm, iprm, beta, jump, drift, inert, used, r_used, y, new_sq, new_b,
+                  sum_sq2, sum_b2, r_est2, excl2, newly, readmit, jr2, cr2, z_f, hx_g, fuse, x, xo, Po, nis, lanes)

@@ -31,6 +31,15 @@ range and Doppler, one radar axis), given by ``channels`` (m,) ints:
   there trips the window tests again within their detection delay.
 Excluded rows are made inert (H row = 0, nu = 0: no information and no NIS) -- per batch
 member, so each trial or vehicle isolates its own channels.
+Redundancy (``min_channels`` k, 0: no limit): a member leaves rows or channels out only while at
+least k of its present channels (a row not missing) stay in -- where the estimate needs k
+channels to stay observable (a clock-free fix needs three satellites), isolating below that
+would lose the fix, and a drifting estimate soon makes the faulty channel look clean again. Per
+member and epoch the most isolation that keeps k channels in is applied: the excluded channels
+and the jumped rows (k channels keep all their rows); else only the excluded channels (jumped
+rows used); else none (detect only: every fault reported as with ``isolate=False``, a channel
+that was out comes back and is reported readmitted). With exactly k channels present the
+monitored update is the plain one.
 Robust update (Huber-type M-estimation): admitted rows with |beta_j| > ``huber_c`` get the
 weight w = huber_c / |beta_j| applied as R_jj / w (quadratic inside the threshold, linear
 outside), one reweighting at the prior.
@@ -86,6 +95,7 @@ class IntegrityConfig:
     adapt_r: bool = False  # innovation-based R estimate (nominal R is the floor)
     r_forget: float = 0.02  # its exponential forgetting factor lam, 0 < lam <= 1
     isolate: bool = True  # False: detect and report only, use every row as the plain filter
+    min_channels: int = 0  # isolate only while this many present channels stay in (below: detect only)
 
     def __post_init__(self):
         _pos("jump_sigma", self.jump_sigma, allow_inf=True)
@@ -98,6 +108,7 @@ class IntegrityConfig:
                 raise ValueError(f"{name} must be in (0, 1), got {a!r}")
         _count("persist", self.persist)
         _count("readmit_after", self.readmit_after)
+        _count("min_channels", self.min_channels, lo=0)
         if self.huber_c is not None:
             _pos("huber_c", self.huber_c)
         lam = self.r_forget
@@ -153,17 +164,76 @@ _NONE_I = np.empty((0, 0), dtype=np.int64)
 _NONE_B = np.empty((0, 0), dtype=bool)  # epochs between exact recomputations of the running window sums
 
 
-class Report(NamedTuple):
-    beta: np.ndarray  # (..., m) normalised innovations at the prior
-    jump: np.ndarray  # (..., m) bool: |beta| >= jump_sigma
-    drift_stat: np.ndarray  # (..., m) windowed mean of beta^2
-    bias_stat: np.ndarray  # (..., m) (windowed sum of beta)^2 / k
-    drift: np.ndarray  # (..., m) bool: either window statistic above its tolerance
-    used: np.ndarray  # (..., m) bool: the row entered the update
-    weight: np.ndarray  # (..., m) Huber weight of the row (1 inside the threshold, 0 if unused)
-    excluded: np.ndarray  # (..., C) bool after this epoch
-    newly_excluded: np.ndarray  # (..., C) bool
-    readmitted: np.ndarray  # (..., C) bool
+class Report:
+    """The statistics and verdicts of one monitored epoch (fields as a NamedTuple's: attribute
+    access, iteration in this order, ``_replace``):
+
+    beta (..., m) normalised innovations at the prior; jump (..., m) bool: |beta| >= jump_sigma;
+    drift_stat (..., m) windowed mean of beta^2; bias_stat (..., m) (windowed sum of beta)^2 / k;
+    drift (..., m) bool: either window statistic above its tolerance; used (..., m) bool: the row
+    entered the update; weight (..., m) Huber weight of the row (1 inside the threshold, 0 if
+    unused); excluded (..., C) bool after this epoch; newly_excluded (..., C) bool; readmitted
+    (..., C) bool.
+
+    The compiled monitor does not write drift_stat, bias_stat and weight (three arrays per row
+    that a caller seldom reads: sitl.integrity_events only for a ramp event's statistic); they
+    are derived from the new window sums and beta on first access, with the same arithmetic as
+    the numpy reference."""
+
+    _fields = ("beta", "jump", "drift_stat", "bias_stat", "drift", "used", "weight", "excluded", "newly_excluded",
+               "readmitted")
+    __slots__ = ("beta", "jump", "_drift_stat", "_bias_stat", "drift", "used", "_weight", "excluded", "newly_excluded",
+                 "readmitted", "_lazy")
+
+    def __init__(self, beta, jump, drift_stat, bias_stat, drift, used, weight, excluded, newly_excluded, readmitted):
+        self.beta, self.jump, self.drift, self.used = beta, jump, drift, used
+        self._drift_stat, self._bias_stat, self._weight = drift_stat, bias_stat, weight
+        self.excluded, self.newly_excluded, self.readmitted = excluded, newly_excluded, readmitted
+        self._lazy = None
+
+    @classmethod
+    def _derived(cls, beta, jump, drift, used, excluded, newly, readmit, sum_sq, sum_b, count, window, huber_c):
+        """A Report whose window statistics and weights come from (sum_sq, sum_b) and beta when read."""
+        r = cls(beta, jump, None, None, drift, used, None, excluded, newly, readmit)
+        r._lazy = (sum_sq, sum_b, int(count), int(window), huber_c)
+        return r
+
+    @property
+    def drift_stat(self):
+        if self._drift_stat is None:
+            ss, _, count, W, _ = self._lazy
+            self._drift_stat = ss / W if count == W else (ss - (W - count)) / count  # unfilled slots hold 1
+        return self._drift_stat
+
+    @property
+    def bias_stat(self):
+        if self._bias_stat is None:
+            _, sb, count, _, _ = self._lazy
+            self._bias_stat = sb * sb / count  # unfilled slots hold 0
+        return self._bias_stat
+
+    @property
+    def weight(self):
+        if self._weight is None:
+            c = self._lazy[4]
+            w = np.ones_like(self.beta)
+            if c is not None:
+                ab = np.abs(self.beta)
+                w = np.where(ab > c, c / np.maximum(ab, 1e-300), 1.0)
+            self._weight = np.where(self.used, w, 0.0)
+        return self._weight
+
+    def __iter__(self):
+        return (getattr(self, f) for f in self._fields)
+
+    def __len__(self):
+        return len(self._fields)
+
+    def _replace(self, **kw):
+        return Report(**{f: kw.pop(f, getattr(self, f)) for f in self._fields}, **kw)
+
+    def __repr__(self):
+        return "Report(" + ", ".join(f"{f}={getattr(self, f)!r}" for f in self._fields) + ")"
 
 
 class GuardedModel:
@@ -274,10 +344,12 @@ class IntegrityMonitor:
             raise ValueError("the integrity monitor needs a measurement model with a diagonal R (R_diag)")
         old_sq, old_b = state.ring[state.pos], state.ring_b[state.pos]
         if _use_kernel(update_kw.get("backend")):
-            res, (beta, jump, drift_stat, bias_stat, drift, used, w, sum_sq, sum_b, r_est, excluded, newly, readmit,
+            res, (beta, jump, drift, used, sum_sq, sum_b, r_est, excluded, newly, readmit,
                   jump_run, clean_run, new_sq, new_b), n_readmit = self._epoch_kernel(
                 state, x, P, z, model, hx, H, rd, ch, count, thr_ms, thr_b, old_sq, old_b, update, update_kw)
+            lazy, sum_sq_ep, sum_b_ep = True, sum_sq, sum_b  # the sums the epoch's tests saw (before any reset)
         else:
+            lazy = False
             if state.stale is not None:  # slots of a fresh window leave as the healthy values they stand for
                 gone = state.stale > 0
                 old_sq, old_b = np.where(gone, 1.0, old_sq), np.where(gone, 0.0, old_b)
@@ -313,7 +385,11 @@ class IntegrityMonitor:
             sum_b = np.add.reduce(rb, axis=0)
         new_state = MonitorState(ring, ring_b, sum_sq, sum_b, (pos + 1) % W, count, jump_run, excluded, clean_run,
                                  r_est, steps, stale)
-        report = Report(beta, jump, drift_stat, bias_stat, drift, used, w, excluded, newly, readmit)
+        if lazy:  # the compiled path: the statistics and weights from the epoch's sums and beta when read
+            report = Report._derived(beta, jump, drift, used, excluded, newly, readmit, sum_sq_ep, sum_b_ep, count, W,
+                                     cfg.huber_c)
+        else:
+            report = Report(beta, jump, drift_stat, bias_stat, drift, used, w, excluded, newly, readmit)
         return res, new_state, report
 
     def _epoch_kernel(self, state, x, P, z, model, hx, H, rd, ch, count, thr_ms, thr_b, old_sq, old_b, update,
@@ -365,7 +441,7 @@ class IntegrityMonitor:
         def bc(dtype=bool):
             return np.empty((N, C), dtype=dtype)
 
-        beta, drift_stat, bias_stat, weight, y, new_sq, new_b, sum_sq, sum_b = (fm() for _ in range(9))
+        beta, y, new_sq, new_b, sum_sq, sum_b = (fm() for _ in range(6))
         jump, drift, used = bm(), bm(), bm()
         excluded, newly, readmit, jump_run, clean_run = bc(), bc(), bc(), bc(np.int64), bc(np.int64)
         r_est = fm() if adapt else state.r_est
@@ -378,14 +454,15 @@ class IntegrityMonitor:
         xo, Po, nis = (np.empty((N, n)), np.empty((N, n, n)), np.empty(N)) if fuse else (_NONE_M, _NONE_P, _NONE_V)
         prm = np.array([cfg.jump_sigma, thr_ms, thr_b, cfg.huber_c or 0.0, cfg.r_forget])
         iprm = np.array([count, cfg.window, cfg.bias_alpha is not None, cfg.persist, cfg.readmit_after,
-                         cfg.huber_c is not None, adapt, cfg.isolate, has_stale, not fuse], dtype=np.int64)
+                         cfg.huber_c is not None, adapt, cfg.isolate, has_stale, not fuse, cfg.min_channels],
+                        dtype=np.int64)
         drive = _nbintegrity.epoch_par if N >= kernels.PARALLEL_MIN_TRIALS else _nbintegrity.epoch_ser
         n_readmit = drive(
             flat(z, (m,)), flat(hx, (m,)), Hk, Pf, rows(rd), flat(state.r_est, (m,)), flat(old_sq, (m,)),
             flat(old_b, (m,)), flat(state.stale, (m,), np.int64) if has_stale else _NONE_I, flat(state.sum_sq, (m,)),
             flat(state.sum_b, (m,)), flat(state.jump_run, (C,), np.int64), flat(state.excluded, (C,), bool),
             flat(state.clean_run, (C,), np.int64), ch.astype(np.int64), prm, iprm,
-            beta, jump, drift_stat, bias_stat, drift, inert, used, weight, r_used, y, new_sq, new_b, sum_sq, sum_b,
+            beta, jump, drift, inert, used, r_used, y, new_sq, new_b, sum_sq, sum_b,
             r_est if adapt else _NONE_M, excluded, newly, readmit, jump_run, clean_run, z_f, hx_g,
             fuse, xf, xo, Po, nis, min(N, _nbintegrity.LANES))
 
@@ -398,7 +475,7 @@ class IntegrityMonitor:
             gm = GuardedModel(model, shaped(z_f), shaped(inert), prepared=(x, shaped(hx_g), Hk.reshape(batch + (m, n))),
                               r_diag=shaped(r_used))
             res = update(x, P, shaped(z_f), gm, **update_kw)
-        arrays = tuple(shaped(a) for a in (beta, jump, drift_stat, bias_stat, drift, used, weight, sum_sq, sum_b)) + (
+        arrays = tuple(shaped(a) for a in (beta, jump, drift, used, sum_sq, sum_b)) + (
             shaped(r_est) if adapt else r_est,) + tuple(
             shaped(a) for a in (excluded, newly, readmit, jump_run, clean_run, new_sq, new_b))
         return res, arrays, int(n_readmit)
@@ -441,9 +518,22 @@ class IntegrityMonitor:
         clean_run = np.where(clean, state.clean_run + 1, 0)
         newly = fault_ch & ~excluded
         if cfg.isolate:
-            readmit = excluded & (clean_run >= cfg.readmit_after)
-            excluded = (excluded | fault_ch) & ~readmit
-            inert = missing | jump | excluded[..., ch]
+            was = excluded
+            readmit = was & (clean_run >= cfg.readmit_after)
+            excluded = (was | fault_ch) & ~readmit
+            # the isolation mode of each member: 2 rows and channels left out, 1 only the excluded
+            # channels (jumped rows used), 0 detect only -- the most that leaves min_channels present
+            # channels in
+            present = any_ch(~missing)
+            n_in = (present & ~excluded).sum(axis=-1)
+            n_full = (present & ~excluded & ~jump_ch).sum(axis=-1)
+            k = cfg.min_channels
+            mode = np.where(n_full >= k, 2, np.where(n_in >= k, 1, 0))
+            off = (mode == 0)[..., None]
+            readmit = np.where(off, was, readmit)
+            newly = np.where(off, fault_ch, newly)
+            excluded = excluded & ~off
+            inert = missing | excluded[..., ch] | (jump & (mode == 2)[..., None])
         else:
             readmit = np.zeros_like(excluded)
             excluded = np.zeros_like(excluded)

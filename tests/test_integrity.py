@@ -371,3 +371,116 @@ def test_the_fused_path_leaves_the_models_h_alone():
                          np.arange(m))
     assert not rep.used[:, 1].any()
     np.testing.assert_array_equal(model.last, np.broadcast_to(model.Hm, (trials, m, n)))
+
+
+# ---------------------------------------------------------------- redundancy: min_channels
+
+def _step_on(ch, k0, size):
+    def fault(k):
+        f = np.zeros(S)
+        if k >= k0:
+            f[ch] = size
+        return f
+    return fault
+
+
+def test_without_redundancy_the_monitor_detects_only_and_is_the_plain_filter():
+    """min_channels = S (every channel needed): fault-free, the monitored filter is the plain one
+    bit for bit although its jump test fires now and then; under a step it still reports the
+    channel every faulty epoch (newly_excluded, as detect-only) and still uses it."""
+    cfg = IntegrityConfig(min_channels=S)
+    e_mon, reps, _ = _run(cfg, 40, 80, seed=21)
+    e_plain, _, _ = _run(cfg, 40, 80, seed=21, monitor=False)
+    assert sum(int(r.jump.sum()) for r in reps) > 0  # the test did fire: the rule kept the rows in
+    np.testing.assert_array_equal(e_mon, e_plain)
+    fault = _step_on(3, 30, 8.0 * SIGMA)
+    e_mon, reps, _ = _run(cfg, 40, 60, seed=22, fault=fault)
+    e_plain, _, _ = _run(cfg, 40, 60, seed=22, fault=fault, monitor=False)
+    np.testing.assert_array_equal(e_mon, e_plain)
+    assert all(r.used.all() and not r.excluded.any() for r in reps)
+    flagged = np.array([r.newly_excluded[:, 3] for r in reps[31:]])
+    assert flagged.mean() > 0.95  # persist = 2: from the second faulty epoch on, every epoch
+
+
+def test_with_one_spare_channel_a_step_is_isolated_and_a_second_fault_falls_back_to_detect_only():
+    """min_channels = S - 1: one faulty channel is excluded (the rest stay in); when a second
+    channel steps as well, excluding both would leave S - 2: the monitor keeps its rows in
+    (detect only), the first channel comes back (readmitted) and the faults are reported."""
+    cfg = IntegrityConfig(min_channels=S - 1)
+
+    def fault(k):
+        f = np.zeros(S)
+        if k >= 30:
+            f[3] = 8.0 * SIGMA
+        if k >= 50:
+            f[5] = 8.0 * SIGMA
+        return f
+
+    trials = 60
+    _, reps, _ = _run(cfg, trials, 70, seed=23, fault=fault)
+    assert reps[40].excluded[:, 3].mean() > 0.95 and reps[40].excluded[:, [0, 1, 2, 4, 5, 6, 7]].mean() < 0.02
+    assert np.array([r.used[:, 3] for r in reps[32:50]]).mean() < 0.05
+    # from the second step on (persist = 2: epoch 51) nothing is left out; the first channel came back
+    assert np.array([r.used[:, [3, 5]] for r in reps[52:]]).mean() > 0.98
+    assert reps[51].readmitted[:, 3].mean() > 0.95
+    assert np.array([r.newly_excluded[:, [3, 5]] for r in reps[52:]]).mean() > 0.95
+    # the limit is on channels present: with a channel missing the same single step is not isolated
+    miss = IntegrityConfig(min_channels=S - 1)
+
+    def fault_missing(k):
+        f = _step_on(3, 30, 8.0 * SIGMA)(k)
+        f[6] = np.nan
+        return f
+
+    _, reps_m, _ = _run(miss, trials, 40, seed=23, fault=fault_missing)
+    assert all(not r.excluded.any() for r in reps_m) and np.array([r.used[:, 3] for r in reps_m]).all()
+
+
+@pytest.mark.parametrize("trials", [6, 300])  # the serial and the parallel driver
+def test_compiled_and_numpy_monitor_agree_on_the_redundancy_rule(trials):
+    """All three isolation modes (rows and channels out, channels only, detect only) reached:
+    the compiled monitor (fused and generic paths) equals the numpy reference."""
+    rng = np.random.default_rng(9)
+    n, m, C = 4, 10, 5
+    A = rng.normal(size=(trials, n, n))
+    P0 = A @ A.transpose(0, 2, 1) + np.eye(n)
+    x0 = rng.normal(size=(trials, n))
+    Hm = rng.normal(size=(m, n))
+    model = LinearGaussian(Hm, np.diag(rng.uniform(0.5, 2.0, m)))
+    ch = np.arange(m) // 2
+    mon = IntegrityMonitor(IntegrityConfig(min_channels=4, window=4, readmit_after=3, persist=2))
+
+    def generic(*a, **kw):
+        return ekf_update(*a, **kw)
+
+    runs = {}
+    for name, be, upd in (("numpy", "numpy", ekf_update), ("fused", "numba", ekf_update),
+                          ("generic", "numba", generic)):
+        ms = mon.init((trials,), m, C)
+        x, P = x0, P0
+        out = []
+        for k in range(18):
+            z = np.random.default_rng(100 + k).normal(size=(trials, m)) + x0 @ Hm.T
+            if 2 <= k < 12:
+                z[:, 2] += 30.0  # channel 1 steps: excluded (4 of 5 stay in)
+            if k == 6:
+                z[::2, 7] += 30.0  # a jump on channel 3 as well: its row is used (channels-only mode)
+            if 8 <= k < 10:
+                z[1::2, 0:2] += 30.0  # channel 0 steps too: detect only, channel 1 readmitted
+            if k == 13:
+                z[::3, 9] = np.nan
+            res, ms, rep = mon.step(ms, x, P, z, model, ch, update=upd, backend=be)
+            x, P = res.x, 0.5 * (res.P + np.swapaxes(res.P, -1, -2)) + 0.1 * np.eye(n)
+            out.append((res, rep))
+        runs[name] = out
+    reps = [r for _, r in runs["numpy"]]
+    assert any(r.excluded.any() for r in reps) and any(r.readmitted.any() for r in reps)
+    # (a healthy row's occasional 3-sigma jump changes a trial's mode: most trials, not all)
+    assert reps[6].used[::2, 7].mean() > 0.9 and reps[6].used[:, 2:4].mean() < 0.1  # channels only
+    assert reps[9].used[1::2].mean() > 0.9  # detect only
+    for other in ("fused", "generic"):
+        for (ra, pa), (rb, pb) in zip(runs["numpy"], runs[other]):
+            for u, v in zip(ra, rb):
+                np.testing.assert_allclose(u, v, rtol=1e-10, atol=1e-10)
+            for u, v in zip(pa, pb):
+                np.testing.assert_allclose(np.asarray(u, float), np.asarray(v, float), rtol=1e-10, atol=1e-10)
