@@ -231,12 +231,19 @@ def _sonde_counters(trk):
     return {k: v for k, v in trk.counters.as_dict().items() if k not in SONDE_LAG}
 
 
-@pytest.mark.parametrize("spec", ["delay=2s", "delay=1500ms~900ms"])
-def test_sonde_delay_within_window_reprocesses_to_the_undelayed_state(world, spec):
+@pytest.mark.parametrize("spec, integrity", [("delay=2s", False), ("delay=1500ms~900ms", False),
+                                             ("delay=1500ms~900ms", True)])
+def test_sonde_delay_within_window_reprocesses_to_the_undelayed_state(world, spec, integrity):
     K = 60
-    ref, _, _ = _sonde_run(world, K, steps_after=4)
+    params = None
+    if integrity:  # the monitor's cohorts, channels and events are state too
+        from filters.integrity import IntegrityConfig
+        params = SondeTrackerParams(mode="fused", integrity=IntegrityConfig(), integrity_warmup_s=5.0)
+    ref, _, _ = _sonde_run(world, K, steps_after=4, params=params)
     kf = KeyFaults([(f"{RUN}/sonde/**", spec), (f"{RUN}/radar/**", spec)], seed=2)
-    trk, got, _ = _sonde_run(world, K, faults=kf, steps_after=4)
+    trk, got, bus = _sonde_run(world, K, faults=kf, steps_after=4, params=params)
+    if integrity:
+        assert trk.counters.integrity_epochs > 0
     t, x, P = trk.state("s1")
     tr_, xr, Pr = ref.state("s1")
     assert t == tr_

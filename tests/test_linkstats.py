@@ -7,6 +7,8 @@ import math
 
 import numpy as np
 import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
 
 from sitl.bus import (
     InMemoryTransport,
@@ -72,10 +74,10 @@ def _gaps(truth) -> int:
     "delay=300ms~200ms",
     "delay=200ms reorder=25%",
     "loss=10% duplicate=10% delay=250ms~150ms",
-    "partition=20-35 delay=50ms",
+    "partition=20-35 delay=50ms",  # (0.1 s apart: packets 200-349)
 ])
 def test_stats_equal_the_injected_truth(spec):
-    n = 1500
+    n = 800
     truth, mon, bus, _ = _run(spec, n)
     view = truth.receiver_view()
     lk = mon.state("r1", "uav7")
@@ -91,6 +93,25 @@ def test_stats_equal_the_injected_truth(spec):
     assert lk.latency_max_s == pytest.approx(truth.delay_s_max, rel=1e-9, abs=1e-12)
     # the scenario did something (each spec is tested against a non-trivial truth)
     assert truth.dropped + truth.duplicated + truth.reordered + (truth.delay_s_max > 0) > 0
+
+
+@settings(derandomize=True, database=None, deadline=None, max_examples=15,
+          suppress_health_check=[HealthCheck.too_slow])
+@given(loss=st.sampled_from([0, 3, 30]), dup=st.sampled_from([0, 10, 60]), delay_ms=st.sampled_from([0, 50, 400]),
+       jitter=st.sampled_from([0.0, 0.5, 1.0]), reorder=st.sampled_from([0, 20]), corrupt=st.sampled_from([0, 10]),
+       seed=st.integers(0, 2**16))
+def test_stats_equal_the_receiver_view_for_any_spec(loss, dup, delay_ms, jitter, reorder, corrupt, seed):
+    parts = [f"loss={loss}%" if loss else "", f"duplicate={dup}%" if dup else "",
+             f"corrupt={corrupt}%" if corrupt else "",
+             f"delay={delay_ms}ms~{jitter * delay_ms:g}ms" if delay_ms else "",
+             f"reorder={reorder}%" if reorder and delay_ms else ""]
+    spec = " ".join(p for p in parts if p) or "none"
+    truth, mon, bus, _ = _run(spec, 300, seed=seed)
+    view = truth.receiver_view(reject_corrupted=True)
+    lk = mon.state("r1", "uav7")
+    assert (lk.received, lk.missing, lk.duplicates, lk.out_of_order, lk.gaps) == \
+        (view["received"], view["missing"], view["duplicates"], view["out_of_order"], _gaps(truth))
+    assert bus.stats.total.rejected.get("crc", 0) == view["rejected_corrupt"] == truth.corrupted
 
 
 def test_corrupted_copies_are_rejected_by_the_crc_and_never_counted():
