@@ -325,7 +325,7 @@ def test_fuzz_bit_flips(m, data):
     decode_or_reject(bytes(b))
 
 
-@settings(FAST, max_examples=300)
+@settings(FAST, max_examples=100)
 @given(messages, st.data())
 def test_single_bit_flip_always_rejected_by_the_crc(m, data):
     """The fault layer's ``corrupt`` flips one bit: never accepted (a changed float would pass
@@ -338,7 +338,7 @@ def test_single_bit_flip_always_rejected_by_the_crc(m, data):
     assert exc.value.reason == "crc"
 
 
-@settings(FAST, max_examples=150)
+@settings(FAST, max_examples=60)
 @given(messages, st.data())
 def test_burst_up_to_32_bits_always_rejected_by_the_crc(m, data):
     b = bytearray(encode(m))
