@@ -207,6 +207,18 @@ def test_beacon_partition_changes_nothing_before_it_and_drops_its_measurements(b
     assert r.link["dropped_loss"] == 0 and r.link["sent"] == beacon_baseline.gs["accepted"]
 
 
+def test_faults_from_leaves_the_run_untouched_before(beacon_runner, beacon_baseline):
+    plan = fx.Plan(faults_from_s=30.0)
+    r = beacon_runner(fx.bus_faults_for("loss", "loss=100%", plan, 5))
+    before = beacon_baseline.t_s < 30.0
+    assert np.array_equal(r.err2[before], beacon_baseline.err2[before])
+    # from 30 s on nothing arrives: the link truth counts exactly the measurements sent from then
+    assert r.link["sent"] == r.link["dropped_loss"] == (TINY_BEACON.duration_s - 30.0 + 1) * fx.BEACON_UAVS
+    assert r.gs["accepted"] == beacon_baseline.gs["accepted"] - r.link["sent"]
+    # partitions keep their own times
+    assert fx.bus_faults_for("partition_s", "partition=40-45", plan, 5) == [("**", "partition=40-45")]
+
+
 def test_total_loss_leaves_truth_and_estimates_alone(beacon_runner, beacon_baseline):
     r = beacon_runner([("**", "loss=100%")])
     assert r.gs.get("accepted", 0) == 0 and r.link["dropped_loss"] == r.link["sent"] > 0
@@ -270,6 +282,7 @@ def test_result_json_on_a_tiny_run(tmp_path, monkeypatch):
     (["--scenarios", ","], "--scenarios"),
     (["--duration", "200"], "--duration"),
     (["--burst-len", "0.5"], "--burst-len"),
+    (["--faults-from", "5000"], "--duration"),
 ])
 def test_usage_errors(tmp_path, argv, text):
     from sitl.cli import UsageError

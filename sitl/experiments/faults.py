@@ -88,6 +88,7 @@ class Plan:
     window_s: float = 10.0
     recovery_factor: float = 2.0
     duplicate_check: float = 0.2  # one extra run with this duplication: no duplicate counted twice (0: none)
+    faults_from_s: float = 0.0  # loss, burst loss and delay act on packets sent from here (0: acquisition included)
 
     def __post_init__(self):
         for name in ("loss", "burst_loss"):
@@ -99,6 +100,8 @@ class Plan:
             raise ValueError(f"partition_s: lengths in (0, 3600] s, got {self.partition_s}")
         if not self.burst_len >= 1.0:
             raise ValueError(f"burst_len: >= 1 packet, got {self.burst_len}")
+        if not (math.isfinite(self.faults_from_s) and self.faults_from_s >= 0.0):
+            raise ValueError(f"faults_from_s: a time >= 0, got {self.faults_from_s}")
         if not (0.0 <= self.jitter_frac <= 1.0 and self.window_s >= 1.0 and self.recovery_factor > 1.0):
             raise ValueError("jitter_frac in [0, 1], window_s >= 1, recovery_factor > 1")
 
@@ -122,7 +125,7 @@ class Setup:
     margin_s: float = 60.0  # simulated after the longest partition heals (recovery is judged there)
 
     def check(self, plan: Plan) -> None:
-        need = self.partition_at_s + max(plan.partition_s, default=0.0) + self.margin_s
+        need = max(self.partition_at_s + max(plan.partition_s, default=0.0), plan.faults_from_s + 1.0) + self.margin_s
         if self.duration_s < need:
             raise ValueError(f"{self.name}: duration {self.duration_s:g} s is too short: partitions from "
                              f"{self.partition_at_s:g} s up to {max(plan.partition_s, default=0):g} s long and "
@@ -158,6 +161,36 @@ def spec_for(fault: str, value: float, plan: Plan, setup: Setup) -> str:
         a = setup.partition_at_s
         return f"partition={a:.6g}-{a + value:.6g}"
     raise ValueError(f"unknown fault {fault!r}; one of {FAULTS}")
+
+
+def fault_seed(seed: int) -> int:
+    """The seed of a run's KeyFaults (as run_case / run_trials derive it from theirs)."""
+    return int(seed) * 1009 + 8
+
+
+class FaultsFrom:
+    """A FaultFilter: ``KeyFaults(rules, seed)`` on the packets sent at ``t >= t_on_s`` (time since
+    the run's start); earlier ones pass untouched (and draw nothing)."""
+
+    def __init__(self, rules, seed: int, t_on_s: float):
+        from sitl.netfault import KeyFaults
+
+        self.kf = KeyFaults(rules, seed=int(seed))
+        self.t_on_s = float(t_on_s)
+
+    def __call__(self, key, payload, t_s):
+        return self.kf(key, payload, t_s) if t_s >= self.t_on_s else [(t_s, payload)]
+
+    def truths(self) -> dict:
+        return self.kf.truths()
+
+
+def bus_faults_for(fault: str, spec: str, plan: Plan, seed: int) -> list:
+    """A run's bus_faults: the spec on every measurement link, from plan.faults_from_s for the
+    loss and delay faults (partitions carry their own times)."""
+    if plan.faults_from_s > 0 and fault != "partition_s":
+        return [FaultsFrom([("**", spec)], fault_seed(seed), plan.faults_from_s)]
+    return [("**", spec)]
 
 
 # ------------------------------------------------------------------ one run of a scenario
@@ -345,7 +378,7 @@ def sweep(scenarios=SCENARIOS, trials: int = 8, seed: int = 1, plan: Plan = DEFA
         conds = plan.conditions()
         for i, (fault, value) in enumerate(conds):
             spec = spec_for(fault, value, plan, setup)
-            r = runner([("**", spec)])
+            r = runner(bus_faults_for(fault, spec, plan, seed))
             runs[(fault, value)] = (spec, r)
             if progress:
                 sel = r.t_s >= setup.settle_s
@@ -583,7 +616,13 @@ def plot(out: Path, summ: dict, meta: str) -> list[Path]:
 
 # ------------------------------------------------------------------ the command
 def add_args(p) -> None:
-    from sitl.cli import nonnegative_int, output_dir, positive_float, positive_int
+    from sitl.cli import (
+        nonnegative_float,
+        nonnegative_int,
+        output_dir,
+        positive_float,
+        positive_int,
+    )
 
     p.add_argument("--out", type=output_dir, default=Path("out/faults"), metavar="DIR",
                    help="output directory for result.json and PNG figures (default out/faults)")
@@ -598,6 +637,9 @@ def add_args(p) -> None:
     p.add_argument("--quick", action="store_true",
                    help="fewer levels (loss 20, 50 %%; burst 20 %%; delay 1 s; partitions 10, 30 s), 3 trials "
                         "unless --trials, shorter runs")
+    p.add_argument("--faults-from", type=nonnegative_float, default=0.0, metavar="S",
+                   help="loss, burst loss and delay act on measurements sent from S s on (default 0: from the first "
+                        "epoch, the tracks' acquisition included); partitions keep their own times")
     p.add_argument("--burst-len", type=positive_float, default=DEFAULT_PLAN.burst_len, metavar="N",
                    help=f"mean Gilbert-Elliott burst length, packets (default {DEFAULT_PLAN.burst_len:g})")
     p.add_argument("--quiet", action="store_true", help="no progress lines")
@@ -614,11 +656,13 @@ def _config(args):
     quick = bool(getattr(args, "quick", False))
     try:
         plan = dataclasses.replace(QUICK_PLAN if quick else DEFAULT_PLAN,
-                                   burst_len=float(getattr(args, "burst_len", DEFAULT_PLAN.burst_len)))
+                                   burst_len=float(getattr(args, "burst_len", DEFAULT_PLAN.burst_len)),
+                                   faults_from_s=float(getattr(args, "faults_from", 0.0) or 0.0))
         for v in plan.burst_loss:
             spec_for("burst_loss", v, plan, SETUPS["beacon"])
     except ValueError as exc:
-        raise UsageError(f"--burst-len: {exc}") from None
+        flag = "--faults-from" if "faults_from" in str(exc) else "--burst-len"
+        raise UsageError(f"{flag}: {exc}") from None
     setups = dict(QUICK_SETUPS if quick else SETUPS)
     if args.duration is not None:
         if not (math.isfinite(args.duration) and args.duration <= 36000.0):
@@ -642,7 +686,8 @@ def run(args) -> dict:
     summ = summarise(raw, plan)
     wall = time.perf_counter() - wall0
     meta = (f"{trials} trials, seed {args.seed}; " + ", ".join(f"{n} {setups[n].duration_s:g} s" for n in names)
-            + "; faults on the measurement links only")
+            + "; faults on the measurement links only"
+            + (f", loss and delay from {plan.faults_from_s:g} s" if plan.faults_from_s else ""))
     figs = plot(out, summ, meta)
     doc = result_document(args, names, plan, setups, trials, raw, summ, wall, figs)
     (out / "result.json").write_text(json.dumps(doc, indent=1, allow_nan=False))
