@@ -486,6 +486,9 @@ def targets(conditions, recov) -> list[dict]:
                           f"{lt['max_ratio']:g}x the baseline",
                 "scenario": lt["scenario"], "measured_ratio": None if row is None else row["ratio"],
                 "limit": lt["max_ratio"],
+                "per_trial_ratio_median": None if row is None else row.get("per_trial", {}).get("ratio_median"),
+                "trials_above_2x_baseline": None if row is None else row.get("per_trial", {}).get(
+                    "trials_above_2x_baseline"),
                 "met": None if row is None or row["ratio"] is None else bool(row["ratio"] <= lt["max_ratio"])})
     rt = RECOVERY_TARGET
     for r in recov:
@@ -772,8 +775,12 @@ def table(doc) -> str:
                         "baseline and the ratios against it mean little; see the per-trial medians or use more trials")
     for t in doc["targets"]:
         v = t.get("measured_ratio", t.get("measured_recovery_s"))
+        extra = ""
+        if t.get("per_trial_ratio_median") is not None:
+            extra = (f"; median trial ratio {t['per_trial_ratio_median']:.3g}, "
+                     f"{t['trials_above_2x_baseline']} trial(s) above 2x")
         rows.append(f"TARGET {'MET' if t['met'] else ('NOT MET' if t['met'] is False else 'NOT RUN')}: {t['target']} "
-                    f"(measured {v if v is None else format(v, '.3g')})")
+                    f"(measured {v if v is None else format(v, '.3g')}{extra})")
     rows.append("ratio: pooled RMSE / fault-free RMSE (same seed); med.: median over trials of each trial's ratio; "
                 ">2x: trials whose RMSE exceeds twice their own fault-free RMSE; sent / lost / part.(itioned) / dup / "
                 "reord: injected truth over the measurement links; GS late: late (out-of-sequence) measurements the "
