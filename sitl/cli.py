@@ -326,7 +326,7 @@ def build_parser() -> argparse.ArgumentParser:
                                          description="Run a recorded bus log (OUT/bus.log) through the batch "
                                                      "ground station and compare its estimates with the recorded ones."))
 
-    from sitl.netfault import cli as _fault
+    from sitl.live import netfaults as _fault  # light: the fault models load only when the command runs
 
     _fault.add_fault_args(sub.add_parser(
         "fault", help="change or list a running live run's network faults (set LINK SPEC..., list)",

@@ -92,7 +92,6 @@ from collections.abc import Iterable
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy import signal, special
 
 from sitl.bus.transport import key_matches, validate_key, validate_key_expr
 
@@ -109,6 +108,8 @@ def crandom_block(v: np.ndarray, rho: float, last: float) -> np.ndarray:
     u_{-1} = last."""
     if rho == 0.0:
         return v
+    from scipy import signal  # here: importing scipy.signal costs 3-7 s, paid only by correlated draws
+
     y, _ = signal.lfilter([1.0 - rho], [1.0, -rho], v, zi=[rho * last])
     return y
 
@@ -120,6 +121,8 @@ def _pareto_std(u: np.ndarray) -> np.ndarray:
 
 def delay_quantile(distribution: str, u: np.ndarray) -> np.ndarray:
     """The standardised delay offset t(u) of a netem distribution: delay = mu + sigma t(u)."""
+    from scipy import special  # scipy.special is light; imported here like scipy.signal above
+
     u = np.asarray(u, dtype=float)
     if distribution == "uniform":
         return 2.0 * u - 1.0
