@@ -208,6 +208,55 @@ def test_uav_fault_free_monitored_is_not_worse_and_the_check_can_fail(uav_world)
     assert not bad and upper_b > upper, (upper_b, upper)
 
 
+def test_uav_three_satellites_the_monitor_detects_only_and_is_the_plain_filter(uav_world):
+    """The seed's three satellites (no redundancy: a clock-free fix needs all three): with
+    RECOMMENDED_INTEGRITY (min_channels = 3) the monitor never leaves a row out -- fault-free the
+    monitored filter is the plain one bit for bit although its jump test fires, and under a
+    300 m pseudorange step it still publishes the satellite's events (detect-only) while the
+    estimate stays the plain one's."""
+    pos, _, _ = uav_world
+    K = 60
+    const = uav_nav.seed002_three_satellites(pos[0, 0])
+    rng = np.random.default_rng(29)
+    t = T0 + np.arange(K, dtype=float)
+    vel = np.gradient(pos[:K], axis=0)
+    eps = [uav_nav.gnss_measure(rng, t[k], pos[k], vel[k], const, NavConfig(), trials_shape=(10,)) for k in range(K)]
+
+    def run(eps_, cfg, events=None):
+        nav = uav_nav.OnboardNav(const, cfg, events=events)
+        xs, jumps = [], 0
+        for e in eps_:
+            xs.append(nav.update(e).x)
+            jumps += 0 if nav.report is None else int(nav.report.jump.sum())
+        return np.array(xs), jumps
+
+    mon_cfg = NavConfig(integrity=UAV_CFG)
+    assert UAV_CFG.min_channels == 3
+    x_plain, _ = run(eps, NavConfig())
+    x_mon, jumps = run(eps, mon_cfg)
+    assert jumps > 0  # the jump test did fire on healthy rows: the rule kept them in
+    np.testing.assert_array_equal(x_mon, x_plain)
+    inj = FaultInjector([Fault("step", 1, 20.0, 40.0, magnitude=300.0)], eps[0].tracked.shape[:-1], 3)
+    frng = np.random.default_rng(0)
+    feps = [e._replace(pseudorange_m=inj.step(frng, float(k), e.pseudorange_m)[0]) for k, e in enumerate(eps)]
+    bus = InMemoryTransport(start_t_gps_s=T0)
+    got = []
+    bus.subscribe("uav3sat/gs/integrity/*", lambda key, m: got.append(m))
+    pub = IntegrityEventPublisher("uav3sat", lambda b: f"uav{b[-1] + 1}.integrity", bus)
+    x_mon, _ = run(feps, mon_cfg, pub)
+    bus.drain(T0 + K)
+    np.testing.assert_array_equal(x_mon, run(feps, NavConfig())[0])
+    name = str(const.sat_id[1])
+    steps = [m for m in got if m.event == "step" and 21 <= m.t_gps_s - T0 < 40]
+    assert {m.channel.split(".")[1] for m in steps} == {name}
+    # every trial and UAV reports it at the onset (an outlier) and at the second faulty epoch (a step:
+    # persist = 2); then the plain update, with no redundancy, pulls the fix onto the faulty range and
+    # the innovations shrink
+    onset = [m for m in got if m.t_gps_s - T0 in (20.0, 21.0) and m.channel.endswith("." + name)]
+    assert [m.event for m in onset].count("outlier") == 30 and [m.event for m in onset].count("step") == 30
+    assert not [m for m in got if m.event == "readmit"]  # nothing was out
+
+
 # ---------------------------------------------------------------- the sonde tracker
 
 SONDE = dict(duration_s=260.0, radar_loss_s=(5.0, 10.0), gnss_outage_s=(250.0, 255.0), white_baseline=False,
