@@ -167,7 +167,12 @@ the step that would have processed it, and the next step restores the state from
 step and re-runs it and the later ones (only the new step's Estimates are published: what went
 out at t is what had arrived by t). Counters ``late_accepted``, ``reprocess_runs``,
 ``reprocessed_epochs``; older ones ``too_late``; ``lag_window_s = 0``: dropped as ``stale`` (the
-behaviour before). Duplicates are discarded by (key, source id, seq), per stream.
+behaviour before). Duplicates are discarded by (key, source id, seq), per stream. Measured
+(``sitl.experiments.faults``' sonde runs: fused tracker, 8 trials, 600 s, relay and radar links
+down from 360 s): after a 30 s or a 60 s partition the 10 s RMSE is within 2x the fault-free
+run's from the heal on (per epoch after 3 s; 9 s with the window ending at the time), nothing
+gated, no re-acquisition; delay 1 / 2 s (+-20 % jitter): RMSE 1.84 / 2.19 m against 1.73 m
+(the real-time estimate predicts over the delay); 20 % loss: 1.63 m.
 """
 from __future__ import annotations
 
