@@ -509,6 +509,13 @@ def targets(conditions, recov) -> list[dict]:
 COLORS = {"beacon": "C0", "sonde": "C3"}
 
 
+def _ratio_scale(ax) -> None:
+    """Log scale when the ratios span more than 3x (a diverged run beside unharmed ones), else linear."""
+    ys = [y for ln in ax.get_lines() for y in ln.get_ydata() if y == y and y > 0]
+    if ys and max(ys) / min(ys) > 3.0:
+        ax.set_yscale("log")
+
+
 def plot(out: Path, summ: dict, meta: str) -> list[Path]:
     import matplotlib
     import numpy as np
@@ -538,7 +545,7 @@ def plot(out: Path, summ: dict, meta: str) -> list[Path]:
                label=f"target: beacon within {LOSS_TARGET['max_ratio']:g}x at {100 * LOSS_TARGET['value']:g} % loss")
     ax.axvline(100 * LOSS_TARGET["value"], color="C2", lw=0.6, ls=":")
     ax.axhline(1.0, color="k", lw=0.8)
-    ax.set_yscale("log")
+    _ratio_scale(ax)
     ax.set_xlabel("measurement packets lost, % (stationary loss for the bursts)")
     ax.set_ylabel("position RMSE / fault-free RMSE (same seed)")
     ax.grid(alpha=0.3, which="both")
@@ -553,10 +560,10 @@ def plot(out: Path, summ: dict, meta: str) -> list[Path]:
         if x.size:
             ax.plot(x, y, marker="o", color=COLORS.get(name), label=name)
             for xi, yi in zip(x, y):
-                ax.annotate(f"{yi:.3g}", (xi, yi), xytext=(4, 4), textcoords="offset points", fontsize=7,
+                ax.annotate(f"{yi:.3f}" if yi < 10 else f"{yi:.3g}", (xi, yi), xytext=(4, 4), textcoords="offset points", fontsize=7,
                             color=COLORS.get(name))
     ax.axhline(1.0, color="k", lw=0.8)
-    ax.set_yscale("log")
+    _ratio_scale(ax)
     ax.set_xlabel("measurement delay, s (normal jitter, sigma = 20 % of the delay); epochs every 1 s")
     ax.set_ylabel("position RMSE / fault-free RMSE (same seed)")
     ax.grid(alpha=0.3, which="both")
