@@ -326,3 +326,20 @@ def test_many_epochs_at_once_equal_one_epoch_at_a_time(seed_truth, case):
 def test_bad_parameters_raise_value_error_naming_them(make, name):
     with pytest.raises(ValueError, match=name):
         make()
+
+
+def test_memoised_transition_is_the_constant_velocity_model_bit_for_bit():
+    """The onboard filters' transition (F, Q and f memoised per step length) gives the numbers of
+    filters.models.ConstantVelocity itself, for batched states and several step lengths."""
+    from filters.models import ConstantVelocity
+
+    rng = np.random.default_rng(4)
+    x = rng.normal(size=(7, 3, 6)) * 1e6
+    memo = uav_nav._transition(0.035)
+    ref = ConstantVelocity(3, q=0.035)
+    for dt in (0.1, 1.0, 2.5):
+        np.testing.assert_array_equal(memo.f(x, dt), ref.f(x, dt))
+        np.testing.assert_array_equal(memo.F(None, dt), ref.F(None, dt))
+        np.testing.assert_array_equal(memo.Q(dt), ref.Q(dt))
+    with pytest.raises(ValueError, match="shape"):
+        memo.f(np.zeros(4), 1.0)

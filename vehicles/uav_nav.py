@@ -228,9 +228,9 @@ def _cv_matrices(q: float, dt: float):
 
 
 class _MemoTransition:
-    """NavConfig.transition() with F and Q memoised per step length (the same numbers,
-    without rebuilding them from Kronecker products every epoch); every other attribute
-    is the ConstantVelocity model's."""
+    """NavConfig.transition() with F and Q (and f's F) memoised per step length (the same
+    numbers, without rebuilding them from Kronecker products every epoch); every other
+    attribute is the ConstantVelocity model's."""
 
     def __init__(self, q: float):
         self.q = float(q)
@@ -241,6 +241,14 @@ class _MemoTransition:
 
     def Q(self, dt):
         return _cv_matrices(self.q, float(dt))[1].copy()
+
+    def f(self, x, dt):
+        # ConstantVelocity.f's arithmetic (x @ F.T) without rebuilding F: ekf_predict calls it every
+        # monitored step
+        x = np.asarray(x, dtype=float)
+        if x.ndim < 1 or x.shape[-1] != _N:
+            raise ValueError(f"x must have shape (..., {_N}), got {x.shape}")
+        return x @ _cv_matrices(self.q, float(dt))[0].T
 
     def __getattr__(self, name):
         return getattr(self._model, name)
