@@ -636,3 +636,34 @@ def test_consider_acquires_as_inflate_then_carries_the_uav_errors():
     before = t < acq
     assert np.array_equal(xs[before], xi[before])
     assert np.abs(lc.C).max() > 0 and not np.allclose(xs[-1], xi[-1], rtol=0, atol=1e-6)
+
+
+def test_two_uavs_before_the_formation_is_resolved_give_no_measurement():
+    """min_formation_sigmas with lost links: while the last epoch with >= 3 UAVs showed an
+    unresolved formation, an epoch where only 2 UAVs' measurements arrived is not used either
+    (their ranges cannot tell the side of the UAVs' plane); once a >= 3 epoch shows the formation
+    resolved, a 2-UAV epoch is used.  Fails if the rule looks only at epochs with >= 3 UAVs."""
+    K = 4
+    scene = _scene(K, N=3)
+    t, B, VB, U, V = scene
+    eps = _epochs(np.random.default_rng(8), scene, 2)
+    x0 = np.concatenate([B[0], VB[0]]) + np.array([20.0, -10.0, 5.0, 1.0, 0.0, -1.0])
+    narrow = eps[0]._replace(pos=eps[0].pos[:, :1] + np.array([[0.0, 0.0, 0.0], [3.0, 1.0, 0.0], [0.0, 4.0, 2.0]]))
+    two = eps[1]._replace(mask=eps[1].mask & np.array([True, True, False]))
+    empty = eps[1]._replace(mask=np.zeros_like(eps[1].mask))
+    runs = {}
+    for name, cfg, ep1 in (("limit", _prior_config(x0), two), ("no_obs", _prior_config(x0), empty),
+                           ("off", _prior_config(x0, min_formation_sigmas=0.0), two)):
+        loc = BeaconLocator(None, run_ids=["a", "b"], config=cfg)
+        loc.process(t[0], narrow)
+        loc.process(t[1], ep1)
+        runs[name] = (loc.state_ecef()[0].copy(), loc)
+    assert np.array_equal(runs["limit"][0], runs["no_obs"][0])
+    assert not np.allclose(runs["off"][0], runs["limit"][0])
+    loc = runs["limit"][1]
+    assert loc.counters["epochs_formation_unresolved"] == 4  # 2 trials x (the narrow epoch, the 2-UAV one)
+    loc.process(t[2], eps[2])  # the scene's own UAVs, 40-80 km apart: resolved, used
+    assert list(loc.mode) == ["fused", "fused"]
+    before = loc.counters["epochs_formation_unresolved"]
+    loc.process(t[3], eps[3]._replace(mask=eps[3].mask & np.array([True, True, False])))
+    assert loc.counters["epochs_formation_unresolved"] == before and list(loc.mode) == ["degraded", "degraded"]
