@@ -25,6 +25,7 @@ when a link turns stale or comes back (those also in ``link_changes`` for the ca
 """
 from __future__ import annotations
 
+import dataclasses
 import math
 import threading
 from collections import Counter, deque
@@ -45,13 +46,17 @@ class GsConfig:
     sonde_integrity: bool = False
     stale_after_s: float = 3.0  # a link silent this long (simulation time) is flagged stale
     link_stats_every_s: float = 10.0  # LinkStats of every link this often (and on stale / back)
+    lag_window_s: float = 5.0  # late (out-of-sequence) measurements this old are re-processed (0: dropped)
 
     @classmethod
     def from_scenario(cls, scn) -> GsConfig:
         return cls(beacon_id=scn.beacon.id, beacon_init_epochs=scn.ground_station.beacon_init_epochs,
                    sonde=scn.sonde.enabled, radar_id=scn.sonde.radar_id, sonde_dt_s=1.0 / scn.run.rate_hz,
                    gcpp_offset_m=scn.sonde.gcpp_offset_m, gcpp_bearing_deg=scn.sonde.gcpp_bearing_deg,
-                   sonde_integrity=scn.ground_station.integrity)
+                   sonde_integrity=scn.ground_station.integrity,
+                   stale_after_s=scn.ground_station.stale_after_s,
+                   link_stats_every_s=scn.ground_station.link_stats_every_s,
+                   lag_window_s=scn.ground_station.lag_window_s)
 
 
 class _Sub:
@@ -130,13 +135,15 @@ class GroundStationNode:
         self._lock = threading.Lock()
         self.bus = _DeferredBus(transport, self._on_input)
         self.locator = BeaconLocator(self.bus, run_ids=[run_id], beacon_id=c.beacon_id,
-                                     config=LocatorConfig(init_epochs=c.beacon_init_epochs), source_id="gs")
+                                     config=LocatorConfig(init_epochs=c.beacon_init_epochs, lag_window_s=c.lag_window_s),
+                                     source_id="gs")
         self.tracker = None
         if c.sonde:
             from sitl.experiments.sonde import SondeScenario, tracker_params
             scn = SondeScenario(dt_s=c.sonde_dt_s, gcpp_offset_m=c.gcpp_offset_m,
                                 gcpp_bearing_deg=c.gcpp_bearing_deg, integrity="on" if c.sonde_integrity else "off")
-            self.tracker = SondeTracker(run_id, tracker_params(scn, "fused"), radar_id=c.radar_id, source_id="gs")
+            params = dataclasses.replace(tracker_params(scn, "fused"), lag_window_s=c.lag_window_s)
+            self.tracker = SondeTracker(run_id, params, radar_id=c.radar_id, source_id="gs")
             self.tracker.attach(self.bus)
         self.estimates: dict[tuple[str, str], Estimate] = {}
         self.events: list = []  # (key, IntegrityEvent) published by the components; the caller takes them

@@ -23,7 +23,8 @@ Layout of a scenario (every key optional; the defaults are those of `DEFAULT_SCE
                    gcpp_bearing_deg, radar_loss_s ([start, end] after launch), gnss_outage_s
     [ground_station] hold_wall_s (the longest the GS waits for an epoch's messages after
                    its time, wall seconds; it goes on as soon as every source has delivered it), beacon_init_epochs, integrity (the sonde tracker's
-                   integrity monitor; its events go out as STATUSTEXT too)
+                   integrity monitor; its events go out as STATUSTEXT too), lag_window_s (late measurements this
+                   old are re-processed), stale_after_s (a silent link is flagged stale), link_stats_every_s
     [faults]       network faults, a table LINK = "SPEC" (sitl.netfault's netem-like text), e.g.
                    "mav:1" = "loss=10% delay=100ms~20ms"    (MAVLink of system id 1, both ways;
                                                               "mav:1:up" vehicle->GCS, "mav:1:down")
@@ -100,6 +101,9 @@ gnss_outage_s = [3600.0, 3720.0]
 [ground_station]
 hold_wall_s = 1.0
 integrity = false
+lag_window_s = 5.0
+stale_after_s = 3.0
+link_stats_every_s = 10.0
 """
 
 
@@ -285,6 +289,9 @@ class GroundStationSection:
     hold_wall_s: float = 1.0
     beacon_init_epochs: int = 3
     integrity: bool = False  # the sonde tracker's integrity monitor (its events: bus + STATUSTEXT)
+    lag_window_s: float = 5.0  # late (out-of-sequence) measurements this old are re-processed (0: dropped)
+    stale_after_s: float = 3.0  # a source silent this long (simulated s) is flagged stale
+    link_stats_every_s: float = 10.0  # LinkStats of every link this often (and on stale / back)
 
 
 def _fault_link(key: str, link) -> str:
@@ -463,6 +470,9 @@ _SECTIONS: dict[str, tuple[type, dict]] = {
         "hold_wall_s": lambda k, v: _number(k, v, lo=0, hi=60),
         "beacon_init_epochs": lambda k, v: _int(k, v, lo=1, hi=100),
         "integrity": _bool,
+        "lag_window_s": lambda k, v: _number(k, v, lo=0, hi=600),
+        "stale_after_s": lambda k, v: _number(k, v, lo=0, lo_open=True, hi=3600),
+        "link_stats_every_s": lambda k, v: _number(k, v, lo=0, lo_open=True, hi=3600),
     }),
 }
 

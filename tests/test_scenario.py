@@ -238,3 +238,23 @@ def test_any_faults_table_survives_the_spec_json_in_order(tmp_path_factory, entr
         back = WorkerSpec.read(s.write(d / f"{s.name}.json")).scenario_obj()
         assert list(back.faults.links) == entries
         assert _json.loads((d / f"{s.name}.json").read_text())["scenario"]["faults"] == dict(entries)
+
+
+def test_ground_station_link_keys_reach_the_components():
+    """[ground_station] lag_window_s / stale_after_s / link_stats_every_s reach the GS node's
+    locator, tracker and link monitor; out-of-range values are one-line errors."""
+    from ground_station.node import GroundStationNode, GsConfig
+
+    scn = parse_scenario("[ground_station]\nlag_window_s = 2.5\nstale_after_s = 7.0\nlink_stats_every_s = 4.0\n")
+    cfg = GsConfig.from_scenario(scn)
+    assert (cfg.lag_window_s, cfg.stale_after_s, cfg.link_stats_every_s) == (2.5, 7.0, 4.0)
+    node = GroundStationNode(None, "r", cfg)
+    try:
+        assert node.locator.config.lag_window_s == 2.5 and node.tracker.params.lag_window_s == 2.5
+        assert node.links.stale_after_s == 7.0
+    finally:
+        node.close()
+    for text in ("lag_window_s = -1", "stale_after_s = 0", "link_stats_every_s = 'x'"):
+        with pytest.raises(ScenarioError) as e:
+            parse_scenario(f"[ground_station]\n{text}\n")
+        assert "\n" not in str(e.value) and "ground_station." + text.split(" ")[0] in str(e.value)
