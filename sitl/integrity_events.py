@@ -61,7 +61,6 @@ def channel_events(report, channels, bias_threshold: float = math.inf):
     jump = np.asarray(report.jump, dtype=bool)
     drift = np.asarray(report.drift, dtype=bool)
     jump_ch = (jump[..., :, None] & onehot).any(axis=-2)
-    drift_ch = (drift[..., :, None] & onehot).any(axis=-2)
     newly = np.asarray(report.newly_excluded, dtype=bool)
     excl = np.asarray(report.excluded, dtype=bool)
     readmit = np.asarray(report.readmitted, dtype=bool)

@@ -65,7 +65,6 @@ Writes DIR/result.json (strict JSON) and PNG figures.  Progress on stderr.
 """
 from __future__ import annotations
 
-import dataclasses
 import json
 import math
 import time

@@ -145,7 +145,6 @@ from sitl.gnss.ranging import light_time_geometry
 from sitl.gnss.world import ephemeris_for_filter, look_angles
 from sitl.radio.radar import (
     MAX_RANGE_M,
-    _check_rng,
     _in_schedule,
     _intervals,
     _nonneg,
