@@ -29,7 +29,7 @@ Layout of a scenario (every key optional; the defaults are those of `DEFAULT_SCE
                    "mav:1" = "loss=10% delay=100ms~20ms"    (MAVLink of system id 1, both ways;
                                                               "mav:1:up" vehicle->GCS, "mav:1:down")
                    "zenoh:gs" = "partition=100-130"         (a worker's Zenoh session: vehicles<k>, gs)
-                   "bus:*/uav/uav2/**" = "loss=20%"         (bus keys, at their publishers)
+                   "bus:*/uav/2/**" = "loss=20%"            (bus keys, at their publishers)
                    Times in a spec (partitions) are simulated seconds since the run's start.
                    None by default; `skyfuse fault set LINK SPEC` changes them while a run goes.
 """
@@ -517,6 +517,23 @@ def scenario_from_dict(doc: dict, source: str = "<dict>") -> Scenario:
     return scn
 
 
+def run_keys(scn: Scenario) -> list[str]:
+    """The bus keys a run of this scenario publishes (sitl.bus.schema's templates, with the
+    scenario's ids; not the ground station's per-link / per-channel keys, nor the control keys)."""
+    r, b = scn.run.id, scn.beacon.id
+    keys = []
+    for i in range(1, scn.uavs.count + 1):
+        keys += [f"{r}/uav/{i}/nav", f"{r}/uav/{i}/beacon/{b}", f"{r}/truth/uav/{i}"]
+    if scn.uavs.count:
+        keys += [f"{r}/truth/beacon/{b}", f"{r}/gs/estimate/beacon/{b}"]
+    if scn.sonde.enabled:
+        sid = scn.sonde.id
+        keys += [f"{r}/sonde/{sid}/relay", f"{r}/truth/sonde/{sid}", f"{r}/gs/estimate/sonde/{sid}"]
+        if scn.sonde.radar_id:
+            keys.append(f"{r}/radar/{scn.sonde.radar_id}/sonde/{sid}")
+    return keys
+
+
 def _cross_checks(scn: Scenario) -> None:
     u = scn.uavs
     if u.starts and len(u.starts) != u.count:
@@ -543,6 +560,13 @@ def _cross_checks(scn: Scenario) -> None:
         if kind == "mav" and int(rest.split(":")[0]) > max(scn.n_vehicles, 1):
             raise ScenarioError(f'scenario: faults."{link}": expected a MAVLink system id in 1..{scn.n_vehicles} '
                                 f"(UAVs then the sonde)")
+        if kind == "bus":
+            keys = run_keys(scn)
+            from sitl.bus.transport import key_matches  # here: sitl.bus loads numba kernels
+            if not any(key_matches(rest, k) for k in keys):
+                sample = ", ".join([k for k in keys if "/truth/" not in k][:5])
+                raise ScenarioError(f'scenario: faults."{link}": matches no key this run publishes '
+                                    f"(they look like {sample})")
     if scn.run.duration_s * scn.run.rate_hz < 1:
         raise ScenarioError("scenario: run.duration_s: expected at least one epoch (duration_s x rate_hz >= 1), "
                             f"got {scn.run.duration_s}")

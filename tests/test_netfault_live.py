@@ -403,3 +403,21 @@ hold_wall_s = 0.3
     assert not _threads("netfault-proxies")
     doc = json.loads((tmp_path / "run.json").read_text())
     assert doc["finished"] and "zenoh:gs" in doc["links"]
+
+
+def test_board_refuses_a_bus_rule_that_matches_no_key_of_the_run():
+    """A run-time bus rule that can match none of the run's keys (e.g. `uav2` for the key chunk
+    `2`) is refused with one line naming it, as the scenario check refuses it at load; a rule that
+    matches is applied; without the run's keys nothing is checked."""
+    from sitl.netfault.control import FaultBoard
+    from sitl.scenario import parse_scenario, run_keys
+
+    keys = run_keys(parse_scenario('[run]\nid = "r"\n'))
+    assert "r/uav/2/nav" in keys and "r/radar/arls1/sonde/s0000" in keys
+    board = FaultBoard(bus_keys=keys)
+    with pytest.raises(ValueError) as e:
+        board.set("bus:*/uav/uav2/**", "loss=1%")
+    assert "matches no key" in str(e.value) and "\n" not in str(e.value) and "r/uav/1/nav" in str(e.value)
+    assert board.bus_order == []
+    assert board.set("bus:*/uav/2/**", "loss=1%") == "loss=1%" and board.bus_order == ["bus:*/uav/2/**"]
+    assert FaultBoard().set("bus:*/uav/uav2/**", "loss=1%") == "loss=1%"

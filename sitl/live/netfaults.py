@@ -284,7 +284,8 @@ class LiveFaults:
         from sitl.netfault.control import FaultBoard
         self.scn = scn
         self.clock = RunClock(scn.run.speed)
-        self.board = FaultBoard(self.clock)
+        from sitl.scenario import run_keys
+        self.board = FaultBoard(self.clock, bus_keys=run_keys(scn))
         self.loop = ProxyLoop(self.clock, scn.run.speed, name="netfault-proxies")
         self.tcp: dict[str, object] = {}  # worker -> TcpProxy
         self.udp: dict[int, object] = {}  # sysid -> UdpProxy

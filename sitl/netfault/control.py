@@ -105,8 +105,9 @@ class FaultBoard:
 
     ``clock()``: simulated seconds since the run's start (0 before it starts)."""
 
-    def __init__(self, clock: Callable[[], float] = lambda: 0.0):
+    def __init__(self, clock: Callable[[], float] = lambda: 0.0, bus_keys: list[str] | None = None):
         self.clock = clock
+        self.bus_keys = bus_keys  # the keys the run publishes: a bus rule must match one (None: not checked)
         self.links: dict[str, _Link] = {}
         self.bus_rules: dict[str, _Link] = {}  # "bus:<expr>" -> its record (applied by the workers)
         self.bus_order: list[str] = []  # the rules in KeyFaults' order (a rule added at run time goes first)
@@ -138,6 +139,12 @@ class FaultBoard:
                 raise ValueError(" ".join(str(e).split())) from None
             t = float(self.clock())
             if name.startswith("bus:"):
+                if self.bus_keys is not None and name not in self.bus_rules:
+                    from sitl.bus.transport import key_matches
+                    if not any(key_matches(name[4:], k) for k in self.bus_keys):
+                        sample = ", ".join([k for k in self.bus_keys if "/truth/" not in k][:5])
+                        raise ValueError(f"bus rule {link!r} matches no key this run publishes "
+                                         f"(they look like {sample})")
                 rec = self.bus_rules.get(name)
                 if rec is None:
                     rec = self.bus_rules[name] = _Link(name, None, None)
