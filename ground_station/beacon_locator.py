@@ -294,6 +294,7 @@ from filters import kernels
 from filters.beacon import OBSERVER_UNCERTAINTY
 from filters.integrity import IntegrityConfig, IntegrityMonitor
 from filters.models import ConstantVelocity
+from ground_station import _lagwindow
 from sitl.bus import BeaconMeasurement, Estimate, SequenceTracker, key_for, parse_key
 from sitl.geodesy import ecef_to_geodetic
 from sitl.integrity_events import IntegrityEventPublisher
@@ -1593,37 +1594,19 @@ class BeaconLocator:
         before = self.counters.copy()
         self.process(t, self._observations(inputs))
         self._hist.append(_Epoch(t, snap, inputs, self.counters - before))
-        cut = 0
-        while cut < len(self._hist) and self._hist[cut].t < t - lag - 1e-6:
-            cut += 1
-        if cut:
-            del self._hist[:cut]
+        _lagwindow.prune(self._hist, t, lag, 1e-6)
 
     def _reprocess(self) -> None:
         """Back to the state before the earliest epoch completed by late messages, then re-run
         that epoch and the later ones of the history with their (completed) inputs -- every
         trial of the batch together (an untouched trial re-runs to the identical result)."""
         t0, self._dirty = self._dirty, None
-        i = next((j for j, e in enumerate(self._hist) if e.t >= t0 - 1e-6), None)
-        if i is None:
-            return
-        redo = self._hist[i:]
-        del self._hist[i:]
-        self._restore(redo[0].snap)
-        for e in redo:
-            self.counters.subtract(e.added)
-        pub = self.integrity_events
-        keep = None if pub is None else pub.transport
-        if pub is not None:
-            pub.transport = None  # events of past epochs went out already: not again
-        try:
-            for e in redo:
-                self._run_epoch(e.t, e.inputs)
-        finally:
-            if pub is not None:
-                pub.transport = keep
-        self.counters["reprocess_runs"] += 1
-        self.counters["reprocessed_epochs"] += len(redo)
+        n = _lagwindow.rerun(self._hist, t0, 1e-6, restore=lambda e: self._restore(e.snap),
+                             uncount=lambda e: self.counters.subtract(e.added),
+                             run=lambda e: self._run_epoch(e.t, e.inputs), events=self.integrity_events)
+        if n:
+            self.counters["reprocess_runs"] += 1
+            self.counters["reprocessed_epochs"] += n
 
     _SNAP = ("y", "P", "initialised", "init_t_gps_s", "nis", "n_used", "coast_s", "mode", "vel_doppler",
              "vel_doppler_cov", "start_side", "formation_resolved")

@@ -194,6 +194,7 @@ from filters.ekf import ekf_update
 from filters.integrity import IntegrityConfig, IntegrityMonitor
 from filters.models import Singer
 from filters.ukf import SigmaPoints, ukf_update
+from ground_station import _lagwindow
 from sitl.bus import (
     Estimate,
     RadarMeasurement,
@@ -205,15 +206,15 @@ from sitl.bus import (
     parse_key,
 )
 from sitl.constants import C_M_S, WGS84
-from sitl.integrity_events import IntegrityEventPublisher
 from sitl.geodesy import ecef_to_geodetic, enu_rotation
+from sitl.integrity_events import IntegrityEventPublisher
+from sitl.radio import relay as _relay
 from sitl.radio.radar import (
     RadarParams,
     aer_cov_to_ecef,
     aer_to_ecef_jacobian,
     radar_aer_to_ecef,
 )
-from sitl.radio import relay as _relay
 from sitl.radio.relay import RelayErrorBudget, RelayParams
 
 __all__ = [
@@ -1127,11 +1128,7 @@ class SondeTracker:
         self._t_last = t
         after = self.counters.as_dict()
         self._hist.append(_Step(t, t_prev, snap, epochs, {k: after[k] - before[k] for k in after if after[k] != before[k]}))
-        cut = 0
-        while cut < len(self._hist) and self._hist[cut].t < t - lag - 1e-9:
-            cut += 1
-        if cut:
-            del self._hist[:cut]
+        _lagwindow.prune(self._hist, t, lag, 1e-9)
 
     def _hist_for(self, tau: float):
         """The step of the history that processes epoch tau (t_prev < tau <= t), or None."""
@@ -1142,29 +1139,21 @@ class SondeTracker:
 
     def _reprocess(self) -> None:
         t0, self._dirty = self._dirty, None
-        i = next((j for j, e in enumerate(self._hist) if e.t >= t0), None)
-        if i is None:
-            return
-        redo = self._hist[i:]
-        del self._hist[i:]
-        self._restore(redo[0].snap)
-        self._t_last = redo[0].t_prev
         c = self.counters
-        for e in redo:
+
+        def restore(e):
+            self._restore(e.snap)
+            self._t_last = e.t_prev
+
+        def uncount(e):
             for k, v in e.added.items():
                 setattr(c, k, getattr(c, k) - v)
-        ev = self._events
-        keep = None if ev is None else ev.transport
-        if ev is not None:
-            ev.transport = None  # events of past epochs went out already: not again
-        try:
-            for e in redo:
-                self._run_step(e.t, e.epochs)
-        finally:
-            if ev is not None:
-                ev.transport = keep
-        c.reprocess_runs += 1
-        c.reprocessed_epochs += len(redo)
+
+        n = _lagwindow.rerun(self._hist, t0, 0.0, restore=restore, uncount=uncount,
+                             run=lambda e: self._run_step(e.t, e.epochs), events=self._events)
+        if n:
+            c.reprocess_runs += 1
+            c.reprocessed_epochs += n
 
     _SNAP_ARRAYS = ("_x", "_P", "_t", "_t_init", "_nis", "_rejects", "_win_nis", "_win_m", "_win_k", "_win_S",
                     "_win_M", "_bias_last")
