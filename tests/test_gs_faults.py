@@ -13,9 +13,7 @@ from test_sonde_tracker import (
     RADAR_KEY,
     RELAY_KEY,
     RUN,
-    SHORT,
-    T0,
-    _site,
+    _world,
     radar_msg,
     relay_msg,
 )
@@ -186,20 +184,7 @@ def test_beacon_older_than_the_window_counted_too_late_and_window_zero_is_the_ol
 @pytest.fixture(scope="module")
 def world():
     """One sonde, 80 s (test_sonde_tracker's hand-driven world, shorter): truth, radar, relay."""
-    from sitl.experiments import sonde as E
-    from sitl.gnss.orbits import default_constellation
-    from sitl.radio.radar import Radar
-    from sitl.radio.relay import Relay
-    from vehicles.sonde import SondeFlight
-
-    streams = E._trial_streams(21, [0])[0]
-    lat, lon, h, _ = _site()
-    tr = SondeFlight([streams[0]], params=E._sonde_params(SHORT), t0_gps_s=T0).simulate(80)
-    radar = Radar([streams[1]], site_lat_rad=lat, site_lon_rad=lon, site_h_m=h, batch_shape=(1,))
-    rad = [radar.step(tr.t_gps_s[k], tr.pos_ecef_m[k], tr.vel_ecef_m_s[k]) for k in range(len(tr))]
-    relay = Relay([streams[2]], default_constellation("GR"), ground_lat_rad=lat, ground_lon_rad=lon, ground_h_m=h,
-                  batch_shape=(1,))
-    return tr, rad, relay.track(tr.t_gps_s, tr.pos_ecef_m, tr.vel_ecef_m_s)
+    return _world(80)
 
 
 def _sonde_run(world, K, faults=None, steps_after=0, feed_until=None, params=None):

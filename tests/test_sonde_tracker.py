@@ -92,18 +92,23 @@ def test_fused_beats_each_single_source_and_stays_continuous(short_run):
 # ---------------------------------------------------------------- a small hand-driven world
 
 
-@pytest.fixture(scope="module")
-def world():
-    """One sonde, 200 s: truth, radar and relay epochs (no loss, no outage)."""
+def _world(duration_s: int):
+    """One sonde, duration_s seconds: truth, radar and relay epochs (no loss, no outage)."""
     streams = E._trial_streams(21, [0])[0]
     lat, lon, h, _ = _site()
-    tr = SondeFlight([streams[0]], params=E._sonde_params(SHORT), t0_gps_s=T0).simulate(200)
+    tr = SondeFlight([streams[0]], params=E._sonde_params(SHORT), t0_gps_s=T0).simulate(duration_s)
     radar = Radar([streams[1]], site_lat_rad=lat, site_lon_rad=lon, site_h_m=h, batch_shape=(1,))
     rad = [radar.step(tr.t_gps_s[k], tr.pos_ecef_m[k], tr.vel_ecef_m_s[k]) for k in range(len(tr))]
     relay = Relay([streams[2]], default_constellation("GR"), ground_lat_rad=lat, ground_lon_rad=lon, ground_h_m=h,
                   batch_shape=(1,))
     rt = relay.track(tr.t_gps_s, tr.pos_ecef_m, tr.vel_ecef_m_s)
     return tr, rad, rt
+
+
+@pytest.fixture(scope="module")
+def world():
+    """One sonde, 200 s: truth, radar and relay epochs (no loss, no outage)."""
+    return _world(200)
 
 
 def radar_msg(m, k, seq, **over) -> RadarMeasurement:
