@@ -2,6 +2,7 @@
 clean shutdown with dummy workers: no orphans, ports freed), replay against batch."""
 from __future__ import annotations
 
+import dataclasses
 import io
 import json
 import os
@@ -333,3 +334,21 @@ def test_param_set_reaches_the_group_and_a_sonde_set_is_vetoed():
         eps.close()
         for c in (gcs, u2, s4):
             c.close()
+
+
+def test_batch_mode_applies_the_scenarios_bus_fault_rules():
+    """`--batch` with [faults]: a bus rule drops at the in-memory bus what it drops live at the
+    publishers (uav 2's beacon measurements, all of them), seeded; MAVLink / Zenoh links are
+    listed as not applied; the locator then hears 2 UAVs instead of 3."""
+    from sitl.live.batch import run_batch
+    from sitl.scenario import default_scenario, parse_scenario
+
+    base = default_scenario().replace(run={"duration_s": 6.0}, mavlink={"enabled": False}, sonde={"enabled": False})
+    faulted = parse_scenario('[faults]\n"bus:*/uav/2/beacon/**" = "loss=100%"\n"zenoh:gs" = "delay=10ms"\n').faults
+    plain, lossy = run_batch(base), run_batch(dataclasses.replace(base, faults=faulted))
+    n_plain = plain["gs"]["beacon_locator"]["accepted"]
+    n_lossy = lossy["gs"]["beacon_locator"]["accepted"]
+    assert n_plain == 3 * 7 and n_lossy == 2 * 7
+    f = lossy["faults"]
+    assert f["not_in_batch"] == ["zenoh:gs"] and f["injected"]["dropped_loss"] == 7
+    assert "faults" not in plain

@@ -21,7 +21,16 @@ def run_batch(scn, *, settle_s: float = 0.0, progress=None, record=None) -> dict
     vp = importlib.import_module("vehicles.process")
     gn = importlib.import_module("ground_station.node")
     run = scn.run
-    bus = InMemoryTransport(start_t_gps_s=run.t0_gps_s)
+    # [faults]: the bus rules act on the in-memory bus as the workers' publisher filters do live
+    # (same models, times since the run's start, deterministic for the seed); the MAVLink and Zenoh
+    # links are live sockets, absent in batch mode (listed, not applied)
+    links = list(scn.faults.links) if scn.faults else []
+    rules = [(name[4:], spec) for name, spec in links if name.startswith("bus:")]
+    mf = None
+    if rules:
+        from sitl.experiments._common import MeasurementFaults
+        mf = MeasurementFaults(rules, ["**"], seed=int(run.seed), t0_gps_s=run.t0_gps_s)
+    bus = InMemoryTransport(start_t_gps_s=run.t0_gps_s, faults=[mf] if mf is not None else ())
     scorer = ErrorTracker(keep_s=1e9, settle_s=settle_s, t0_gps_s=run.t0_gps_s)
     scorer.subscribe(bus, run.id)
     recorder = None
@@ -48,6 +57,10 @@ def run_batch(scn, *, settle_s: float = 0.0, progress=None, record=None) -> dict
             progress(f"[batch] t = {k * dt:.0f} s of {run.duration_s:.0f}")
     out = {"errors": scorer.summary(), "gs": node.stats(), "published": bus.stats.published,
            "series": {f"{a}/{b}": v for (a, b), v in scorer.series.items()}}
+    if links:
+        out["faults"] = {"bus_rules": [f"bus:{e} = {spec}" for e, spec in rules],
+                         "not_in_batch": [name for name, _ in links if not name.startswith("bus:")],
+                         "injected": mf.totals() if mf is not None else {}}
     node.close()
     if recorder is not None:
         out["recorded"] = recorder.records

@@ -143,8 +143,15 @@ def _batch(scn, out: Path, args) -> int:
     res = run_batch(scn, progress=None if args.quiet else (lambda m: print(m, file=sys.stderr)))
     doc = {"mode": "batch", "scenario": scn.to_dict(), "wall_s": perf_now() - t0, "errors": res["errors"],
            "ground_station": res["gs"], "published": res["published"], "ok": True}
+    if "faults" in res:
+        doc["faults"] = res["faults"]
     (out / "report.json").write_text(json.dumps(strict(doc), indent=1, allow_nan=False))
     print(summary_text(doc))
+    if "faults" in res:
+        f = res["faults"]
+        print(f"  network faults (batch): {len(f['bus_rules'])} bus rule(s) applied, "
+              f"{f['injected'].get('dropped_loss', 0)} lost, {f['injected'].get('dropped_partition', 0)} partitioned; "
+              f"live-only links not applied: {', '.join(f['not_in_batch']) or 'none'}")
     return 0
 
 
