@@ -18,7 +18,8 @@ import math
 
 import numpy as np
 import pytest
-from test_beacon_locator import _scene
+from test_beacon_locator import VAR_R, _scene
+from test_beacon_locator import _epochs as _beacon_epochs
 
 from filters import metrics
 from filters.integrity import IntegrityConfig, IntegrityMonitor
@@ -26,32 +27,17 @@ from ground_station.beacon_locator import (
     INTEGRITY,
     BeaconLocator,
     LocatorConfig,
-    ObserverEpoch,
     _mon_merge,
     _mon_take,
 )
 from sitl.bus import InMemoryTransport, IntegrityEvent, parse_key
-from sitl.radio.beacon_link import range_and_rate
 
-VAR_R, VAR_V = 25.0, 0.01
 SIG_P, SIG_V = 10.0, 0.1  # the UAVs' navigation errors (white), per axis
 K, T, K0, LINK = 60, 20, 35, 2  # epochs, trials, first faulty epoch, faulty link (column)
 
 
 def _epochs(rng, scene, trials):
-    t, B, VB, U, V = scene
-    N = U.shape[1]
-    cov = np.diag([SIG_P ** 2] * 3 + [SIG_V ** 2] * 3)
-    out = []
-    for k in range(len(t)):
-        r, rr = range_and_rate(U[k], V[k], B[k], VB[k])
-        e = rng.standard_normal((trials, N, 6)) * np.r_[[SIG_P] * 3, [SIG_V] * 3]
-        out.append(ObserverEpoch(U[k] + e[..., 0:3], V[k] + e[..., 3:6], np.broadcast_to(cov, (trials, N, 6, 6)).copy(),
-                                 r + math.sqrt(VAR_R) * rng.standard_normal((trials, N)),
-                                 rr + math.sqrt(VAR_V) * rng.standard_normal((trials, N)),
-                                 np.full((trials, N), VAR_R), np.full((trials, N), VAR_V),
-                                 np.ones((trials, N), bool)))
-    return out
+    return _beacon_epochs(rng, scene, trials, SIG_P, SIG_V)
 
 
 @pytest.fixture(scope="module")

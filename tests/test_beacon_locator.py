@@ -63,15 +63,16 @@ def _scene(K, N=5):
     return t, B, np.broadcast_to(vb, B.shape), U, np.broadcast_to(vu, U.shape)
 
 
-def _epochs(rng, scene, trials):
-    """Per epoch ObserverEpoch (trials, N): links with noise, UAV reports = truth + white errors."""
+def _epochs(rng, scene, trials, sig_pos=UAV_SIG_POS, sig_vel=UAV_SIG_VEL):
+    """Per epoch ObserverEpoch (trials, N): links with noise, UAV reports = truth + white errors
+    (sig_pos m, sig_vel m/s per axis)."""
     t, B, VB, U, V = scene
     K, N = U.shape[:2]
-    cov = np.diag([UAV_SIG_POS ** 2] * 3 + [UAV_SIG_VEL ** 2] * 3)
+    cov = np.diag([sig_pos ** 2] * 3 + [sig_vel ** 2] * 3)
     out = []
     for k in range(K):
         r, rr = range_and_rate(U[k], V[k], B[k], VB[k])
-        e = rng.standard_normal((trials, N, 6)) * np.r_[[UAV_SIG_POS] * 3, [UAV_SIG_VEL] * 3]
+        e = rng.standard_normal((trials, N, 6)) * np.r_[[sig_pos] * 3, [sig_vel] * 3]
         out.append(ObserverEpoch(U[k] + e[..., 0:3], V[k] + e[..., 3:6], np.broadcast_to(cov, (trials, N, 6, 6)).copy(),
                                  r + math.sqrt(VAR_R) * rng.standard_normal((trials, N)),
                                  rr + math.sqrt(VAR_V) * rng.standard_normal((trials, N)),
