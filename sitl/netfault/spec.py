@@ -197,32 +197,29 @@ def _fmt_frac(x: float) -> str:
     return _fmt_num(x)
 
 
-def _fmt_dur(x: float) -> str:
-    """Shortest of s / ms / us that reads back exactly."""
+def _shortest(x: float, units, parse, fallback: str) -> str:
+    """The shortest text ``<number><unit>`` (units: (unit, value of 1 unit)) that ``parse``
+    reads back exactly as x."""
     cands = []
-    for unit, scale in (("s", 1.0), ("ms", 1e3), ("us", 1e6)):
-        for v in (round(x * scale, 9), x * scale):
+    for unit, size in units:
+        for v in (round(x / size, 9), x / size):
             s = _fmt_num(v) + unit
             try:
-                if _parse_dur(s, "x") == x:
+                if parse(s, "x") == x:
                     cands.append(s)
             except FaultSpecError:
                 pass
-    return min(cands, key=len) if cands else _fmt_num(x) + "s"
+    return min(cands, key=len) if cands else _fmt_num(x) + fallback
+
+
+def _fmt_dur(x: float) -> str:
+    """Shortest of s / ms / us that reads back exactly."""
+    return _shortest(x, (("s", 1.0), ("ms", 1e-3), ("us", 1e-6)), _parse_dur, "s")
 
 
 def _fmt_rate(x: float) -> str:
     """Shortest of bit / kbit / mbit / gbit that reads back exactly."""
-    cands = []
-    for unit, scale in (("bit", 1.0), ("kbit", 1e3), ("mbit", 1e6), ("gbit", 1e9)):
-        for v in (round(x / scale, 9), x / scale):
-            s = _fmt_num(v) + unit
-            try:
-                if _parse_rate(s, "x") == x:
-                    cands.append(s)
-            except FaultSpecError:
-                pass
-    return min(cands, key=len) if cands else _fmt_num(x) + "bit"
+    return _shortest(x, (("bit", 1.0), ("kbit", 1e3), ("mbit", 1e6), ("gbit", 1e9)), _parse_rate, "bit")
 
 
 _NUM = r"[+-]?(?:\d+\.?\d*|\.\d+)(?:[eE][+-]?\d+)?"
