@@ -518,19 +518,30 @@ def scenario_from_dict(doc: dict, source: str = "<dict>") -> Scenario:
 
 
 def run_keys(scn: Scenario) -> list[str]:
-    """The bus keys a run of this scenario publishes (sitl.bus.schema's templates, with the
+    """The bus keys a run of this scenario publishes (sitl.bus.schema's key_for with the
     scenario's ids; not the ground station's per-link / per-channel keys, nor the control keys)."""
+    from sitl.bus.schema import (
+        BeaconMeasurement,
+        Estimate,
+        RadarMeasurement,
+        SondeRelay,
+        Truth,
+        UavNav,
+        key_for,  # here: sitl.bus loads numba kernels
+    )
     r, b = scn.run.id, scn.beacon.id
     keys = []
     for i in range(1, scn.uavs.count + 1):
-        keys += [f"{r}/uav/{i}/nav", f"{r}/uav/{i}/beacon/{b}", f"{r}/truth/uav/{i}"]
+        keys += [key_for(r, UavNav, uav=i), key_for(r, BeaconMeasurement, uav=i, beacon=b),
+                 key_for(r, Truth, kind="uav", id=i)]
     if scn.uavs.count:
-        keys += [f"{r}/truth/beacon/{b}", f"{r}/gs/estimate/beacon/{b}"]
+        keys += [key_for(r, Truth, kind="beacon", id=b), key_for(r, Estimate, kind="beacon", id=b)]
     if scn.sonde.enabled:
         sid = scn.sonde.id
-        keys += [f"{r}/sonde/{sid}/relay", f"{r}/truth/sonde/{sid}", f"{r}/gs/estimate/sonde/{sid}"]
+        keys += [key_for(r, SondeRelay, sonde=sid), key_for(r, Truth, kind="sonde", id=sid),
+                 key_for(r, Estimate, kind="sonde", id=sid)]
         if scn.sonde.radar_id:
-            keys.append(f"{r}/radar/{scn.sonde.radar_id}/sonde/{sid}")
+            keys.append(key_for(r, RadarMeasurement, radar=scn.sonde.radar_id, sonde=sid))
     return keys
 
 
@@ -562,7 +573,9 @@ def _cross_checks(scn: Scenario) -> None:
                                 f"(UAVs then the sonde)")
         if kind == "bus":
             keys = run_keys(scn)
-            from sitl.bus.transport import key_matches  # here: sitl.bus loads numba kernels
+            from sitl.bus.transport import (
+                key_matches,  # here: sitl.bus loads numba kernels
+            )
             if not any(key_matches(rest, k) for k in keys):
                 sample = ", ".join([k for k in keys if "/truth/" not in k][:5])
                 raise ScenarioError(f'scenario: faults."{link}": matches no key this run publishes '
