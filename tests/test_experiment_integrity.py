@@ -138,3 +138,47 @@ def test_a_clock_ramp_also_shows_in_the_pseudorange_rate():
                 [(r.channel, r.t_start_s, r.rate, r.trial) for r in ramps]
     with pytest.raises(ValueError, match="ramp_kind"):
         ex.IntegrityScenario(duration_s=150.0, ramp_kind="slow")
+
+
+def test_ramp_signature_snr_equals_the_dense_gls_on_the_whole_history():
+    """The oracle's SNR (steady-state Kalman innovations, the Willsky-Jones failure signature) against
+    an independent computation: the generalised-least-squares SNR s' C^-1 s of the ramp on the channel's
+    whole error history (long before the onset, where the ramp is zero), with C the white plus
+    Gauss-Markov covariance written out densely. Short time constants keep the matrix small."""
+    import math
+
+    import scipy.linalg
+
+    sw, sg, tau, dt, n, pre = 3.0, 2.0, 20.0, 1.0, 12, 600
+    _, snr = ex.ramp_signature(sw, sg, tau, dt, n)
+    t = np.arange(pre + n) * dt
+    cov = sw**2 * np.eye(t.size) + sg**2 * np.exp(-np.abs(t[:, None] - t[None, :]) / tau)
+    for j in (1, 5, n - 1):
+        s = np.zeros(t.size)
+        s[pre:pre + j + 1] = np.arange(j + 1) * dt  # the ramp up to epoch j after the onset; later data unused
+        sub = slice(0, pre + j + 1)
+        f = scipy.linalg.cho_factor(cov[sub, sub])
+        dense = math.sqrt(s[sub] @ scipy.linalg.cho_solve(f, s[sub]))
+        assert snr[j] == pytest.approx(dense, rel=1e-6)
+    # no Gauss-Markov error: the matched filter of a ramp in white noise, sqrt(sum (j dt)^2) / sigma
+    _, snr0 = ex.ramp_signature(6.0, 0.0, 100.0, 0.1, 101)
+    assert snr0[-1] == pytest.approx(math.sqrt(np.sum((np.arange(101) * 0.1) ** 2)) / 6.0, rel=1e-12)
+
+
+def test_ramp_oracle_pd_single_test_is_the_analytic_two_sided_power():
+    """With one epoch after the onset the oracle runs one test: Pd = P(|N(r snr, 1)| > z_(1-pfa/2)),
+    analytic; over a 10 s window it is higher, monotone in the rate, and 0.5 m/s ramps in the default
+    world (6 m white + 2 m Gauss-Markov) stay far below 0.99 (the issue's ramp target is out of reach)."""
+    import scipy.stats
+
+    scn = ex.IntegrityScenario(ramp_detect_s=1.0, dt_s=1.0, duration_s=150.0)
+    _, snr = ex.ramp_signature(scn.sigma_pr_m, scn.gm_sigma_m, scn.gm_tau_s, scn.dt_s, 2)
+    rates = np.array([2.0, 5.0, 8.0])
+    pd = ex.ramp_oracle_pd(rates, scn, 0.003, np.random.default_rng(4), draws=200_000)
+    thr = scipy.stats.norm.isf(0.0015)
+    mu = rates * snr[1]
+    exact = scipy.stats.norm.sf(thr - mu) + scipy.stats.norm.cdf(-thr - mu)
+    se = np.sqrt(exact * (1 - exact) / 200_000)
+    assert np.all(np.abs(pd - exact) <= 4 * se + 1e-12), (pd, exact)
+    full = ex.ramp_oracle_pd([0.5, 0.75, 1.0], ex.IntegrityScenario(), 0.003, np.random.default_rng(4), draws=20_000)
+    assert np.all(np.diff(full) > 0) and full[0] < 0.9 and full[2] > 0.99

@@ -52,6 +52,9 @@ any of its rows.
   last ``window`` epochs (the window statistics remember a fault that long), after the
   warm-up; with the exact (Clopper-Pearson) 95 % interval.
 * mean_delay_s: over the detected events, onset to the first alarm.
+* ramp.oracle (code-only ramps): the bound on any detector, ramp_oracle_pd: the Pd within
+  ``ramp_detect_s`` of an oracle that knows the faulty channel, the onset and the receiver's state,
+  testing at every epoch at the Pfa target; averaged over the same ramps as ``ramp.pd``.
 * position_rmse_m: 3-D position error, RMS over trials and the epochs after the warm-up.
 ROC: the statistics of the adaptive-robust run (jump: the channel's max |beta|; window: the
 channel's max of bias_stat / its threshold and drift_stat / its threshold) swept over
@@ -492,6 +495,77 @@ class _Score:
         return out, roc
 
 
+# ------------------------------------------------------------------ the ramp detection bound
+def ramp_signature(sigma_w_m: float, gm_sigma_m: float, gm_tau_s: float, dt_s: float, n: int):
+    """What a code-only pseudorange ramp of unit rate (1 m/s, zero at the onset epoch, j dt at the
+    j-th epoch after it) does to the innovations of the best filter of that channel's errors:
+    the steady-state Kalman filter of the world's error model, white noise ``sigma_w_m`` plus a
+    first-order Gauss-Markov error (``gm_sigma_m``, ``gm_tau_s``), run long before the onset.
+    Its innovations are white with variance S; the ramp adds the deterministic signature g_j
+    (the Willsky-Jones failure signature). Returns (g_j / sqrt(S) for j = 0..n-1, the cumulative
+    signal-to-noise ratio sqrt(sum_{i<=j} g_i^2 / S) per unit rate)."""
+    import scipy.linalg
+
+    a = math.exp(-dt_s / gm_tau_s)
+    q = gm_sigma_m**2 * -math.expm1(-2.0 * dt_s / gm_tau_s)
+    r = sigma_w_m**2
+    # the prior variance of the filter's steady state: the filtering Riccati equation (the DARE's dual)
+    p_prior = float(scipy.linalg.solve_discrete_are(np.array([[a]]), np.array([[1.0]]), np.array([[q]]),
+                                                    np.array([[r]]))[0, 0]) if gm_sigma_m > 0 else 0.0
+    s = p_prior + r
+    k = p_prior / s
+    g = np.empty(n)
+    est = 0.0  # the filter's estimate of the fault's own contribution (linear: the faulty run minus the healthy one)
+    for j in range(n):
+        pred = a * est
+        g[j] = j * dt_s - pred
+        est = pred + k * g[j]
+    gn = g / math.sqrt(s)
+    return gn, np.sqrt(np.cumsum(gn * gn))
+
+
+def ramp_oracle_pd(rates_m_s, scn: IntegrityScenario, pfa: float, rng, draws: int = 20_000) -> np.ndarray:
+    """Detection probability, within ``scn.ramp_detect_s`` of the onset, of a code-only pseudorange
+    ramp of each |rate| in ``rates_m_s``, for an oracle: it knows the faulty channel, the onset
+    and everything about the receiver (position, clock, the other satellites), and it has the
+    channel's whole history; it does not know the rate or its sign. At every epoch after the onset
+    it runs the most powerful test of "a ramp since the onset" against "no fault" on that channel's
+    innovations (the matched filter of the failure signature, ramp_signature), two-sided at the
+    per-epoch false-alarm probability ``pfa``; it alarms when any of them fires. No detector with less
+    knowledge, at that false-alarm rate per epoch, can do better (it only ignores the other
+    channels' nuisance, which would lower it). Monte Carlo with common random numbers over the rates."""
+    n = int(round(scn.ramp_detect_s / scn.dt_s)) + 1  # the onset epoch (zero) to onset + ramp_detect_s
+    gn, snr = ramp_signature(scn.sigma_pr_m, scn.gm_sigma_m, scn.gm_tau_s, scn.dt_s, n)
+    live = snr > 0
+    e = rng.standard_normal((draws, n))
+    z = np.cumsum(e * gn, axis=1)[:, live] / snr[live]  # N(0, 1) per epoch under no fault
+    thr = scipy.stats.norm.isf(pfa / 2.0)
+    return np.array([float((np.abs(z + abs(float(rt)) * snr[live]) > thr).any(axis=1).mean()) for rt in rates_m_s])
+
+
+def _ramp_oracle(scn: IntegrityScenario, seed: int, rates: np.ndarray, valid: np.ndarray, pfa: float) -> dict:
+    """The oracle's Pd (ramp_oracle_pd) for this run's code-only ramps: overall and per rate bin, the
+    mean over the trials of the oracle's Pd at each trial's rate (the same trials as ``ramp.pd``)."""
+    grid = np.linspace(scn.ramp_rate_m_s[0], scn.ramp_rate_m_s[1], 61)
+    rng = np.random.default_rng(np.random.SeedSequence(seed).spawn(4)[3])  # not one of the run's streams
+    pd_grid = ramp_oracle_pd(grid, scn, pfa, rng)
+    rr = np.abs(rates)
+    per = np.interp(rr, grid, pd_grid)
+    bins = [(0.5, 1.0), (1.0, 2.0 + 1e-9)]
+
+    def mean(sel):
+        return float(per[sel].mean()) if sel.any() else None
+
+    return {"pd": mean(valid), "by_rate_m_s": {f"{a:g}-{min(b, 2):g}": mean(valid & (rr >= a) & (rr < b))
+                                               for a, b in bins},
+            "pd_at_rate_m_s": {f"{v:g}": float(np.interp(v, grid, pd_grid)) for v in (0.5, 0.75, 1.0)
+                               if grid[0] <= v <= grid[-1]},
+            "pfa_per_epoch": pfa,
+            "assumes": "knows the channel, the onset and the receiver's state; the channel's white noise "
+                       "(sigma_pr_m) and Gauss-Markov error (gm_sigma_m, gm_tau_s) as in the world; a most "
+                       "powerful test at every epoch, two-sided; code-only ramp"}
+
+
 def _pfa_only(n_fa, n):
     lo, hi = scipy.stats.binomtest(n_fa, n).proportion_ci(0.95, method="exact") if n else (math.nan, math.nan)
     return {"value": n_fa / n if n else math.nan, "ci95": [lo, hi], "count": int(n_fa), "of": int(n)}
@@ -669,6 +743,12 @@ def run(scn: IntegrityScenario, trials: int, seed: int, progress=None, backend=N
         det, roc = {}, {}
         for n, sc in scores.items():
             det[n], roc[n] = sc.result()
+        # the best any detector could do on these ramps at the false-alarm target (code-only ramps; a clock ramp
+        # also moves the pseudorange rate, sigma_prr: its bound is 1 to many digits)
+        oracle = (_ramp_oracle(scn, seed, ftruth["ramp_rate"], scores[DETECTION_FILTER].ramp_valid, TARGETS["pfa_max"])
+                  if scn.ramp_kind == "code" else None)
+        for n in det:
+            det[n]["ramp"]["oracle"] = oracle
         out["detection"] = det[DETECTION_FILTER]
         out["detection_by_filter"] = det
         out["roc"] = roc
@@ -708,6 +788,8 @@ def targets_check(res: dict) -> dict:
         st, rp = det["step"], det["ramp"]
         out["step_pd_ge_0.99"] = st["pd"]["value"] >= TARGETS["pd_min"]
         out["ramp_pd_ge_0.99_within_10s"] = rp["pd"]["value"] >= TARGETS["pd_min"]
+        if rp.get("oracle"):  # can any detector meet it on these ramps?
+            out["ramp_pd_ge_0.99_possible_at_all"] = rp["oracle"]["pd"] >= TARGETS["pd_min"]
         out["pfa_le_0.003"] = st["pfa"]["value"] <= TARGETS["pfa_max"]
     r = res["rmse_ratio"]
     out["adaptive_robust_cuts_rmse_more_than_2x"] = r["plain_over_adaptive_robust"] > 2.0
@@ -760,6 +842,10 @@ def plot(res: dict, scn, out: Path) -> list[Path]:
                 i = int(np.argmin(np.abs(np.asarray(c["threshold"]) - c["operating_threshold"])))
                 ax.plot(pfa[i], c["pd"][i], "o", ms=8, mfc="none", mew=2, color=ax.lines[-1].get_color(),
                         label=f"operating point ({c['operating_threshold']:g})")
+            orc = res.get("detection", {}).get("ramp", {}).get("oracle") if kind == "ramp" else None
+            if orc:
+                ax.plot(orc["pfa_per_epoch"], orc["pd"], "*", ms=12, color="k",
+                        label=f"bound: oracle knowing the onset ({orc['pd']:.3f})")
             ax.axvline(TARGETS["pfa_max"], color="k", ls=":", lw=1, label="Pfa target 0.003")
             ax.axhline(TARGETS["pd_min"], color="0.5", ls=":", lw=1, label="Pd target 0.99")
             ax.set_xscale("log")
@@ -815,6 +901,12 @@ def summary(res: dict) -> str:
                          f"{'-' if md is None else f'{md:.2f} s'}")
         p = det["step"]["pfa"]
         lines.append(f"{name}: " + "; ".join(parts) + f"; Pfa {p['value']:.2e} [{p['ci95'][0]:.2e}, {p['ci95'][1]:.2e}]")
+    orc = res.get("detection", {}).get("ramp", {}).get("oracle")
+    if orc:
+        lines.append(f"ramp bound (oracle that knows the onset, Pfa {orc['pfa_per_epoch']:g} per epoch): Pd "
+                     f"{orc['pd']:.4f} on these ramps; " + ", ".join(f"{k} m/s {v:.4f}" for k, v in
+                                                                      orc["by_rate_m_s"].items() if v is not None)
+                     + "; at " + ", ".join(f"{k} m/s {v:.3f}" for k, v in orc["pd_at_rate_m_s"].items()))
     for key, ff in res.get("fault_free", {}).items():
         d = ff["paired_difference_m"]
         lines.append(f"fault-free ({key}): without monitor {ff['position_rmse_m']['without_monitor']:.3f} m, with "
