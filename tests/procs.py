@@ -1,6 +1,7 @@
 """Checks the live tests share: is a process gone, is a loopback port free."""
 from __future__ import annotations
 
+import os
 import socket
 
 
@@ -32,3 +33,21 @@ def tcp_free(port: int) -> bool:
 def udp_free(port: int) -> bool:
     """No socket is bound to 127.0.0.1:port (UDP)."""
     return _bindable(socket.SOCK_DGRAM, port)
+
+
+def worker_index() -> int:
+    """This pytest-xdist worker's number (gw0 -> 0, gw1 -> 1); 0 without xdist."""
+    w = os.environ.get("PYTEST_XDIST_WORKER", "gw0")
+    return int(w[2:]) if w.startswith("gw") and w[2:].isdigit() else 0
+
+
+def udp_base(n: int) -> int:
+    """A base port with 127.0.0.1:base + 10 i (i < n) free for UDP, searched in a window of
+    this worker's own (worker k: 20000 + 6000 k .. + 6000, below Linux's ephemeral range for
+    workers 0 and 1), so tests on two workers never pick the same ports, and no port the
+    OS hands out for bind(0) lands there."""
+    first = 20000 + 6000 * worker_index()
+    for base in range(first, min(first + 6000, 65000) - 10 * n, 97):
+        if all(udp_free(base + 10 * i) for i in range(n)):
+            return base
+    raise RuntimeError("no free UDP port range")

@@ -16,6 +16,7 @@ import time
 import pytest
 from procs import dead as _dead
 from procs import tcp_free as _tcp_free
+from procs import udp_base
 
 from sitl.live.pacer import Pacer
 from sitl.live.supervisor import Supervisor
@@ -286,23 +287,7 @@ def test_param_set_reaches_the_group_and_a_sonde_set_is_vetoed():
     from sitl.scenario import default_scenario
     from vehicles.process import VehicleGroup, _mav_telemetry, build_endpoints
 
-    def free_base():
-        for base in range(33000, 60000, 991):
-            socks = []
-            try:
-                for i in range(4):
-                    s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-                    socks.append(s)
-                    s.bind(("127.0.0.1", base + 10 * i))
-                return base
-            except OSError:
-                continue
-            finally:
-                for s in socks:
-                    s.close()
-        raise RuntimeError("no free ports")
-
-    base = free_base()
+    base = udp_base(4)
     gcs = mavutil.mavlink_connection("udpin:127.0.0.1:0", source_system=255)
     scn = default_scenario().replace(mavlink={"gcs": f"127.0.0.1:{gcs.port.getsockname()[1]}", "base_port": base,
                                               "tlog": False})

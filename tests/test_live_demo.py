@@ -18,17 +18,11 @@ import time
 import pytest
 from procs import dead as _dead
 from procs import tcp_free as _tcp_free
+from procs import udp_base as _base_port
 from procs import udp_free as _udp_free
 
 from sitl.live.launcher import launch, replay
 from sitl.scenario import default_scenario
-
-
-def _base_port(n: int) -> int:
-    for base in range(24000, 60000, 997):
-        if all(_udp_free(base + 10 * i) for i in range(n)):
-            return base
-    raise RuntimeError("no free UDP port range")
 
 
 class GcsPeer(threading.Thread):

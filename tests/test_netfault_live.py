@@ -12,16 +12,10 @@ import numpy as np
 import pytest
 from procs import dead as _dead
 from procs import tcp_free as _tcp_free
+from procs import udp_base as _base_port
 from procs import udp_free as _udp_free
 
 from sitl.scenario import parse_scenario
-
-
-def _base_port(n: int) -> int:
-    for base in range(31000, 60000, 991):
-        if all(_udp_free(base + 10 * i) for i in range(n)):
-            return base
-    raise RuntimeError("no free UDP port range")
 
 
 def _threads(prefix: str) -> list[str]:
