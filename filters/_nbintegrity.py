@@ -1,7 +1,7 @@
 """Compiled kernel of the integrity monitor's epoch (filters/integrity.py, numpy reference there).
 
 Per trial: innovation, diag(H P- H'), beta, the jump test, the window sums (running: + the new
-sample - the one leaving the ring), both window tests, the channel logic (jump runs,
+sample - the one leaving the ring: one ring of winsorised beta, NaN for a missing epoch), both window tests, the channel logic (jump runs,
 exclusion, readmission), the row mask, the Huber weight in R, the R used by the update and the
 innovation-based R estimate. The window statistics and Huber weights of the Report are not
 written here: the Report derives them from the new window sums and beta when read.
@@ -11,7 +11,8 @@ its scratch allocated once per block; the drivers spread blocks over the cores (
 run one block (``*_ser``). Every output is allocated by the caller and passed in. Everything a
 lane group needs is in that one function: a call per lane group would pay an atomic reference
 count on each of its ~40 arrays, shared by the threads (measured: a large part of the cost on
-two cores). The monitor works on [row, lane] scratch, loops over the lanes (vectorised); the
+two cores). The monitor works on [row, lane] scratch (the channel logic on [channel, lane], branch-free),
+loops over the lanes (vectorised); the
 batched arrays are touched only by one transposing load and one store per lane group. With
 ``fuse`` the block then runs the EKF's sequential Joseph update on the lanes it has loaded (the
 arithmetic of _nbkernels._joseph_block), taking the monitor's innovations, mask and R as they
@@ -29,8 +30,8 @@ from ._nbkernels import LANES, N_BLOCKS, _jit  # noqa: F401 (LANES: the caller r
 
 
 @nb.njit(**_jit)
-def _block(lo, hi, z, hx, H, P, r_nom, r_est, old_sq, old_b, stale, sum_sq, sum_b, jump_run, excluded, clean_run,
-           ch, prm, iprm, beta, jump, drift, inert, used, r_used, y, new_sq, new_b, sum_sq2, sum_b2, r_est2, excl2,
+def _block(lo, hi, z, hx, H, P, r_nom, r_est, old, stale, sum_sq, sum_b, jump_run, excluded, clean_run,
+           ch, prm, iprm, beta, jump, drift, inert, used, r_used, y, ring_new, sum_sq2, sum_b2, r_est2, excl2,
            newly, readmit, jr2, cr2, z_f, hx_g, fuse, x, xo, Po, nis, lanes):
     """The monitor (and with ``fuse`` the EKF's sequential Joseph update) on trials [lo, hi), LANES
     trials at a time in the layout of _nbkernels._joseph_block: every quantity of the lane group is
@@ -54,7 +55,6 @@ def _block(lo, hi, z, hx, H, P, r_nom, r_est, old_sq, old_b, stale, sum_sq, sum_
     use_huber, adapt_r, isolate, has_stale = iprm[5] != 0, iprm[6] != 0, iprm[7] != 0, iprm[8] != 0
     min_ch = iprm[10]
     glob = not fuse  # a guarded model follows: z_f, hx_g, the row mask and R go out, H rows are zeroed
-    J2 = J * J
     fW = float(W)
     fc = float(count)
     off = float(W - count)  # the unfilled window slots, each holding beta^2 = 1
@@ -67,12 +67,15 @@ def _block(lo, hi, z, hx, H, P, r_nom, r_est, old_sq, old_b, stale, sum_sq, sum_
     nzc = np.empty(m, np.int64)
     zl, hxl, nul, rl, bl, yl = (np.empty((m, B)), np.empty((m, B)), np.empty((m, B)), np.empty((m, B)),
                                 np.empty((m, B)), np.empty((m, B)))
-    sql, sbl, ssl, sbs, rel = np.empty((m, B)), np.empty((m, B)), np.empty((m, B)), np.empty((m, B)), np.empty((m, B))
+    sbl, ssl, sbs, rel = np.empty((m, B)), np.empty((m, B)), np.empty((m, B)), np.empty((m, B))
     missl, jmpl, drfl, inl = (np.empty((m, B), np.bool_), np.empty((m, B), np.bool_), np.empty((m, B), np.bool_),
                               np.empty((m, B), np.bool_))
     jcl, dcl, exl, pcl = (np.empty((C, B), np.bool_), np.empty((C, B), np.bool_), np.empty((C, B), np.bool_),
                           np.empty((C, B), np.bool_))
-    fl, rdl = np.empty(C, np.bool_), np.empty(C, np.bool_)
+    exo, fl, rdl = np.empty((C, B), np.bool_), np.empty((C, B), np.bool_), np.empty((C, B), np.bool_)
+    jrl, crl = np.empty((C, B), np.int64), np.empty((C, B), np.int64)
+    n_in = np.empty(B, np.int64)
+    n_full = np.empty(B, np.int64)
     model_ = np.empty(B, np.int64)  # per lane: the isolation mode of the epoch
     dx = np.empty((n, B))
     b = np.empty((n, B))
@@ -109,18 +112,20 @@ def _block(lo, hi, z, hx, H, P, r_nom, r_est, old_sq, old_b, stale, sum_sq, sum_
                 zl[j, q] = z[t, j]
                 hxl[j, q] = hx[t, j]
                 rl[j, q] = r_nom[rt, j]
-                sql[j, q] = old_sq[t, j]
-                sbl[j, q] = old_b[t, j]
+                sbl[j, q] = old[t, j]
                 ssl[j, q] = sum_sq[t, j]
                 sbs[j, q] = sum_b[t, j]
             if adapt_r:
                 for j in range(m):
                     rel[j, q] = r_est[t, j]
-            if has_stale:  # a stale slot leaves the window as the healthy value it stands for
+            if has_stale:  # a stale slot leaves the window as the healthy value it stands for (NaN: missing)
                 for j in range(m):
                     if stale[t, j] > 0:
-                        sql[j, q] = 1.0
-                        sbl[j, q] = 0.0
+                        sbl[j, q] = math.nan
+            for c in range(C):
+                jrl[c, q] = jump_run[t, c]
+                crl[c, q] = clean_run[t, c]
+                exo[c, q] = excluded[t, c]
         # the columns of each row that are nonzero in some lane
         for a in range(m):
             nz = 0
@@ -161,10 +166,13 @@ def _block(lo, hi, z, hx, H, P, r_nom, r_est, old_sq, old_b, stale, sum_sq, sum_
                     r = re if (math.isfinite(re) & (re > r)) else r
                 bj = 0.0 if mj else v / math.sqrt(hl[a, q] + r)
                 jp = (abs(bj) >= J) & (not mj)
-                v2 = 1.0 if mj else min(bj * bj, J2)
-                vb = 0.0 if mj else min(max(bj, -J), J)
-                ss = ssl[a, q] + v2 - sql[a, q]
-                sb = sbs[a, q] + vb - sbl[a, q]
+                cb = min(max(bj, -J), J)
+                v2 = 1.0 if mj else cb * cb
+                vb = 0.0 if mj else cb
+                o = sbl[a, q]  # the sample leaving the window (NaN: a missing epoch, 1 and 0)
+                om = math.isnan(o)
+                ss = ssl[a, q] + v2 - (1.0 if om else o * o)
+                sb = sbs[a, q] + vb - (0.0 if om else o)
                 ds = ss / fW if count == W else (ss - off) / fc
                 bs = sb * sb / fc
                 zl[a, q] = zj
@@ -173,8 +181,7 @@ def _block(lo, hi, z, hx, H, P, r_nom, r_est, old_sq, old_b, stale, sum_sq, sum_
                 bl[a, q] = bj
                 missl[a, q] = mj
                 jmpl[a, q] = jp
-                sql[a, q] = v2
-                sbl[a, q] = vb
+                sbl[a, q] = math.nan if mj else cb
                 ssl[a, q] = ss
                 sbs[a, q] = sb
                 drfl[a, q] = (ds > thr_ms) | (use_bias & (bs > thr_b))
@@ -192,50 +199,41 @@ def _block(lo, hi, z, hx, H, P, r_nom, r_est, old_sq, old_b, stale, sum_sq, sum_
                 jcl[c, q] = jcl[c, q] | jmpl[a, q]
                 dcl[c, q] = dcl[c, q] | drfl[a, q]
                 pcl[c, q] = pcl[c, q] | (not missl[a, q])
-        for q in range(nl):
-            t = t0 + q
-            n_full = 0
-            n_in = 0
-            for c in range(C):
+        # per channel and lane, branch-free (vectorised across the lanes)
+        for q in range(B):
+            n_in[q] = 0
+            n_full[q] = 0
+        for c in range(C):
+            for q in range(nl):
                 jc = jcl[c, q]
                 dc = dcl[c, q]
-                jr = jump_run[t, c] + 1 if jc else 0
-                jr2[t, c] = jr
-                fault = dc or jr >= persist
-                fl[c] = fault
-                ex = excluded[t, c]
-                clean = not (jc or (dc and not ex))  # out: the window tests do not apply
-                cr = clean_run[t, c] + 1 if clean else 0
-                cr2[t, c] = cr
-                rd = isolate and ex and cr >= readmit_after
-                e2 = isolate and (ex or fault) and not rd
-                rdl[c] = rd
+                ex = exo[c, q]
+                jr = jrl[c, q] + 1 if jc else 0
+                fault = dc | (jr >= persist)
+                clean = not (jc | (dc & (not ex)))  # out: the window tests do not apply
+                cr = crl[c, q] + 1 if clean else 0
+                rd = isolate & ex & (cr >= readmit_after)
+                e2 = isolate & (ex | fault) & (not rd)
+                jrl[c, q] = jr
+                crl[c, q] = cr
+                fl[c, q] = fault
+                rdl[c, q] = rd
                 exl[c, q] = e2
-                if pcl[c, q] and not e2:
-                    n_in += 1
-                    if not jc:
-                        n_full += 1
-            mode = 0 if not isolate else (2 if n_full >= min_ch else (1 if n_in >= min_ch else 0))
-            model_[q] = mode
-            for c in range(C):
-                ex = excluded[t, c]
-                if not isolate:
-                    readmit[t, c] = False
-                    excl2[t, c] = False
-                    newly[t, c] = fl[c]
-                elif mode == 0:  # detect only: every fault reported, a channel that was out comes back
-                    rd = ex and isolate
-                    readmit[t, c] = rd
-                    tot += rd
-                    excl2[t, c] = False
-                    exl[c, q] = False
-                    newly[t, c] = fl[c]
-                else:
-                    rd = rdl[c]
-                    readmit[t, c] = rd
-                    tot += rd
-                    excl2[t, c] = exl[c, q]
-                    newly[t, c] = fl[c] and not ex
+                keep = pcl[c, q] & (not e2)
+                n_in[q] += keep
+                n_full[q] += keep & (not jc)
+        for q in range(nl):
+            md = 2 if n_full[q] >= min_ch else (1 if n_in[q] >= min_ch else 0)
+            model_[q] = md if isolate else 0
+        for c in range(C):
+            for q in range(nl):
+                det = model_[q] == 0  # detect only: every fault reported, a channel that was out comes back
+                ex = exo[c, q]
+                rd = (ex & isolate) if det else rdl[c, q]
+                rdl[c, q] = rd
+                exl[c, q] = False if det else exl[c, q]
+                fl[c, q] = fl[c, q] if det else (fl[c, q] & (not ex))
+                tot += rd
         # the row mask, the Huber weight in R (R / w), the innovations the update uses and the
         # innovation-based R estimate (admitted rows)
         for a in range(m):
@@ -263,13 +261,18 @@ def _block(lo, hi, z, hx, H, P, r_nom, r_est, old_sq, old_b, stale, sum_sq, sum_
                 drift[t, j] = drfl[j, q]
                 used[t, j] = not inl[j, q]
                 y[t, j] = yl[j, q]
-                new_sq[t, j] = sql[j, q]
-                new_b[t, j] = sbl[j, q]
+                ring_new[t, j] = sbl[j, q]
                 sum_sq2[t, j] = ssl[j, q]
                 sum_b2[t, j] = sbs[j, q]
             if adapt_r:
                 for j in range(m):
                     r_est2[t, j] = rel[j, q]
+            for c in range(C):
+                jr2[t, c] = jrl[c, q]
+                cr2[t, c] = crl[c, q]
+                excl2[t, c] = exl[c, q]
+                newly[t, c] = fl[c, q]
+                readmit[t, c] = rdl[c, q]
             if glob:
                 for j in range(m):
                     it = inl[j, q]
@@ -351,26 +354,26 @@ def _block(lo, hi, z, hx, H, P, r_nom, r_est, old_sq, old_b, stale, sum_sq, sum_
 
 
 @nb.njit(parallel=True, **_jit)
-def epoch_par(z, hx, H, P, r_nom, r_est, old_sq, old_b, stale, sum_sq, sum_b, jump_run, excluded, clean_run, ch,
-              prm, iprm, beta, jump, drift, inert, used, r_used, y, new_sq, new_b, sum_sq2, sum_b2, r_est2, excl2,
+def epoch_par(z, hx, H, P, r_nom, r_est, old, stale, sum_sq, sum_b, jump_run, excluded, clean_run, ch,
+              prm, iprm, beta, jump, drift, inert, used, r_used, y, ring_new, sum_sq2, sum_b2, r_est2, excl2,
               newly, readmit, jr2, cr2, z_f, hx_g, fuse, x, xo, Po, nis, lanes):
     N = z.shape[0]
     nb_ = min(N, N_BLOCKS)
     tot = 0
     for blk in nb.prange(nb_):
         lo, hi = blk * N // nb_, (blk + 1) * N // nb_
-        tot += _block(lo, hi, z, hx, H, P, r_nom, r_est, old_sq, old_b, stale, sum_sq, sum_b, jump_run, excluded,
-                      clean_run, ch, prm, iprm, beta, jump, drift, inert, used, r_used, y, new_sq, new_b, sum_sq2,
+        tot += _block(lo, hi, z, hx, H, P, r_nom, r_est, old, stale, sum_sq, sum_b, jump_run, excluded,
+                      clean_run, ch, prm, iprm, beta, jump, drift, inert, used, r_used, y, ring_new, sum_sq2,
                       sum_b2, r_est2, excl2, newly, readmit, jr2, cr2, z_f, hx_g, fuse, x, xo, Po, nis, lanes)
     return tot
 
 
 @nb.njit(**_jit)
-def epoch_ser(z, hx, H, P, r_nom, r_est, old_sq, old_b, stale, sum_sq, sum_b, jump_run, excluded, clean_run, ch,
-              prm, iprm, beta, jump, drift, inert, used, r_used, y, new_sq, new_b, sum_sq2, sum_b2, r_est2, excl2,
+def epoch_ser(z, hx, H, P, r_nom, r_est, old, stale, sum_sq, sum_b, jump_run, excluded, clean_run, ch,
+              prm, iprm, beta, jump, drift, inert, used, r_used, y, ring_new, sum_sq2, sum_b2, r_est2, excl2,
               newly, readmit, jr2, cr2, z_f, hx_g, fuse, x, xo, Po, nis, lanes):
     N = z.shape[0]
     # np.int64(0): a literal 0 would compile _block a second time, for the type Literal[int](0)
-    return _block(np.int64(0), N, z, hx, H, P, r_nom, r_est, old_sq, old_b, stale, sum_sq, sum_b, jump_run,
-                  excluded, clean_run, ch, prm, iprm, beta, jump, drift, inert, used, r_used, y, new_sq, new_b,
+    return _block(np.int64(0), N, z, hx, H, P, r_nom, r_est, old, stale, sum_sq, sum_b, jump_run,
+                  excluded, clean_run, ch, prm, iprm, beta, jump, drift, inert, used, r_used, y, ring_new,
                   sum_sq2, sum_b2, r_est2, excl2, newly, readmit, jr2, cr2, z_f, hx_g, fuse, x, xo, Po, nis, lanes)

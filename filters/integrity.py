@@ -141,10 +141,14 @@ def _chi2_isf_1(alpha):
 
 
 class MonitorState(NamedTuple):
-    ring: tuple  # ``window`` arrays (..., m): the last beta^2 per row (winsorised; missing: 1); never modified
-    ring_b: tuple  # the same for beta (winsorised; missing: 0)
-    sum_sq: np.ndarray  # (..., m) the sum of ``ring`` (running: + the new sample - the one leaving)
-    sum_b: np.ndarray  # (..., m) the sum of ``ring_b``
+    """The monitor's state between epochs; functional: ``step`` never modifies a state it is
+    given (a caller may keep one and step from it again, as the ground station's lag window
+    does). ``take`` and ``merge`` step a subset of the batch rows (a flat batch axis)."""
+
+    ring_b: tuple  # ``window`` arrays (..., m): the last beta per row, winsorised to [-J, J], NaN for a
+    #                missing epoch (which counts as the healthy beta = 0, beta^2 = 1); never modified
+    sum_sq: np.ndarray  # (..., m) the window's sum of beta^2 (running: + the new sample - the one leaving)
+    sum_b: np.ndarray  # (..., m) the window's sum of beta
     pos: int  # next ring slot
     count: int  # epochs seen, for the partial-window tolerance (saturates at window)
     jump_run: np.ndarray  # (..., C) consecutive epochs with a jump on the channel
@@ -154,6 +158,53 @@ class MonitorState(NamedTuple):
     steps: int = 0  # epochs processed (the running sums are recomputed exactly every RESUM epochs)
     stale: np.ndarray | None = None  # (..., m) how many of the oldest ring slots (from ``pos``) count as
     #                                  healthy values: a readmitted channel's fresh window (None: none)
+
+    @property
+    def ring(self) -> tuple:
+        """The window's beta^2 samples (derived from ``ring_b``: the winsorised beta squared, 1 for a
+        missing epoch), slot by slot."""
+        return tuple(_sq(b) for b in self.ring_b)
+
+    def take(self, idx) -> MonitorState:
+        """The state of batch rows ``idx`` (an index into the first axis; a copy)."""
+        return self._replace(ring_b=tuple(a[idx] for a in self.ring_b), sum_sq=self.sum_sq[idx],
+                             sum_b=self.sum_b[idx], jump_run=self.jump_run[idx], excluded=self.excluded[idx],
+                             clean_run=self.clean_run[idx], r_est=self.r_est[idx],
+                             stale=None if self.stale is None else self.stale[idx])
+
+    def merge(self, acc: MonitorState | None, idx, sub: MonitorState) -> MonitorState:
+        """The epoch's new state when its batch rows are stepped in parts, each from this state:
+        ``acc`` (the parts merged so far; None: none yet) with rows ``idx`` from ``sub``, the state
+        ``self.take(idx)`` stepped to. Rows no part stepped keep their values (their window slot
+        too). The first call copies what the parts write (this state is not modified); later calls
+        write into ``acc``, which must come from an earlier call."""
+        p = self.pos
+        if acc is None:
+            ring_b = list(self.ring_b)
+            ring_b[p] = np.array(self.ring_b[p])
+            acc = self._replace(ring_b=tuple(ring_b), sum_sq=self.sum_sq.copy(), sum_b=self.sum_b.copy(),
+                                jump_run=self.jump_run.copy(), excluded=self.excluded.copy(),
+                                clean_run=self.clean_run.copy(), r_est=self.r_est.copy(),
+                                stale=None if self.stale is None else self.stale.copy())
+        acc.ring_b[p][idx] = sub.ring_b[p]
+        for f in ("sum_sq", "sum_b", "jump_run", "excluded", "clean_run", "r_est"):
+            getattr(acc, f)[idx] = getattr(sub, f)
+        stale = acc.stale
+        if sub.stale is not None or stale is not None:
+            if stale is None:
+                stale = np.zeros(acc.sum_sq.shape, dtype=np.int64)
+            stale[idx] = 0 if sub.stale is None else sub.stale
+        return acc._replace(pos=sub.pos, count=sub.count, steps=sub.steps, stale=stale)
+
+
+def _sq(b):
+    """beta^2 of winsorised ring samples (NaN, a missing epoch: 1)."""
+    return np.where(np.isnan(b), 1.0, b * b)
+
+
+def _lin(b):
+    """beta of winsorised ring samples (NaN, a missing epoch: 0)."""
+    return np.where(np.isnan(b), 0.0, b)
 
 
 RESUM = 4096
@@ -298,11 +349,9 @@ class IntegrityMonitor:
     def init(self, batch_shape, m: int, n_channels: int) -> MonitorState:
         b = tuple(batch_shape)
         W = self.config.window
-        ones = np.ones(b + (int(m),))
-        zeros = np.zeros(b + (int(m),))
-        ones.flags.writeable = False  # shared by every slot of the fresh rings
-        zeros.flags.writeable = False
-        return MonitorState((ones,) * W, (zeros,) * W, np.full(b + (int(m),), float(W)), np.zeros(b + (int(m),)), 0, 0,
+        empty = np.full(b + (int(m),), np.nan)  # a fresh window: every slot a missing epoch (1 and 0)
+        empty.flags.writeable = False  # shared by every slot of the fresh ring
+        return MonitorState((empty,) * W, np.full(b + (int(m),), float(W)), np.zeros(b + (int(m),)), 0, 0,
                             np.zeros(b + (n_channels,), dtype=np.int64), np.zeros(b + (n_channels,), dtype=bool),
                             np.zeros(b + (n_channels,), dtype=np.int64), np.full(b + (int(m),), np.nan), 0)
 
@@ -342,27 +391,25 @@ class IntegrityMonitor:
         rd = model.R_diag()
         if rd is None:
             raise ValueError("the integrity monitor needs a measurement model with a diagonal R (R_diag)")
-        old_sq, old_b = state.ring[state.pos], state.ring_b[state.pos]
+        old = state.ring_b[state.pos]  # the samples leaving the window
         if _use_kernel(update_kw.get("backend")):
             res, (beta, jump, drift, used, sum_sq, sum_b, r_est, excluded, newly, readmit,
-                  jump_run, clean_run, new_sq, new_b), n_readmit = self._epoch_kernel(
-                state, x, P, z, model, hx, H, rd, ch, count, thr_ms, thr_b, old_sq, old_b, update, update_kw)
+                  jump_run, clean_run, new_b), n_readmit = self._epoch_kernel(
+                state, x, P, z, model, hx, H, rd, ch, count, thr_ms, thr_b, old, update, update_kw)
             lazy, sum_sq_ep, sum_b_ep = True, sum_sq, sum_b  # the sums the epoch's tests saw (before any reset)
         else:
             lazy = False
             if state.stale is not None:  # slots of a fresh window leave as the healthy values they stand for
-                gone = state.stale > 0
-                old_sq, old_b = np.where(gone, 1.0, old_sq), np.where(gone, 0.0, old_b)
-            (z_f, beta, jump, drift_stat, bias_stat, drift, inert, w, r_used, new_sq, new_b, sum_sq, sum_b, hx_g,
+                old = np.where(state.stale > 0, np.nan, old)
+            (z_f, beta, jump, drift_stat, bias_stat, drift, inert, w, r_used, new_b, sum_sq, sum_b, hx_g,
              H_g, r_est, excluded, newly, readmit, jump_run, clean_run) = self._epoch_numpy(
-                state, x, P, z, hx, H, rd, ch, C, count, thr_ms, thr_b, old_sq, old_b)
+                state, x, P, z, hx, H, rd, ch, C, count, thr_ms, thr_b, old)
             gm = GuardedModel(model, z_f, inert, prepared=(x, hx_g, H_g), r_diag=r_used)
             res = update(x, P, z_f, gm, **update_kw)
             used = ~inert
             n_readmit = 1 if cfg.isolate and readmit.any() else 0
 
         pos = state.pos
-        ring = state.ring[:pos] + (new_sq,) + state.ring[pos + 1:]
         ring_b = state.ring_b[:pos] + (new_b,) + state.ring_b[pos + 1:]
         steps = state.steps + 1
         stale = None if state.stale is None else np.maximum(state.stale - 1, 0)
@@ -376,14 +423,14 @@ class IntegrityMonitor:
         if stale is not None and not stale.any():
             stale = None
         if steps % RESUM == 0:  # the running sums, exactly again (rounding does not pile up)
-            rs, rb = np.stack(ring), np.stack(ring_b)
+            rb = np.stack(ring_b)
             if stale is not None:  # slot i is stale when it leaves within the next ``stale`` epochs
                 rel = (np.arange(W) - (pos + 1)) % W
-                old = rel.reshape((W,) + (1,) * stale.ndim) < stale
-                rs, rb = np.where(old, 1.0, rs), np.where(old, 0.0, rb)
+                rb = np.where(rel.reshape((W,) + (1,) * stale.ndim) < stale, np.nan, rb)
+            rs, rb = _sq(rb), _lin(rb)
             sum_sq = np.add.reduce(rs, axis=0)
             sum_b = np.add.reduce(rb, axis=0)
-        new_state = MonitorState(ring, ring_b, sum_sq, sum_b, (pos + 1) % W, count, jump_run, excluded, clean_run,
+        new_state = MonitorState(ring_b, sum_sq, sum_b, (pos + 1) % W, count, jump_run, excluded, clean_run,
                                  r_est, steps, stale)
         if lazy:  # the compiled path: the statistics and weights from the epoch's sums and beta when read
             report = Report._derived(beta, jump, drift, used, excluded, newly, readmit, sum_sq_ep, sum_b_ep, count, W,
@@ -392,8 +439,7 @@ class IntegrityMonitor:
             report = Report(beta, jump, drift_stat, bias_stat, drift, used, w, excluded, newly, readmit)
         return res, new_state, report
 
-    def _epoch_kernel(self, state, x, P, z, model, hx, H, rd, ch, count, thr_ms, thr_b, old_sq, old_b, update,
-                      update_kw):
+    def _epoch_kernel(self, state, x, P, z, model, hx, H, rd, ch, count, thr_ms, thr_b, old, update, update_kw):
         """The epoch on the compiled kernel (filters/_nbintegrity.py): (UpdateResult, the monitor's
         arrays, number of readmissions). Wrapping the EKF update (``ekf_update``), the kernel runs the
         update itself on each block of trials right after the monitor (fused: one pass over P and H);
@@ -441,7 +487,7 @@ class IntegrityMonitor:
         def bc(dtype=bool):
             return np.empty((N, C), dtype=dtype)
 
-        beta, y, new_sq, new_b, sum_sq, sum_b = (fm() for _ in range(6))
+        beta, y, new_b, sum_sq, sum_b = (fm() for _ in range(5))
         jump, drift, used = bm(), bm(), bm()
         excluded, newly, readmit, jump_run, clean_run = bc(), bc(), bc(), bc(np.int64), bc(np.int64)
         r_est = fm() if adapt else state.r_est
@@ -458,11 +504,11 @@ class IntegrityMonitor:
                         dtype=np.int64)
         drive = _nbintegrity.epoch_par if N >= kernels.PARALLEL_MIN_TRIALS else _nbintegrity.epoch_ser
         n_readmit = drive(
-            flat(z, (m,)), flat(hx, (m,)), Hk, Pf, rows(rd), flat(state.r_est, (m,)), flat(old_sq, (m,)),
-            flat(old_b, (m,)), flat(state.stale, (m,), np.int64) if has_stale else _NONE_I, flat(state.sum_sq, (m,)),
+            flat(z, (m,)), flat(hx, (m,)), Hk, Pf, rows(rd), flat(state.r_est, (m,)), flat(old, (m,)),
+            flat(state.stale, (m,), np.int64) if has_stale else _NONE_I, flat(state.sum_sq, (m,)),
             flat(state.sum_b, (m,)), flat(state.jump_run, (C,), np.int64), flat(state.excluded, (C,), bool),
             flat(state.clean_run, (C,), np.int64), ch.astype(np.int64), prm, iprm,
-            beta, jump, drift, inert, used, r_used, y, new_sq, new_b, sum_sq, sum_b,
+            beta, jump, drift, inert, used, r_used, y, new_b, sum_sq, sum_b,
             r_est if adapt else _NONE_M, excluded, newly, readmit, jump_run, clean_run, z_f, hx_g,
             fuse, xf, xo, Po, nis, min(N, _nbintegrity.LANES))
 
@@ -477,10 +523,10 @@ class IntegrityMonitor:
             res = update(x, P, shaped(z_f), gm, **update_kw)
         arrays = tuple(shaped(a) for a in (beta, jump, drift, used, sum_sq, sum_b)) + (
             shaped(r_est) if adapt else r_est,) + tuple(
-            shaped(a) for a in (excluded, newly, readmit, jump_run, clean_run, new_sq, new_b))
+            shaped(a) for a in (excluded, newly, readmit, jump_run, clean_run, new_b))
         return res, arrays, int(n_readmit)
 
-    def _epoch_numpy(self, state, x, P, z, hx, H, rd, ch, C, count, thr_ms, thr_b, old_sq, old_b):
+    def _epoch_numpy(self, state, x, P, z, hx, H, rd, ch, C, count, thr_ms, thr_b, old):
         """The reference of the compiled monitor (filters/_nbintegrity.py; same outputs)."""
         cfg = self.config
         W, J = cfg.window, cfg.jump_sigma
@@ -496,10 +542,9 @@ class IntegrityMonitor:
         beta = np.where(missing, 0.0, nu / np.sqrt(hph + r_floor))
         jump = (np.abs(beta) >= J) & ~missing
         # window sums (jump epochs enter winsorised at J, missing ones as the healthy 1 and 0)
-        new_sq = np.where(missing, 1.0, np.minimum(beta * beta, J * J))
-        new_b = np.where(missing, 0.0, np.clip(beta, -J, J))
-        sum_sq = state.sum_sq + new_sq - old_sq
-        sum_b = state.sum_b + new_b - old_b
+        new_b = np.where(missing, np.nan, np.clip(beta, -J, J))
+        sum_sq = state.sum_sq + _sq(new_b) - _sq(old)
+        sum_b = state.sum_b + _lin(new_b) - _lin(old)
         drift_stat = sum_sq / W if count == W else (sum_sq - (W - count)) / count  # unfilled slots hold 1
         bias_stat = sum_b * sum_b / count  # unfilled slots hold 0
         drift = (drift_stat > thr_ms) | (bias_stat > thr_b)
@@ -554,7 +599,7 @@ class IntegrityMonitor:
             lam = cfg.r_forget
             upd = np.where(np.isfinite(r_est), (1.0 - lam) * r_est + lam * sample, sample)
             r_est = np.where(inert, r_est, upd)
-        return (z_f, beta, jump, drift_stat, bias_stat, drift, inert, w, np.array(r_used, dtype=float), new_sq, new_b,
+        return (z_f, beta, jump, drift_stat, bias_stat, drift, inert, w, np.array(r_used, dtype=float), new_b,
                 sum_sq, sum_b, hx_g, H_g, r_est, excluded, newly, readmit, jump_run, clean_run)
 
 

@@ -1320,35 +1320,14 @@ class _ZeroModel:
 
 
 def _mon_take(st, idx):
-    """The monitor state of batch rows idx (a copy)."""
-    return st._replace(ring=tuple(a[idx] for a in st.ring), ring_b=tuple(a[idx] for a in st.ring_b),
-                       sum_sq=st.sum_sq[idx], sum_b=st.sum_b[idx], jump_run=st.jump_run[idx],
-                       excluded=st.excluded[idx], clean_run=st.clean_run[idx], r_est=st.r_est[idx],
-                       stale=None if st.stale is None else st.stale[idx])
+    """The monitor state of batch rows idx (a copy): filters.integrity.MonitorState.take."""
+    return st.take(idx)
 
 
 def _mon_merge(prev, acc, idx, sub):
     """The epoch's new monitor state: acc (None: prev) with rows idx from sub, the state those
-    rows stepped to from prev this epoch (every call of an epoch steps from prev: one window
-    slot, prev.pos; rows not stepped keep their values)."""
-    p = prev.pos
-    if acc is None:
-        ring, ring_b = list(prev.ring), list(prev.ring_b)
-        ring[p], ring_b[p] = np.array(prev.ring[p]), np.array(prev.ring_b[p])
-        acc = prev._replace(ring=tuple(ring), ring_b=tuple(ring_b), sum_sq=prev.sum_sq.copy(), sum_b=prev.sum_b.copy(),
-                            jump_run=prev.jump_run.copy(), excluded=prev.excluded.copy(),
-                            clean_run=prev.clean_run.copy(), r_est=prev.r_est.copy(),
-                            stale=None if prev.stale is None else prev.stale.copy())
-    acc.ring[p][idx] = sub.ring[p]
-    acc.ring_b[p][idx] = sub.ring_b[p]
-    for f in ("sum_sq", "sum_b", "jump_run", "excluded", "clean_run", "r_est"):
-        getattr(acc, f)[idx] = getattr(sub, f)
-    stale = acc.stale
-    if sub.stale is not None or stale is not None:
-        if stale is None:
-            stale = np.zeros(acc.sum_sq.shape, dtype=np.int64)
-        stale[idx] = 0 if sub.stale is None else sub.stale
-    return acc._replace(pos=sub.pos, count=sub.count, steps=sub.steps, stale=stale)
+    rows stepped to from prev this epoch: filters.integrity.MonitorState.merge."""
+    return prev.merge(acc, idx, sub)
 
 
 class _Epoch(NamedTuple):
@@ -1832,9 +1811,9 @@ class BeaconLocator:
             got["inert"] = np.asarray(gm.inert)
 
         prev = self._mon_state
-        _, sub, rep = self._mon.step(_mon_take(prev, tr), np.zeros((k, 1)), np.zeros((k, 1, 1)), Z,
+        _, sub, rep = self._mon.step(prev.take(tr), np.zeros((k, 1)), np.zeros((k, 1, 1)), Z,
                                      _ZeroModel(R), self._mon_ch, update=verdict, backend=c.backend)
-        self._mon_next = _mon_merge(prev, self._mon_next, tr, sub)
+        self._mon_next = prev.merge(self._mon_next, tr, sub)
         cnt["integrity_epochs"] += 1
         out_link = got["inert"].reshape(k, L, 2).any(axis=-1)[:, :Nm] & mp  # present links left out
         # no redundancy left (fewer than integrity_min_links would stay): detect only

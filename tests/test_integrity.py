@@ -524,6 +524,6 @@ def test_the_kernels_worker_threads_do_not_spin_after_a_parallel_kernel():
         return out[0], float(out[1])
 
     pol, passive = burnt(None)
-    assert pol == "PASSIVE" and passive < 1e-3
+    assert pol == "PASSIVE" and passive < 0.5e-3
     pol, active = burnt("ACTIVE")
-    assert pol == "ACTIVE" and active > 2e-3
+    assert pol == "ACTIVE" and active > 1e-3  # (measured 4-10 ms)
