@@ -412,14 +412,23 @@ class IntegrityMonitor:
         pos = state.pos
         ring_b = state.ring_b[:pos] + (new_b,) + state.ring_b[pos + 1:]
         steps = state.steps + 1
-        stale = None if state.stale is None else np.maximum(state.stale - 1, 0)
+        stale = None
+        if state.stale is not None:
+            stale = np.subtract(state.stale, 1)
+            np.maximum(stale, 0, out=stale)
         if n_readmit:
-            fresh = readmit[..., ch]  # (..., m) rows of readmitted channels
             # a readmitted channel starts a fresh window of healthy values (beta^2 = 1, beta = 0): its
-            # sums are reset and its W ring slots are marked stale (no copy of the ring)
-            sum_sq = np.where(fresh, float(W), sum_sq)
-            sum_b = np.where(fresh, 0.0, sum_b)
-            stale = np.where(fresh, W, 0 if stale is None else stale)
+            # sums are reset and its W ring slots are marked stale (no copy of the ring). Readmissions
+            # are few: the rows are set by index, on copies (the Report reads the epoch's sums)
+            t_ch, c_ch = np.nonzero(np.reshape(readmit, (-1, C)))
+            k, j = np.nonzero(ch[None, :] == c_ch[:, None])  # (readmission, row of its channel)
+            t = t_ch[k]
+            sum_sq, sum_b = sum_sq.copy(), sum_b.copy()
+            sum_sq.reshape(-1, m)[t, j] = float(W)
+            sum_b.reshape(-1, m)[t, j] = 0.0
+            if stale is None:
+                stale = np.zeros(sum_sq.shape, dtype=np.int64)
+            stale.reshape(-1, m)[t, j] = W
         if stale is not None and not stale.any():
             stale = None
         if steps % RESUM == 0:  # the running sums, exactly again (rounding does not pile up)
