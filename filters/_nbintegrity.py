@@ -250,7 +250,10 @@ def _block(lo, hi, z, hx, H, P, r_nom, r_est, old, stale, sum_sq, sum_b, jump_ru
                     re = rel[a, q]
                     v = nul[a, q]
                     smp = v * v - hl[a, q]
-                    upd = (1.0 - lam) * re + lam * smp if math.isfinite(re) else smp
+                    rn = r_nom[0 if shared_r else t0 + q, a]
+                    wj = rn / (hl[a, q] + rn)  # the sample's precision against one at a known prior
+                    lj = lam * wj * wj
+                    upd = (1.0 - lj) * (re if math.isfinite(re) else rn) + lj * smp
                     rel[a, q] = re if it else upd
         # the lane group's outputs, transposed back
         for q in range(nl):

@@ -43,9 +43,14 @@ monitored update is the plain one.
 Robust update (Huber-type M-estimation): admitted rows with |beta_j| > ``huber_c`` get the
 weight w = huber_c / |beta_j| applied as R_jj / w (quadratic inside the threshold, linear
 outside), one reweighting at the prior.
-Adaptive R (innovation-based, Mehra): r_j <- (1 - lam) r_j + lam (nu_j^2 - (H P- H')_jj) on
-admitted rows, and the update uses max(R_jj, r_j) (the nominal R is a floor: the estimate
-can only say the sensor is worse than specified). Adaptive Q is filters.adaptive (eq 7),
+Adaptive R (innovation-based, Mehra): r_j <- (1 - lam_j) r_j + lam_j (nu_j^2 - (H P- H')_jj) on
+admitted rows, starting from the nominal R_jj, and the update uses max(R_jj, r_j) (the nominal R
+is a floor: the estimate can only say the sensor is worse than specified). Each sample is
+weighted by its precision: var(nu_j^2 - (H P- H')_jj) = 2 ((H P- H')_jj + R_jj)^2, so
+lam_j = lam (R_jj / ((H P- H')_jj + R_jj))^2 -- lam itself at a well-known prior, next to nothing
+while the prior is wide (a converging filter's first epochs; before, the first sample became the
+estimate and inflated R for tens of seconds: the integrity experiment's fault-free position RMSE
++0.069 +- 0.023 m on 3.03 m, now +0.008 +- 0.009 m). Adaptive Q is filters.adaptive (eq 7),
 a layer on the prediction.
 
 Everything is a pure function of a MonitorState (NamedTuple of arrays with the batch
@@ -154,7 +159,7 @@ class MonitorState(NamedTuple):
     jump_run: np.ndarray  # (..., C) consecutive epochs with a jump on the channel
     excluded: np.ndarray  # (..., C) bool
     clean_run: np.ndarray  # (..., C) consecutive clean epochs (for readmission)
-    r_est: np.ndarray  # (..., m) innovation-based R estimate (NaN until the first sample)
+    r_est: np.ndarray  # (..., m) innovation-based R estimate (NaN until the first sample: the nominal R)
     steps: int = 0  # epochs processed (the running sums are recomputed exactly every RESUM epochs)
     stale: np.ndarray | None = None  # (..., m) how many of the oldest ring slots (from ``pos``) count as
     #                                  healthy values: a readmitted channel's fresh window (None: none)
@@ -605,8 +610,8 @@ class IntegrityMonitor:
         r_est = state.r_est
         if cfg.adapt_r:
             sample = nu * nu - hph
-            lam = cfg.r_forget
-            upd = np.where(np.isfinite(r_est), (1.0 - lam) * r_est + lam * sample, sample)
+            lam = cfg.r_forget * (r_nom / (hph + r_nom)) ** 2  # the sample's precision against one at a known prior
+            upd = (1.0 - lam) * np.where(np.isfinite(r_est), r_est, r_nom) + lam * sample
             r_est = np.where(inert, r_est, upd)
         return (z_f, beta, jump, drift_stat, bias_stat, drift, inert, w, np.array(r_used, dtype=float), new_b,
                 sum_sq, sum_b, hx_g, H_g, r_est, excluded, newly, readmit, jump_run, clean_run)
