@@ -279,6 +279,16 @@ def test_the_monitor_wraps_the_ud_filter_and_equals_the_ekf():
     assert r_ekf[-1].excluded[:, 4].all()
 
 
+def _random_linear(rng, trials, n, m):
+    """A random well-posed linear problem: per-trial prior (P0, x0), H, a diagonal-R model, two rows a channel."""
+    A = rng.normal(size=(trials, n, n))
+    P0 = A @ A.transpose(0, 2, 1) + np.eye(n)
+    x0 = rng.normal(size=(trials, n))
+    Hm = rng.normal(size=(m, n))
+    model = LinearGaussian(Hm, np.diag(rng.uniform(0.5, 2.0, m)))
+    return P0, x0, Hm, model, np.arange(m) // 2
+
+
 def test_compiled_and_numpy_monitor_agree():
     rng = np.random.default_rng(0)
     N, n, m = 40, 4, 8
@@ -312,12 +322,7 @@ def test_fused_ekf_path_equals_the_generic_path(trials):
     missing rows, exclusion and readmission (fresh windows), Huber weights and adaptive R."""
     rng = np.random.default_rng(7)
     n, m = 5, 8
-    A = rng.normal(size=(trials, n, n))
-    P0 = A @ A.transpose(0, 2, 1) + np.eye(n)
-    x0 = rng.normal(size=(trials, n))
-    Hm = rng.normal(size=(m, n))
-    model = LinearGaussian(Hm, np.diag(rng.uniform(0.5, 2.0, m)))
-    ch = np.arange(m) // 2
+    P0, x0, Hm, model, ch = _random_linear(rng, trials, n, m)
     cfg = IntegrityConfig(huber_c=1.5, adapt_r=True, window=4, readmit_after=3, persist=2)
     mon = IntegrityMonitor(cfg)
 
@@ -442,12 +447,7 @@ def test_compiled_and_numpy_monitor_agree_on_the_redundancy_rule(trials):
     the compiled monitor (fused and generic paths) equals the numpy reference."""
     rng = np.random.default_rng(9)
     n, m, C = 4, 10, 5
-    A = rng.normal(size=(trials, n, n))
-    P0 = A @ A.transpose(0, 2, 1) + np.eye(n)
-    x0 = rng.normal(size=(trials, n))
-    Hm = rng.normal(size=(m, n))
-    model = LinearGaussian(Hm, np.diag(rng.uniform(0.5, 2.0, m)))
-    ch = np.arange(m) // 2
+    P0, x0, Hm, model, ch = _random_linear(rng, trials, n, m)
     mon = IntegrityMonitor(IntegrityConfig(min_channels=4, window=4, readmit_after=3, persist=2))
 
     def generic(*a, **kw):
