@@ -587,6 +587,12 @@ def test_uav_error_transition_keeps_the_sent_covariance(seed, shrink, rho_p, rho
         assert np.linalg.eigvalsh(0.5 * (Qd + Qd.T)).min() < 0
 
 
+def _narrow(ep):
+    """Epoch ``ep`` with its 3 UAVs a few metres apart (around the first one): a formation much
+    smaller than 30 m UAV position sigmas."""
+    return ep._replace(pos=ep.pos[:, :1] + np.array([[0.0, 0.0, 0.0], [3.0, 1.0, 0.0], [0.0, 4.0, 2.0]]))
+
+
 def test_formation_smaller_than_its_errors_gives_no_measurement():
     """min_formation_sigmas: an epoch whose 3 UAVs are a few metres apart with 30 m position
     sigmas (the printed run's first seconds) is not used -- the track only predicts, exactly
@@ -597,7 +603,7 @@ def test_formation_smaller_than_its_errors_gives_no_measurement():
     t, B, VB, U, V = scene
     eps = _epochs(np.random.default_rng(8), scene, 2)
     x0 = np.concatenate([B[0], VB[0]]) + np.array([20.0, -10.0, 5.0, 1.0, 0.0, -1.0])
-    narrow = eps[1]._replace(pos=eps[1].pos[:, :1] + np.array([[0.0, 0.0, 0.0], [3.0, 1.0, 0.0], [0.0, 4.0, 2.0]]))
+    narrow = _narrow(eps[1])
     empty = narrow._replace(mask=np.zeros_like(narrow.mask))
     runs = {}
     for name, cfg, ep1 in (("limit", _prior_config(x0), narrow), ("no_obs", _prior_config(x0), empty),
@@ -649,7 +655,7 @@ def test_two_uavs_before_the_formation_is_resolved_give_no_measurement():
     t, B, VB, U, V = scene
     eps = _epochs(np.random.default_rng(8), scene, 2)
     x0 = np.concatenate([B[0], VB[0]]) + np.array([20.0, -10.0, 5.0, 1.0, 0.0, -1.0])
-    narrow = eps[0]._replace(pos=eps[0].pos[:, :1] + np.array([[0.0, 0.0, 0.0], [3.0, 1.0, 0.0], [0.0, 4.0, 2.0]]))
+    narrow = _narrow(eps[0])
     two = eps[1]._replace(mask=eps[1].mask & np.array([True, True, False]))
     empty = eps[1]._replace(mask=np.zeros_like(eps[1].mask))
     runs = {}

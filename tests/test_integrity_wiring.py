@@ -153,6 +153,20 @@ def uav_world():
     return pos, const, eps
 
 
+def _stepped_with_events(eps, fault, n_sats, run):
+    """The UAV epochs with ``fault`` on their pseudoranges (one seeded injector), and an in-memory bus
+    whose ``<run>/gs/integrity/*`` events are collected, with the UAVs' event publisher:
+    (faulty epochs, bus, collected events, publisher)."""
+    inj = FaultInjector([fault], eps[0].tracked.shape[:-1], n_sats)
+    frng = np.random.default_rng(0)
+    feps = [e._replace(pseudorange_m=inj.step(frng, float(k), e.pseudorange_m)[0]) for k, e in enumerate(eps)]
+    bus = InMemoryTransport(start_t_gps_s=T0)
+    got = []
+    bus.subscribe(f"{run}/gs/integrity/*", lambda key, m: got.append(m))
+    pub = IntegrityEventPublisher(run, lambda b: f"uav{b[-1] + 1}.integrity", bus)
+    return feps, bus, got, pub
+
+
 def _run_nav(const, eps, pos, cfg, events=None):
     nav = uav_nav.OnboardNav(const, cfg, events=events)
     err = []
@@ -166,13 +180,7 @@ def test_uav_pseudorange_step_is_isolated_to_its_satellite(uav_world):
     pos, const, eps = uav_world
     S = len(const)
     sat = int(np.flatnonzero(eps[40].tracked.all(axis=(0, 1)) & eps[80].tracked.all(axis=(0, 1)))[0])
-    inj = FaultInjector([Fault("step", sat, 40.0, 80.0, magnitude=200.0)], eps[0].tracked.shape[:-1], S)
-    frng = np.random.default_rng(0)
-    feps = [e._replace(pseudorange_m=inj.step(frng, float(k), e.pseudorange_m)[0]) for k, e in enumerate(eps)]
-    bus = InMemoryTransport(start_t_gps_s=T0)
-    got = []
-    bus.subscribe("uavrun/gs/integrity/*", lambda key, m: got.append(m))
-    pub = IntegrityEventPublisher("uavrun", lambda b: f"uav{b[-1] + 1}.integrity", bus)
+    feps, bus, got, pub = _stepped_with_events(eps, Fault("step", sat, 40.0, 80.0, magnitude=200.0), S, "uavrun")
     e_mon = _run_nav(const, feps, pos, NavConfig(integrity=UAV_CFG), pub)
     bus.drain(T0 + 200.0)
     e_plain = _run_nav(const, feps, pos, NavConfig())
@@ -236,13 +244,7 @@ def test_uav_three_satellites_the_monitor_detects_only_and_is_the_plain_filter(u
     x_mon, jumps = run(eps, mon_cfg)
     assert jumps > 0  # the jump test did fire on healthy rows: the rule kept them in
     np.testing.assert_array_equal(x_mon, x_plain)
-    inj = FaultInjector([Fault("step", 1, 20.0, 40.0, magnitude=300.0)], eps[0].tracked.shape[:-1], 3)
-    frng = np.random.default_rng(0)
-    feps = [e._replace(pseudorange_m=inj.step(frng, float(k), e.pseudorange_m)[0]) for k, e in enumerate(eps)]
-    bus = InMemoryTransport(start_t_gps_s=T0)
-    got = []
-    bus.subscribe("uav3sat/gs/integrity/*", lambda key, m: got.append(m))
-    pub = IntegrityEventPublisher("uav3sat", lambda b: f"uav{b[-1] + 1}.integrity", bus)
+    feps, bus, got, pub = _stepped_with_events(eps, Fault("step", 1, 20.0, 40.0, magnitude=300.0), 3, "uav3sat")
     x_mon, _ = run(feps, mon_cfg, pub)
     bus.drain(T0 + K)
     np.testing.assert_array_equal(x_mon, run(feps, NavConfig())[0])
