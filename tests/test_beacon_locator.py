@@ -587,6 +587,14 @@ def test_uav_error_transition_keeps_the_sent_covariance(seed, shrink, rho_p, rho
         assert np.linalg.eigvalsh(0.5 * (Qd + Qd.T)).min() < 0
 
 
+def _formation_world(K):
+    """K UAVs over 3 epochs (_scene), two epochs of their measurements (seed 8) and a prior 20 m off."""
+    scene = _scene(K, N=3)
+    B, VB = scene[1], scene[2]
+    eps = _epochs(np.random.default_rng(8), scene, 2)
+    return scene, eps, np.concatenate([B[0], VB[0]]) + np.array([20.0, -10.0, 5.0, 1.0, 0.0, -1.0])
+
+
 def _narrow(ep):
     """Epoch ``ep`` with its 3 UAVs a few metres apart (around the first one): a formation much
     smaller than 30 m UAV position sigmas."""
@@ -599,10 +607,8 @@ def test_formation_smaller_than_its_errors_gives_no_measurement():
     as with no observer at all, and the epoch is counted; once the formation is wide the
     epoch is used; with the limit off the narrow epoch is used too."""
     K = 3
-    scene = _scene(K, N=3)
-    t, B, VB, U, V = scene
-    eps = _epochs(np.random.default_rng(8), scene, 2)
-    x0 = np.concatenate([B[0], VB[0]]) + np.array([20.0, -10.0, 5.0, 1.0, 0.0, -1.0])
+    scene, eps, x0 = _formation_world(K)
+    t = scene[0]
     narrow = _narrow(eps[1])
     empty = narrow._replace(mask=np.zeros_like(narrow.mask))
     runs = {}
@@ -651,10 +657,8 @@ def test_two_uavs_before_the_formation_is_resolved_give_no_measurement():
     (their ranges cannot tell the side of the UAVs' plane); once a >= 3 epoch shows the formation
     resolved, a 2-UAV epoch is used.  Fails if the rule looks only at epochs with >= 3 UAVs."""
     K = 4
-    scene = _scene(K, N=3)
-    t, B, VB, U, V = scene
-    eps = _epochs(np.random.default_rng(8), scene, 2)
-    x0 = np.concatenate([B[0], VB[0]]) + np.array([20.0, -10.0, 5.0, 1.0, 0.0, -1.0])
+    scene, eps, x0 = _formation_world(K)
+    t = scene[0]
     narrow = _narrow(eps[0])
     two = eps[1]._replace(mask=eps[1].mask & np.array([True, True, False]))
     empty = eps[1]._replace(mask=np.zeros_like(eps[1].mask))
