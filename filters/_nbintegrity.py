@@ -44,7 +44,8 @@ def _block(lo, hi, z, hx, H, P, r_nom, r_est, old, stale, sum_sq, sum_b, jump_ru
     rows of H are zeroed in H, z_f, hx_g, inert and r_used written.
 
     prm: (J, thr_ms, thr_b, huber_c, lam); iprm: (count, W, use_bias, persist, readmit_after,
-    use_huber, adapt_r, isolate, has_stale, write_zh, min_channels). r_nom has 1 or N rows (shared or per
+    use_huber, adapt_r, isolate, has_stale, write_zh, min_channels, step: the epoch's number, a row's
+    leaving slot is stale while step < stale). r_nom has 1 or N rows (shared or per
     trial). Returns the number of readmissions."""
     n = H.shape[2]
     m = z.shape[1]
@@ -53,7 +54,7 @@ def _block(lo, hi, z, hx, H, P, r_nom, r_est, old, stale, sum_sq, sum_b, jump_ru
     J, thr_ms, thr_b, huber_c, lam = prm[0], prm[1], prm[2], prm[3], prm[4]
     count, W, use_bias, persist, readmit_after = iprm[0], iprm[1], iprm[2] != 0, iprm[3], iprm[4]
     use_huber, adapt_r, isolate, has_stale = iprm[5] != 0, iprm[6] != 0, iprm[7] != 0, iprm[8] != 0
-    min_ch = iprm[10]
+    min_ch, step = iprm[10], iprm[11]
     glob = not fuse  # a guarded model follows: z_f, hx_g, the row mask and R go out, H rows are zeroed
     fW = float(W)
     fc = float(count)
@@ -120,7 +121,7 @@ def _block(lo, hi, z, hx, H, P, r_nom, r_est, old, stale, sum_sq, sum_b, jump_ru
                     rel[j, q] = r_est[t, j]
             if has_stale:  # a stale slot leaves the window as the healthy value it stands for (NaN: missing)
                 for j in range(m):
-                    if stale[t, j] > 0:
+                    if stale[t, j] > step:
                         sbl[j, q] = math.nan
             for c in range(C):
                 jrl[c, q] = jump_run[t, c]

@@ -161,8 +161,9 @@ class MonitorState(NamedTuple):
     clean_run: np.ndarray  # (..., C) consecutive clean epochs (for readmission)
     r_est: np.ndarray  # (..., m) innovation-based R estimate (NaN until the first sample: the nominal R)
     steps: int = 0  # epochs processed (the running sums are recomputed exactly every RESUM epochs)
-    stale: np.ndarray | None = None  # (..., m) how many of the oldest ring slots (from ``pos``) count as
-    #                                  healthy values: a readmitted channel's fresh window (None: none)
+    stale: np.ndarray | None = None  # (..., m) int: the slot leaving at epoch ``steps`` counts as a healthy
+    #                                  value while ``steps < stale`` (a readmitted channel's fresh window;
+    #                                  an epoch number, so nothing counts it down; None: no such row)
 
     @property
     def ring(self) -> tuple:
@@ -248,23 +249,35 @@ class Report:
         self._lazy = None
 
     @classmethod
-    def _derived(cls, beta, jump, drift, used, excluded, newly, readmit, sum_sq, sum_b, count, window, huber_c):
-        """A Report whose window statistics and weights come from (sum_sq, sum_b) and beta when read."""
+    def _derived(cls, beta, jump, drift, used, excluded, newly, readmit, sum_sq, sum_b, count, window, huber_c,
+                 patch=None):
+        """A Report whose window statistics and weights come from (sum_sq, sum_b) and beta when read;
+        ``patch`` (flat index, sum_sq, sum_b): the sums the tests saw where they have since been reset
+        (readmitted rows)."""
         r = cls(beta, jump, None, None, drift, used, None, excluded, newly, readmit)
-        r._lazy = (sum_sq, sum_b, int(count), int(window), huber_c)
+        r._lazy = (sum_sq, sum_b, int(count), int(window), huber_c, patch)
         return r
+
+    def _sums(self, i):
+        a, patch = self._lazy[i], self._lazy[5]
+        if patch is not None:
+            a = a.copy()
+            a.reshape(-1)[patch[0]] = patch[1 + i]
+        return a
 
     @property
     def drift_stat(self):
         if self._drift_stat is None:
-            ss, _, count, W, _ = self._lazy
+            _, _, count, W, _, _ = self._lazy
+            ss = self._sums(0)
             self._drift_stat = ss / W if count == W else (ss - (W - count)) / count  # unfilled slots hold 1
         return self._drift_stat
 
     @property
     def bias_stat(self):
         if self._bias_stat is None:
-            _, sb, count, _, _ = self._lazy
+            count = self._lazy[2]
+            sb = self._sums(1)
             self._bias_stat = sb * sb / count  # unfilled slots hold 0
         return self._bias_stat
 
@@ -405,7 +418,7 @@ class IntegrityMonitor:
         else:
             lazy = False
             if state.stale is not None:  # slots of a fresh window leave as the healthy values they stand for
-                old = np.where(state.stale > 0, np.nan, old)
+                old = np.where(state.stale > state.steps, np.nan, old)
             (z_f, beta, jump, drift_stat, bias_stat, drift, inert, w, r_used, new_b, sum_sq, sum_b, hx_g,
              H_g, r_est, excluded, newly, readmit, jump_run, clean_run) = self._epoch_numpy(
                 state, x, P, z, hx, H, rd, ch, C, count, thr_ms, thr_b, old)
@@ -417,29 +430,29 @@ class IntegrityMonitor:
         pos = state.pos
         ring_b = state.ring_b[:pos] + (new_b,) + state.ring_b[pos + 1:]
         steps = state.steps + 1
-        stale = None
-        if state.stale is not None:
-            stale = np.subtract(state.stale, 1)
-            np.maximum(stale, 0, out=stale)
+        stale = state.stale
+        patch = None
         if n_readmit:
             # a readmitted channel starts a fresh window of healthy values (beta^2 = 1, beta = 0): its
-            # sums are reset and its W ring slots are marked stale (no copy of the ring). Readmissions
-            # are few: the rows are set by index, on copies (the Report reads the epoch's sums)
-            t_ch, c_ch = np.nonzero(np.reshape(readmit, (-1, C)))
+            # sums are reset and its W ring slots are marked stale until epoch steps + W (no copy of the
+            # ring). Readmissions are few: the rows are set by index, in place (sum_sq and sum_b are
+            # this epoch's own arrays); the Report keeps the sums its tests saw for those rows
+            fi = np.flatnonzero(readmit)
+            t_ch, c_ch = np.divmod(fi, C)
             k, j = np.nonzero(ch[None, :] == c_ch[:, None])  # (readmission, row of its channel)
-            t = t_ch[k]
-            sum_sq, sum_b = sum_sq.copy(), sum_b.copy()
-            sum_sq.reshape(-1, m)[t, j] = float(W)
-            sum_b.reshape(-1, m)[t, j] = 0.0
-            if stale is None:
-                stale = np.zeros(sum_sq.shape, dtype=np.int64)
-            stale.reshape(-1, m)[t, j] = W
-        if stale is not None and not stale.any():
-            stale = None
+            fr = t_ch[k] * m + j  # flat (trial, row) index
+            ssf, sbf = sum_sq.reshape(-1), sum_b.reshape(-1)
+            patch = (fr, ssf[fr], sbf[fr])
+            ssf[fr] = float(W)
+            sbf[fr] = 0.0
+            stale = np.zeros(sum_sq.shape, dtype=np.int64) if stale is None else stale.copy()
+            stale.reshape(-1)[fr] = steps + W
+        elif stale is not None and steps % W == 0 and stale.max() <= steps:
+            stale = None  # every fresh window has filled
         if steps % RESUM == 0:  # the running sums, exactly again (rounding does not pile up)
             rb = np.stack(ring_b)
-            if stale is not None:  # slot i is stale when it leaves within the next ``stale`` epochs
-                rel = (np.arange(W) - (pos + 1)) % W
+            if stale is not None:  # slot i leaves at epoch steps + rel_i: stale while that is < ``stale``
+                rel = (np.arange(W) - (pos + 1)) % W + steps
                 rb = np.where(rel.reshape((W,) + (1,) * stale.ndim) < stale, np.nan, rb)
             rs, rb = _sq(rb), _lin(rb)
             sum_sq = np.add.reduce(rs, axis=0)
@@ -448,7 +461,7 @@ class IntegrityMonitor:
                                  r_est, steps, stale)
         if lazy:  # the compiled path: the statistics and weights from the epoch's sums and beta when read
             report = Report._derived(beta, jump, drift, used, excluded, newly, readmit, sum_sq_ep, sum_b_ep, count, W,
-                                     cfg.huber_c)
+                                     cfg.huber_c, patch)
         else:
             report = Report(beta, jump, drift_stat, bias_stat, drift, used, w, excluded, newly, readmit)
         return res, new_state, report
@@ -514,7 +527,8 @@ class IntegrityMonitor:
         xo, Po, nis = (np.empty((N, n)), np.empty((N, n, n)), np.empty(N)) if fuse else (_NONE_M, _NONE_P, _NONE_V)
         prm = np.array([cfg.jump_sigma, thr_ms, thr_b, cfg.huber_c or 0.0, cfg.r_forget])
         iprm = np.array([count, cfg.window, cfg.bias_alpha is not None, cfg.persist, cfg.readmit_after,
-                         cfg.huber_c is not None, adapt, cfg.isolate, has_stale, not fuse, cfg.min_channels],
+                         cfg.huber_c is not None, adapt, cfg.isolate, has_stale, not fuse, cfg.min_channels,
+                         state.steps],
                         dtype=np.int64)
         drive = _nbintegrity.epoch_par if N >= kernels.PARALLEL_MIN_TRIALS else _nbintegrity.epoch_ser
         n_readmit = drive(

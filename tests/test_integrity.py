@@ -486,6 +486,70 @@ def test_compiled_and_numpy_monitor_agree_on_the_redundancy_rule(trials):
                 np.testing.assert_allclose(np.asarray(u, float), np.asarray(v, float), rtol=1e-10, atol=1e-10)
 
 
+
+@pytest.mark.parametrize("trials", [5, 300])  # the serial and the parallel driver
+def test_compiled_and_numpy_monitor_agree_through_repeated_readmissions_and_the_exact_resum(trials, monkeypatch):
+    """Channels excluded and readmitted again and again (fresh windows overlapping the ring's
+    wrap-around), the running sums recomputed exactly every few epochs: the compiled monitor's
+    state and Report (the window statistics its tests saw, also on readmitted rows, whose sums are
+    reset) equal the numpy reference's."""
+    import filters.integrity as integ
+
+    monkeypatch.setattr(integ, "RESUM", 7)
+    rng = np.random.default_rng(21)
+    n, m, C = 4, 8, 4
+    P0, x0, Hm, model, ch = _random_linear(rng, trials, n, m)
+    mon = IntegrityMonitor(IntegrityConfig(window=5, readmit_after=2, persist=1, huber_c=2.0, adapt_r=True))
+    runs = {}
+    for be in ("numpy", "numba"):
+        ms = mon.init((trials,), m, C)
+        x, P = x0, P0
+        out = []
+        for k in range(40):
+            z = np.random.default_rng(200 + k).normal(size=(trials, m)) + x0 @ Hm.T
+            if k % 6 in (1, 2):
+                z[:, 2 * (k % C)] += 40.0  # a short step, channel by channel: excluded, then readmitted
+            if k % 9 == 4:
+                z[::2, 5] = np.nan
+            res, ms, rep = mon.step(ms, x, P, z, model, ch, backend=be)
+            x, P = res.x, 0.5 * (res.P + np.swapaxes(res.P, -1, -2)) + 0.1 * np.eye(n)
+            fresh = np.zeros((trials, m)) if ms.stale is None else np.maximum(ms.stale - ms.steps, 0)
+            out.append((res, rep, ms, fresh))
+        runs[be] = out
+    n_readmit = sum(int(r.readmitted.sum()) for _, r, _, _ in runs["numpy"])
+    assert n_readmit >= 5 * trials  # readmissions in most of the 6-epoch cycles
+    # a readmitted row's window is fresh: sums (W, 0) right after, then for W epochs only the new
+    # samples enter (each one's beta^2 replaces a healthy 1; nothing real leaves)
+    W, J = mon.config.window, mon.config.jump_sigma
+    out = runs["numpy"]
+    checked = 0
+    for k in range(len(out) - W):
+        rd = out[k][1].readmitted[:, ch]  # (trials, m) rows of readmitted channels
+        later = np.zeros_like(rd)
+        for d in range(1, W + 1):
+            later |= out[k + d][1].readmitted[:, ch]
+        sel = rd & ~later
+        np.testing.assert_allclose(out[k][2].sum_sq[sel], W)
+        for d in range(1, W + 1):
+            nb = out[k + d][2].ring_b[(out[k][2].pos + d - 1) % W]  # the sample epoch k + d wrote
+            sq = np.where(np.isnan(nb), 1.0, np.clip(nb, -J, J) ** 2)
+            np.testing.assert_allclose((out[k + d][2].sum_sq - out[k + d - 1][2].sum_sq)[sel], (sq - 1.0)[sel],
+                                       atol=1e-9)
+        checked += int(sel.sum())
+    assert checked >= 3 * trials
+    for (ra, pa, sa, fa), (rb, pb, sb, fb) in zip(runs["numpy"], runs["numba"]):
+        for u, v in zip(ra, rb):
+            np.testing.assert_allclose(u, v, rtol=1e-10, atol=1e-10)
+        for u, v in zip(pa, pb):
+            np.testing.assert_allclose(np.asarray(u, float), np.asarray(v, float), rtol=1e-10, atol=1e-10)
+        for f in ("sum_sq", "sum_b", "jump_run", "excluded", "clean_run", "r_est"):
+            np.testing.assert_allclose(np.asarray(getattr(sa, f), float), np.asarray(getattr(sb, f), float),
+                                       rtol=1e-10, atol=1e-10, err_msg=f)
+        np.testing.assert_array_equal(fa, fb)
+        for u, v in zip(sa.ring_b, sb.ring_b):
+            np.testing.assert_allclose(u, v, rtol=1e-10, atol=1e-10)
+
+
 # ---------------------------------------------------------------- the compiled kernels' worker threads
 
 _SPIN_CHILD = """
