@@ -1,23 +1,26 @@
 """Compiled kernel of the integrity monitor's epoch (filters/integrity.py, numpy reference there).
 
 Per trial: innovation, diag(H P- H'), beta, the jump test, the window sums (running: + the new
-sample - the one leaving the ring: one ring of winsorised beta, NaN for a missing epoch), both window tests, the channel logic (jump runs,
-exclusion, readmission), the row mask, the Huber weight in R, the R used by the update and the
-innovation-based R estimate. The window statistics and Huber weights of the Report are not
-written here: the Report derives them from the new window sums and beta when read.
+sample - the one leaving the ring: one ring of winsorised beta, NaN for a missing epoch), both
+window tests, the channel logic (jump runs, exclusion, readmission), the row mask, the Huber
+weight in R, the R used by the update and the innovation-based R estimate. The Report's jump and
+drift flags, window statistics and Huber weights are not written here: the Report derives them
+from beta and the window sums when read (the flags by the very comparisons made here).
 
 Layout as in filters/_nbkernels.py: ``_block`` processes trials [lo, hi), LANES at a time, with
 its scratch allocated once per block; the drivers spread blocks over the cores (``*_par``) or
 run one block (``*_ser``). Every output is allocated by the caller and passed in. Everything a
 lane group needs is in that one function: a call per lane group would pay an atomic reference
 count on each of its ~40 arrays, shared by the threads (measured: a large part of the cost on
-two cores). The monitor works on [row, lane] scratch (the channel logic on [channel, lane], branch-free),
-loops over the lanes (vectorised); the
-batched arrays are touched only by one transposing load and one store per lane group. With
-``fuse`` the block then runs the EKF's sequential Joseph update on the lanes it has loaded (the
-arithmetic of _nbkernels._joseph_block), taking the monitor's innovations, mask and R as they
-are; without, the inert rows of H are zeroed in H and z, h are written out for a guarded model
-and any update.
+two cores). The monitor works on [row, lane] scratch (the channel logic on [channel, lane]),
+looping over the lanes; the loops are written select by select (no min/max, isfinite or
+short-circuit tests), so that LLVM vectorises them (checked with its loop-vectorize remarks).
+The batched arrays are touched only by one transposing load and one store per lane group (a
+trial-major monitor reading them in place was slower: LLVM gives up vectorising a loop over a
+trial's 16 rows that touches ~20 arrays, for want of alias checks). With ``fuse`` the block then
+runs the EKF's sequential Joseph update on the lanes it has loaded (the arithmetic of
+_nbkernels._joseph_block), taking the monitor's innovations, mask and R as they are; without,
+the inert rows of H are zeroed in H and z, h are written out for a guarded model and any update.
 """
 from __future__ import annotations
 
@@ -31,7 +34,7 @@ from ._nbkernels import LANES, N_BLOCKS, _jit  # noqa: F401 (LANES: the caller r
 
 @nb.njit(**_jit)
 def _block(lo, hi, z, hx, H, P, r_nom, r_est, old, stale, sum_sq, sum_b, jump_run, excluded, clean_run,
-           ch, prm, iprm, beta, jump, drift, inert, used, r_used, y, ring_new, sum_sq2, sum_b2, r_est2, excl2,
+           ch, prm, iprm, beta, inert, used, r_used, y, ring_new, sum_sq2, sum_b2, r_est2, excl2,
            newly, readmit, jr2, cr2, z_f, hx_g, fuse, x, xo, Po, nis, lanes):
     """The monitor (and with ``fuse`` the EKF's sequential Joseph update) on trials [lo, hi), LANES
     trials at a time in the layout of _nbkernels._joseph_block: every quantity of the lane group is
@@ -43,7 +46,9 @@ def _block(lo, hi, z, hx, H, P, r_nom, r_est, old, stale, sum_sq, sum_b, jump_ru
     ekf_update on the guarded model (tested); H is then not modified. Without ``fuse``: the inert
     rows of H are zeroed in H, z_f, hx_g, inert and r_used written.
 
-    prm: (J, thr_ms, thr_b, huber_c, lam); iprm: (count, W, use_bias, persist, readmit_after,
+    prm: (J, thr_ss, thr_bs, huber_c, lam) -- the window tests' tolerances on the sums themselves (the
+    mean of beta^2 above its tolerance: sum_sq > thr_ss; the bias test: sum_b^2 > thr_bs; the caller
+    computes both, so that the Report derives the same flags from the same sums bit for bit); iprm: (count, W, use_bias, persist, readmit_after,
     use_huber, adapt_r, isolate, has_stale, write_zh, min_channels, step: the epoch's number, a row's
     leaving slot is stale while step < stale). r_nom has 1 or N rows (shared or per
     trial). Returns the number of readmissions."""
@@ -51,14 +56,11 @@ def _block(lo, hi, z, hx, H, P, r_nom, r_est, old, stale, sum_sq, sum_b, jump_ru
     m = z.shape[1]
     C = excluded.shape[1]
     B = lanes
-    J, thr_ms, thr_b, huber_c, lam = prm[0], prm[1], prm[2], prm[3], prm[4]
-    count, W, use_bias, persist, readmit_after = iprm[0], iprm[1], iprm[2] != 0, iprm[3], iprm[4]
+    J, thr_ss, thr_bs, huber_c, lam = prm[0], prm[1], prm[2], prm[3], prm[4]
+    persist, readmit_after = iprm[3], iprm[4]  # (count, W, use_bias: in thr_ss and thr_bs)
     use_huber, adapt_r, isolate, has_stale = iprm[5] != 0, iprm[6] != 0, iprm[7] != 0, iprm[8] != 0
     min_ch, step = iprm[10], iprm[11]
     glob = not fuse  # a guarded model follows: z_f, hx_g, the row mask and R go out, H rows are zeroed
-    fW = float(W)
-    fc = float(count)
-    off = float(W - count)  # the unfilled window slots, each holding beta^2 = 1
     shared_r = r_nom.shape[0] == 1
     Pl = np.empty((n, n, B))
     Hl = np.empty((m, n, B))
@@ -69,6 +71,7 @@ def _block(lo, hi, z, hx, H, P, r_nom, r_est, old, stale, sum_sq, sum_b, jump_ru
     zl, hxl, nul, rl, bl, yl = (np.empty((m, B)), np.empty((m, B)), np.empty((m, B)), np.empty((m, B)),
                                 np.empty((m, B)), np.empty((m, B)))
     sbl, ssl, sbs, rel = np.empty((m, B)), np.empty((m, B)), np.empty((m, B)), np.empty((m, B))
+    rnl = np.empty((m, B))
     missl, jmpl, drfl, inl = (np.empty((m, B), np.bool_), np.empty((m, B), np.bool_), np.empty((m, B), np.bool_),
                               np.empty((m, B), np.bool_))
     jcl, dcl, exl, pcl = (np.empty((C, B), np.bool_), np.empty((C, B), np.bool_), np.empty((C, B), np.bool_),
@@ -105,20 +108,30 @@ def _block(lo, hi, z, hx, H, P, r_nom, r_est, old, stale, sum_sq, sum_b, jump_ru
                 for a in range(m):
                     for i in range(n):
                         Hl[a, i, q] = 0.0
+        # the nominal R, [row, lane] (shared by every trial: a fill, else transposed)
+        if shared_r:
+            for j in range(m):
+                for q in range(nl):
+                    rnl[j, q] = r_nom[0, j]
+        else:
+            for q in range(nl):
+                for j in range(m):
+                    rnl[j, q] = r_nom[t0 + q, j]
         # the per-row vectors of the lane group, transposed to [row, lane]
         for q in range(nl):
             t = t0 + q
-            rt = 0 if shared_r else t
             for j in range(m):
                 zl[j, q] = z[t, j]
                 hxl[j, q] = hx[t, j]
-                rl[j, q] = r_nom[rt, j]
                 sbl[j, q] = old[t, j]
                 ssl[j, q] = sum_sq[t, j]
                 sbs[j, q] = sum_b[t, j]
             if adapt_r:
                 for j in range(m):
                     rel[j, q] = r_est[t, j]
+            else:
+                for j in range(m):
+                    rel[j, q] = -math.inf
             if has_stale:  # a stale slot leaves the window as the healthy value it stands for (NaN: missing)
                 for j in range(m):
                     if stale[t, j] > step:
@@ -144,48 +157,57 @@ def _block(lo, hi, z, hx, H, P, r_nom, r_est, old, stale, sum_sq, sum_b, jump_ru
         # one or the adaptive estimate when larger), beta, the jump test, the winsorised window samples,
         # the running window sums (the new sample in, the oldest out) and both window tests
         for a in range(m):
-            for q in range(nl):
-                hl[a, q] = 0.0
-            for c in range(nzc[a]):
-                i = nzr[a, c]
+            if nzc[a] == 4:  # (pseudorange and Doppler rows: position or velocity, and clock) one pass
+                i0, i1, i2, i3 = nzr[a, 0], nzr[a, 1], nzr[a, 2], nzr[a, 3]
                 for q in range(nl):
-                    gl[q] = Pl[i, i, q] * Hl[a, i, q]
-                for d in range(c + 1, nzc[a]):
-                    l = nzr[a, d]
+                    h0, h1, h2, h3 = Hl[a, i0, q], Hl[a, i1, q], Hl[a, i2, q], Hl[a, i3, q]
+                    hl[a, q] = (h0 * (Pl[i0, i0, q] * h0 + 2.0 * (Pl[i0, i1, q] * h1 + Pl[i0, i2, q] * h2
+                                                                   + Pl[i0, i3, q] * h3))
+                                + h1 * (Pl[i1, i1, q] * h1 + 2.0 * (Pl[i1, i2, q] * h2 + Pl[i1, i3, q] * h3))
+                                + h2 * (Pl[i2, i2, q] * h2 + 2.0 * Pl[i2, i3, q] * h3) + h3 * (Pl[i3, i3, q] * h3))
+            else:
+                for q in range(nl):
+                    hl[a, q] = 0.0
+                for c in range(nzc[a]):
+                    i = nzr[a, c]
                     for q in range(nl):
-                        gl[q] += 2.0 * Pl[i, l, q] * Hl[a, l, q]
-                for q in range(nl):
-                    hl[a, q] += Hl[a, i, q] * gl[q]
+                        gl[q] = Pl[i, i, q] * Hl[a, i, q]
+                    for d in range(c + 1, nzc[a]):
+                        l = nzr[a, d]
+                        for q in range(nl):
+                            gl[q] += 2.0 * Pl[i, l, q] * Hl[a, l, q]
+                    for q in range(nl):
+                        hl[a, q] += Hl[a, i, q] * gl[q]
+            # (written select by select, without min/max, isfinite or branches: LLVM vectorises it)
             for q in range(nl):
                 zj = zl[a, q]
-                mj = not math.isfinite(zj)
-                zj = 0.0 if mj else zj
+                fin = abs(zj) < math.inf
+                zj = zj if fin else 0.0
                 v = zj - hxl[a, q]
-                r = rl[a, q]
-                if adapt_r:
-                    re = rel[a, q]
-                    r = re if (math.isfinite(re) & (re > r)) else r
-                bj = 0.0 if mj else v / math.sqrt(hl[a, q] + r)
-                jp = (abs(bj) >= J) & (not mj)
-                cb = min(max(bj, -J), J)
-                v2 = 1.0 if mj else cb * cb
-                vb = 0.0 if mj else cb
+                r = rnl[a, q]
+                re = rel[a, q]  # (-inf without the adaptive R)
+                r = re if (re > r) & (re < math.inf) else r
+                bj = v / math.sqrt(hl[a, q] + r)
+                bj = bj if fin else 0.0
+                jp = (abs(bj) >= J) & fin
+                cb = bj if bj > -J else -J  # noqa: FURB136 (min/max would keep LLVM from vectorising)
+                cb = cb if cb < J else J  # noqa: FURB136
+                v2 = cb * cb if fin else 1.0
+                vb = cb if fin else 0.0
                 o = sbl[a, q]  # the sample leaving the window (NaN: a missing epoch, 1 and 0)
-                om = math.isnan(o)
+                om = o != o  # noqa: PLR0124 (NaN)
                 ss = ssl[a, q] + v2 - (1.0 if om else o * o)
                 sb = sbs[a, q] + vb - (0.0 if om else o)
-                ds = ss / fW if count == W else (ss - off) / fc
-                bs = sb * sb / fc
                 zl[a, q] = zj
                 nul[a, q] = v
                 rl[a, q] = r
                 bl[a, q] = bj
-                missl[a, q] = mj
+                missl[a, q] = not fin
                 jmpl[a, q] = jp
-                sbl[a, q] = math.nan if mj else cb
+                sbl[a, q] = cb if fin else math.nan
                 ssl[a, q] = ss
                 sbs[a, q] = sb
-                drfl[a, q] = (ds > thr_ms) | (use_bias & (bs > thr_b))
+                drfl[a, q] = (ss > thr_ss) | (sb * sb > thr_bs)
         # the channels: jump runs, exclusion, readmission; a member isolates only while at least
         # min_channels of its present channels stay in (mode 2: rows and channels left out; 1: only
         # the excluded channels, the jumped rows used; 0: detect only, nothing excluded)
@@ -244,25 +266,24 @@ def _block(lo, hi, z, hx, H, P, r_nom, r_est, old, stale, sum_sq, sum_b, jump_ru
                 inl[a, q] = it
                 if use_huber:
                     ab = abs(bl[a, q])
-                    if ab > huber_c and not it:
-                        rl[a, q] = rl[a, q] * (1.0 / (huber_c / max(ab, 1e-300)))
+                    ab1 = ab if ab > 1e-300 else 1e-300  # noqa: FURB136
+                    rh = rl[a, q] * (1.0 / (huber_c / ab1))
+                    rl[a, q] = rh if (ab > huber_c) & (not it) else rl[a, q]
                 yl[a, q] = 0.0 if it else nul[a, q]
                 if adapt_r:
                     re = rel[a, q]
                     v = nul[a, q]
                     smp = v * v - hl[a, q]
-                    rn = r_nom[0 if shared_r else t0 + q, a]
+                    rn = rnl[a, q]
                     wj = rn / (hl[a, q] + rn)  # the sample's precision against one at a known prior
                     lj = lam * wj * wj
-                    upd = (1.0 - lj) * (re if math.isfinite(re) else rn) + lj * smp
+                    upd = (1.0 - lj) * (re if abs(re) < math.inf else rn) + lj * smp
                     rel[a, q] = re if it else upd
         # the lane group's outputs, transposed back
         for q in range(nl):
             t = t0 + q
             for j in range(m):
                 beta[t, j] = bl[j, q]
-                jump[t, j] = jmpl[j, q]
-                drift[t, j] = drfl[j, q]
                 used[t, j] = not inl[j, q]
                 y[t, j] = yl[j, q]
                 ring_new[t, j] = sbl[j, q]
@@ -304,15 +325,10 @@ def _block(lo, hi, z, hx, H, P, r_nom, r_est, old, stale, sum_sq, sum_b, jump_ru
         for q in range(B):
             acc[q] = 0.0
         for a in range(m):
-            nz = 0
-            for i in range(n):
-                any_ = False
-                for q in range(B):
-                    if Hl[a, i, q] != 0.0:
-                        any_ = True
-                if any_:
-                    idx[nz] = i
-                    nz += 1
+            # the row's columns nonzero in some lane before the mask (a masked row's zeros add exact zeros)
+            nz = nzc[a]
+            for c in range(nz):
+                idx[c] = nzr[a, c]
             for q in range(B):
                 nu[q] = yl[a, q]
             for c in range(nz):
@@ -359,7 +375,7 @@ def _block(lo, hi, z, hx, H, P, r_nom, r_est, old, stale, sum_sq, sum_b, jump_ru
 
 @nb.njit(parallel=True, **_jit)
 def epoch_par(z, hx, H, P, r_nom, r_est, old, stale, sum_sq, sum_b, jump_run, excluded, clean_run, ch,
-              prm, iprm, beta, jump, drift, inert, used, r_used, y, ring_new, sum_sq2, sum_b2, r_est2, excl2,
+              prm, iprm, beta, inert, used, r_used, y, ring_new, sum_sq2, sum_b2, r_est2, excl2,
               newly, readmit, jr2, cr2, z_f, hx_g, fuse, x, xo, Po, nis, lanes):
     N = z.shape[0]
     nb_ = min(N, N_BLOCKS)
@@ -367,17 +383,17 @@ def epoch_par(z, hx, H, P, r_nom, r_est, old, stale, sum_sq, sum_b, jump_run, ex
     for blk in nb.prange(nb_):
         lo, hi = blk * N // nb_, (blk + 1) * N // nb_
         tot += _block(lo, hi, z, hx, H, P, r_nom, r_est, old, stale, sum_sq, sum_b, jump_run, excluded,
-                      clean_run, ch, prm, iprm, beta, jump, drift, inert, used, r_used, y, ring_new, sum_sq2,
+                      clean_run, ch, prm, iprm, beta, inert, used, r_used, y, ring_new, sum_sq2,
                       sum_b2, r_est2, excl2, newly, readmit, jr2, cr2, z_f, hx_g, fuse, x, xo, Po, nis, lanes)
     return tot
 
 
 @nb.njit(**_jit)
 def epoch_ser(z, hx, H, P, r_nom, r_est, old, stale, sum_sq, sum_b, jump_run, excluded, clean_run, ch,
-              prm, iprm, beta, jump, drift, inert, used, r_used, y, ring_new, sum_sq2, sum_b2, r_est2, excl2,
+              prm, iprm, beta, inert, used, r_used, y, ring_new, sum_sq2, sum_b2, r_est2, excl2,
               newly, readmit, jr2, cr2, z_f, hx_g, fuse, x, xo, Po, nis, lanes):
     N = z.shape[0]
     # np.int64(0): a literal 0 would compile _block a second time, for the type Literal[int](0)
     return _block(np.int64(0), N, z, hx, H, P, r_nom, r_est, old, stale, sum_sq, sum_b, jump_run,
-                  excluded, clean_run, ch, prm, iprm, beta, jump, drift, inert, used, r_used, y, ring_new,
+                  excluded, clean_run, ch, prm, iprm, beta, inert, used, r_used, y, ring_new,
                   sum_sq2, sum_b2, r_est2, excl2, newly, readmit, jr2, cr2, z_f, hx_g, fuse, x, xo, Po, nis, lanes)

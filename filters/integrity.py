@@ -232,31 +232,45 @@ class Report:
     unused); excluded (..., C) bool after this epoch; newly_excluded (..., C) bool; readmitted
     (..., C) bool.
 
-    The compiled monitor does not write drift_stat, bias_stat and weight (three arrays per row
-    that a caller seldom reads: sitl.integrity_events only for a ramp event's statistic); they
-    are derived from the new window sums and beta on first access, with the same arithmetic as
-    the numpy reference."""
+    The compiled monitor does not write jump, drift, drift_stat, bias_stat and weight: they are
+    derived on first access from beta and the window sums the epoch's tests saw, with the same
+    arithmetic as the numpy reference (jump and drift: the very comparisons the monitor made, on
+    the same floats). A caller that reads them pays for them; the monitored step does not."""
 
     _fields = ("beta", "jump", "drift_stat", "bias_stat", "drift", "used", "weight", "excluded", "newly_excluded",
                "readmitted")
-    __slots__ = ("beta", "jump", "_drift_stat", "_bias_stat", "drift", "used", "_weight", "excluded", "newly_excluded",
-                 "readmitted", "_lazy")
+    __slots__ = ("beta", "_jump", "_drift_stat", "_bias_stat", "_drift", "used", "_weight", "excluded",
+                 "newly_excluded", "readmitted", "_lazy")
 
     def __init__(self, beta, jump, drift_stat, bias_stat, drift, used, weight, excluded, newly_excluded, readmitted):
-        self.beta, self.jump, self.drift, self.used = beta, jump, drift, used
+        self.beta, self._jump, self._drift, self.used = beta, jump, drift, used
         self._drift_stat, self._bias_stat, self._weight = drift_stat, bias_stat, weight
         self.excluded, self.newly_excluded, self.readmitted = excluded, newly_excluded, readmitted
         self._lazy = None
 
     @classmethod
-    def _derived(cls, beta, jump, drift, used, excluded, newly, readmit, sum_sq, sum_b, count, window, huber_c,
-                 patch=None):
-        """A Report whose window statistics and weights come from (sum_sq, sum_b) and beta when read;
-        ``patch`` (flat index, sum_sq, sum_b): the sums the tests saw where they have since been reset
-        (readmitted rows)."""
-        r = cls(beta, jump, None, None, drift, used, None, excluded, newly, readmit)
-        r._lazy = (sum_sq, sum_b, int(count), int(window), huber_c, patch)
+    def _derived(cls, beta, used, excluded, newly, readmit, sum_sq, sum_b, count, window, huber_c, patch,
+                 jump_sigma, thr_ss, thr_bs):
+        """A Report whose jump and drift flags, window statistics and weights come from beta and
+        (sum_sq, sum_b) when read; ``patch`` (flat index, sum_sq, sum_b): the sums the tests saw where
+        they have since been reset (readmitted rows); thr_ss, thr_bs: the window tests' tolerances on
+        the sums (IntegrityMonitor.step)."""
+        r = cls(beta, None, None, None, None, used, None, excluded, newly, readmit)
+        r._lazy = (sum_sq, sum_b, int(count), int(window), huber_c, patch, jump_sigma, thr_ss, thr_bs)
         return r
+
+    @property
+    def jump(self):
+        if self._jump is None:
+            self._jump = np.abs(self.beta) >= self._lazy[6]  # (a missing row has beta = 0)
+        return self._jump
+
+    @property
+    def drift(self):
+        if self._drift is None:
+            ss, sb = self._sums(0), self._sums(1)
+            self._drift = (ss > self._lazy[7]) | (sb * sb > self._lazy[8])
+        return self._drift
 
     def _sums(self, i):
         a, patch = self._lazy[i], self._lazy[5]
@@ -268,7 +282,7 @@ class Report:
     @property
     def drift_stat(self):
         if self._drift_stat is None:
-            _, _, count, W, _, _ = self._lazy
+            count, W = self._lazy[2], self._lazy[3]
             ss = self._sums(0)
             self._drift_stat = ss / W if count == W else (ss - (W - count)) / count  # unfilled slots hold 1
         return self._drift_stat
@@ -405,15 +419,19 @@ class IntegrityMonitor:
         count = min(state.count + 1, W)
         thr_ms = float(cfg.drift_thresholds()[count - 1])
         thr_b = cfg.bias_threshold()
+        # both window tests on the sums themselves: (sum_sq - off0) / den > thr_ms and sum_b^2 / count > thr_b
+        # (the compiled monitor, the numpy reference and a Report's derived flags compare the same floats)
+        off0, den = (0, W) if count == W else (W - count, count)
+        thr_ss, thr_bs = thr_ms * den + off0, thr_b * count
         hx, H = measure(model, x)
         rd = model.R_diag()
         if rd is None:
             raise ValueError("the integrity monitor needs a measurement model with a diagonal R (R_diag)")
         old = state.ring_b[state.pos]  # the samples leaving the window
         if _use_kernel(update_kw.get("backend")):
-            res, (beta, jump, drift, used, sum_sq, sum_b, r_est, excluded, newly, readmit,
+            res, (beta, used, sum_sq, sum_b, r_est, excluded, newly, readmit,
                   jump_run, clean_run, new_b), n_readmit = self._epoch_kernel(
-                state, x, P, z, model, hx, H, rd, ch, count, thr_ms, thr_b, old, update, update_kw)
+                state, x, P, z, model, hx, H, rd, ch, count, thr_ss, thr_bs, old, update, update_kw)
             lazy, sum_sq_ep, sum_b_ep = True, sum_sq, sum_b  # the sums the epoch's tests saw (before any reset)
         else:
             lazy = False
@@ -421,7 +439,7 @@ class IntegrityMonitor:
                 old = np.where(state.stale > state.steps, np.nan, old)
             (z_f, beta, jump, drift_stat, bias_stat, drift, inert, w, r_used, new_b, sum_sq, sum_b, hx_g,
              H_g, r_est, excluded, newly, readmit, jump_run, clean_run) = self._epoch_numpy(
-                state, x, P, z, hx, H, rd, ch, C, count, thr_ms, thr_b, old)
+                state, x, P, z, hx, H, rd, ch, C, count, thr_ss, thr_bs, old)
             gm = GuardedModel(model, z_f, inert, prepared=(x, hx_g, H_g), r_diag=r_used)
             res = update(x, P, z_f, gm, **update_kw)
             used = ~inert
@@ -460,13 +478,13 @@ class IntegrityMonitor:
         new_state = MonitorState(ring_b, sum_sq, sum_b, (pos + 1) % W, count, jump_run, excluded, clean_run,
                                  r_est, steps, stale)
         if lazy:  # the compiled path: the statistics and weights from the epoch's sums and beta when read
-            report = Report._derived(beta, jump, drift, used, excluded, newly, readmit, sum_sq_ep, sum_b_ep, count, W,
-                                     cfg.huber_c, patch)
+            report = Report._derived(beta, used, excluded, newly, readmit, sum_sq_ep, sum_b_ep, count, W,
+                                     cfg.huber_c, patch, cfg.jump_sigma, thr_ss, thr_bs)
         else:
             report = Report(beta, jump, drift_stat, bias_stat, drift, used, w, excluded, newly, readmit)
         return res, new_state, report
 
-    def _epoch_kernel(self, state, x, P, z, model, hx, H, rd, ch, count, thr_ms, thr_b, old, update, update_kw):
+    def _epoch_kernel(self, state, x, P, z, model, hx, H, rd, ch, count, thr_ss, thr_bs, old, update, update_kw):
         """The epoch on the compiled kernel (filters/_nbintegrity.py): (UpdateResult, the monitor's
         arrays, number of readmissions). Wrapping the EKF update (``ekf_update``), the kernel runs the
         update itself on each block of trials right after the monitor (fused: one pass over P and H);
@@ -515,7 +533,7 @@ class IntegrityMonitor:
             return np.empty((N, C), dtype=dtype)
 
         beta, y, new_b, sum_sq, sum_b = (fm() for _ in range(5))
-        jump, drift, used = bm(), bm(), bm()
+        used = bm()
         excluded, newly, readmit, jump_run, clean_run = bc(), bc(), bc(), bc(np.int64), bc(np.int64)
         r_est = fm() if adapt else state.r_est
         # for a guarded model: z without NaN, h, the row mask and R (the fused update keeps them in its lanes)
@@ -525,7 +543,7 @@ class IntegrityMonitor:
             z_f, hx_g, r_used, inert = fm(), fm(), fm(), bm()
         xf, Pf = flat(x, (n,)), flat(P, (n, n))
         xo, Po, nis = (np.empty((N, n)), np.empty((N, n, n)), np.empty(N)) if fuse else (_NONE_M, _NONE_P, _NONE_V)
-        prm = np.array([cfg.jump_sigma, thr_ms, thr_b, cfg.huber_c or 0.0, cfg.r_forget])
+        prm = np.array([cfg.jump_sigma, thr_ss, thr_bs, cfg.huber_c or 0.0, cfg.r_forget])
         iprm = np.array([count, cfg.window, cfg.bias_alpha is not None, cfg.persist, cfg.readmit_after,
                          cfg.huber_c is not None, adapt, cfg.isolate, has_stale, not fuse, cfg.min_channels,
                          state.steps],
@@ -536,7 +554,7 @@ class IntegrityMonitor:
             flat(state.stale, (m,), np.int64) if has_stale else _NONE_I, flat(state.sum_sq, (m,)),
             flat(state.sum_b, (m,)), flat(state.jump_run, (C,), np.int64), flat(state.excluded, (C,), bool),
             flat(state.clean_run, (C,), np.int64), ch.astype(np.int64), prm, iprm,
-            beta, jump, drift, inert, used, r_used, y, new_b, sum_sq, sum_b,
+            beta, inert, used, r_used, y, new_b, sum_sq, sum_b,
             r_est if adapt else _NONE_M, excluded, newly, readmit, jump_run, clean_run, z_f, hx_g,
             fuse, xf, xo, Po, nis, min(N, _nbintegrity.LANES))
 
@@ -549,12 +567,12 @@ class IntegrityMonitor:
             gm = GuardedModel(model, shaped(z_f), shaped(inert), prepared=(x, shaped(hx_g), Hk.reshape(batch + (m, n))),
                               r_diag=shaped(r_used))
             res = update(x, P, shaped(z_f), gm, **update_kw)
-        arrays = tuple(shaped(a) for a in (beta, jump, drift, used, sum_sq, sum_b)) + (
+        arrays = tuple(shaped(a) for a in (beta, used, sum_sq, sum_b)) + (
             shaped(r_est) if adapt else r_est,) + tuple(
             shaped(a) for a in (excluded, newly, readmit, jump_run, clean_run, new_b))
         return res, arrays, int(n_readmit)
 
-    def _epoch_numpy(self, state, x, P, z, hx, H, rd, ch, C, count, thr_ms, thr_b, old):
+    def _epoch_numpy(self, state, x, P, z, hx, H, rd, ch, C, count, thr_ss, thr_bs, old):
         """The reference of the compiled monitor (filters/_nbintegrity.py; same outputs)."""
         cfg = self.config
         W, J = cfg.window, cfg.jump_sigma
@@ -575,7 +593,7 @@ class IntegrityMonitor:
         sum_b = state.sum_b + _lin(new_b) - _lin(old)
         drift_stat = sum_sq / W if count == W else (sum_sq - (W - count)) / count  # unfilled slots hold 1
         bias_stat = sum_b * sum_b / count  # unfilled slots hold 0
-        drift = (drift_stat > thr_ms) | (bias_stat > thr_b)
+        drift = (sum_sq > thr_ss) | (sum_b * sum_b > thr_bs)
 
         onehot = ch[:, None] == np.arange(C)[None, :]  # (m, C)
 
