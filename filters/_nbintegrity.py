@@ -198,7 +198,8 @@ def _block(lo, hi, z, hx, H, P, r_nom, r_est, old, stale, sum_sq, sum_b, jump_ru
                 om = o != o  # noqa: PLR0124 (NaN)
                 ss = ssl[a, q] + v2 - (1.0 if om else o * o)
                 sb = sbs[a, q] + vb - (0.0 if om else o)
-                zl[a, q] = zj
+                if glob:  # (z without NaN: only a guarded model needs it)
+                    zl[a, q] = zj
                 nul[a, q] = v
                 rl[a, q] = r
                 bl[a, q] = bj

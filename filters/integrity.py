@@ -161,7 +161,7 @@ class MonitorState(NamedTuple):
     clean_run: np.ndarray  # (..., C) consecutive clean epochs (for readmission)
     r_est: np.ndarray  # (..., m) innovation-based R estimate (NaN until the first sample: the nominal R)
     steps: int = 0  # epochs processed (the running sums are recomputed exactly every RESUM epochs)
-    stale: np.ndarray | None = None  # (..., m) int: the slot leaving at epoch ``steps`` counts as a healthy
+    stale: np.ndarray | None = None  # (..., m) int32: the slot leaving at epoch ``steps`` counts as a healthy
     #                                  value while ``steps < stale`` (a readmitted channel's fresh window;
     #                                  an epoch number, so nothing counts it down; None: no such row)
 
@@ -198,7 +198,7 @@ class MonitorState(NamedTuple):
         stale = acc.stale
         if sub.stale is not None or stale is not None:
             if stale is None:
-                stale = np.zeros(acc.sum_sq.shape, dtype=np.int64)
+                stale = np.zeros(acc.sum_sq.shape, dtype=np.int32)
             stale[idx] = 0 if sub.stale is None else sub.stale
         return acc._replace(pos=sub.pos, count=sub.count, steps=sub.steps, stale=stale)
 
@@ -217,7 +217,7 @@ RESUM = 4096
 _NONE_M = np.empty((0, 0))  # placeholders for the kernel's unused outputs
 _NONE_P = np.empty((0, 0, 0))
 _NONE_V = np.empty(0)
-_NONE_I = np.empty((0, 0), dtype=np.int64)
+_NONE_I = np.empty((0, 0), dtype=np.int32)
 _NONE_B = np.empty((0, 0), dtype=bool)  # epochs between exact recomputations of the running window sums
 
 
@@ -463,7 +463,7 @@ class IntegrityMonitor:
             patch = (fr, ssf[fr], sbf[fr])
             ssf[fr] = float(W)
             sbf[fr] = 0.0
-            stale = np.zeros(sum_sq.shape, dtype=np.int64) if stale is None else stale.copy()
+            stale = np.zeros(sum_sq.shape, dtype=np.int32) if stale is None else stale.copy()
             stale.reshape(-1)[fr] = steps + W
         elif stale is not None and steps % W == 0 and stale.max() <= steps:
             stale = None  # every fresh window has filled
@@ -496,14 +496,15 @@ class IntegrityMonitor:
         m = z.shape[-1]
         n = x.shape[-1]
         C = state.excluded.shape[-1]
-        N = int(np.prod(batch, dtype=np.int64))
+        N = math.prod(batch)
+        one = batch == (N,)  # a flat batch: no reshaping to and fro
 
         def flat(a, shape, dtype=float):
             a = np.asarray(a, dtype=dtype)
             if a.shape != batch + shape or not a.flags.c_contiguous or not a.flags.writeable:
                 # (a read-only input is copied too: one compiled variant of the kernel, not one per flag)
                 a = np.array(np.broadcast_to(a, batch + shape), order="C")
-            return a.reshape((N,) + shape)
+            return a if one else a.reshape((N,) + shape)
 
         def rows(a):  # (1, m) when shared by every trial, else (N, m)
             a = np.asarray(a, dtype=float)
@@ -551,7 +552,7 @@ class IntegrityMonitor:
         drive = _nbintegrity.epoch_par if N >= kernels.PARALLEL_MIN_TRIALS else _nbintegrity.epoch_ser
         n_readmit = drive(
             flat(z, (m,)), flat(hx, (m,)), Hk, Pf, rows(rd), flat(state.r_est, (m,)), flat(old, (m,)),
-            flat(state.stale, (m,), np.int64) if has_stale else _NONE_I, flat(state.sum_sq, (m,)),
+            flat(state.stale, (m,), np.int32) if has_stale else _NONE_I, flat(state.sum_sq, (m,)),
             flat(state.sum_b, (m,)), flat(state.jump_run, (C,), np.int64), flat(state.excluded, (C,), bool),
             flat(state.clean_run, (C,), np.int64), ch.astype(np.int64), prm, iprm,
             beta, inert, used, r_used, y, new_b, sum_sq, sum_b,
@@ -559,7 +560,7 @@ class IntegrityMonitor:
             fuse, xf, xo, Po, nis, min(N, _nbintegrity.LANES))
 
         def shaped(a):
-            return a.reshape(batch + a.shape[1:])
+            return a if one else a.reshape(batch + a.shape[1:])
 
         if fuse:
             res = UpdateResult(shaped(xo), shaped(Po), shaped(y), nis.reshape(batch))
