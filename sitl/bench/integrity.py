@@ -21,12 +21,14 @@ The monitored step's Report is not read here: its window statistics and Huber we
 derived when read (filters.integrity.Report), which the production consumers do only for the
 rare ramp event (sitl.integrity_events).
 
-The measurement model is rebuilt every step, as in the experiment. Rounds are interleaved and
-each figure is the minimum over rounds (the machine is shared; the minimum is the least
-disturbed); the overhead is also given as the median over rounds of the paired ratio
-monitored / plain (each round times both back to back), in wall and in CPU time. The target
-(issue 6): the monitor adds at most 30 % to the plain step (``monitor_overhead``: from the
-minima of wall time).
+The measurement model is rebuilt every step, as in the experiment. Rounds are interleaved (each
+round times every case back to back, in reversed order every other round) and each time figure
+is the minimum over rounds. The overhead (``monitor_overhead``, the figure held against the
+target of issue 6: the monitor adds at most 30 % to the plain step) is the median over rounds of
+the paired ratio monitored / plain of wall time; the same in CPU time, and the ratio of the
+minima, are given beside it. The paired median is the estimator that holds on a shared machine
+whose speed drifts: the two minima can come from different phases of it (measured here: the
+ratio of minima ranged 26-60 % over three runs of the same code, the paired median 25-26 %).
 """
 from __future__ import annotations
 
@@ -39,8 +41,9 @@ def add_args(p) -> None:
     from sitl.cli import nonnegative_int, output_file, positive_int
 
     p.add_argument("--trials", type=positive_int, default=10_000, help="trials stepped together (default 10000)")
-    p.add_argument("--steps", type=positive_int, default=20, help="steps per timing (default 20)")
-    p.add_argument("--rounds", type=positive_int, default=5, help="interleaved rounds, minimum taken (default 5)")
+    p.add_argument("--steps", type=positive_int, default=5, help="steps per timing (default 5)")
+    p.add_argument("--rounds", type=positive_int, default=30,
+                   help="interleaved rounds: median of the paired ratios, minimum of the times (default 30)")
     p.add_argument("--seed", type=nonnegative_int, default=0, help="random seed (default 0)")
     p.add_argument("--backend", choices=("numba", "numpy"), default="numba", help="filter kernels (default numba)")
     p.add_argument("--json", type=output_file, default=None, metavar="FILE", help="also write the result as JSON")
@@ -158,7 +161,7 @@ def run(trials: int, steps: int, rounds: int, seed: int, backend: str, progress=
     paired = {"wall": {"monitored": [], "generic": []}, "cpu": {"monitored": [], "generic": []}}
     for r in range(rounds):
         this = {}
-        for name, f in cases.items():
+        for name, f in (reversed(cases.items()) if r % 2 else cases.items()):
             c0, t0 = time.process_time(), time.perf_counter()
             for _ in range(steps):
                 f()
@@ -173,10 +176,12 @@ def run(trials: int, steps: int, rounds: int, seed: int, backend: str, progress=
         if progress:
             progress(f"round {r + 1}/{rounds}: " + "  ".join(f"{k} {v * 1e3:.2f} ms" for k, v in best.items()))
     ratio = best["monitored"] / best["plain"]
+    over = float(np.median(paired["wall"]["monitored"]))
     return {"bench": "integrity", "trials": trials, "channels": S, "rows": 2 * S, "state": int(P.shape[-1]),
             "steps": steps, "rounds": rounds, "backend": backend,
             "step_s": best, "step_cpu_s": cpu, "per_trial_step_us": {k: v / trials * 1e6 for k, v in best.items()},
-            "monitor_overhead": ratio - 1.0, "target_overhead_max": 0.30, "target_met": bool(ratio - 1.0 <= 0.30),
+            "monitor_overhead": over, "target_overhead_max": 0.30, "target_met": bool(over <= 0.30),
+            "overhead_of_minima": ratio - 1.0,
             "generic_overhead": best["generic"] / best["plain"] - 1.0,
             "overhead_vs_fused": best["monitored"] / best["fused"] - 1.0,
             "median_paired_overhead": {u: {k: float(np.median(v)) for k, v in d.items()} for u, d in paired.items()},
@@ -191,9 +196,9 @@ def table(res: dict) -> str:
         rows.append(f"  {k:<10} {res['step_s'][k] * 1e3:8.2f} ms/step  (cpu {res['step_cpu_s'][k] * 1e3:8.2f} ms)  "
                     f"{res['per_trial_step_us'][k]:7.3f} us per trial-step")
     med = res["median_paired_overhead"]
-    rows.append(f"monitor adds {res['monitor_overhead'] * 100:.1f} % to predict + update (target <= 30 %: "
-                f"{'met' if res['target_met'] else 'NOT met'}); median of paired rounds: "
-                f"{med['wall']['monitored'] * 100:.1f} % wall, {med['cpu']['monitored'] * 100:.1f} % cpu")
+    rows.append(f"monitor adds {res['monitor_overhead'] * 100:.1f} % to predict + update (median of {res['rounds']} "
+                f"paired rounds, wall; target <= 30 %: {'met' if res['target_met'] else 'NOT met'}); "
+                f"{med['cpu']['monitored'] * 100:.1f} % in cpu; ratio of the minima {res['overhead_of_minima'] * 100:.1f} %")
     rows.append(f"generic path (an update the monitor does not know): {res['generic_overhead'] * 100:.1f} %; "
                 f"monitored against the fused ekf_step: {res['overhead_vs_fused'] * 100:.1f} %; channels excluded "
                 f"at the end {res['excluded_fraction'] * 100:.2f} %; "
