@@ -33,11 +33,11 @@ from ._nbkernels import LANES, N_BLOCKS, _jit  # noqa: F401 (LANES: the caller r
 
 
 @nb.njit(**_jit)
-def _block(lo, hi, z, hx, H, P, r_nom, r_est, old, stale, sum_sq, sum_b, jump_run, excluded, clean_run,
+def _block(g0, g1, N, z, hx, H, P, r_nom, r_est, old, stale, sum_sq, sum_b, jump_run, excluded, clean_run,
            ch, prm, iprm, beta, inert, used, r_used, y, ring_new, sum_sq2, sum_b2, r_est2, excl2,
-           newly, readmit, jr2, cr2, z_f, hx_g, fuse, x, xo, Po, nis, lanes):
-    """The monitor (and with ``fuse`` the EKF's sequential Joseph update) on trials [lo, hi), LANES
-    trials at a time in the layout of _nbkernels._joseph_block: every quantity of the lane group is
+           newly, readmit, jr2, cr2, excl2_t, z_f, hx_g, fuse, x, xo, Po, nis, lanes):
+    """The monitor (and with ``fuse`` the EKF's sequential Joseph update) on lane groups [g0, g1)
+    of the N trials (trials g B .. g B + B - 1, B = lanes), in the layout of _nbkernels._joseph_block: every quantity of the lane group is
     held as [row, lane] (P as [i, j, lane]) in scratch local to this function, so that each step of
     the monitor is a loop over the lanes that LLVM vectorises (the batched arrays are only read and
     written by the transposing loads and stores). diag(H P- H') runs over the columns of each row
@@ -51,7 +51,12 @@ def _block(lo, hi, z, hx, H, P, r_nom, r_est, old, stale, sum_sq, sum_b, jump_ru
     computes both, so that the Report derives the same flags from the same sums bit for bit); iprm: (count, W, use_bias, persist, readmit_after,
     use_huber, adapt_r, isolate, has_stale, write_zh, min_channels, step: the epoch's number, a row's
     leaving slot is stale while step < stale). r_nom has 1 or N rows (shared or per
-    trial). Returns the number of readmissions."""
+    trial). Returns the number of readmissions.
+
+    The monitor's own per-row and per-channel state (r_est, sum_sq, sum_b; jump_run, excluded,
+    clean_run; and the new ones r_est2, sum_sq2, sum_b2, jr2, cr2, excl2_t) is lane-tiled,
+    (groups, rows or channels, lanes) -- filters.integrity.MonitorState keeps it so -- and is read
+    and written as contiguous blocks, not transposed; excl2 (N, C) is the Report's copy."""
     n = H.shape[2]
     m = z.shape[1]
     C = excluded.shape[1]
@@ -89,8 +94,9 @@ def _block(lo, hi, z, hx, H, P, r_nom, r_est, old, stale, sum_sq, sum_b, jump_ru
     acc = np.empty(B)
     idx = np.empty(n, np.int64)
     tot = 0
-    for t0 in range(lo, hi, B):
-        nl = min(B, hi - t0)
+    for g in range(g0, g1):
+        t0 = g * B
+        nl = min(B, N - t0)
         # load, transposed (upper triangle of P); idle lanes get a harmless problem (P = I, H = 0)
         for q in range(B):
             if q < nl:
@@ -118,28 +124,34 @@ def _block(lo, hi, z, hx, H, P, r_nom, r_est, old, stale, sum_sq, sum_b, jump_ru
                 for j in range(m):
                     rnl[j, q] = r_nom[t0 + q, j]
         # the per-row vectors of the lane group, transposed to [row, lane]
+        for j in range(m):  # the monitor's state: lane-tiled, a contiguous block each
+            for q in range(B):
+                ssl[j, q] = sum_sq[g, j, q]
+            for q in range(B):
+                sbs[j, q] = sum_b[g, j, q]
+            if adapt_r:
+                for q in range(B):
+                    rel[j, q] = r_est[g, j, q]
+            else:
+                for q in range(B):
+                    rel[j, q] = -math.inf
+        for c in range(C):
+            for q in range(B):
+                jrl[c, q] = jump_run[g, c, q]
+            for q in range(B):
+                crl[c, q] = clean_run[g, c, q]
+            for q in range(B):
+                exo[c, q] = excluded[g, c, q]
         for q in range(nl):
             t = t0 + q
             for j in range(m):
                 zl[j, q] = z[t, j]
                 hxl[j, q] = hx[t, j]
                 sbl[j, q] = old[t, j]
-                ssl[j, q] = sum_sq[t, j]
-                sbs[j, q] = sum_b[t, j]
-            if adapt_r:
-                for j in range(m):
-                    rel[j, q] = r_est[t, j]
-            else:
-                for j in range(m):
-                    rel[j, q] = -math.inf
             if has_stale:  # a stale slot leaves the window as the healthy value it stands for (NaN: missing)
                 for j in range(m):
                     if stale[t, j] > step:
                         sbl[j, q] = math.nan
-            for c in range(C):
-                jrl[c, q] = jump_run[t, c]
-                crl[c, q] = clean_run[t, c]
-                exo[c, q] = excluded[t, c]
         # the columns of each row that are nonzero in some lane
         for a in range(m):
             nz = 0
@@ -281,6 +293,24 @@ def _block(lo, hi, z, hx, H, P, r_nom, r_est, old, stale, sum_sq, sum_b, jump_ru
                     upd = (1.0 - lj) * (re if abs(re) < math.inf else rn) + lj * smp
                     rel[a, q] = re if it else upd
         # the lane group's outputs, transposed back
+        for c in range(C):  # (idle lanes keep what they hold)
+            for q in range(nl, B):
+                exl[c, q] = exo[c, q]
+        for j in range(m):
+            for q in range(B):
+                sum_sq2[g, j, q] = ssl[j, q]
+            for q in range(B):
+                sum_b2[g, j, q] = sbs[j, q]
+            if adapt_r:
+                for q in range(B):
+                    r_est2[g, j, q] = rel[j, q]
+        for c in range(C):
+            for q in range(B):
+                jr2[g, c, q] = jrl[c, q]
+            for q in range(B):
+                cr2[g, c, q] = crl[c, q]
+            for q in range(B):
+                excl2_t[g, c, q] = exl[c, q]
         for q in range(nl):
             t = t0 + q
             for j in range(m):
@@ -288,14 +318,7 @@ def _block(lo, hi, z, hx, H, P, r_nom, r_est, old, stale, sum_sq, sum_b, jump_ru
                 used[t, j] = not inl[j, q]
                 y[t, j] = yl[j, q]
                 ring_new[t, j] = sbl[j, q]
-                sum_sq2[t, j] = ssl[j, q]
-                sum_b2[t, j] = sbs[j, q]
-            if adapt_r:
-                for j in range(m):
-                    r_est2[t, j] = rel[j, q]
             for c in range(C):
-                jr2[t, c] = jrl[c, q]
-                cr2[t, c] = crl[c, q]
                 excl2[t, c] = exl[c, q]
                 newly[t, c] = fl[c, q]
                 readmit[t, c] = rdl[c, q]
@@ -377,24 +400,27 @@ def _block(lo, hi, z, hx, H, P, r_nom, r_est, old, stale, sum_sq, sum_b, jump_ru
 @nb.njit(parallel=True, **_jit)
 def epoch_par(z, hx, H, P, r_nom, r_est, old, stale, sum_sq, sum_b, jump_run, excluded, clean_run, ch,
               prm, iprm, beta, inert, used, r_used, y, ring_new, sum_sq2, sum_b2, r_est2, excl2,
-              newly, readmit, jr2, cr2, z_f, hx_g, fuse, x, xo, Po, nis, lanes):
+              newly, readmit, jr2, cr2, excl2_t, z_f, hx_g, fuse, x, xo, Po, nis, lanes):
     N = z.shape[0]
-    nb_ = min(N, N_BLOCKS)
+    G = sum_sq.shape[0]  # lane groups (the tiles of the monitor's state)
+    nb_ = min(G, N_BLOCKS)
     tot = 0
     for blk in nb.prange(nb_):
-        lo, hi = blk * N // nb_, (blk + 1) * N // nb_
-        tot += _block(lo, hi, z, hx, H, P, r_nom, r_est, old, stale, sum_sq, sum_b, jump_run, excluded,
+        g0, g1 = blk * G // nb_, (blk + 1) * G // nb_
+        tot += _block(g0, g1, N, z, hx, H, P, r_nom, r_est, old, stale, sum_sq, sum_b, jump_run, excluded,
                       clean_run, ch, prm, iprm, beta, inert, used, r_used, y, ring_new, sum_sq2,
-                      sum_b2, r_est2, excl2, newly, readmit, jr2, cr2, z_f, hx_g, fuse, x, xo, Po, nis, lanes)
+                      sum_b2, r_est2, excl2, newly, readmit, jr2, cr2, excl2_t, z_f, hx_g, fuse, x, xo, Po, nis,
+                      lanes)
     return tot
 
 
 @nb.njit(**_jit)
 def epoch_ser(z, hx, H, P, r_nom, r_est, old, stale, sum_sq, sum_b, jump_run, excluded, clean_run, ch,
               prm, iprm, beta, inert, used, r_used, y, ring_new, sum_sq2, sum_b2, r_est2, excl2,
-              newly, readmit, jr2, cr2, z_f, hx_g, fuse, x, xo, Po, nis, lanes):
+              newly, readmit, jr2, cr2, excl2_t, z_f, hx_g, fuse, x, xo, Po, nis, lanes):
     N = z.shape[0]
     # np.int64(0): a literal 0 would compile _block a second time, for the type Literal[int](0)
-    return _block(np.int64(0), N, z, hx, H, P, r_nom, r_est, old, stale, sum_sq, sum_b, jump_run,
+    return _block(np.int64(0), sum_sq.shape[0], N, z, hx, H, P, r_nom, r_est, old, stale, sum_sq, sum_b, jump_run,
                   excluded, clean_run, ch, prm, iprm, beta, inert, used, r_used, y, ring_new,
-                  sum_sq2, sum_b2, r_est2, excl2, newly, readmit, jr2, cr2, z_f, hx_g, fuse, x, xo, Po, nis, lanes)
+                  sum_sq2, sum_b2, r_est2, excl2, newly, readmit, jr2, cr2, excl2_t, z_f, hx_g, fuse, x, xo, Po, nis,
+                  lanes)

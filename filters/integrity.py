@@ -53,8 +53,8 @@ estimate and inflated R for tens of seconds: the integrity experiment's fault-fr
 +0.069 +- 0.023 m on 3.03 m, now +0.0025 +- 0.0058 m; 200 trials, seed 3). Adaptive Q is filters.adaptive (eq 7),
 a layer on the prediction.
 
-Everything is a pure function of a MonitorState (NamedTuple of arrays with the batch
-axes); `step` returns the update result, the new state and a Report of the epoch's
+Everything is a pure function of a MonitorState (arrays with the batch axes, some kept
+lane-tiled for the kernel); `step` returns the update result, the new state and a Report of the epoch's
 statistics, alarms, exclusions and readmissions (the caller turns those into bus events).
 The monitor linearises the model at x- for beta (H from the model); the wrapped update
 (``update``) then runs unchanged on the masked, reweighted model -- for a UKF the betas use
@@ -65,7 +65,6 @@ from __future__ import annotations
 import functools
 import math
 from dataclasses import dataclass
-from typing import NamedTuple
 
 import numpy as np
 import scipy.stats
@@ -145,25 +144,108 @@ def _chi2_isf_1(alpha):
     return float(scipy.stats.chi2.isf(alpha, 1))
 
 
-class MonitorState(NamedTuple):
+_TILED = ("sum_sq", "sum_b", "jump_run", "excluded", "clean_run", "r_est")
+
+
+def _tile(a, B):
+    """(..., k) -> (G, k, B), G = ceil(N / B), N the batch size: trial t at [t // B, :, t % B] (a
+    lane-tiled copy; idle lanes of the last group 0)."""
+    a = np.asarray(a)
+    k = a.shape[-1]
+    f = a.reshape(-1, k)
+    N = f.shape[0]
+    G = -(-N // B)
+    out = np.zeros((G, B, k), dtype=a.dtype)
+    out.reshape(G * B, k)[:N] = f
+    return np.ascontiguousarray(out.transpose(0, 2, 1))
+
+
+def _untile(t, batch):
+    """The inverse of _tile: (G, k, B) -> batch + (k,) (a copy)."""
+    G, k, B = t.shape
+    N = math.prod(batch)
+    return np.ascontiguousarray(t.transpose(0, 2, 1).reshape(G * B, k)[:N]).reshape(tuple(batch) + (k,))
+
+
+class MonitorState:
     """The monitor's state between epochs; functional: ``step`` never modifies a state it is
     given (a caller may keep one and step from it again, as the ground station's lag window
-    does). ``take`` and ``merge`` step a subset of the batch rows (a flat batch axis)."""
+    does). ``take`` and ``merge`` step a subset of the batch rows (a flat batch axis).
 
-    ring_b: tuple  # ``window`` arrays (..., m): the last beta per row, winsorised to [-J, J], NaN for a
-    #                missing epoch (which counts as the healthy beta = 0, beta^2 = 1); never modified
-    sum_sq: np.ndarray  # (..., m) the window's sum of beta^2 (running: + the new sample - the one leaving)
-    sum_b: np.ndarray  # (..., m) the window's sum of beta
-    pos: int  # next ring slot
-    count: int  # epochs seen, for the partial-window tolerance (saturates at window)
-    jump_run: np.ndarray  # (..., C) consecutive epochs with a jump on the channel
-    excluded: np.ndarray  # (..., C) bool
-    clean_run: np.ndarray  # (..., C) consecutive clean epochs (for readmission)
-    r_est: np.ndarray  # (..., m) innovation-based R estimate (NaN until the first sample: the nominal R)
-    steps: int = 0  # epochs processed (the running sums are recomputed exactly every RESUM epochs)
-    stale: np.ndarray | None = None  # (..., m) int32: the slot leaving at epoch ``steps`` counts as a healthy
-    #                                  value while ``steps < stale`` (a readmitted channel's fresh window;
-    #                                  an epoch number, so nothing counts it down; None: no such row)
+    Fields (read as attributes, constructed positionally, ``_replace``), as a NamedTuple's:
+
+    ring_b: ``window`` arrays (..., m): the last beta per row, winsorised to [-J, J], NaN for a
+        missing epoch (which counts as the healthy beta = 0, beta^2 = 1); never modified
+    sum_sq (..., m): the window's sum of beta^2 (running: + the new sample - the one leaving);
+    sum_b (..., m): the window's sum of beta; pos: next ring slot; count: epochs seen, for the
+    partial-window tolerance (saturates at window); jump_run (..., C): consecutive epochs with a
+    jump on the channel; excluded (..., C) bool; clean_run (..., C): consecutive clean epochs (for
+    readmission); r_est (..., m): innovation-based R estimate (NaN until the first sample: the
+    nominal R); steps: epochs processed (the running sums are recomputed exactly every RESUM
+    epochs); stale (..., m) int32 or None: the slot leaving at epoch ``steps`` counts as a healthy
+    value while ``steps < stale`` (a readmitted channel's fresh window; an epoch number, so
+    nothing counts it down; None: no such row).
+
+    The compiled monitor keeps sum_sq, sum_b, r_est, jump_run, excluded and clean_run lane-tiled
+    (filters/_nbintegrity.py reads and writes them as contiguous blocks: _tile); each form is
+    made from the other when first read, so a state the kernel made and nothing else reads is
+    never converted."""
+
+    _fields = ("ring_b", "sum_sq", "sum_b", "pos", "count", "jump_run", "excluded", "clean_run", "r_est", "steps",
+               "stale")
+    __slots__ = ("ring_b", "pos", "count", "steps", "stale", "_std", "_til", "_batch")
+
+    def __init__(self, ring_b, sum_sq, sum_b, pos, count, jump_run, excluded, clean_run, r_est, steps=0,
+                 stale=None):
+        self.ring_b, self.pos, self.count, self.steps, self.stale = ring_b, pos, count, steps, stale
+        self._std = {"sum_sq": sum_sq, "sum_b": sum_b, "jump_run": jump_run, "excluded": excluded,
+                     "clean_run": clean_run, "r_est": r_est}
+        self._til = None
+        self._batch = np.shape(sum_sq)[:-1]
+
+    @classmethod
+    def _from_tiled(cls, ring_b, til, pos, count, steps, stale, batch):
+        st = cls.__new__(cls)
+        st.ring_b, st.pos, st.count, st.steps, st.stale = ring_b, pos, count, steps, stale
+        st._std, st._til, st._batch = {}, til, tuple(batch)
+        return st
+
+    def _get(self, name):
+        a = self._std.get(name)
+        if a is None:
+            a = self._std[name] = _untile(self._til[name], self._batch)
+        return a
+
+    sum_sq = property(lambda self: self._get("sum_sq"))
+    sum_b = property(lambda self: self._get("sum_b"))
+    jump_run = property(lambda self: self._get("jump_run"))
+    excluded = property(lambda self: self._get("excluded"))
+    clean_run = property(lambda self: self._get("clean_run"))
+    r_est = property(lambda self: self._get("r_est"))
+
+    def _width(self, field="sum_sq"):
+        """The last axis of a tiled field (sum_sq: m, the rows; excluded: C, the channels)."""
+        a = self._std.get(field)
+        return int(a.shape[-1] if a is not None else self._til[field].shape[1])
+
+    def _tiled(self, B):
+        """The lane-tiled form (G, k, B) of the tiled fields, B lanes (made once, then kept)."""
+        til = self._til
+        if til is None or next(iter(til.values())).shape[-1] != B:
+            til = self._til = {f: _tile(self._std[f], B) for f in _TILED}
+        return til
+
+    def _replace(self, **kw):
+        args = [kw.pop(f) if f in kw else getattr(self, f) for f in self._fields]
+        if kw:
+            raise TypeError(f"MonitorState has no fields {sorted(kw)}")
+        return MonitorState(*args)
+
+    def __iter__(self):
+        return (getattr(self, f) for f in self._fields)
+
+    def __repr__(self):
+        return "MonitorState(" + ", ".join(f"{f}={getattr(self, f)!r}" for f in self._fields[1:]) + ")"
 
     @property
     def ring(self) -> tuple:
@@ -195,6 +277,7 @@ class MonitorState(NamedTuple):
         acc.ring_b[p][idx] = sub.ring_b[p]
         for f in ("sum_sq", "sum_b", "jump_run", "excluded", "clean_run", "r_est"):
             getattr(acc, f)[idx] = getattr(sub, f)
+        acc._til = None  # (written in its plain form)
         stale = acc.stale
         if sub.stale is not None or stale is not None:
             if stale is None:
@@ -211,6 +294,24 @@ def _sq(b):
 def _lin(b):
     """beta of winsorised ring samples (NaN, a missing epoch: 0)."""
     return np.where(np.isnan(b), 0.0, b)
+
+
+def _readmitted_rows(readmit, ch, C):
+    """(trial, row) index pairs of every row of a readmitted channel (readmit (..., C), flat trials)."""
+    fi = np.flatnonzero(readmit)
+    t_ch, c_ch = np.divmod(fi, C)
+    k, j = np.nonzero(ch[None, :] == c_ch[:, None])  # (readmission, row of its channel)
+    return t_ch[k], j
+
+
+def _resum(ring_b, stale, pos, steps, W):
+    """The window sums (sum_sq, sum_b) recomputed from the ring, after the epoch that wrote slot pos
+    (slot i leaves at epoch steps + rel_i: stale while that is < ``stale``)."""
+    rb = np.stack(ring_b)
+    if stale is not None:
+        rel = (np.arange(W) - (pos + 1)) % W + steps
+        rb = np.where(rel.reshape((W,) + (1,) * stale.ndim) < stale, np.nan, rb)
+    return np.add.reduce(_sq(rb), axis=0), np.add.reduce(_lin(rb), axis=0)
 
 
 RESUM = 4096
@@ -250,13 +351,15 @@ class Report:
 
     @classmethod
     def _derived(cls, beta, used, excluded, newly, readmit, sum_sq, sum_b, count, window, huber_c, patch,
-                 jump_sigma, thr_ss, thr_bs):
+                 jump_sigma, thr_ss, thr_bs, batch):
         """A Report whose jump and drift flags, window statistics and weights come from beta and
-        (sum_sq, sum_b) when read; ``patch`` (flat index, sum_sq, sum_b): the sums the tests saw where
-        they have since been reset (readmitted rows); thr_ss, thr_bs: the window tests' tolerances on
-        the sums (IntegrityMonitor.step)."""
+        the lane-tiled sums (sum_sq, sum_b) (MonitorState._tiled) when read; ``patch`` (flat
+        (trial, row) index, sum_sq, sum_b): the sums the tests saw where they have since been reset
+        (readmitted rows); thr_ss, thr_bs: the window tests' tolerances on the sums
+        (IntegrityMonitor.step); batch: the batch shape."""
         r = cls(beta, None, None, None, None, used, None, excluded, newly, readmit)
-        r._lazy = (sum_sq, sum_b, int(count), int(window), huber_c, patch, jump_sigma, thr_ss, thr_bs)
+        r._lazy = [sum_sq, sum_b, int(count), int(window), huber_c, patch, jump_sigma, thr_ss, thr_bs, tuple(batch),
+                   False]
         return r
 
     @property
@@ -273,11 +376,17 @@ class Report:
         return self._drift
 
     def _sums(self, i):
-        a, patch = self._lazy[i], self._lazy[5]
-        if patch is not None:
-            a = a.copy()
-            a.reshape(-1)[patch[0]] = patch[1 + i]
-        return a
+        """The window sum i (0: of beta^2, 1: of beta) the epoch's tests saw, (..., m)."""
+        lz = self._lazy
+        if not lz[10]:  # untiled (and patched) once
+            patch = lz[5]
+            for k in (0, 1):
+                a = _untile(lz[k], lz[9])
+                if patch is not None:
+                    a.reshape(-1)[patch[0]] = patch[1 + k]
+                lz[k] = a
+            lz[10] = True
+        return lz[i]
 
     @property
     def drift_stat(self):
@@ -410,11 +519,12 @@ class IntegrityMonitor:
         z = np.asarray(z, dtype=float)
         ch = np.asarray(channels)
         m = z.shape[-1]
-        C = state.excluded.shape[-1]
+        C = state._width("excluded")
         if ch.shape != (m,) or not np.issubdtype(ch.dtype, np.integer) or ch.min() < 0 or ch.max() >= C:
             raise ValueError(f"channels must be ({m},) ints in [0, {C}), got {channels!r}")
-        if state.sum_sq.shape[-1] != m:
-            raise ValueError(f"the monitor state has {state.sum_sq.shape[-1]} rows, the measurement {m}")
+        if state._batch + (state._width(),) != z.shape:
+            raise ValueError(f"the monitor state is for measurements of shape {state._batch + (state._width(),)}, "
+                             f"got {z.shape}")
         W = cfg.window
         count = min(state.count + 1, W)
         thr_ms = float(cfg.drift_thresholds()[count - 1])
@@ -428,65 +538,72 @@ class IntegrityMonitor:
         if rd is None:
             raise ValueError("the integrity monitor needs a measurement model with a diagonal R (R_diag)")
         old = state.ring_b[state.pos]  # the samples leaving the window
-        if _use_kernel(update_kw.get("backend")):
-            res, (beta, used, sum_sq, sum_b, r_est, excluded, newly, readmit,
-                  jump_run, clean_run, new_b), n_readmit = self._epoch_kernel(
-                state, x, P, z, model, hx, H, rd, ch, count, thr_ss, thr_bs, old, update, update_kw)
-            lazy, sum_sq_ep, sum_b_ep = True, sum_sq, sum_b  # the sums the epoch's tests saw (before any reset)
-        else:
-            lazy = False
-            if state.stale is not None:  # slots of a fresh window leave as the healthy values they stand for
-                old = np.where(state.stale > state.steps, np.nan, old)
-            (z_f, beta, jump, drift_stat, bias_stat, drift, inert, w, r_used, new_b, sum_sq, sum_b, hx_g,
-             H_g, r_est, excluded, newly, readmit, jump_run, clean_run) = self._epoch_numpy(
-                state, x, P, z, hx, H, rd, ch, C, count, thr_ss, thr_bs, old)
-            gm = GuardedModel(model, z_f, inert, prepared=(x, hx_g, H_g), r_diag=r_used)
-            res = update(x, P, z_f, gm, **update_kw)
-            used = ~inert
-            n_readmit = 1 if cfg.isolate and readmit.any() else 0
-
         pos = state.pos
-        ring_b = state.ring_b[:pos] + (new_b,) + state.ring_b[pos + 1:]
         steps = state.steps + 1
         stale = state.stale
-        patch = None
-        if n_readmit:
+        if _use_kernel(update_kw.get("backend")):
+            res, (beta, used, excluded, newly, readmit, new_b), til, n_readmit, B = self._epoch_kernel(
+                state, x, P, z, model, hx, H, rd, ch, count, thr_ss, thr_bs, old, update, update_kw)
+            ring_b = state.ring_b[:pos] + (new_b,) + state.ring_b[pos + 1:]
+            sum_sq_ep, sum_b_ep = til["sum_sq"], til["sum_b"]  # the sums the epoch's tests saw (until a reset)
+            patch = None
+            if n_readmit:
+                t, j = _readmitted_rows(readmit, ch, C)
+                ti = ((t // B) * m + j) * B + t % B  # (trial, row) in the lane-tiled sums
+                ssf, sbf = sum_sq_ep.reshape(-1), sum_b_ep.reshape(-1)
+                patch = (t * m + j, ssf[ti], sbf[ti])
+                ssf[ti] = float(W)
+                sbf[ti] = 0.0
+                stale = self._fresh_windows(stale, t * m + j, z.shape, steps, W)
+            elif stale is not None and steps % W == 0 and stale.max() <= steps:
+                stale = None  # every fresh window has filled
+            if steps % RESUM == 0:  # the running sums, exactly again (rounding does not pile up)
+                ss, sb = _resum(ring_b, stale, pos, steps, W)
+                til = dict(til, sum_sq=_tile(ss, B), sum_b=_tile(sb, B))
+            new_state = MonitorState._from_tiled(ring_b, til, (pos + 1) % W, count, steps, stale, z.shape[:-1])
+            # the statistics and weights from the epoch's sums and beta when read
+            report = Report._derived(beta, used, excluded, newly, readmit, sum_sq_ep, sum_b_ep, count, W,
+                                     cfg.huber_c, patch, cfg.jump_sigma, thr_ss, thr_bs, z.shape[:-1])
+            return res, new_state, report
+        if state.stale is not None:  # slots of a fresh window leave as the healthy values they stand for
+            old = np.where(state.stale > state.steps, np.nan, old)
+        (z_f, beta, jump, drift_stat, bias_stat, drift, inert, w, r_used, new_b, sum_sq, sum_b, hx_g,
+         H_g, r_est, excluded, newly, readmit, jump_run, clean_run) = self._epoch_numpy(
+            state, x, P, z, hx, H, rd, ch, C, count, thr_ss, thr_bs, old)
+        gm = GuardedModel(model, z_f, inert, prepared=(x, hx_g, H_g), r_diag=r_used)
+        res = update(x, P, z_f, gm, **update_kw)
+        ring_b = state.ring_b[:pos] + (new_b,) + state.ring_b[pos + 1:]
+        if cfg.isolate and readmit.any():
             # a readmitted channel starts a fresh window of healthy values (beta^2 = 1, beta = 0): its
             # sums are reset and its W ring slots are marked stale until epoch steps + W (no copy of the
             # ring). Readmissions are few: the rows are set by index, in place (sum_sq and sum_b are
-            # this epoch's own arrays); the Report keeps the sums its tests saw for those rows
-            fi = np.flatnonzero(readmit)
-            t_ch, c_ch = np.divmod(fi, C)
-            k, j = np.nonzero(ch[None, :] == c_ch[:, None])  # (readmission, row of its channel)
-            fr = t_ch[k] * m + j  # flat (trial, row) index
-            ssf, sbf = sum_sq.reshape(-1), sum_b.reshape(-1)
-            patch = (fr, ssf[fr], sbf[fr])
-            ssf[fr] = float(W)
-            sbf[fr] = 0.0
-            stale = np.zeros(sum_sq.shape, dtype=np.int32) if stale is None else stale.copy()
-            stale.reshape(-1)[fr] = steps + W
+            # this epoch's own arrays; the Report has the statistics its tests saw)
+            t, j = _readmitted_rows(readmit, ch, C)
+            fr = t * m + j
+            sum_sq.reshape(-1)[fr] = float(W)
+            sum_b.reshape(-1)[fr] = 0.0
+            stale = self._fresh_windows(stale, fr, z.shape, steps, W)
         elif stale is not None and steps % W == 0 and stale.max() <= steps:
             stale = None  # every fresh window has filled
-        if steps % RESUM == 0:  # the running sums, exactly again (rounding does not pile up)
-            rb = np.stack(ring_b)
-            if stale is not None:  # slot i leaves at epoch steps + rel_i: stale while that is < ``stale``
-                rel = (np.arange(W) - (pos + 1)) % W + steps
-                rb = np.where(rel.reshape((W,) + (1,) * stale.ndim) < stale, np.nan, rb)
-            rs, rb = _sq(rb), _lin(rb)
-            sum_sq = np.add.reduce(rs, axis=0)
-            sum_b = np.add.reduce(rb, axis=0)
+        if steps % RESUM == 0:
+            sum_sq, sum_b = _resum(ring_b, stale, pos, steps, W)
         new_state = MonitorState(ring_b, sum_sq, sum_b, (pos + 1) % W, count, jump_run, excluded, clean_run,
                                  r_est, steps, stale)
-        if lazy:  # the compiled path: the statistics and weights from the epoch's sums and beta when read
-            report = Report._derived(beta, used, excluded, newly, readmit, sum_sq_ep, sum_b_ep, count, W,
-                                     cfg.huber_c, patch, cfg.jump_sigma, thr_ss, thr_bs)
-        else:
-            report = Report(beta, jump, drift_stat, bias_stat, drift, used, w, excluded, newly, readmit)
+        report = Report(beta, jump, drift_stat, bias_stat, drift, ~inert, w, excluded, newly, readmit)
         return res, new_state, report
 
+    @staticmethod
+    def _fresh_windows(stale, fr, shape, steps, W):
+        """``stale`` with rows ``fr`` (flat (trial, row) indices) fresh until epoch steps + W (a copy;
+        a new array of ``shape`` when there was none)."""
+        stale = np.zeros(shape, dtype=np.int32) if stale is None else stale.copy()
+        stale.reshape(-1)[fr] = steps + W
+        return stale
+
     def _epoch_kernel(self, state, x, P, z, model, hx, H, rd, ch, count, thr_ss, thr_bs, old, update, update_kw):
-        """The epoch on the compiled kernel (filters/_nbintegrity.py): (UpdateResult, the monitor's
-        arrays, number of readmissions). Wrapping the EKF update (``ekf_update``), the kernel runs the
+        """The epoch on the compiled kernel (filters/_nbintegrity.py): (UpdateResult, the Report's
+        arrays and the new ring slot, the new lane-tiled state (MonitorState._tiled), number of
+        readmissions, lanes). Wrapping the EKF update (``ekf_update``), the kernel runs the
         update itself on each block of trials right after the monitor (fused: one pass over P and H);
         any other update runs afterwards on a GuardedModel."""
         from . import _nbintegrity, kernels
@@ -495,9 +612,11 @@ class IntegrityMonitor:
         batch = z.shape[:-1]
         m = z.shape[-1]
         n = x.shape[-1]
-        C = state.excluded.shape[-1]
         N = math.prod(batch)
         one = batch == (N,)  # a flat batch: no reshaping to and fro
+        B = max(1, min(N, _nbintegrity.LANES))
+        til = state._tiled(B)
+        G, C = til["excluded"].shape[:2]
 
         def flat(a, shape, dtype=float):
             a = np.asarray(a, dtype=dtype)
@@ -533,10 +652,14 @@ class IntegrityMonitor:
         def bc(dtype=bool):
             return np.empty((N, C), dtype=dtype)
 
-        beta, y, new_b, sum_sq, sum_b = (fm() for _ in range(5))
+        def tm(k, dtype=float):
+            return np.empty((G, k, B), dtype=dtype)
+
+        beta, y, new_b = fm(), fm(), fm()
         used = bm()
-        excluded, newly, readmit, jump_run, clean_run = bc(), bc(), bc(), bc(np.int64), bc(np.int64)
-        r_est = fm() if adapt else state.r_est
+        excluded, newly, readmit = bc(), bc(), bc()
+        new = {"sum_sq": tm(m), "sum_b": tm(m), "r_est": tm(m) if adapt else til["r_est"],
+               "jump_run": tm(C, np.int64), "clean_run": tm(C, np.int64), "excluded": tm(C, bool)}
         # for a guarded model: z without NaN, h, the row mask and R (the fused update keeps them in its lanes)
         z_f = hx_g = r_used = _NONE_M
         inert = _NONE_B
@@ -551,13 +674,12 @@ class IntegrityMonitor:
                         dtype=np.int64)
         drive = _nbintegrity.epoch_par if N >= kernels.PARALLEL_MIN_TRIALS else _nbintegrity.epoch_ser
         n_readmit = drive(
-            flat(z, (m,)), flat(hx, (m,)), Hk, Pf, rows(rd), flat(state.r_est, (m,)), flat(old, (m,)),
-            flat(state.stale, (m,), np.int32) if has_stale else _NONE_I, flat(state.sum_sq, (m,)),
-            flat(state.sum_b, (m,)), flat(state.jump_run, (C,), np.int64), flat(state.excluded, (C,), bool),
-            flat(state.clean_run, (C,), np.int64), ch.astype(np.int64), prm, iprm,
-            beta, inert, used, r_used, y, new_b, sum_sq, sum_b,
-            r_est if adapt else _NONE_M, excluded, newly, readmit, jump_run, clean_run, z_f, hx_g,
-            fuse, xf, xo, Po, nis, min(N, _nbintegrity.LANES))
+            flat(z, (m,)), flat(hx, (m,)), Hk, Pf, rows(rd), til["r_est"], flat(old, (m,)),
+            flat(state.stale, (m,), np.int32) if has_stale else _NONE_I, til["sum_sq"], til["sum_b"],
+            til["jump_run"], til["excluded"], til["clean_run"], ch.astype(np.int64), prm, iprm,
+            beta, inert, used, r_used, y, new_b, new["sum_sq"], new["sum_b"],
+            new["r_est"] if adapt else _NONE_P, excluded, newly, readmit, new["jump_run"], new["clean_run"],
+            new["excluded"], z_f, hx_g, fuse, xf, xo, Po, nis, B)
 
         def shaped(a):
             return a if one else a.reshape(batch + a.shape[1:])
@@ -568,10 +690,8 @@ class IntegrityMonitor:
             gm = GuardedModel(model, shaped(z_f), shaped(inert), prepared=(x, shaped(hx_g), Hk.reshape(batch + (m, n))),
                               r_diag=shaped(r_used))
             res = update(x, P, shaped(z_f), gm, **update_kw)
-        arrays = tuple(shaped(a) for a in (beta, used, sum_sq, sum_b)) + (
-            shaped(r_est) if adapt else r_est,) + tuple(
-            shaped(a) for a in (excluded, newly, readmit, jump_run, clean_run, new_b))
-        return res, arrays, int(n_readmit)
+        arrays = tuple(shaped(a) for a in (beta, used, excluded, newly, readmit, new_b))
+        return res, arrays, new, int(n_readmit), B
 
     def _epoch_numpy(self, state, x, P, z, hx, H, rd, ch, C, count, thr_ss, thr_bs, old):
         """The reference of the compiled monitor (filters/_nbintegrity.py; same outputs)."""

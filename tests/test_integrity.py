@@ -241,6 +241,18 @@ def test_bad_config_is_a_clear_error(kw, needle):
         IntegrityConfig(**kw)
 
 
+def test_a_state_of_another_shape_is_a_clear_error():
+    """The state's batch and rows must be the measurement's (the compiled kernel trusts them)."""
+    mon = IntegrityMonitor(IntegrityConfig())
+    model = LinearGaussian(np.eye(2), np.eye(2))
+    for batch, m in (((6,), 2), ((5,), 3)):
+        ms = mon.init(batch, m, m)
+        for be in ("numpy", "numba"):
+            with pytest.raises(ValueError, match="monitor state is for measurements of shape"):
+                mon.step(ms, np.zeros((5, 2)), np.broadcast_to(np.eye(2), (5, 2, 2)), np.zeros((5, 2)), model,
+                         np.arange(2) % m, backend=be)
+
+
 def test_bad_channels_are_a_clear_error():
     mon = IntegrityMonitor()
     ms = mon.init((2,), 3, 2)
