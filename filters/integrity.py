@@ -304,6 +304,18 @@ def _readmitted_rows(readmit, ch, C):
     return t_ch[k], j
 
 
+def _fresh_windows(stale, fr, shape, steps, W):
+    """The stale marks after epoch ``steps``: rows ``fr`` (flat (trial, row) indices; None: no
+    readmission) fresh until epoch steps + W (on a copy; a new array of ``shape`` when there was
+    none); None once every fresh window has filled (checked every W epochs)."""
+    if fr is not None:
+        stale = np.zeros(shape, dtype=np.int32) if stale is None else stale.copy()
+        stale.reshape(-1)[fr] = steps + W
+    elif stale is not None and steps % W == 0 and stale.max() <= steps:
+        stale = None
+    return stale
+
+
 def _resum(ring_b, stale, pos, steps, W):
     """The window sums (sum_sq, sum_b) recomputed from the ring, after the epoch that wrote slot pos
     (slot i leaves at epoch steps + rel_i: stale while that is < ``stale``)."""
@@ -554,9 +566,7 @@ class IntegrityMonitor:
                 patch = (t * m + j, ssf[ti], sbf[ti])
                 ssf[ti] = float(W)
                 sbf[ti] = 0.0
-                stale = self._fresh_windows(stale, t * m + j, z.shape, steps, W)
-            elif stale is not None and steps % W == 0 and stale.max() <= steps:
-                stale = None  # every fresh window has filled
+            stale = _fresh_windows(stale, None if patch is None else patch[0], z.shape, steps, W)
             if steps % RESUM == 0:  # the running sums, exactly again (rounding does not pile up)
                 ss, sb = _resum(ring_b, stale, pos, steps, W)
                 til = dict(til, sum_sq=_tile(ss, B), sum_b=_tile(sb, B))
@@ -573,6 +583,7 @@ class IntegrityMonitor:
         gm = GuardedModel(model, z_f, inert, prepared=(x, hx_g, H_g), r_diag=r_used)
         res = update(x, P, z_f, gm, **update_kw)
         ring_b = state.ring_b[:pos] + (new_b,) + state.ring_b[pos + 1:]
+        fr = None
         if cfg.isolate and readmit.any():
             # a readmitted channel starts a fresh window of healthy values (beta^2 = 1, beta = 0): its
             # sums are reset and its W ring slots are marked stale until epoch steps + W (no copy of the
@@ -582,23 +593,13 @@ class IntegrityMonitor:
             fr = t * m + j
             sum_sq.reshape(-1)[fr] = float(W)
             sum_b.reshape(-1)[fr] = 0.0
-            stale = self._fresh_windows(stale, fr, z.shape, steps, W)
-        elif stale is not None and steps % W == 0 and stale.max() <= steps:
-            stale = None  # every fresh window has filled
+        stale = _fresh_windows(stale, fr, z.shape, steps, W)
         if steps % RESUM == 0:
             sum_sq, sum_b = _resum(ring_b, stale, pos, steps, W)
         new_state = MonitorState(ring_b, sum_sq, sum_b, (pos + 1) % W, count, jump_run, excluded, clean_run,
                                  r_est, steps, stale)
         report = Report(beta, jump, drift_stat, bias_stat, drift, ~inert, w, excluded, newly, readmit)
         return res, new_state, report
-
-    @staticmethod
-    def _fresh_windows(stale, fr, shape, steps, W):
-        """``stale`` with rows ``fr`` (flat (trial, row) indices) fresh until epoch steps + W (a copy;
-        a new array of ``shape`` when there was none)."""
-        stale = np.zeros(shape, dtype=np.int32) if stale is None else stale.copy()
-        stale.reshape(-1)[fr] = steps + W
-        return stale
 
     def _epoch_kernel(self, state, x, P, z, model, hx, H, rd, ch, count, thr_ss, thr_bs, old, update, update_kw):
         """The epoch on the compiled kernel (filters/_nbintegrity.py): (UpdateResult, the Report's
