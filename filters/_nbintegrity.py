@@ -15,9 +15,11 @@ count on each of its ~40 arrays, shared by the threads (measured: a large part o
 two cores). The monitor works on [row, lane] scratch (the channel logic on [channel, lane]),
 looping over the lanes; the loops are written select by select (no min/max, isfinite or
 short-circuit tests), so that LLVM vectorises them (checked with its loop-vectorize remarks).
-The batched arrays are touched only by one transposing load and one store per lane group (a
-trial-major monitor reading them in place was slower: LLVM gives up vectorising a loop over a
-trial's 16 rows that touches ~20 arrays, for want of alias checks). With ``fuse`` the block then
+The monitor's own state (window sums, R estimate, channel counters and flags) is kept lane-tiled
+by filters.integrity.MonitorState and copied in and out as contiguous blocks; the other batched
+arrays are touched by one transposing load and one store per lane group (a trial-major monitor
+reading them in place was slower: LLVM gives up vectorising a loop over a trial's 16 rows that
+touches ~20 arrays, for want of alias checks). With ``fuse`` the block then
 runs the EKF's sequential Joseph update on the lanes it has loaded (the arithmetic of
 _nbkernels._joseph_block), taking the monitor's innovations, mask and R as they are; without,
 the inert rows of H are zeroed in H and z, h are written out for a guarded model and any update.
@@ -37,10 +39,10 @@ def _block(g0, g1, N, z, hx, H, P, r_nom, r_est, old, stale, sum_sq, sum_b, jump
            ch, prm, iprm, beta, inert, used, r_used, y, ring_new, sum_sq2, sum_b2, r_est2, excl2,
            newly, readmit, jr2, cr2, excl2_t, z_f, hx_g, fuse, x, xo, Po, nis, lanes):
     """The monitor (and with ``fuse`` the EKF's sequential Joseph update) on lane groups [g0, g1)
-    of the N trials (trials g B .. g B + B - 1, B = lanes), in the layout of _nbkernels._joseph_block: every quantity of the lane group is
-    held as [row, lane] (P as [i, j, lane]) in scratch local to this function, so that each step of
-    the monitor is a loop over the lanes that LLVM vectorises (the batched arrays are only read and
-    written by the transposing loads and stores). diag(H P- H') runs over the columns of each row
+    of the N trials (trials g B .. g B + B - 1, B = lanes), in the layout of
+    _nbkernels._joseph_block: every quantity of the lane group is held as [row, lane] (P as
+    [i, j, lane]) in scratch local to this function, so that each step of the monitor is a loop
+    over the lanes that LLVM vectorises. diag(H P- H') runs over the columns of each row
     that are nonzero in some lane (a pseudorange row has 4 of 8). The update arithmetic is
     _joseph_block's (without the prediction), statement for statement, so the result equals
     ekf_update on the guarded model (tested); H is then not modified. Without ``fuse``: the inert
@@ -48,10 +50,11 @@ def _block(g0, g1, N, z, hx, H, P, r_nom, r_est, old, stale, sum_sq, sum_b, jump
 
     prm: (J, thr_ss, thr_bs, huber_c, lam) -- the window tests' tolerances on the sums themselves (the
     mean of beta^2 above its tolerance: sum_sq > thr_ss; the bias test: sum_b^2 > thr_bs; the caller
-    computes both, so that the Report derives the same flags from the same sums bit for bit); iprm: (count, W, use_bias, persist, readmit_after,
-    use_huber, adapt_r, isolate, has_stale, write_zh, min_channels, step: the epoch's number, a row's
-    leaving slot is stale while step < stale). r_nom has 1 or N rows (shared or per
-    trial). Returns the number of readmissions.
+    computes both, so that the Report derives the same flags from the same sums bit for bit);
+    iprm: (count, W, use_bias, persist, readmit_after, use_huber, adapt_r, isolate, has_stale,
+    write_zh, min_channels, step: the epoch's number, a row's leaving slot is stale while
+    step < stale). r_nom has 1 or N rows (shared or per trial). Returns the number of
+    readmissions.
 
     The monitor's own per-row and per-channel state (r_est, sum_sq, sum_b; jump_run, excluded,
     clean_run; and the new ones r_est2, sum_sq2, sum_b2, jr2, cr2, excl2_t) is lane-tiled,
