@@ -272,7 +272,7 @@ def test_uploaded_mission_is_flown():
     # the others still fly the scenario's law (heading north)
     assert abs(float(g.last_uav_truth.heading_rad[0])) < 1e-9
     # its published truth is the mission's path, consistent with its geodetic state
-    la, lo, hh = ecef_to_geodetic(g.last_uav_truth.pos_ecef_m[1])
+    la, _lon, _h = ecef_to_geodetic(g.last_uav_truth.pos_ecef_m[1])
     assert float(la) == pytest.approx(float(g.last_uav_truth.lat_rad[1]), abs=1e-9)
 
 
