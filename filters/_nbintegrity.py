@@ -36,8 +36,8 @@ from ._nbkernels import LANES, N_BLOCKS, _jit  # noqa: F401 (LANES: the caller r
 
 @nb.njit(**_jit)
 def _block(g0, g1, N, z, hx, H, P, r_nom, r_est, old, stale, sum_sq, sum_b, jump_run, excluded, clean_run,
-           ch, prm, iprm, beta, inert, used, r_used, y, ring_new, sum_sq2, sum_b2, r_est2, excl2,
-           newly, readmit, jr2, cr2, excl2_t, z_f, hx_g, fuse, x, xo, Po, nis, lanes):
+           ch, prm, iprm, beta, inert, used, r_used, y, ring_new, sum_sq2, sum_b2, r_est2,
+           newly, jr2, cr2, excl2_t, z_f, hx_g, fuse, x, xo, Po, nis, lanes):
     """The monitor (and with ``fuse`` the EKF's sequential Joseph update) on lane groups [g0, g1)
     of the N trials (trials g B .. g B + B - 1, B = lanes), in the layout of
     _nbkernels._joseph_block: every quantity of the lane group is held as [row, lane] (P as
@@ -59,7 +59,8 @@ def _block(g0, g1, N, z, hx, H, P, r_nom, r_est, old, stale, sum_sq, sum_b, jump
     The monitor's own per-row and per-channel state (r_est, sum_sq, sum_b; jump_run, excluded,
     clean_run; and the new ones r_est2, sum_sq2, sum_b2, jr2, cr2, excl2_t) is lane-tiled,
     (groups, rows or channels, lanes) -- filters.integrity.MonitorState keeps it so -- and is read
-    and written as contiguous blocks, not transposed; excl2 (N, C) is the Report's copy."""
+    and written as contiguous blocks, not transposed. The Report's excluded and readmitted
+    channels are not written: they are excl2_t and, where the old one was set, not excl2_t."""
     n = H.shape[2]
     m = z.shape[1]
     C = excluded.shape[1]
@@ -322,9 +323,7 @@ def _block(g0, g1, N, z, hx, H, P, r_nom, r_est, old, stale, sum_sq, sum_b, jump
                 y[t, j] = yl[j, q]
                 ring_new[t, j] = sbl[j, q]
             for c in range(C):
-                excl2[t, c] = exl[c, q]
                 newly[t, c] = fl[c, q]
-                readmit[t, c] = rdl[c, q]
             if glob:
                 for j in range(m):
                     it = inl[j, q]
@@ -402,8 +401,8 @@ def _block(g0, g1, N, z, hx, H, P, r_nom, r_est, old, stale, sum_sq, sum_b, jump
 
 @nb.njit(parallel=True, **_jit)
 def epoch_par(z, hx, H, P, r_nom, r_est, old, stale, sum_sq, sum_b, jump_run, excluded, clean_run, ch,
-              prm, iprm, beta, inert, used, r_used, y, ring_new, sum_sq2, sum_b2, r_est2, excl2,
-              newly, readmit, jr2, cr2, excl2_t, z_f, hx_g, fuse, x, xo, Po, nis, lanes):
+              prm, iprm, beta, inert, used, r_used, y, ring_new, sum_sq2, sum_b2, r_est2,
+              newly, jr2, cr2, excl2_t, z_f, hx_g, fuse, x, xo, Po, nis, lanes):
     N = z.shape[0]
     G = sum_sq.shape[0]  # lane groups (the tiles of the monitor's state)
     nb_ = min(G, N_BLOCKS)
@@ -412,18 +411,18 @@ def epoch_par(z, hx, H, P, r_nom, r_est, old, stale, sum_sq, sum_b, jump_run, ex
         g0, g1 = blk * G // nb_, (blk + 1) * G // nb_
         tot += _block(g0, g1, N, z, hx, H, P, r_nom, r_est, old, stale, sum_sq, sum_b, jump_run, excluded,
                       clean_run, ch, prm, iprm, beta, inert, used, r_used, y, ring_new, sum_sq2,
-                      sum_b2, r_est2, excl2, newly, readmit, jr2, cr2, excl2_t, z_f, hx_g, fuse, x, xo, Po, nis,
+                      sum_b2, r_est2,  newly, jr2, cr2, excl2_t, z_f, hx_g, fuse, x, xo, Po, nis,
                       lanes)
     return tot
 
 
 @nb.njit(**_jit)
 def epoch_ser(z, hx, H, P, r_nom, r_est, old, stale, sum_sq, sum_b, jump_run, excluded, clean_run, ch,
-              prm, iprm, beta, inert, used, r_used, y, ring_new, sum_sq2, sum_b2, r_est2, excl2,
-              newly, readmit, jr2, cr2, excl2_t, z_f, hx_g, fuse, x, xo, Po, nis, lanes):
+              prm, iprm, beta, inert, used, r_used, y, ring_new, sum_sq2, sum_b2, r_est2,
+              newly, jr2, cr2, excl2_t, z_f, hx_g, fuse, x, xo, Po, nis, lanes):
     N = z.shape[0]
     # np.int64(0): a literal 0 would compile _block a second time, for the type Literal[int](0)
     return _block(np.int64(0), sum_sq.shape[0], N, z, hx, H, P, r_nom, r_est, old, stale, sum_sq, sum_b, jump_run,
                   excluded, clean_run, ch, prm, iprm, beta, inert, used, r_used, y, ring_new,
-                  sum_sq2, sum_b2, r_est2, excl2, newly, readmit, jr2, cr2, excl2_t, z_f, hx_g, fuse, x, xo, Po, nis,
+                  sum_sq2, sum_b2, r_est2,  newly, jr2, cr2, excl2_t, z_f, hx_g, fuse, x, xo, Po, nis,
                   lanes)

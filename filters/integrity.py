@@ -352,27 +352,41 @@ class Report:
 
     _fields = ("beta", "jump", "drift_stat", "bias_stat", "drift", "used", "weight", "excluded", "newly_excluded",
                "readmitted")
-    __slots__ = ("beta", "_jump", "_drift_stat", "_bias_stat", "_drift", "used", "_weight", "excluded",
-                 "newly_excluded", "readmitted", "_lazy")
+    __slots__ = ("beta", "_jump", "_drift_stat", "_bias_stat", "_drift", "used", "_weight", "_excluded",
+                 "newly_excluded", "_readmitted", "_lazy")
 
     def __init__(self, beta, jump, drift_stat, bias_stat, drift, used, weight, excluded, newly_excluded, readmitted):
         self.beta, self._jump, self._drift, self.used = beta, jump, drift, used
         self._drift_stat, self._bias_stat, self._weight = drift_stat, bias_stat, weight
-        self.excluded, self.newly_excluded, self.readmitted = excluded, newly_excluded, readmitted
+        self._excluded, self.newly_excluded, self._readmitted = excluded, newly_excluded, readmitted
         self._lazy = None
 
     @classmethod
-    def _derived(cls, beta, used, excluded, newly, readmit, sum_sq, sum_b, count, window, huber_c, patch,
+    def _derived(cls, beta, used, ex_new, ex_old, newly, sum_sq, sum_b, count, window, huber_c, patch,
                  jump_sigma, thr_ss, thr_bs, batch):
-        """A Report whose jump and drift flags, window statistics and weights come from beta and
-        the lane-tiled sums (sum_sq, sum_b) (MonitorState._tiled) when read; ``patch`` (flat
-        (trial, row) index, sum_sq, sum_b): the sums the tests saw where they have since been reset
-        (readmitted rows); thr_ss, thr_bs: the window tests' tolerances on the sums
-        (IntegrityMonitor.step); batch: the batch shape."""
-        r = cls(beta, None, None, None, None, used, None, excluded, newly, readmit)
+        """A Report whose jump and drift flags, window statistics, weights, excluded and readmitted
+        channels come when read from beta, the lane-tiled sums (sum_sq, sum_b) and the lane-tiled
+        exclusions after and before the epoch (ex_new, ex_old) (MonitorState._tiled): a channel is
+        readmitted when it was out and is in (in every isolation mode; with isolation off nothing
+        is ever out); ``patch`` (flat (trial, row) index, sum_sq, sum_b): the sums the tests saw
+        where they have since been reset (readmitted rows); thr_ss, thr_bs: the window tests'
+        tolerances on the sums (IntegrityMonitor.step); batch: the batch shape."""
+        r = cls(beta, None, None, None, None, used, None, None, newly, None)
         r._lazy = [sum_sq, sum_b, int(count), int(window), huber_c, patch, jump_sigma, thr_ss, thr_bs, tuple(batch),
-                   False]
+                   False, ex_new, ex_old]
         return r
+
+    @property
+    def excluded(self):
+        if self._excluded is None:
+            self._excluded = _untile(self._lazy[11], self._lazy[9])
+        return self._excluded
+
+    @property
+    def readmitted(self):
+        if self._readmitted is None:
+            self._readmitted = _untile(self._lazy[12], self._lazy[9]) & ~self.excluded
+        return self._readmitted
 
     @property
     def jump(self):
@@ -554,14 +568,18 @@ class IntegrityMonitor:
         steps = state.steps + 1
         stale = state.stale
         if _use_kernel(update_kw.get("backend")):
-            res, (beta, used, excluded, newly, readmit, new_b), til, n_readmit, B = self._epoch_kernel(
+            res, (beta, used, newly, new_b), til0, til, n_readmit, B = self._epoch_kernel(
                 state, x, P, z, model, hx, H, rd, ch, count, thr_ss, thr_bs, old, update, update_kw)
+            ex0, ex1 = til0["excluded"], til["excluded"]  # (a readmitted channel: out before, in now)
             ring_b = state.ring_b[:pos] + (new_b,) + state.ring_b[pos + 1:]
             sum_sq_ep, sum_b_ep = til["sum_sq"], til["sum_b"]  # the sums the epoch's tests saw (until a reset)
             patch = None
             if n_readmit:
-                t, j = _readmitted_rows(readmit, ch, C)
-                ti = ((t // B) * m + j) * B + t % B  # (trial, row) in the lane-tiled sums
+                g, c_ch, lane = np.nonzero(ex0 & ~ex1)
+                k, j = np.nonzero(ch[None, :] == c_ch[:, None])  # (readmission, row of its channel)
+                g, lane = g[k], lane[k]
+                t = g * B + lane
+                ti = (g * m + j) * B + lane  # (trial, row) in the lane-tiled sums
                 ssf, sbf = sum_sq_ep.reshape(-1), sum_b_ep.reshape(-1)
                 patch = (t * m + j, ssf[ti], sbf[ti])
                 ssf[ti] = float(W)
@@ -572,7 +590,7 @@ class IntegrityMonitor:
                 til = dict(til, sum_sq=_tile(ss, B), sum_b=_tile(sb, B))
             new_state = MonitorState._from_tiled(ring_b, til, (pos + 1) % W, count, steps, stale, z.shape[:-1])
             # the statistics and weights from the epoch's sums and beta when read
-            report = Report._derived(beta, used, excluded, newly, readmit, sum_sq_ep, sum_b_ep, count, W,
+            report = Report._derived(beta, used, ex1, ex0, newly, sum_sq_ep, sum_b_ep, count, W,
                                      cfg.huber_c, patch, cfg.jump_sigma, thr_ss, thr_bs, z.shape[:-1])
             return res, new_state, report
         if state.stale is not None:  # slots of a fresh window leave as the healthy values they stand for
@@ -603,8 +621,8 @@ class IntegrityMonitor:
 
     def _epoch_kernel(self, state, x, P, z, model, hx, H, rd, ch, count, thr_ss, thr_bs, old, update, update_kw):
         """The epoch on the compiled kernel (filters/_nbintegrity.py): (UpdateResult, the Report's
-        arrays and the new ring slot, the new lane-tiled state (MonitorState._tiled), number of
-        readmissions, lanes). Wrapping the EKF update (``ekf_update``), the kernel runs the
+        arrays and the new ring slot, the old and the new lane-tiled state (MonitorState._tiled),
+        number of readmissions, lanes). Wrapping the EKF update (``ekf_update``), the kernel runs the
         update itself on each block of trials right after the monitor (fused: one pass over P and H);
         any other update runs afterwards on a GuardedModel."""
         from . import _nbintegrity, kernels
@@ -658,7 +676,7 @@ class IntegrityMonitor:
 
         beta, y, new_b = fm(), fm(), fm()
         used = bm()
-        excluded, newly, readmit = bc(), bc(), bc()
+        newly = bc()
         new = {"sum_sq": tm(m), "sum_b": tm(m), "r_est": tm(m) if adapt else til["r_est"],
                "jump_run": tm(C, np.int64), "clean_run": tm(C, np.int64), "excluded": tm(C, bool)}
         # for a guarded model: z without NaN, h, the row mask and R (the fused update keeps them in its lanes)
@@ -679,7 +697,7 @@ class IntegrityMonitor:
             flat(state.stale, (m,), np.int32) if has_stale else _NONE_I, til["sum_sq"], til["sum_b"],
             til["jump_run"], til["excluded"], til["clean_run"], ch.astype(np.int64), prm, iprm,
             beta, inert, used, r_used, y, new_b, new["sum_sq"], new["sum_b"],
-            new["r_est"] if adapt else _NONE_P, excluded, newly, readmit, new["jump_run"], new["clean_run"],
+            new["r_est"] if adapt else _NONE_P, newly, new["jump_run"], new["clean_run"],
             new["excluded"], z_f, hx_g, fuse, xf, xo, Po, nis, B)
 
         def shaped(a):
@@ -691,8 +709,8 @@ class IntegrityMonitor:
             gm = GuardedModel(model, shaped(z_f), shaped(inert), prepared=(x, shaped(hx_g), Hk.reshape(batch + (m, n))),
                               r_diag=shaped(r_used))
             res = update(x, P, shaped(z_f), gm, **update_kw)
-        arrays = tuple(shaped(a) for a in (beta, used, excluded, newly, readmit, new_b))
-        return res, arrays, new, int(n_readmit), B
+        arrays = tuple(shaped(a) for a in (beta, used, newly, new_b))
+        return res, arrays, til, new, int(n_readmit), B
 
     def _epoch_numpy(self, state, x, P, z, hx, H, rd, ch, C, count, thr_ss, thr_bs, old):
         """The reference of the compiled monitor (filters/_nbintegrity.py; same outputs)."""
