@@ -334,6 +334,24 @@ _NONE_I = np.empty((0, 0), dtype=np.int32)
 _NONE_B = np.empty((0, 0), dtype=bool)  # epochs between exact recomputations of the running window sums
 
 
+@dataclass
+class _Lazy:
+    """What a compiled epoch's Report derives its fields from when they are read (Report._derived)."""
+
+    sums: list  # [sum_sq, sum_b]: lane-tiled until ``untiled``, then (..., m) with the patch applied
+    untiled: bool
+    count: int
+    window: int
+    huber_c: float | None
+    patch: tuple | None
+    jump_sigma: float
+    thr_ss: float
+    thr_bs: float
+    batch: tuple
+    ex_new: np.ndarray
+    ex_old: np.ndarray
+
+
 class Report:
     """The statistics and verdicts of one monitored epoch (fields as a NamedTuple's: attribute
     access, iteration in this order, ``_replace``):
@@ -372,52 +390,52 @@ class Report:
         where they have since been reset (readmitted rows); thr_ss, thr_bs: the window tests'
         tolerances on the sums (IntegrityMonitor.step); batch: the batch shape."""
         r = cls(beta, None, None, None, None, used, None, None, newly, None)
-        r._lazy = [sum_sq, sum_b, int(count), int(window), huber_c, patch, jump_sigma, thr_ss, thr_bs, tuple(batch),
-                   False, ex_new, ex_old]
+        r._lazy = _Lazy(sums=[sum_sq, sum_b], untiled=False, count=int(count), window=int(window), huber_c=huber_c,
+                        patch=patch, jump_sigma=jump_sigma, thr_ss=thr_ss, thr_bs=thr_bs, batch=tuple(batch),
+                        ex_new=ex_new, ex_old=ex_old)
         return r
 
     @property
     def excluded(self):
         if self._excluded is None:
-            self._excluded = _untile(self._lazy[11], self._lazy[9])
+            self._excluded = _untile(self._lazy.ex_new, self._lazy.batch)
         return self._excluded
 
     @property
     def readmitted(self):
         if self._readmitted is None:
-            self._readmitted = _untile(self._lazy[12], self._lazy[9]) & ~self.excluded
+            self._readmitted = _untile(self._lazy.ex_old, self._lazy.batch) & ~self.excluded
         return self._readmitted
 
     @property
     def jump(self):
         if self._jump is None:
-            self._jump = np.abs(self.beta) >= self._lazy[6]  # (a missing row has beta = 0)
+            self._jump = np.abs(self.beta) >= self._lazy.jump_sigma  # (a missing row has beta = 0)
         return self._jump
 
     @property
     def drift(self):
         if self._drift is None:
             ss, sb = self._sums(0), self._sums(1)
-            self._drift = (ss > self._lazy[7]) | (sb * sb > self._lazy[8])
+            self._drift = (ss > self._lazy.thr_ss) | (sb * sb > self._lazy.thr_bs)
         return self._drift
 
     def _sums(self, i):
         """The window sum i (0: of beta^2, 1: of beta) the epoch's tests saw, (..., m)."""
         lz = self._lazy
-        if not lz[10]:  # untiled (and patched) once
-            patch = lz[5]
+        if not lz.untiled:  # untiled (and patched) once
             for k in (0, 1):
-                a = _untile(lz[k], lz[9])
-                if patch is not None:
-                    a.reshape(-1)[patch[0]] = patch[1 + k]
-                lz[k] = a
-            lz[10] = True
-        return lz[i]
+                a = _untile(lz.sums[k], lz.batch)
+                if lz.patch is not None:
+                    a.reshape(-1)[lz.patch[0]] = lz.patch[1 + k]
+                lz.sums[k] = a
+            lz.untiled = True
+        return lz.sums[i]
 
     @property
     def drift_stat(self):
         if self._drift_stat is None:
-            count, W = self._lazy[2], self._lazy[3]
+            count, W = self._lazy.count, self._lazy.window
             ss = self._sums(0)
             self._drift_stat = ss / W if count == W else (ss - (W - count)) / count  # unfilled slots hold 1
         return self._drift_stat
@@ -425,7 +443,7 @@ class Report:
     @property
     def bias_stat(self):
         if self._bias_stat is None:
-            count = self._lazy[2]
+            count = self._lazy.count
             sb = self._sums(1)
             self._bias_stat = sb * sb / count  # unfilled slots hold 0
         return self._bias_stat
@@ -433,7 +451,7 @@ class Report:
     @property
     def weight(self):
         if self._weight is None:
-            c = self._lazy[4]
+            c = self._lazy.huber_c
             w = np.ones_like(self.beta)
             if c is not None:
                 ab = np.abs(self.beta)
