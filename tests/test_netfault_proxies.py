@@ -611,9 +611,13 @@ def test_zenoh_session_through_proxy_loses_link_in_silent_partition_and_recovers
         st = p.stats()
     sent = np.array(sent)
     missing = sorted(set(range(len(sent))) - set(got))
-    assert all(k in got for k in np.flatnonzero(sent < t1))  # everything before the partition
+    # a message put just before t1 can still be in the session's batch or the socket when the
+    # partition starts, and is lost with it (seen once in 6 CI runs: the first loss sent < t1):
+    # what was sent more than ``inflight`` before must all arrive
+    inflight = 0.1
+    assert all(k in got for k in np.flatnonzero(sent < t1 - inflight))  # everything before the partition
     assert missing and missing == list(range(missing[0], missing[-1] + 1))  # one gap ...
-    assert t1 <= sent[missing[0]] and sent[missing[-1]] < t2 + 0.1  # ... of what was sent during it
+    assert t1 - inflight <= sent[missing[0]] and sent[missing[-1]] < t2 + 0.1  # ... of what was sent during it
     assert len(missing) >= 0.8 * part_s / 0.02 * 0.5
     assert link_lost_at is not None and link_lost_at - t1 < 2.0 * lease_ms / 1000  # noticed by the lease
     assert recovered_at is not None, "no message flowed after the partition healed"
