@@ -587,7 +587,7 @@ class IntegrityMonitor:
         stale = state.stale
         if _use_kernel(update_kw.get("backend")):
             res, (beta, used, newly, new_b), til0, til, n_readmit, B = self._epoch_kernel(
-                state, x, P, z, model, hx, H, rd, ch, count, thr_ss, thr_bs, old, update, update_kw)
+                state, x, P, z, model, hx, H, rd, ch, thr_ss, thr_bs, old, update, update_kw)
             ex0, ex1 = til0["excluded"], til["excluded"]  # (a readmitted channel: out before, in now)
             ring_b = state.ring_b[:pos] + (new_b,) + state.ring_b[pos + 1:]
             sum_sq_ep, sum_b_ep = til["sum_sq"], til["sum_b"]  # the sums the epoch's tests saw (until a reset)
@@ -637,7 +637,7 @@ class IntegrityMonitor:
         report = Report(beta, jump, drift_stat, bias_stat, drift, ~inert, w, excluded, newly, readmit)
         return res, new_state, report
 
-    def _epoch_kernel(self, state, x, P, z, model, hx, H, rd, ch, count, thr_ss, thr_bs, old, update, update_kw):
+    def _epoch_kernel(self, state, x, P, z, model, hx, H, rd, ch, thr_ss, thr_bs, old, update, update_kw):
         """The epoch on the compiled kernel (filters/_nbintegrity.py): (UpdateResult, the Report's
         arrays and the new ring slot, the old and the new lane-tiled state (MonitorState._tiled),
         number of readmissions, lanes). Wrapping the EKF update (``ekf_update``), the kernel runs the
@@ -705,10 +705,8 @@ class IntegrityMonitor:
         xf, Pf = flat(x, (n,)), flat(P, (n, n))
         xo, Po, nis = (np.empty((N, n)), np.empty((N, n, n)), np.empty(N)) if fuse else (_NONE_M, _NONE_P, _NONE_V)
         prm = np.array([cfg.jump_sigma, thr_ss, thr_bs, cfg.huber_c or 0.0, cfg.r_forget])
-        iprm = np.array([count, cfg.window, cfg.bias_alpha is not None, cfg.persist, cfg.readmit_after,
-                         cfg.huber_c is not None, adapt, cfg.isolate, has_stale, not fuse, cfg.min_channels,
-                         state.steps],
-                        dtype=np.int64)
+        iprm = np.array([cfg.persist, cfg.readmit_after, cfg.huber_c is not None, adapt, cfg.isolate, has_stale,
+                         cfg.min_channels, state.steps], dtype=np.int64)
         drive = _nbintegrity.epoch_par if N >= kernels.PARALLEL_MIN_TRIALS else _nbintegrity.epoch_ser
         n_readmit = drive(
             flat(z, (m,)), flat(hx, (m,)), Hk, Pf, rows(rd), til["r_est"], flat(old, (m,)),
