@@ -43,6 +43,7 @@ from sitl.bus import (
     validate_key_expr,
 )
 from sitl.bus.codec import seal
+from sitl.bus.schema import N_SATS_MAX, POS_MAX_M, T_GPS_MAX_S, VAR_MAX, VEL_MAX_M_S
 
 # Deterministic, quick, and no example database written into the repo.
 FAST = settings(derandomize=True, database=None, deadline=None, max_examples=150,
@@ -154,7 +155,7 @@ def test_wire_payload_is_msgpack_map_with_raw_float64_arrays():
     m = nav()
     b = encode(m)
     obj = msgpack.unpackb(b, raw=False)
-    assert obj["_v"] == SCHEMA_VERSION == 2 and obj["_kind"] == "uav_nav"
+    assert obj["_v"] == SCHEMA_VERSION == 3 and obj["_kind"] == "uav_nav"
     assert obj["cov"] == m.cov.astype("<f8").tobytes()
     assert set(obj) == {"_v", "_kind", "_crc"} | {s.name for s in UavNav.FIELDS}
     # the checksum: the map's last entry, CRC-32 (zlib, little-endian) of every byte before it
@@ -198,10 +199,13 @@ def test_singular_psd_covariance_is_legal():
 # ----------------------------------------------------------------------------------------
 # Hypothesis strategies of valid messages
 
-finite = st.floats(allow_nan=False, allow_infinity=False)
-positive = st.floats(min_value=0.0, exclude_min=True, allow_infinity=False)
+# valid = inside the schema's declared plausibility bounds (schema version 3)
+finite = st.floats(-VEL_MAX_M_S, VEL_MAX_M_S)  # velocities, range rates, Dopplers
+positive = st.floats(min_value=0.0, max_value=VAR_MAX, exclude_min=True)  # variances
+coord = st.floats(-POS_MAX_M, POS_MAX_M)
 ids = st.from_regex(r"[A-Za-z0-9_.\-]{1,64}", fullmatch=True)
-vec3 = hnp.arrays(np.float64, 3, elements=finite)
+vec3 = hnp.arrays(np.float64, 3, elements=coord)
+vel3 = hnp.arrays(np.float64, 3, elements=finite)
 
 
 @st.composite
@@ -214,7 +218,8 @@ def covs(draw):
 
 
 def header():
-    return dict(t_gps_s=finite, source_id=ids, seq=st.integers(0, 2**63 - 1))
+    return dict(t_gps_s=st.floats(0.0, T_GPS_MAX_S), source_id=ids, seq=st.integers(0, 2**63 - 1),
+                incarnation=st.integers(0, 2**63 - 1))
 
 
 @st.composite
@@ -227,7 +232,7 @@ def relays(draw):
         SondeRelay, **header(), sat_ids=st.just(tuple(sats)),
         pseudorange_m=arr(n, st.floats(0, 1e8, exclude_min=True, exclude_max=True)),
         pseudo_doppler_m_s=arr(n, finite), var_pseudorange_m2=arr(n, positive),
-        var_pseudo_doppler_m2_s2=arr(n, positive), sat_pos_ecef_m=arr((n, 3), finite),
+        var_pseudo_doppler_m2_s2=arr(n, positive), sat_pos_ecef_m=arr((n, 3), coord),
         sat_vel_ecef_m_s=arr((n, 3), finite), ground_pos_ecef_m=vec3))
 
 
@@ -240,29 +245,32 @@ def radars(draw):
         az, el = st.one_of(st.just(math.nan), az), st.one_of(st.just(math.nan), el)
     return draw(st.builds(
         RadarMeasurement, **header(), slant_range_m=st.floats(0, 1e6, exclude_min=True),
-        az_rad=az, el_rad=el, var_range_m2=positive, var_az_rad2=positive,
-        var_el_rad2=positive, angles_valid=st.just(valid), radar_pos_ecef_m=vec3))
+        az_rad=az, el_rad=el, var_range_m2=positive, var_az_rad2=st.floats(0, 100, exclude_min=True),
+        var_el_rad2=st.floats(0, 100, exclude_min=True), angles_valid=st.just(valid), radar_pos_ecef_m=vec3))
 
 
 kinds = st.sampled_from(["uav", "beacon", "sonde"])
 tokens = st.from_regex(r"[A-Za-z0-9_.\-]{1,20}", fullmatch=True)
 messages = st.one_of(
-    st.builds(UavNav, **header(), pos_ecef_m=vec3, vel_ecef_m_s=vec3, cov=covs(),
-              n_sats=st.integers(0, 2**40), fix_type=st.integers(0, 6)),
-    st.builds(BeaconMeasurement, **header(), range_m=positive, range_rate_m_s=finite,
-              var_range_m2=positive, var_range_rate_m2_s2=positive, uav_pos_ecef_m=vec3,
-              uav_vel_ecef_m_s=vec3, uav_cov=covs()),
+    st.builds(UavNav, **header(), pos_ecef_m=vec3, vel_ecef_m_s=vel3, cov=covs(),
+              n_sats=st.integers(0, N_SATS_MAX), fix_type=st.integers(0, 6)),
+    st.builds(BeaconMeasurement, **header(), range_m=st.floats(0, POS_MAX_M, exclude_min=True),
+              range_rate_m_s=finite, var_range_m2=positive, var_range_rate_m2_s2=positive, uav_pos_ecef_m=vec3,
+              uav_vel_ecef_m_s=vel3, uav_cov=covs()),
     relays(),
     radars(),
-    st.builds(Truth, **header(), kind=kinds, pos_ecef_m=vec3, vel_ecef_m_s=vec3),
-    st.builds(Estimate, **header(), kind=kinds, pos_ecef_m=vec3, vel_ecef_m_s=vec3,
+    st.builds(Truth, **header(), kind=kinds, pos_ecef_m=vec3, vel_ecef_m_s=vel3),
+    st.builds(Estimate, **header(), kind=kinds, pos_ecef_m=vec3, vel_ecef_m_s=vel3,
               cov=covs(), nis=st.one_of(st.just(math.nan), st.floats(0, 1e9)), mode=tokens),
     st.builds(IntegrityEvent, **header(), channel=tokens, event=tokens,
               statistic=st.floats(allow_infinity=False)),
     st.builds(LinkStats, **header(), link=tokens, received=st.integers(0, 2**40), missing=st.integers(0, 2**40),
               duplicates=st.integers(0, 2**40), out_of_order=st.integers(0, 2**40), gaps=st.integers(0, 2**40),
-              latency_mean_s=st.floats(allow_infinity=False), latency_max_s=st.floats(allow_infinity=False),
-              stale=st.booleans(), last_t_gps_s=st.floats(allow_infinity=False)),
+              restarts=st.integers(0, 2**40), source_incarnation=st.integers(0, 2**63 - 1),
+              rejected_future=st.integers(0, 2**40), rejected_stale=st.integers(0, 2**40),
+              latency_mean_s=st.one_of(st.just(math.nan), st.floats(-T_GPS_MAX_S, T_GPS_MAX_S)),
+              latency_max_s=st.one_of(st.just(math.nan), st.floats(-T_GPS_MAX_S, T_GPS_MAX_S)),
+              stale=st.booleans(), last_t_gps_s=st.one_of(st.just(math.nan), st.floats(0, T_GPS_MAX_S))),
     st.builds(FaultControl, **header(), link=st.text(st.characters(min_codepoint=33, max_codepoint=126), min_size=1,
                                                      max_size=30),
               spec=st.text(st.characters(min_codepoint=32, max_codepoint=126), max_size=40)),
@@ -509,6 +517,30 @@ RULES = [  # (factory, overrides, field named in the error)
     (integrity, dict(event=""), "IntegrityEvent.event"),
     (integrity, dict(statistic=INF), "IntegrityEvent.statistic"),
     (integrity, dict(statistic="big"), "IntegrityEvent.statistic"),
+    # plausibility (schema version 3): finite but physically absurd values
+    (nav, dict(t_gps_s=-1.0), "UavNav.t_gps_s: out of range"),
+    (nav, dict(t_gps_s=T_GPS_MAX_S * 1.0001), "UavNav.t_gps_s: out of range"),
+    (nav, dict(incarnation=-1), "UavNav.incarnation: out of range"),
+    (nav, dict(incarnation=2**63), "UavNav.incarnation: out of range"),
+    (nav, dict(pos_ecef_m=np.array([4.2e6, 1.1e6, 1.0001 * POS_MAX_M])), "UavNav.pos_ecef_m: out of range"),
+    (nav, dict(vel_ecef_m_s=np.array([-1.0001 * VEL_MAX_M_S, 0.0, 0.0])), "UavNav.vel_ecef_m_s: out of range"),
+    (nav, dict(cov=np.eye(6) * 1.0001 * VAR_MAX), "UavNav.cov: out of range"),
+    (nav, dict(n_sats=N_SATS_MAX + 1), "UavNav.n_sats: out of range"),
+    (beacon, dict(range_m=1.0001 * POS_MAX_M), "BeaconMeasurement.range_m: out of range"),
+    (beacon, dict(range_rate_m_s=-1.0001 * VEL_MAX_M_S), "BeaconMeasurement.range_rate_m_s: out of range"),
+    (beacon, dict(var_range_m2=1e300), "BeaconMeasurement.var_range_m2: out of range"),
+    (beacon, dict(uav_pos_ecef_m=np.array([1e300, 0.0, 0.0])), "BeaconMeasurement.uav_pos_ecef_m: out of range"),
+    (beacon, dict(uav_cov=np.diag([1e17, 1, 1, 1, 1, 1.0])), "BeaconMeasurement.uav_cov: out of range"),
+    (relay, dict(sat_pos_ecef_m=np.full((4, 3), 2 * POS_MAX_M)), "SondeRelay.sat_pos_ecef_m: out of range"),
+    (relay, dict(pseudo_doppler_m_s=np.array([0.0, 3e4, 0.0, 0.0])), "SondeRelay.pseudo_doppler_m_s: out of range"),
+    (relay, dict(var_pseudorange_m2=np.full(4, 1e20)), "SondeRelay.var_pseudorange_m2: out of range"),
+    (radar, dict(var_az_rad2=1e3), "RadarMeasurement.var_az_rad2: out of range"),
+    (radar, dict(radar_pos_ecef_m=np.array([0.0, 0.0, -2e8])), "RadarMeasurement.radar_pos_ecef_m: out of range"),
+    (truth, dict(t_gps_s=1e12), "Truth.t_gps_s: out of range"),
+    (estimate, dict(pos_ecef_m=np.array([3.1e8, 0.0, 0.0])), "Estimate.pos_ecef_m: out of range"),
+    (estimate, dict(vel_ecef_m_s=np.array([0.0, 1e6, 0.0])), "Estimate.vel_ecef_m_s: out of range"),
+    (link_stats, dict(last_t_gps_s=-5.0), "LinkStats.last_t_gps_s: out of range"),
+    (link_stats, dict(restarts=-1), "LinkStats.restarts"),
 ]
 
 
@@ -522,6 +554,21 @@ def test_validation_rule_constructor_and_wire(make, overrides, where):
         decode(wire_with(make(), **overrides))
     assert where in str(exc.value) and exc.value.reason.startswith(where)
     assert "\n" not in str(exc.value)
+
+
+def test_relay_with_more_satellites_than_the_schema_allows_is_rejected_built_and_on_the_wire():
+    n = N_SATS_MAX + 1
+    ok = relay(N_SATS_MAX)
+    assert decode(encode(ok)) == ok  # the largest legal relay epoch fits under the payload bound
+    wire = msgpack.unpackb(encode(ok), raw=False)
+    wire["sat_ids"] = [f"G{i:03d}" for i in range(n)]
+    for f in ("pseudorange_m", "pseudo_doppler_m_s", "var_pseudorange_m2", "var_pseudo_doppler_m2_s2"):
+        wire[f] = wire[f] + wire[f][:8]
+    for f in ("sat_pos_ecef_m", "sat_vel_ecef_m_s"):
+        wire[f] = wire[f] + wire[f][:24]
+    with pytest.raises(BusDecodeError) as exc:
+        decode(pack_sealed(wire))
+    assert exc.value.reason == "SondeRelay.sat_ids: more than 256 satellites"
 
 
 WIRE_RULES = [  # (payload, text of the error)

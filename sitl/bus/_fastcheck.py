@@ -68,13 +68,14 @@ if nb is not None:
                     return 3
         return 0
 
-all_finite = None
+within = None
 
 if nb is not None:
     @nb.njit(cache=True, nogil=True)
-    def all_finite(a):  # noqa: F811
-        """True if every element of a float array is finite (x - x == 0 fails for inf and NaN)."""
+    def within(a, bound):  # noqa: F811
+        """True if every element of a float array is finite and |x| <= bound (a NaN bound, or
+        a NaN / inf element, fails)."""
         for x in a.flat:
-            if not x - x == 0.0:
+            if not abs(x) <= bound:
                 return False
         return True

@@ -1,6 +1,6 @@
 """Binary encoding of bus messages: one path for the live and the batch bus.
 
-Wire format (schema version 2): one MessagePack map
+Wire format (schema version 3; version 2 had no ``incarnation`` in the header): one MessagePack map
 ``{"_v": 2, "_kind": "<kind tag>", "<field>": <value>, ..., "_crc": <bin 4>}`` holding every field of the message
 dataclass by name: floats as float64, ints, bools, strs, tuples of str as arrays of str, and
 numpy arrays as ``bin`` holding the raw little-endian float64 bytes in C order (shapes are
@@ -85,7 +85,10 @@ from .schema import (
     _one_line,
 )
 
-MAX_PAYLOAD_BYTES = 1 << 20  # far above any message (SondeRelay n=100 is ~11 kB)
+# A payload is refused before anything is parsed when it is larger than this: the largest legal
+# message (a SondeRelay of schema.N_SATS_MAX = 256 satellites) is ~22 kB, a UavNav ~470 B. A
+# flood of near-1 MiB payloads (the old bound) kept the receivers' memory up by tens of MB.
+MAX_PAYLOAD_BYTES = 64 << 10
 _HEADER_KEYS = ("_v", "_kind", "_crc")
 _LE_F8 = np.dtype("<f8")
 CRC_KEY = "_crc"

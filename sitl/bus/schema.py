@@ -1,4 +1,6 @@
-"""Bus message schema, version 2 (version 1 plus a CRC-32 in the envelope, LinkStats, FaultControl): one definition for the live (Zenoh) and batch (in-memory) bus.
+"""Bus message schema, version 3 (version 2 plus the sender's incarnation in the header and
+declared plausibility bounds on every value): one definition for the live (Zenoh) and batch
+(in-memory) bus.
 
 Every message is a frozen dataclass whose constructor validates everything (types, shapes,
 finiteness, ranges, covariances), so an invalid message cannot exist in memory, whether it
@@ -6,10 +8,25 @@ was built by a component or decoded from the wire (`sitl.bus.codec.decode` build
 through the same constructors).
 
 Header, common to every kind:
-  ``t_gps_s``   simulation time in GPS seconds (finite float)
-  ``source_id`` publisher id, 1..64 chars of ``[A-Za-z0-9_.-]``
-  ``seq``       per-source sequence number, 0 <= seq < 2**63
+  ``t_gps_s``     simulation time in GPS seconds, 0 <= t <= `T_GPS_MAX_S` (1e10 s, ~2300 AD)
+  ``source_id``   publisher id, 1..64 chars of ``[A-Za-z0-9_.-]``
+  ``seq``         per-source sequence number, 0 <= seq < 2**63
+  ``incarnation`` which life of the publishing process sent it, 0 <= incarnation < 2**63
+                  (default 0): a restarted process publishes with a new incarnation, so a
+                  receiver takes its messages as a new stream (its ``seq`` starts over)
+                  instead of dropping them as repeats of the old one's; duplicates are
+                  (source_id, incarnation, seq) repeats
 and the schema version (`SCHEMA_VERSION`) travels in every encoded payload.
+
+Plausibility (version 3): besides being finite, every value lies in a declared physical range,
+so that a schema-valid but absurd value (a time 1e6 s ahead, a position beyond the Moon, a
+variance of 1e300) is rejected at decode with a stable reason (``"<Kind>.<field>: out of
+range ..."``), counted like any other bad input, and never reaches an estimator: positions
+|x| <= `POS_MAX_M` per ECEF component (1e8 m: beyond the GNSS orbits), velocities <=
+`VEL_MAX_M_S` (2e4 m/s), covariance and variance entries <= `VAR_MAX` (1e16: sigma 1e8 m),
+ranges <= `POS_MAX_M`, range rates and Dopplers <= `VEL_MAX_M_S`, at most `N_SATS_MAX`
+satellites per relay epoch. A consumer still guards the TIME against its own clock
+(`sitl.bus.timeguard`): the schema only knows what is possible, not what is now.
 
 Units are SI and appear in the field names; frames are ECEF (WGS-84). Arrays are float64,
 stored as read-only copies. Covariances are 6x6 over [position, velocity] and must be
@@ -36,16 +53,23 @@ from typing import Any, ClassVar
 
 import numpy as np
 
-from ._fastcheck import all_finite as _all_finite
 from ._fastcheck import cov_code as _cov_code
+from ._fastcheck import within as _within
 
-SCHEMA_VERSION = 2
+SCHEMA_VERSION = 3
 
 ID_MAX_LEN = 64
 _ID_RE = re.compile(r"[A-Za-z0-9_.\-]{1,64}\Z")
 KINDS = ("uav", "beacon", "sonde")
 SEQ_LIMIT = 2**63
 _F8 = np.dtype(np.float64)
+
+# Plausibility bounds (module docstring)
+T_GPS_MAX_S = 1e10
+POS_MAX_M = 1e8
+VEL_MAX_M_S = 2e4
+VAR_MAX = 1e16
+N_SATS_MAX = 256
 
 # Wire/field types.
 F_FLOAT = "float"
@@ -98,9 +122,16 @@ def check_id(value: Any, where: str) -> str:
 # Field descriptors
 
 
-def _arr(*shape: int | str, nan_ok: bool = False) -> Any:
-    """An array field of the given shape; "n" is the per-message length (len(sat_ids))."""
-    return field(metadata={"shape": tuple(shape), "nan_ok": nan_ok})
+def _arr(*shape: int | str, max_abs: float, nan_ok: bool = False) -> Any:
+    """An array field of the given shape whose elements lie in [-max_abs, max_abs]; "n" is
+    the per-message length (len(sat_ids))."""
+    return field(metadata={"shape": tuple(shape), "nan_ok": nan_ok, "max_abs": float(max_abs)})
+
+
+def _num(lo: float | None = None, hi: float | None = None, *, nan_ok: bool = False, default: Any = dataclasses.MISSING
+         ) -> Any:
+    """A float field in [lo, hi] (None: unbounded on that side); ``nan_ok``: NaN allowed too."""
+    return field(default=default, metadata={"nan_ok": nan_ok, "lo": lo, "hi": hi})
 
 
 def _nan_ok() -> Any:
@@ -113,6 +144,9 @@ class FieldSpec:
     ftype: str
     shape: tuple[int | str, ...] | None = None
     nan_ok: bool = False
+    max_abs: float | None = None  # arrays: |element| <= max_abs
+    lo: float | None = None  # floats: lo <= value <= hi
+    hi: float | None = None
 
 
 _TYPE_MAP = {float: F_FLOAT, int: F_INT, bool: F_BOOL, str: F_STR, np.ndarray: F_ARRAY,
@@ -131,7 +165,9 @@ def _field_specs(cls: type) -> tuple[FieldSpec, ...]:
         shape = f.metadata.get("shape")
         if (ftype == F_ARRAY) != (shape is not None):
             raise TypeError(f"{cls.__name__}.{f.name}: array fields need a shape")
-        specs.append(FieldSpec(f.name, ftype, shape, bool(f.metadata.get("nan_ok", False))))
+        md = f.metadata
+        specs.append(FieldSpec(f.name, ftype, shape, bool(md.get("nan_ok", False)), md.get("max_abs"),
+                               md.get("lo"), md.get("hi")))
     return tuple(specs)
 
 
@@ -153,6 +189,8 @@ def _coerce(cls_name: str, spec: FieldSpec, value: Any, n: int | None) -> Any:
                 raise SchemaError(f"{cls_name}.{spec.name}", "expected a float", str(e)) from None
         if not math.isfinite(value) and not (spec.nan_ok and math.isnan(value)):
             raise SchemaError(f"{cls_name}.{spec.name}", "not finite", repr(value))
+        if (spec.lo is not None and value < spec.lo) or (spec.hi is not None and value > spec.hi):
+            raise SchemaError(f"{cls_name}.{spec.name}", _range_text(spec.lo, spec.hi), repr(value))
         return value
     if ft == F_INT:
         t = type(value)
@@ -198,8 +236,18 @@ def _coerce(cls_name: str, spec: FieldSpec, value: Any, n: int | None) -> Any:
         bad = np.isinf(a) if spec.nan_ok else ~np.isfinite(a)
         if bad.any():
             raise SchemaError(where, "not finite", f"{int(bad.sum())} non-finite values")
+    if spec.max_abs is not None and a.size:
+        with np.errstate(invalid="ignore"):
+            big = np.abs(a) > spec.max_abs
+        if big.any():
+            raise SchemaError(where, f"out of range (|x| <= {spec.max_abs:g})",
+                              f"max |x| = {float(np.nanmax(np.abs(a))):.3g}")
     a.flags.writeable = False
     return a
+
+
+def _range_text(lo: float | None, hi: float | None) -> str:
+    return f"out of range [{'-inf' if lo is None else f'{lo:g}'}, {'inf' if hi is None else f'{hi:g}'}]"
 
 
 def _check_cov(where: str, c: np.ndarray) -> None:
@@ -256,9 +304,10 @@ class Message:
     FIELDS: ClassVar[tuple[FieldSpec, ...]] = ()
     N_FIELD: ClassVar[str | None] = None  # str-tuple field whose length is "n" in shapes
 
-    t_gps_s: float
+    t_gps_s: float = _num(0.0, T_GPS_MAX_S)
     source_id: str
     seq: int
+    incarnation: int = 0
 
     def __post_init__(self) -> None:
         cls = type(self)
@@ -282,14 +331,15 @@ class Message:
                 if shape is None and n is not None:  # an "n"-long array: its shape for this message
                     shape = tuple(n if dim == "n" else dim for dim in spec.shape)
                 if (shape is not None and type(value) is np.ndarray and value.dtype == _F8
-                        and value.shape == shape and _all_finite is not None):
+                        and value.shape == shape and _within is not None):
                     a = value.copy()
-                    if _all_finite(a):
+                    if _within(a, spec.max_abs):
                         a.flags.writeable = False
                         d[spec.name] = a
                         continue
             elif ft == F_FLOAT:
-                if type(value) is float and value - value == 0.0:
+                if type(value) is float and value - value == 0.0 and (spec.lo is None or spec.lo <= value) \
+                        and (spec.hi is None or value <= spec.hi):
                     continue
             elif ft == F_INT:
                 if type(value) is int:
@@ -303,6 +353,8 @@ class Message:
             check_id(sid, f"{name}.source_id")
         if not 0 <= self.seq < SEQ_LIMIT:
             raise SchemaError(f"{name}.seq", "out of range [0, 2**63)", repr(self.seq))
+        if not 0 <= self.incarnation < SEQ_LIMIT:
+            raise SchemaError(f"{name}.incarnation", "out of range [0, 2**63)", repr(self.incarnation))
         self._validate()
 
     def _validate(self) -> None:  # per-kind rules
@@ -363,16 +415,16 @@ MESSAGE_TYPES: dict[str, type[Message]] = {}
 class UavNav(Message):
     """A UAV's onboard navigation estimate (ECEF) and its covariance over [pos, vel]."""
 
-    pos_ecef_m: np.ndarray = _arr(3)
-    vel_ecef_m_s: np.ndarray = _arr(3)
-    cov: np.ndarray = _arr(6, 6)
+    pos_ecef_m: np.ndarray = _arr(3, max_abs=POS_MAX_M)
+    vel_ecef_m_s: np.ndarray = _arr(3, max_abs=VEL_MAX_M_S)
+    cov: np.ndarray = _arr(6, 6, max_abs=VAR_MAX)
     n_sats: int
     fix_type: int  # MAVLink GPS_FIX_TYPE: 0 no GPS .. 6 RTK fixed
 
     def _validate(self) -> None:
         self._check_cov("cov")
-        if self.n_sats < 0:
-            raise SchemaError(self._where("n_sats"), "must be >= 0", repr(self.n_sats))
+        if not 0 <= self.n_sats <= N_SATS_MAX:
+            raise SchemaError(self._where("n_sats"), f"out of range 0..{N_SATS_MAX}", repr(self.n_sats))
         if not 0 <= self.fix_type <= 6:
             raise SchemaError(self._where("fix_type"), "out of range 0..6", repr(self.fix_type))
 
@@ -383,13 +435,13 @@ class BeaconMeasurement(Message):
     UAV's own navigation estimate at the same time (so a lossy link cannot pair it with the
     wrong nav message)."""
 
-    range_m: float
-    range_rate_m_s: float
-    var_range_m2: float
-    var_range_rate_m2_s2: float
-    uav_pos_ecef_m: np.ndarray = _arr(3)
-    uav_vel_ecef_m_s: np.ndarray = _arr(3)
-    uav_cov: np.ndarray = _arr(6, 6)
+    range_m: float = _num(0.0, POS_MAX_M)
+    range_rate_m_s: float = _num(-VEL_MAX_M_S, VEL_MAX_M_S)
+    var_range_m2: float = _num(0.0, VAR_MAX)
+    var_range_rate_m2_s2: float = _num(0.0, VAR_MAX)
+    uav_pos_ecef_m: np.ndarray = _arr(3, max_abs=POS_MAX_M)
+    uav_vel_ecef_m_s: np.ndarray = _arr(3, max_abs=VEL_MAX_M_S)
+    uav_cov: np.ndarray = _arr(6, 6, max_abs=VAR_MAX)
 
     def _validate(self) -> None:
         for f in ("range_m", "var_range_m2", "var_range_rate_m2_s2"):
@@ -408,15 +460,17 @@ class SondeRelay(Message):
     n = len(sat_ids) >= 0; an empty epoch (GNSS outage) is legal."""
 
     sat_ids: tuple[str, ...]
-    pseudorange_m: np.ndarray = _arr("n")
-    pseudo_doppler_m_s: np.ndarray = _arr("n")
-    var_pseudorange_m2: np.ndarray = _arr("n")
-    var_pseudo_doppler_m2_s2: np.ndarray = _arr("n")
-    sat_pos_ecef_m: np.ndarray = _arr("n", 3)
-    sat_vel_ecef_m_s: np.ndarray = _arr("n", 3)
-    ground_pos_ecef_m: np.ndarray = _arr(3)
+    pseudorange_m: np.ndarray = _arr("n", max_abs=PSEUDORANGE_MAX_M)
+    pseudo_doppler_m_s: np.ndarray = _arr("n", max_abs=VEL_MAX_M_S)
+    var_pseudorange_m2: np.ndarray = _arr("n", max_abs=VAR_MAX)
+    var_pseudo_doppler_m2_s2: np.ndarray = _arr("n", max_abs=VAR_MAX)
+    sat_pos_ecef_m: np.ndarray = _arr("n", 3, max_abs=POS_MAX_M)
+    sat_vel_ecef_m_s: np.ndarray = _arr("n", 3, max_abs=VEL_MAX_M_S)
+    ground_pos_ecef_m: np.ndarray = _arr(3, max_abs=POS_MAX_M)
 
     def _validate(self) -> None:
+        if len(self.sat_ids) > N_SATS_MAX:
+            raise SchemaError(self._where("sat_ids"), f"more than {N_SATS_MAX} satellites", f"{len(self.sat_ids)}")
         for i, s in enumerate(self.sat_ids):
             if not is_valid_id(s):
                 check_id(s, self._where("sat_ids"))
@@ -437,6 +491,7 @@ class SondeRelay(Message):
 
 
 SLANT_RANGE_MAX_M = 1e6
+VAR_ANGLE_MAX_RAD2 = 100.0  # sigma 10 rad: no information, but not absurd
 
 
 @_message("radar_meas", "radar/{radar}/sonde/{sonde}")
@@ -451,11 +506,11 @@ class RadarMeasurement(Message):
     slant_range_m: float
     az_rad: float = _nan_ok()
     el_rad: float = _nan_ok()
-    var_range_m2: float
-    var_az_rad2: float
-    var_el_rad2: float
+    var_range_m2: float = _num(0.0, VAR_MAX)
+    var_az_rad2: float = _num(0.0, VAR_ANGLE_MAX_RAD2)
+    var_el_rad2: float = _num(0.0, VAR_ANGLE_MAX_RAD2)
     angles_valid: bool
-    radar_pos_ecef_m: np.ndarray = _arr(3)
+    radar_pos_ecef_m: np.ndarray = _arr(3, max_abs=POS_MAX_M)
 
     def _validate(self) -> None:
         if self.az_rad == 2 * math.pi:
@@ -486,8 +541,8 @@ class Truth(Message):
     """True state of a vehicle, for scoring only (never read by an estimator)."""
 
     kind: str
-    pos_ecef_m: np.ndarray = _arr(3)
-    vel_ecef_m_s: np.ndarray = _arr(3)
+    pos_ecef_m: np.ndarray = _arr(3, max_abs=POS_MAX_M)
+    vel_ecef_m_s: np.ndarray = _arr(3, max_abs=VEL_MAX_M_S)
 
     def _validate(self) -> None:
         _check_kind(self._where("kind"), self.kind)
@@ -499,9 +554,9 @@ class Estimate(Message):
     the last update, NaN when none was computed (finite values must be >= 0)."""
 
     kind: str
-    pos_ecef_m: np.ndarray = _arr(3)
-    vel_ecef_m_s: np.ndarray = _arr(3)
-    cov: np.ndarray = _arr(6, 6)
+    pos_ecef_m: np.ndarray = _arr(3, max_abs=POS_MAX_M)
+    vel_ecef_m_s: np.ndarray = _arr(3, max_abs=VEL_MAX_M_S)
+    cov: np.ndarray = _arr(6, 6, max_abs=VAR_MAX)
     nis: float = _nan_ok()
     mode: str  # e.g. "fused", "radar_only"
 
@@ -536,7 +591,11 @@ class LinkStats(Message):
     number seen; ``duplicates``: copies of a number already seen (discarded); latency: arrival
     (simulation time) minus ``t_gps_s`` of the message, over every copy received (NaN before
     any); ``stale``: the source has been silent for more than the monitor's ``stale_after_s``;
-    ``last_t_gps_s``: the newest message time heard from it (NaN: none)."""
+    ``last_t_gps_s``: the newest message time heard from it (NaN: none); ``restarts``: new
+    incarnations of the source after the first heard (a restarted process: its numbering starts
+    over, a new stream, never duplicates), ``source_incarnation`` the latest; ``rejected_future``
+    / ``rejected_stale``: its messages the receiver's time guard refused (ahead of the
+    receiver's clock / older than its window), counted here and nowhere used."""
 
     link: str  # the monitored source id
     received: int
@@ -544,14 +603,19 @@ class LinkStats(Message):
     duplicates: int
     out_of_order: int
     gaps: int
-    latency_mean_s: float = _nan_ok()
-    latency_max_s: float = _nan_ok()
+    restarts: int = 0  # new incarnations of the source after its first
+    source_incarnation: int = 0  # the source's latest incarnation heard
+    rejected_future: int = 0  # refused by the receiver's time guard: ahead of its clock
+    rejected_stale: int = 0  # refused by the receiver's time guard: older than its window
+    latency_mean_s: float = _num(-T_GPS_MAX_S, T_GPS_MAX_S, nan_ok=True)
+    latency_max_s: float = _num(-T_GPS_MAX_S, T_GPS_MAX_S, nan_ok=True)
     stale: bool
-    last_t_gps_s: float = _nan_ok()
+    last_t_gps_s: float = _num(0.0, T_GPS_MAX_S, nan_ok=True)
 
     def _validate(self) -> None:
         check_id(self.link, self._where("link"))
-        for f in ("received", "missing", "duplicates", "out_of_order", "gaps"):
+        for f in ("received", "missing", "duplicates", "out_of_order", "gaps", "restarts", "source_incarnation",
+                  "rejected_future", "rejected_stale"):
             if getattr(self, f) < 0:
                 raise SchemaError(self._where(f), "must be >= 0", repr(getattr(self, f)))
 
@@ -685,6 +749,11 @@ def _parse_key(key):
 
 __all__ = [
     "KEY_TEMPLATES",
+    "N_SATS_MAX",
+    "POS_MAX_M",
+    "T_GPS_MAX_S",
+    "VAR_MAX",
+    "VEL_MAX_M_S",
     "KINDS",
     "MESSAGE_TYPES",
     "SCHEMA_VERSION",
