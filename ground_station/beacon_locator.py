@@ -85,7 +85,8 @@ was tried and is not enough: the Doppler rows have a one-epoch memory (kappa ~1)
 correlated errors enter the position through the dynamics, and on the geodetic geometry the
 km-wide weak direction is built from many epochs while the radial one has a short memory
 (measured: 1 of 20 printed trials lost, geodetic ANEES 124 / 2131 against 9 / 112).
-``observer_uncertainty="consider"`` (opt-in) does it exactly for a Gauss-Markov model of the
+``observer_uncertainty="consider"`` (opt-in; the live ground station's locator,
+ground_station.node.beacon_locator_config) does it exactly for a Gauss-Markov model of the
 UAVs' errors: they are Schmidt states (correlation times ``uav_error_corr_s`` for position,
 ``uav_vel_error_corr_s`` for velocity, covariance P_i from each message), the filter carries
 their cross-covariance with its state per UAV (:func:`_consider_step`; fixed observer slots
@@ -113,6 +114,13 @@ range-projected position error rho 0.93 at 10 s, 0.66 at 50 s, 0.39 at 100 s; Do
 projected velocity error rho 0.4 at 1 s then ~0.1 up to 50 s); correlation times far from
 the UAVs' own filters' behaviour (tau_v = 1 s) can make the joint covariance inconsistent
 with the P_i the UAVs send and the update lose positive definiteness.
+
+A restarted UAV (its onboard filter re-initialised by a least-squares fix) is a new
+incarnation of its source (the bus header's ``incarnation``, schema 3): its navigation error
+has nothing to do with the dead process's, so when a slot's UAV sends a later incarnation than
+before, the slot's cross-covariances with the track (and the mirror hypothesis) and its last
+covariance are reset -- the slot then starts as a UAV never seen would (test); counted as
+``uav_incarnations``.
 
 Each observer's 2x2 R block is whitened by its Cholesky factor and the update runs as a
 scalar sequential Joseph update (``filters.kernels.joseph_update``) batched over trials;
@@ -1400,12 +1408,13 @@ class BeaconLocator:
         self.C = np.zeros((T, 0, n, 6))
         self.alt_C = np.zeros((T, 0, n, 6))
         self.uav_cov_prev = np.zeros((T, 0, 6, 6))  # the last covariance each slot's UAV sent (0: none yet)
+        self.uav_incarnation = np.full((T, 0), -1, dtype=np.int64)  # the incarnation each slot's UAV sent (-1: none)
         self._C_out = None
         self._slot: dict = {}
         self.resolve_at = np.full(T, np.inf)
         self._window: list[list] = [[] for _ in range(T)]
         self._pending: list[dict] = [dict() for _ in range(T)]  # per trial {(uav, t): msg}
-        self._seqtrack = SequenceTracker()  # duplicates by (run/source id, seq)
+        self._seqtrack = SequenceTracker()  # duplicates by (run/source id, incarnation, seq)
         # lag window (config.lag_window_s): per processed epoch, the state before it, its inputs
         # (per trial {uav: msg}, completed by late messages) and the counters it added
         self._hist: list[_Epoch] = []
@@ -1451,7 +1460,7 @@ class BeaconLocator:
         if k is None:
             self.counters["other_run"] += 1
             return
-        if self._seqtrack.update(f"{run}/{msg.source_id}", msg.seq).duplicate:
+        if self._seqtrack.update(f"{run}/{msg.source_id}#{msg.incarnation}", msg.seq).duplicate:
             self.counters["duplicate"] += 1  # a copy of a message seen already (source, seq): once only
             return
         c = self.config
@@ -1523,6 +1532,45 @@ class BeaconLocator:
             per.append(now)
         return per
 
+    def _new_incarnations(self, inputs: list[dict]):
+        """(T, N) bool: the slots whose UAV's message this epoch carries a later incarnation than
+        its last ones (a restarted UAV: its onboard filter re-initialised from a least-squares fix,
+        so its navigation error is a new one), "consider" only; None when there are none.  Reads
+        ``getattr(msg, "incarnation", 0)`` (bus schema 3; 0 before it).  A message of an earlier
+        incarnation than the slot's (a dead process's, delayed) changes nothing (counted)."""
+        if self.config.observer_uncertainty != "consider":
+            return None
+        T, N = self.n_trials, len(self._slot)
+        if self.uav_incarnation.shape[1] < N:
+            grown = np.full((T, N), -1, dtype=np.int64)
+            grown[:, :self.uav_incarnation.shape[1]] = self.uav_incarnation
+            self.uav_incarnation = grown
+        new = None
+        for k, now in enumerate(inputs):
+            for uid, m in now.items():
+                i = self._slot[uid]
+                inc, last = int(getattr(m, "incarnation", 0)), int(self.uav_incarnation[k, i])
+                if inc > last:
+                    if last >= 0:
+                        new = np.zeros((T, N), bool) if new is None else new
+                        new[k, i] = True
+                    self.uav_incarnation[k, i] = inc
+                elif inc < last:
+                    self.counters["uav_incarnation_older"] += 1
+        return new
+
+    def _reset_slots(self, new) -> None:
+        """"consider": forget what the state knows of the UAV errors of the slots ``new`` (T, N):
+        their cross-covariances with the track and the mirror hypothesis, and the covariance last
+        sent (so the Gauss-Markov transition starts afresh from the new incarnation's) -- the new
+        incarnation's navigation error is independent of the old one's, as a new UAV's would be."""
+        N = new.shape[1]
+        self._grow_C(N)
+        self.C[:, :N][new] = 0.0
+        self.alt_C[:, :N][new] = 0.0
+        self.uav_cov_prev[:, :N][new] = 0.0
+        self.counters["uav_incarnations"] += int(new.sum())
+
     def _observations(self, inputs: list[dict]) -> ObserverEpoch:
         """Per trial {uav id: msg} -> padded arrays (UAVs in id order; fixed slots per UAV id
         with "consider" or the integrity monitor)."""
@@ -1565,13 +1613,15 @@ class BeaconLocator:
     def _run_epoch(self, t: float, inputs: list[dict]) -> None:
         lag = self.config.lag_window_s
         if lag <= 0:
-            self.process(t, self._observations(inputs))
+            obs = self._observations(inputs)
+            self.process(t, obs, self._new_incarnations(inputs))
             return
         if self.t_gps_s is not None and t < self.t_gps_s:
             raise ValueError(f"t_gps_s must not go back: {t} < {self.t_gps_s}")
         snap = self._snapshot()
         before = self.counters.copy()
-        self.process(t, self._observations(inputs))
+        obs = self._observations(inputs)  # (assigns new UAVs their slots first)
+        self.process(t, obs, self._new_incarnations(inputs))
         self._hist.append(_Epoch(t, snap, inputs, self.counters - before))
         _lagwindow.prune(self._hist, t, lag, 1e-6)
 
@@ -1590,7 +1640,7 @@ class BeaconLocator:
     _SNAP = ("y", "P", "initialised", "init_t_gps_s", "nis", "n_used", "coast_s", "mode", "vel_doppler",
              "vel_doppler_cov", "start_side", "formation_resolved")
     _SNAP_ALT = ("alt_active", "alt_y", "alt_P", "alt_vel", "score", "alt_score", "resolve_at")
-    _SNAP_CONSIDER = ("C", "alt_C", "uav_cov_prev")
+    _SNAP_CONSIDER = ("C", "alt_C", "uav_cov_prev", "uav_incarnation")
 
     def _snapshot(self) -> dict:
         """The state the next epoch changes, copied (only what a step writes: the arrays of the
@@ -1670,10 +1720,12 @@ class BeaconLocator:
         y, P, nis, used, gated, m2ll, V, CV = position_only_step(y, P, obs, c, dt, loglik, judge)
         return y, P, fr, nis, used, gated, m2ll, (V, CV)
 
-    def process(self, t_gps_s: float, obs: ObserverEpoch):
+    def process(self, t_gps_s: float, obs: ObserverEpoch, new_incarnation=None):
         """The filter step of epoch t on arrays (T trials): predict + update the initialised
         trials (and their mirror hypotheses while alive), initialise those whose window is
-        complete."""
+        complete.  new_incarnation (T, N) bool or None ("consider"): observer slots whose UAV
+        restarted (a new incarnation of its source) since its last message -- their consider
+        cross-covariances are reset first (:meth:`_reset_slots`)."""
         t = float(t_gps_s)
         if obs.n_trials != self.n_trials:
             raise ValueError(f"obs has {obs.n_trials} trials, the locator {self.n_trials}")
@@ -1682,6 +1734,8 @@ class BeaconLocator:
         dt = 0.0 if self.t_gps_s is None else t - self.t_gps_s
         c = self.config
         self._report = None
+        if new_incarnation is not None and c.observer_uncertainty == "consider":
+            self._reset_slots(np.asarray(new_incarnation, bool))
         if c.init == "prior":  # start from the scenario's prior; this epoch is the first update
             for k in np.flatnonzero(~self.initialised):
                 self._initialise(k, self._prior_fix(), t, obs.take(slice(k, k + 1)))

@@ -16,6 +16,18 @@ recorded messages' times.
 Messages for an epoch already processed are counted (``late``) and passed on: the
 components re-process them within their lag window (``lag_window_s``) or count them too late.
 
+Time guard: every input is first checked against the node's own clock (the ``now_s`` given
+to `advance`: live, the paced clock; replay, the recorded clock; batch, the epoch), never
+against the messages' times: one more than ``max_ahead_s`` ahead of it (``future``) or older
+than the hold plus the lag window behind it (``stale``) is refused and counted
+(``counters["rejected_future"]`` / ``["rejected_stale"]``, and per link), before it can add an
+epoch, move ``t_done``, reach a filter or count as a link's sign of life
+(`sitl.bus.timeguard`). The clock only moves forward.
+
+Restarts: a restarted publisher sends with a new ``incarnation`` (bus schema 3); its messages
+are a new stream for the link statistics and the components' duplicate checks. The node's
+own output goes out with its ``incarnation``.
+
 Link statistics (issue 8): every input message is counted per link ((run, source id)) by a
 `sitl.bus.LinkMonitor` -- received, missing from sequence numbers, duplicates, out of order,
 gaps, latency (arrival minus ``t_gps_s``; the arrival clock is ``now_s`` given to `advance`,
@@ -32,6 +44,7 @@ from collections import Counter, deque
 from dataclasses import dataclass
 
 from sitl.bus import Estimate, LinkMonitor, key_matches
+from sitl.bus.timeguard import TimeGuard
 
 
 @dataclass(frozen=True)
@@ -47,6 +60,8 @@ class GsConfig:
     stale_after_s: float = 3.0  # a link silent this long (simulation time) is flagged stale
     link_stats_every_s: float = 10.0  # LinkStats of every link this often (and on stale / back)
     lag_window_s: float = 5.0  # late (out-of-sequence) measurements this old are re-processed (0: dropped)
+    max_ahead_s: float = 2.0  # an input further ahead of the node's clock than this is refused (future)
+    hold_s: float = 1.0  # the longest an epoch waits for its inputs (simulated s): the guard's window behind
 
     @classmethod
     def from_scenario(cls, scn) -> GsConfig:
@@ -56,7 +71,13 @@ class GsConfig:
                    sonde_integrity=scn.ground_station.integrity,
                    stale_after_s=scn.ground_station.stale_after_s,
                    link_stats_every_s=scn.ground_station.link_stats_every_s,
-                   lag_window_s=scn.ground_station.lag_window_s)
+                   lag_window_s=scn.ground_station.lag_window_s, max_ahead_s=scn.ground_station.max_ahead_s,
+                   hold_s=scn.ground_station.hold_wall_s * scn.run.speed)
+
+    @property
+    def max_behind_s(self) -> float:
+        """The oldest an input may be, behind the node's clock: the hold, the lag window and one epoch."""
+        return self.hold_s + self.lag_window_s + self.sonde_dt_s
 
 
 class _Sub:
@@ -70,8 +91,9 @@ class _Sub:
 class _DeferredBus:
     """What the components see as their transport: subscribe / publish; deliveries queued."""
 
-    def __init__(self, transport, on_input):
+    def __init__(self, transport, on_input, incarnation: int = 0):
         self.transport = transport
+        self.incarnation = int(incarnation)
         self._subs: list[_Sub] = []
         self._real = []
         self._queue: deque = deque()
@@ -97,7 +119,8 @@ class _DeferredBus:
         q = self._queue
         while q:
             key, msg = q.popleft()
-            self._on_input(key, msg)
+            if not self._on_input(key, msg):
+                continue  # refused by the time guard
             for s in self._subs:
                 if not s.closed and key_matches(s.key_expr, key):
                     s.callback(key, msg)
@@ -105,6 +128,8 @@ class _DeferredBus:
         return n
 
     def publish(self, key, msg):
+        if msg.incarnation != self.incarnation:
+            msg = dataclasses.replace(msg, incarnation=self.incarnation)
         self.published.append((key, msg))
         if self.transport is not None:
             self.transport.publish(key, msg)
@@ -115,27 +140,43 @@ class _DeferredBus:
         self._real.clear()
 
 
+def beacon_locator_config(c: GsConfig):
+    """The live ground station's beacon locator: "consider" (the UAVs' navigation errors as
+    Schmidt states, per UAV slot, after a 50 s "inflate" acquisition; ground_station/
+    beacon_locator.py), the locator `skyfuse experiment beacon` scores, with a blind
+    (multilateration) start of beacon_init_epochs epochs.  Checked against "inflate" on this
+    scenario's geometry, old and new, and on the seed's geodetic blind start (issue 19; numbers in
+    sitl/experiments/long_run.py's docstring)."""
+    from ground_station.beacon_locator import LocatorConfig
+
+    return LocatorConfig(observer_uncertainty="consider", init_epochs=c.beacon_init_epochs,
+                         lag_window_s=c.lag_window_s)
+
+
 class GroundStationNode:
     """Beacon locator + sonde tracker on a bus (module docstring).
 
     transport: a sitl.bus Transport (None: feed messages with ``feed``); run_id: the run's
-    key prefix; config: GsConfig. ``estimates``: the latest Estimate per (kind, id)."""
+    key prefix; config: GsConfig; incarnation: this node's (its process's) incarnation, stamped
+    on what it publishes. ``estimates``: the latest Estimate per (kind, id)."""
 
-    def __init__(self, transport, run_id: str, config: GsConfig | None = None):
-        from ground_station.beacon_locator import BeaconLocator, LocatorConfig
+    def __init__(self, transport, run_id: str, config: GsConfig | None = None, incarnation: int = 0):
+        from ground_station.beacon_locator import BeaconLocator
         from ground_station.sonde_tracker import SondeTracker
 
         self.config = c = config or GsConfig()
         self.run_id = run_id
+        self._run_prefix = run_id + "/"
         self.counters = Counter()
         self._epochs: set[float] = set()
-        self._src_last: dict[str, float] = {}  # latest input time per source id
+        self._src_times: dict[str, deque] = {}  # the latest distinct input times per source id
         self._t_first: float | None = None  # earliest input time seen
         self.t_done = -math.inf
         self._lock = threading.Lock()
-        self.bus = _DeferredBus(transport, self._on_input)
+        self.guard = TimeGuard(ahead_s=c.max_ahead_s, behind_s=c.max_behind_s)
+        self.bus = _DeferredBus(transport, self._on_input, incarnation)
         self.locator = BeaconLocator(self.bus, run_ids=[run_id], beacon_id=c.beacon_id,
-                                     config=LocatorConfig(init_epochs=c.beacon_init_epochs, lag_window_s=c.lag_window_s),
+                                     config=beacon_locator_config(c),
                                      source_id="gs")
         self.tracker = None
         if c.sonde:
@@ -151,32 +192,52 @@ class GroundStationNode:
         self.link_changes: list = []  # (key, LinkStats) of links that turned stale or came back; the caller takes them
         self.link_messages: list = []  # (key, LinkStats) published; the caller takes them
         self._arrival_s = -math.inf  # the arrival clock of what the next pump takes in
+        self.last_error: str | None = None  # the last component step that failed, one line
         self._links_due = -math.inf
 
-    def _on_input(self, key, msg) -> None:
+    def _on_input(self, key, msg) -> bool:
+        """Count one input; False if the time guard refuses it (it then goes nowhere)."""
         t = float(msg.t_gps_s)
         self.counters["inputs"] += 1
+        if not key.startswith(self._run_prefix):  # another run on a shared router: not ours to step
+            self.counters["other_run"] += 1
+            return False
+        reason = self.guard.verdict(t, self._arrival_s)
+        if reason is not None:
+            self.counters[f"rejected_{reason}"] += 1
+            self.links.refused(key, msg, reason)
+            return False
         self.links.observe(key, msg, self._arrival_s if math.isfinite(self._arrival_s) else t)
         if self._t_first is None or t < self._t_first:
             self._t_first = t
-        last = self._src_last.get(msg.source_id)
-        if last is None or t > last:
-            self._src_last[msg.source_id] = t
+        times = self._src_times.get(msg.source_id)
+        if times is None:
+            times = self._src_times[msg.source_id] = deque(maxlen=8)
+        if not times or t > times[-1]:
+            times.append(t)
         if t <= self.t_done:
             self.counters["late"] += 1
         else:
             self._epochs.add(round(t, 6))
+        return True
 
     def _complete(self, tau: float, window_s: float) -> bool:
         """Every source heard within window_s before tau has delivered tau or later (each
-        source's messages arrive in order, so its epoch-tau message is in)."""
+        source's messages arrive in order, so its epoch-tau message is in). False when no source
+        was heard in that window (the run's start, or the first epoch after every source fell
+        silent -- a restart): which sources will deliver tau is unknown then, so the epoch waits
+        for the hold, rather than being processed with whichever message happened to come first
+        (which would make the result depend on arrival jitter: live and replay would differ)."""
         if self._t_first is None or tau < self._t_first + window_s:
             return False  # the sources are not all known yet
-        lo = tau - window_s - 1e-9
-        for last in self._src_last.values():
-            if lo <= last < tau - 1e-9:
-                return False
-        return True
+        lo, hi = tau - window_s - 1e-9, tau - 1e-9
+        heard = False
+        for times in self._src_times.values():
+            if any(lo <= x < hi for x in times):
+                heard = True
+                if times[-1] < hi:
+                    return False
+        return heard
 
     def feed(self, key: str, msg) -> None:
         self.bus.feed(key, msg)
@@ -198,7 +259,7 @@ class GroundStationNode:
         taken in and the clock of the links' silence; default t_until."""
         now = t_until_gps_s if now_s is None else now_s
         with self._lock:
-            self._arrival_s = now
+            self._arrival_s = self.guard.tick(now)
             self.bus.pump()
             for tau in sorted(self._epochs):
                 if tau > t_until_gps_s and (early_window_s is None or not self._complete(tau, early_window_s)):
@@ -241,9 +302,16 @@ class GroundStationNode:
                 self.counters["links_stale" if lk.stale else "links_back"] += 1
 
     def _step(self, tau: float) -> None:
-        self.locator.step(tau)  # publishes through self.bus
-        if self.tracker is not None:
-            self.tracker.step(tau)
+        # each component alone: one that fails on an epoch (counted, its last error kept) does
+        # not take the other's estimate of that epoch with it
+        for name, comp in (("beacon_locator", self.locator), ("sonde_tracker", self.tracker)):
+            if comp is None:
+                continue
+            try:
+                comp.step(tau)  # publishes through self.bus
+            except Exception as e:
+                self.counters[f"step_errors.{name}"] += 1
+                self.last_error = f"{name} at t = {tau:.3f}: {type(e).__name__}: {' '.join(str(e).split())}"
         self.t_done = max(self.t_done, tau)
         self.counters["epochs"] += 1
 

@@ -182,6 +182,7 @@ from dataclasses import dataclass, fields
 from typing import NamedTuple
 
 import numpy as np
+import scipy.linalg
 from scipy.stats import chi2
 
 try:  # compiled measurement rows (numba); the numpy path in SondeMeasurement is the reference
@@ -218,6 +219,7 @@ from sitl.radio.radar import (
 from sitl.radio.relay import RelayErrorBudget, RelayParams
 
 __all__ = [
+    "KINEMATICS",
     "MODES",
     "RADAR_NOISE",
     "Layout",
@@ -235,6 +237,7 @@ __all__ = [
 
 MODES = ("fused", "radar_only", "relay_only")
 RADAR_NOISE = ("colored", "white")
+KINEMATICS = ("relaxed", "singer")
 TWO_PI = 2.0 * math.pi
 
 _RADAR_DEFAULT = RadarParams()
@@ -273,9 +276,19 @@ class SondeTrackerParams:
     radar_noise: str = "colored"  # "colored": AR(1) errors in the state; "white": naive
     filter: str = "ekf"  # "ekf", "ukf" (same models) or "auto" (per sonde and epoch, see below)
     auto_ukf_ratio: float = 0.02  # auto: the UKF when sqrt(trace P_pos) > this x the distance to the site
-    accel_rate_1_s: float = 0.12  # p1 + p2 (seed eq 20)
-    sigma_acc_horizontal_m_s2: float = 0.15
+    # the sonde's motion: "relaxed" (vehicles.sonde's model: the velocity relaxes with the aerodynamic
+    # rate to the wind it meets, driven by the Gauss-Markov gust acceleration of eq 20; the wind and its
+    # rate of change are states) or "singer" (eq 20 as printed: the acceleration Gauss-Markov, the
+    # velocity its integral -- a random walk, which over a coast grows the position variance as T^3)
+    kinematics: str = "relaxed"
+    accel_rate_1_s: float = 0.12  # p1 + p2 (seed eq 20): the gust acceleration's (singer: the acceleration's) rate
+    sigma_acc_horizontal_m_s2: float = 0.15  # its stationary std (relaxed: the gust a_g; singer: the acceleration)
     sigma_acc_vertical_m_s2: float = 0.10
+    velocity_relax_rate_horizontal_1_s: float = 0.1  # relaxed: p1, the velocity relaxes to the wind in 1/p1
+    velocity_relax_rate_vertical_1_s: float = 0.2  # relaxed: k_v, the vertical speed to its target
+    wind_rate_sigma_horizontal_m_s2: float = 0.02  # relaxed: stationary std of the rate of change of the wind met
+    wind_rate_sigma_vertical_m_s2: float = 0.025  # (vertical: of the target vertical speed -- the descent slowing)
+    wind_rate_tau_s: float = 900.0  # relaxed: its correlation time (the wind profile's layers)
     delta_d_rw_psd_m2_s: float = 1e-6  # dd random walk (eq 21: constant; tiny slack)
     osc_gamma_1_s: float = _RELAY_DEFAULT.osc_gamma_1_s
     osc_sigma_m_s: float = _RELAY_DEFAULT.osc_sigma_hz * _RELAY_DEFAULT.osc_doppler_scale_m_s_per_rad_s * TWO_PI
@@ -284,9 +297,11 @@ class SondeTrackerParams:
     radar_white_fraction: float = 1e-3  # coloured model: white part of R, fraction of sigma^2
     gate_prob: float | None = 1.0 - 1e-4  # chi-square gate per block; None: no gating
     manoeuvre_sigma_acc_m_s2: float = 10.0  # unknown acceleration step of the manoeuvre hypothesis
+    manoeuvre_sigma_wind_m_s: float = 30.0  # relaxed: and an unknown step of the wind / target speed (the burst)
     manoeuvre_window: int | None = 10  # epochs of the sliding-window NIS test (None: off)
     reacquire_after: int | None = 5  # re-initialise after this many rejected blocks in a row
     prior_sigma_vel_m_s: float = 20.0
+    prior_sigma_wind_offset_m_s: float = 10.0  # relaxed: the wind's offset from the velocity at initialisation
     prior_sigma_delta_d_m: float = 3000.0
     relay_errors: RelayErrorBudget | None = _RELAY_DEFAULT.errors  # the relay's error budget; None: white only
     bias_slots: int = 24  # per-satellite error states (relay modes with relay_errors); >= satellites in view
@@ -302,16 +317,20 @@ class SondeTrackerParams:
     def __post_init__(self):
         if self.mode not in MODES:
             raise ValueError(f"mode must be one of {MODES}, got {self.mode!r}")
+        if self.kinematics not in KINEMATICS:
+            raise ValueError(f"kinematics must be one of {KINEMATICS}, got {self.kinematics!r}")
         if self.radar_noise not in RADAR_NOISE:
             raise ValueError(f"radar_noise must be one of {RADAR_NOISE}, got {self.radar_noise!r}")
         if self.filter not in ("ekf", "ukf", "auto"):
             raise ValueError(f"filter must be 'ekf', 'ukf' or 'auto', got {self.filter!r}")
         _finite("auto_ukf_ratio", self.auto_ukf_ratio, 0.0, lo_open=True)
         for name in ("accel_rate_1_s", "osc_gamma_1_s", "osc_sigma_m_s", "prior_sigma_vel_m_s",
-                     "prior_sigma_delta_d_m"):
+                     "prior_sigma_delta_d_m", "velocity_relax_rate_horizontal_1_s", "velocity_relax_rate_vertical_1_s",
+                     "wind_rate_tau_s"):
             _finite(name, getattr(self, name), 0.0, lo_open=True)
         for name in ("sigma_acc_horizontal_m_s2", "sigma_acc_vertical_m_s2", "delta_d_rw_psd_m2_s",
-                     "manoeuvre_sigma_acc_m_s2"):
+                     "manoeuvre_sigma_acc_m_s2", "manoeuvre_sigma_wind_m_s", "wind_rate_sigma_horizontal_m_s2",
+                     "wind_rate_sigma_vertical_m_s2", "prior_sigma_wind_offset_m_s"):
             _finite(name, getattr(self, name), 0.0)
         _finite("radar_white_fraction", self.radar_white_fraction, 0.0, lo_open=True)
         for name in ("radar_sigma", "radar_gamma_1_s"):
@@ -387,49 +406,105 @@ class Layout(NamedTuple):
     uses_radar: bool
     bias: int | None = None  # first of the per-satellite relay error states
     nb: int = 0  # how many
+    wind: int | None = None  # relaxed kinematics: first of the 3 wind states (their rates follow at wind + 3)
+    n_kin: int = 9  # kinematic states (position, velocity, acceleration [, wind, wind rate])
 
 
-def layout_for(mode: str, radar_noise: str = "colored", bias_slots: int = 0) -> Layout:
+def layout_for(mode: str, radar_noise: str = "colored", bias_slots: int = 0, kinematics: str = "relaxed") -> Layout:
     if mode not in MODES:
         raise ValueError(f"mode must be one of {MODES}, got {mode!r}")
+    if kinematics not in KINEMATICS:
+        raise ValueError(f"kinematics must be one of {KINEMATICS}, got {kinematics!r}")
     relay = mode != "radar_only"
     radar = mode != "relay_only"
-    n = 9
+    wind = 9 if kinematics == "relaxed" else None
+    n = n_kin = 15 if kinematics == "relaxed" else 9
     dd = osc = err = None
     if relay:
-        dd, osc, n = 9, 10, 11
+        dd, osc, n = n, n + 1, n + 2
     if radar and radar_noise == "colored":
         err, n = n, n + 3
     bias, nb = None, 0
     if relay and bias_slots:
         bias, nb, n = n, int(bias_slots), n + int(bias_slots)
-    return Layout(n, dd, osc, err, relay, radar, bias, nb)
+    return Layout(n, dd, osc, err, relay, radar, bias, nb, wind, n_kin)
 
 
 # ---------------------------------------------------------------------------
 # transition
 
 
+def relaxed_axis_discretisation(relax_rate_1_s: float, gust_rate_1_s: float, sigma_gust_m_s2: float,
+                                sigma_wind_rate_m_s2: float, wind_rate_tau_s: float, dt_s: float):
+    """Exact discretisation (F, Q), 5 x 5, of one axis of the relaxed sonde model over
+    [position p, velocity v, gust acceleration g, wind u, wind rate s]:
+
+        p' = v,  v' = k (u - v) + g,  g' = -beta g + sqrt(2 beta) sigma_g n_g,
+        u' = s,  s' = -s / tau + sqrt(2 / tau) sigma_s n_s
+
+    (vehicles.sonde's axis, dv/dt = k (w(h) - v) + a_g, with the wind w met by the sonde -- the
+    mean wind at its height, or the target vertical speed -- unknown: a state, changing at a
+    Gauss-Markov rate). F = expm(A dt), Q by Van Loan's method."""
+    k, beta, tau = float(relax_rate_1_s), float(gust_rate_1_s), float(wind_rate_tau_s)
+    a = np.zeros((5, 5))
+    a[0, 1] = 1.0
+    a[1, 1], a[1, 2], a[1, 3] = -k, 1.0, k
+    a[2, 2] = -beta
+    a[3, 4] = 1.0
+    a[4, 4] = -1.0 / tau
+    qc = np.diag([0.0, 0.0, 2.0 * beta * sigma_gust_m_s2**2, 0.0, 2.0 * sigma_wind_rate_m_s2**2 / tau])
+    m = np.zeros((10, 10))
+    m[:5, :5], m[:5, 5:], m[5:, 5:] = -a, qc, a.T
+    e = scipy.linalg.expm(m * dt_s)
+    F = e[5:, 5:].T
+    Q = F @ e[:5, 5:]
+    return F, 0.5 * (Q + Q.T)
+
+
 class SondeTransition:
-    """x(k+1) = F x(k) + w: Singer kinematics (rate p1 + p2, covariance Sigma_a), dd random
-    walk, oscillator and radar errors first-order Gauss-Markov. Linear; F and Q memoised per dt."""
+    """x(k+1) = F x(k) + w: the sonde kinematics (``relaxed``: per ENU axis at the site,
+    relaxed_axis_discretisation with p1 horizontally and k_v vertically; ``singer``: Singer's model
+    with rate p1 + p2 and covariance Sigma_a), dd random walk, oscillator and radar errors
+    first-order Gauss-Markov. Linear; F and Q memoised per dt. ``enu_rot``: the ENU rotation at
+    the site (the horizontal / vertical split)."""
 
     linear = True
 
-    def __init__(self, layout: Layout, params: SondeTrackerParams, acc_cov_ecef: np.ndarray):
+    def __init__(self, layout: Layout, params: SondeTrackerParams, enu_rot: np.ndarray):
         self.layout = layout
         self.ndim = layout.n
         self.params = params
-        self.acc_cov_ecef = np.array(acc_cov_ecef, dtype=float)
+        p = params
+        self.enu_rot = np.array(enu_rot, dtype=float)
+        r = self.enu_rot
+        self.acc_cov_ecef = r.T @ np.diag([p.sigma_acc_horizontal_m_s2**2, p.sigma_acc_horizontal_m_s2**2,
+                                           p.sigma_acc_vertical_m_s2**2]) @ r
         self._unit = Singer(params.accel_rate_1_s, 1.0, ndim_pos=1)
         self._memo: dict = {}
+
+    def _axes_to_ecef(self, per_axis):
+        """(3, q, q) per-ENU-axis blocks [e, n, u] over q quantities -> (3q, 3q) in ECEF,
+        quantity-major (index 3 i + c: quantity i, ECEF axis c)."""
+        r = self.enu_rot
+        q = per_axis.shape[-1]
+        return np.einsum("ca,cij,cb->iajb", r, per_axis, r).reshape(3 * q, 3 * q)
 
     def _build(self, dt: float):
         L, p = self.layout, self.params
         n = L.n
         F, Q = np.zeros((n, n)), np.zeros((n, n))
-        F[:9, :9] = np.kron(self._unit.F(None, dt), np.eye(3))
-        Q[:9, :9] = np.kron(self._unit.Q(dt), self.acc_cov_ecef)
+        if L.wind is not None:
+            h = relaxed_axis_discretisation(p.velocity_relax_rate_horizontal_1_s, p.accel_rate_1_s,
+                                            p.sigma_acc_horizontal_m_s2, p.wind_rate_sigma_horizontal_m_s2,
+                                            p.wind_rate_tau_s, dt)
+            v = relaxed_axis_discretisation(p.velocity_relax_rate_vertical_1_s, p.accel_rate_1_s,
+                                            p.sigma_acc_vertical_m_s2, p.wind_rate_sigma_vertical_m_s2,
+                                            p.wind_rate_tau_s, dt)
+            F[:15, :15] = self._axes_to_ecef(np.stack([h[0], h[0], v[0]]))
+            Q[:15, :15] = self._axes_to_ecef(np.stack([h[1], h[1], v[1]]))
+        else:
+            F[:9, :9] = np.kron(self._unit.F(None, dt), np.eye(3))
+            Q[:9, :9] = np.kron(self._unit.Q(dt), self.acc_cov_ecef)
         if L.dd is not None:
             F[L.dd, L.dd] = 1.0
             Q[L.dd, L.dd] = p.delta_d_rw_psd_m2_s * dt
@@ -452,6 +527,12 @@ class SondeTransition:
         F.flags.writeable = Q.flags.writeable = False
         return F, Q
 
+    def wind_rate_cov_ecef(self) -> np.ndarray:
+        """Stationary covariance of the wind-rate states (relaxed), ECEF."""
+        p, r = self.params, self.enu_rot
+        return r.T @ np.diag([p.wind_rate_sigma_horizontal_m_s2**2, p.wind_rate_sigma_horizontal_m_s2**2,
+                              p.wind_rate_sigma_vertical_m_s2**2]) @ r
+
     def _get(self, dt):
         key = float(dt)
         out = self._memo.get(key)
@@ -466,13 +547,17 @@ class SondeTransition:
 
     def boost(self, dt):
         """Covariance added under the manoeuvre hypothesis over a step dt: an unknown
-        acceleration step a ~ N(0, s^2 I) at its start, [dp, dV, da] = [dt^2/2, dt, 1] a."""
+        acceleration step a ~ N(0, s^2 I) at its start, [dp, dV, da] = [dt^2/2, dt, 1] a, and
+        (relaxed kinematics) an unknown step of the wind, N(0, manoeuvre_sigma_wind^2 I)."""
         key = ("boost", float(dt))
         out = self._memo.get(key)
         if out is None:
             g = np.array([0.5 * dt * dt, dt, 1.0])
             out = np.zeros((self.ndim, self.ndim))
             out[:9, :9] = self.params.manoeuvre_sigma_acc_m_s2**2 * np.kron(np.outer(g, g), np.eye(3))
+            w = self.layout.wind
+            if w is not None:  # and an unknown step of the wind / target speed (the burst: +5 -> -40 m/s)
+                out[w:w + 3, w:w + 3] = self.params.manoeuvre_sigma_wind_m_s**2 * np.eye(3)
             out.flags.writeable = False
             self._memo[key] = out
         return out
@@ -960,7 +1045,7 @@ class SondeTracker:
             raise ValueError(f"source_id must be 1..64 chars of [A-Za-z0-9_.-], got {self.source_id!r}")
         self.sonde_ids = None if sonde_ids is None else tuple(str(s) for s in sonde_ids)
         self.radar_id = radar_id
-        self.layout = layout_for(p.mode, p.radar_noise, p.relay_bias_states)
+        self.layout = layout_for(p.mode, p.radar_noise, p.relay_bias_states, p.kinematics)
         self.counters = TrackerCounters()
         self._seqtrack = SequenceTracker()
         self._transport = None
@@ -1063,7 +1148,7 @@ class SondeTracker:
         else:
             c.ignored += 1
             return
-        if self._seqtrack.update(f"{key}|{msg.source_id}", msg.seq).duplicate:  # per stream
+        if self._seqtrack.update(f"{key}|{msg.source_id}#{msg.incarnation}", msg.seq).duplicate:  # per stream
             c.duplicates += 1
             return
         t = float(msg.t_gps_s)
@@ -1316,10 +1401,8 @@ class SondeTracker:
             return
         p = self.params
         lat, lon, _ = ecef_to_geodetic(np.asarray(site_ecef, float))
-        r = enu_rotation(lat, lon)  # Q's horizontal / vertical split at the site
-        acc = r.T @ np.diag([p.sigma_acc_horizontal_m_s2**2, p.sigma_acc_horizontal_m_s2**2,
-                             p.sigma_acc_vertical_m_s2**2]) @ r
-        self._transition = SondeTransition(self.layout, p, acc)
+        r = enu_rotation(lat, lon)  # the model's horizontal / vertical split at the site
+        self._transition = SondeTransition(self.layout, p, r)
 
     def _radar_site(self, pos):
         key = np.asarray(pos, float).tobytes()
@@ -1397,6 +1480,23 @@ class SondeTracker:
             P[b, b] = 1.0
         return x, P
 
+    def _with_wind(self, x, P):
+        """Relaxed kinematics: the wind states of a new track, set once the rest of (x, P) is --
+        the wind is the velocity plus an offset d ~ N(0, prior_sigma_wind_offset^2 I) independent
+        of everything else (so its rows are the velocity's), and its rate is at its stationary prior."""
+        w = self.layout.wind
+        if w is None:
+            return x, P
+        x[w:w + 3] = x[3:6]
+        x[w + 3:w + 6] = 0.0
+        P[w:w + 6, :] = 0.0
+        P[:, w:w + 6] = 0.0
+        P[w:w + 3, :] = P[3:6, :]
+        P[:, w:w + 3] = P[:, 3:6]
+        P[w:w + 3, w:w + 3] = P[3:6, 3:6] + self.params.prior_sigma_wind_offset_m_s**2 * np.eye(3)
+        P[w + 3:w + 6, w + 3:w + 6] = self._transition.wind_rate_cov_ecef()
+        return x, P
+
     def _init_from_radar(self, slot: int, m: RadarMeasurement, count: bool = True) -> bool:
         if not m.angles_valid:
             return False
@@ -1418,6 +1518,7 @@ class SondeTracker:
             P[0:3, 0:3] = J @ (S + Rw) @ J.T
             P[0:3, L.err:L.err + 3] = -J @ S
             P[L.err:L.err + 3, 0:3] = -(J @ S).T
+        x, P = self._with_wind(x, P)
         self._x[slot], self._P[slot] = x, 0.5 * (P + P.T)
         self.counters.init_radar += count
         return True
@@ -1461,6 +1562,7 @@ class SondeTracker:
             ok = cols >= 0
             P[np.ix_(ip, cols[ok])] = c[:, ok]
             P[np.ix_(cols[ok], ip)] = c[:, ok].T
+        x, P = self._with_wind(x, P)
         self._x[slot], self._P[slot] = x, P
         self.counters.init_relay += count
         return True

@@ -1,13 +1,16 @@
 """Crash-safe, append-only record of bus messages, and its reader.
 
-File format (version 1, little-endian)::
+File format (version 2, little-endian)::
 
-    header  : b"SKYFBUS" + bytes([1])                       8 bytes
+    header  : b"SKYFBUS" + bytes([2])                       8 bytes
     record  : u32 body_len | u32 crc32(body_len bytes + body) | body
     body    : f64 t_recv_s | u16 key_len | key (UTF-8) | payload (the bus bytes as received)
 
-``t_recv_s`` is the receive time the writer was given (the recorder's clock: wall time in a
-live run); the simulation time is inside the payload. Each record carries its own length
+``t_recv_s`` is the receive time the writer was given (the recorder's clock: in a run's
+bus.log the launcher's paced SIMULATION clock when the payload arrived -- version 1 logs held
+wall time -- so a replay can guard the messages' times against the clock the live ground
+station had, not against the messages themselves); the message's own simulation time is
+inside the payload. Each record carries its own length
 and CRC-32 (covering the length too), so a reader keeps the longest valid prefix: it stops
 cleanly at a torn tail (a record cut by a crash) or at a corrupt record, and counts the
 bytes it left (`BusLogStats`). Like Kafka's log segments, a record is either wholly there
@@ -46,7 +49,7 @@ from .codec import encode
 
 log = logging.getLogger("sitl.bus.buslog")
 
-MAGIC = b"SKYFBUS\x01"
+MAGIC = b"SKYFBUS\x02"
 _HEAD = struct.Struct("<II")  # body_len, crc32
 _BODY_HEAD = struct.Struct("<dH")  # t_recv_s, key_len
 MAX_RECORD_BYTES = 16 << 20  # a record claiming more is corrupt (bus payloads are <= 1 MiB)
@@ -101,7 +104,7 @@ def _scan(f: BinaryIO, stats: BusLogStats) -> Iterator[BusRecord]:
         return
     if head != MAGIC:
         if head[:7] == MAGIC[:7]:
-            raise BusLogError(f"bus log version {head[7]} is not supported (this build reads 1)")
+            raise BusLogError(f"bus log version {head[7]} is not supported (this build reads {MAGIC[7]})")
         raise BusLogError("not a skyfuse bus log (bad magic)")
     pos = stats.valid_bytes = len(MAGIC)
     while True:

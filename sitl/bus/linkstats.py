@@ -4,8 +4,11 @@ reordering, gaps, latency and silence (issue 8).
 A *link* is one publisher as a receiver sees it: ``(run id, source id)`` (the run is the
 key's first chunk; the source id is the message header's). A source may publish several
 streams with their own numbering (a UAV's nav and beacon messages both carry its epoch
-index): sequence numbers are tracked per stream (the concrete key, by
-`sitl.bus.transport.SequenceTracker`) and the counts summed per link.
+index): sequence numbers are tracked per stream (the concrete key and the sender's
+incarnation, by `sitl.bus.transport.SequenceTracker`) and the counts summed per link. A
+restarted sender is a new incarnation of the same link: its numbering starts over in new
+streams, so its messages count as received, never as duplicates of its earlier life's
+(``restarts``).
 
 What each count means (what ``sitl.netfault.LinkTruth.receiver_view`` computes from the
 injected schedule, with seq = packet index):
@@ -21,7 +24,10 @@ injected schedule, with seq = packet index):
 * latency: arrival time minus the message's ``t_gps_s``, both simulation time, over every
   copy received (duplicates included), mean and max;
 * ``stale``: nothing arrived from the link for more than ``stale_after_s``; set and
-  cleared by `check` (which returns the links that changed), so every transition is seen.
+  cleared by `check` (which returns the links that changed), so every transition is seen;
+* ``restarts``: incarnations heard after the first (``incarnation``: the latest);
+* ``rejected_future`` / ``rejected_stale``: its messages the receiver's time guard refused
+  (`refused`); they are not received, and do not keep the link from turning stale.
 
 No wall clock: the caller passes the arrival time (``InMemoryTransport.now_s`` during a
 delivery; the live ground station its paced simulation clock).
@@ -29,7 +35,7 @@ delivery; the live ground station its paced simulation clock).
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 from .schema import LinkStats, Message, key_for
 from .transport import SeqResult, SequenceTracker
@@ -47,12 +53,16 @@ class LinkState:
     out_of_order: int = 0
     gaps: int = 0
     restarts: int = 0
+    incarnation: int = 0  # the latest incarnation heard
+    rejected_future: int = 0
+    rejected_stale: int = 0
     copies: int = 0  # every copy with a latency (duplicates included)
     latency_sum_s: float = 0.0
     latency_max_s: float = math.nan
     last_t_gps_s: float = math.nan
     last_arrival_s: float = math.nan
     stale: bool = False
+    incarnations: set = field(default_factory=set)
 
     @property
     def latency_mean_s(self) -> float:
@@ -84,13 +94,23 @@ class LinkMonitor:
     def state(self, run_id: str, source_id: str) -> LinkState:
         return self._links[(run_id, source_id)]
 
-    def observe(self, key: str, msg: Message, arrival_t_s: float) -> SeqResult:
-        """Count one received message (a valid, decoded one) arriving at ``arrival_t_s``."""
+    def _link(self, key: str, msg: Message) -> LinkState:
         run = key.split("/", 1)[0]
         lk = self._links.get((run, msg.source_id))
         if lk is None:
             lk = self._links[(run, msg.source_id)] = LinkState(run, msg.source_id)
-        res = self._seq.update(key + "\0" + msg.source_id, msg.seq)
+        return lk
+
+    def observe(self, key: str, msg: Message, arrival_t_s: float) -> SeqResult:
+        """Count one received message (a valid, decoded one) arriving at ``arrival_t_s``."""
+        lk = self._link(key, msg)
+        inc = msg.incarnation
+        if inc not in lk.incarnations:
+            if lk.incarnations:
+                lk.restarts += 1
+            lk.incarnations.add(inc)
+            lk.incarnation = max(lk.incarnation, inc)
+        res = self._seq.update(f"{key}\0{msg.source_id}\0{inc}", msg.seq)
         st = res.status
         if st == "duplicate":
             lk.duplicates += 1
@@ -103,8 +123,8 @@ class LinkMonitor:
             elif st == "late":
                 lk.out_of_order += 1
                 lk.missing -= 1
-            else:
-                lk.restarts += 1
+            # "restart" (a number far below the stream's highest): counted as received; a
+            # restart proper is a new incarnation (above)
         lat = float(arrival_t_s) - float(msg.t_gps_s)
         lk.copies += 1
         lk.latency_sum_s += lat
@@ -114,6 +134,15 @@ class LinkMonitor:
         if not lk.last_arrival_s >= arrival_t_s:
             lk.last_arrival_s = float(arrival_t_s)
         return res
+
+    def refused(self, key: str, msg: Message, reason: str) -> None:
+        """Count a message of this link that the receiver's time guard refused ("future" /
+        "stale", `sitl.bus.timeguard`): not received, and no sign of life."""
+        lk = self._link(key, msg)
+        if reason == "future":
+            lk.rejected_future += 1
+        else:
+            lk.rejected_stale += 1
 
     def check(self, now_s: float) -> list[LinkState]:
         """Flag the links silent for more than stale_after_s at ``now_s`` (and clear the others);
@@ -130,7 +159,9 @@ class LinkMonitor:
         """(key, LinkStats) of one link at ``t_gps_s``, published as ``source_id``."""
         m = LinkStats(t_gps_s=float(t_gps_s), source_id=source_id, seq=self._out_seq, link=lk.source_id,
                       received=lk.received, missing=max(lk.missing, 0), duplicates=lk.duplicates,
-                      out_of_order=lk.out_of_order, gaps=lk.gaps, latency_mean_s=lk.latency_mean_s,
+                      out_of_order=lk.out_of_order, gaps=lk.gaps, restarts=lk.restarts,
+                      source_incarnation=lk.incarnation, rejected_future=lk.rejected_future,
+                      rejected_stale=lk.rejected_stale, latency_mean_s=lk.latency_mean_s,
                       latency_max_s=lk.latency_max_s, stale=lk.stale, last_t_gps_s=lk.last_t_gps_s)
         self._out_seq += 1
         return key_for(lk.run_id, m), m
@@ -140,6 +171,8 @@ class LinkMonitor:
         return {f"{lk.run_id}/{lk.source_id}": {
             "received": lk.received, "missing": lk.missing, "duplicates": lk.duplicates,
             "out_of_order": lk.out_of_order, "gaps": lk.gaps, "restarts": lk.restarts,
+            "incarnation": lk.incarnation, "rejected_future": lk.rejected_future,
+            "rejected_stale": lk.rejected_stale,
             "latency_mean_s": lk.latency_mean_s, "latency_max_s": lk.latency_max_s, "stale": lk.stale,
             "last_t_gps_s": lk.last_t_gps_s} for lk in self._links.values()}
 

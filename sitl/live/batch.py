@@ -31,12 +31,13 @@ def run_batch(scn, *, settle_s: float = 0.0, progress=None, record=None) -> dict
         from sitl.experiments._common import MeasurementFaults
         mf = MeasurementFaults(rules, ["**"], seed=int(run.seed), t0_gps_s=run.t0_gps_s)
     bus = InMemoryTransport(start_t_gps_s=run.t0_gps_s, faults=[mf] if mf is not None else ())
-    scorer = ErrorTracker(keep_s=1e9, settle_s=settle_s, t0_gps_s=run.t0_gps_s)
+    scorer = ErrorTracker(keep_s=1e9, settle_s=settle_s, t0_gps_s=run.t0_gps_s, clock=lambda: bus.now_s,
+                          max_ahead_s=scn.ground_station.max_ahead_s)
     scorer.subscribe(bus, run.id)
     recorder = None
     if record is not None:
         from sitl.bus.buslog import BusRecorder
-        recorder = BusRecorder(bus, record, key_expr=f"{run.id}/**", append=False)
+        recorder = BusRecorder(bus, record, key_expr=f"{run.id}/**", append=False, clock=lambda: bus.now_s)
     node = gn.GroundStationNode(bus, run.id, gn.GsConfig.from_scenario(scn))
     groups = []
     per = scn.uavs.per_process

@@ -22,10 +22,13 @@ run goes (`skyfuse fault set`, which finds the router in OUT/run.json). report.j
 ``faults`` block: per link the specs applied over time and the truth counters.
 
 replay LOG: the recorded bus log through the batch ground station (GroundStationNode on the
-in-memory transport), in the recorded order, an epoch processed under the live rule (once
-every source publishing has delivered it, at the latest hold_wall_s x speed after it); prints the replayed
+in-memory transport), in the recorded order, on the recorded clock (each record's receive
+time: the launcher's simulation clock when the payload arrived, never the payload's own time),
+an epoch processed under the live rule (once every source publishing has delivered it, at the
+latest hold_wall_s x speed after it), the same time guard as live; prints the replayed
 estimates' errors against the recorded truth and their difference from the estimates the
-live ground station published (recorded in the same log).
+live ground station published (recorded in the same log). A log with restarted workers
+replays like any other: their new incarnations are new streams there too.
 
 vehicles / ground_station are started by module name (sitl never imports them statically).
 """
@@ -34,6 +37,7 @@ from __future__ import annotations
 import argparse
 import importlib
 import json
+import math
 import os
 import signal
 import sys
@@ -126,10 +130,23 @@ def demo_main(args) -> int:
 
 def _main(scn, args) -> int:
     from sitl.experiments._common import prepare_out
+    from sitl.live.preflight import OutDirLock, PreflightError, preflight
     out = prepare_out(Path(args.out))
-    if args.batch:
-        return _batch(scn, out, args)
-    report = launch(scn, out, quiet=args.quiet)
+    lock = OutDirLock(out)
+    try:  # before anything starts: a mistake costs one line and exit 2 (sitl.live.preflight)
+        lock.acquire()
+        preflight(scn, live=not args.batch)
+    except PreflightError as e:
+        lock.release()
+        raise _usage()(str(e)) from None
+    try:
+        if args.batch:
+            return _batch(scn, out, args)
+        if not args.quiet:
+            print(f"[launcher] output in {out}/ (report.json, bus.log, logs/)", file=sys.stderr)
+        report = launch(scn, out, quiet=args.quiet)
+    finally:
+        lock.release()
     print(summary_text(report))
     if report.get("stopped_early"):
         return 130  # Ctrl-C / SIGTERM: stopped cleanly, as asked
@@ -173,6 +190,8 @@ def launch(scn, out: Path, *, quiet: bool = False, stop: threading.Event | None 
     from sitl.live.supervisor import Supervisor
     from sitl.scenario import worker_specs
 
+    from sitl.bus.audit import PayloadAudit
+
     stop = stop if stop is not None else threading.Event()
     status_stream = status_stream if status_stream is not None else sys.stderr
     tty = hasattr(status_stream, "isatty") and status_stream.isatty()
@@ -180,6 +199,11 @@ def launch(scn, out: Path, *, quiet: bool = False, stop: threading.Event | None 
     run = scn.run
     t_wall0 = perf_now()
     router = bus = recorder = sup = warm = live_faults = None
+    audit = PayloadAudit()  # every payload of the run, on every key, counted once
+    paced: list = []  # the run's Pacer once it has started: the launcher's simulation clock
+
+    def sim_clock() -> float:  # the clock the bus log stamps and the scorer guards with
+        return paced[0].sim_now() if paced else -math.inf
     fault_board = run_json = None
     report: dict = {"mode": "live", "scenario": scn.to_dict(), "ok": False, "events": []}
     shutdown = {}
@@ -213,10 +237,12 @@ def launch(scn, out: Path, *, quiet: bool = False, stop: threading.Event | None 
         run_json = _RunJson(out / "run.json", run.id, endpoints, fault_board)
         run_json.write()
         fault_board.on_change = run_json.write
-        scorer = ErrorTracker(t0_gps_s=run.t0_gps_s)
+        scorer = ErrorTracker(t0_gps_s=run.t0_gps_s, clock=sim_clock, max_ahead_s=scn.ground_station.max_ahead_s)
         scorer.subscribe(bus, run.id)
-        if scn.bus.log:
-            recorder = BusRecorder(bus, out / "bus.log", key_expr=f"{run.id}/**", append=False)
+        bus.subscribe_raw(f"{run.id}/**", audit)
+        if scn.bus.log:  # stamped with the launcher's simulation clock (what replay guards with)
+            recorder = BusRecorder(bus, out / "bus.log", key_expr=f"{run.id}/**", append=False,
+                                   clock=lambda: max(sim_clock(), run.t0_gps_s))
         (out / "scenario.json").write_text(json.dumps(scn.to_dict(), indent=1))
         warm = _start_warm_up(out / "scenario.json", out / "logs") if warm_up else None
         spec_dir = out / "specs"
@@ -251,6 +277,7 @@ def launch(scn, out: Path, *, quiet: bool = False, stop: threading.Event | None 
             live_faults.start(wall_start)
         sup.broadcast_start(wall_start)
         pacer = Pacer(run.speed, run.t0_gps_s, wall_start, stop=stop)
+        paced.append(pacer)
         t_end = run.t0_gps_s + run.duration_s
         if on_started is not None:
             sup.zenoh_endpoints = list(endpoints)
@@ -278,7 +305,8 @@ def launch(scn, out: Path, *, quiet: bool = False, stop: threading.Event | None 
                 break
             if perf_now() >= next_status:
                 next_status += 1.0
-                last_line = format_status(board.snapshot(sup, scorer, bus), run.t0_gps_s, run.duration_s)
+                last_line = format_status(board.snapshot(sup, scorer, audit, min(pacer.sim_now(), t_end)), run.t0_gps_s,
+                                          run.duration_s, scn.ground_station.stale_after_s)
                 if not quiet:
                     _status(status_stream, tty, last_line)
             stop.wait(0.05)
@@ -317,7 +345,7 @@ def launch(scn, out: Path, *, quiet: bool = False, stop: threading.Event | None 
         report["launcher_cpu_s"] = cpu_now()  # this process: the embedded router, the log, the scorer
         report["shutdown"] = shutdown
         if sup is not None:
-            _fill_report(report, sup, scorer if bus is not None else None, bus, recorder)
+            _fill_report(report, sup, scorer if bus is not None else None, audit, recorder)
         (out / "report.json").write_text(json.dumps(strict(report), indent=1, allow_nan=False))
     return report
 
@@ -363,27 +391,23 @@ def _finish_warm_up(p, stop: threading.Event) -> None:
         p.wait()
 
 
-def _fill_report(report, sup, scorer, bus, recorder) -> None:
-    from collections import Counter
-
-    from sitl.live.status import _rejected_total
+def _fill_report(report, sup, scorer, audit, recorder) -> None:
+    from sitl.live.status import run_rejected
     workers = {}
-    rejected = Counter()
     sent = 0
     for c in sup.children.values():
         statuses = c.history + ([c.status] if c.status and c.status not in c.history else [])
         for st in statuses:
-            rejected.update(_rejected_total(st))
             sent += int(st.get("sent", 0))
         workers[c.name] = {"restarts": c.restarts, "exits": c.exits, "done": c.done, "last": c.status,
                            "stderr": str(c.stderr_path) if c.stderr_path else None, "bad_lines": c.bad_lines}
-    if bus is not None:
-        for reason, n in bus.stats.total.rejected.items():
-            rejected[f"launcher-bus:{reason}"] += int(n)
     report["workers"] = workers
     report["events"] = sup.events
     report["messages_sent"] = sent
-    report["rejected"] = dict(rejected)
+    report["rejected"] = dict(run_rejected(sup, audit))
+    report["bus_payloads"] = audit.as_dict()  # per key kind: accepted, rejected by reason (every key)
+    if scorer is not None and scorer.rejected:
+        report["scorer_rejected"] = scorer.rejected  # truths / estimates outside the scorer's time window
     report["restarts"] = int(sup.counters.get("restarts", 0))
     report["errors"] = scorer.summary() if scorer is not None else {}
     if scorer is not None:  # (t - t0, error) per target, at most ~600 points each
@@ -476,7 +500,10 @@ def replay(log_path, scn) -> dict:
     gn = importlib.import_module("ground_station.node")
     run_id = scn.run.id
     bus = InMemoryTransport(synchronous=True, start_t_gps_s=scn.run.t0_gps_s)
-    scorer = ErrorTracker(keep_s=1e9, t0_gps_s=scn.run.t0_gps_s)
+    clock = [-math.inf]  # the recorded clock: the current record's receive time
+    # keep_s: the live scorer's default; the truth table is pruned as live
+    scorer = ErrorTracker(t0_gps_s=scn.run.t0_gps_s, clock=lambda: clock[0],
+                          max_ahead_s=scn.ground_station.max_ahead_s)
     bus.subscribe(f"{run_id}/truth/**", scorer.on_truth)
     node = gn.GroundStationNode(bus, run_id, gn.GsConfig.from_scenario(scn))
     replayed = {}
@@ -491,6 +518,8 @@ def replay(log_path, scn) -> dict:
     for rec in read_bus_log_records(log_path, stats=stats):
         n += 1
         key, payload = rec.key, rec.payload
+        if rec.t_recv_s > clock[0]:
+            clock[0] = rec.t_recv_s
         try:
             msg = decode(payload)
         except BusDecodeError:
@@ -501,13 +530,14 @@ def replay(log_path, scn) -> dict:
             recorded[(key, round(msg.t_gps_s, 6))] = msg
             continue
         if key_matches(f"{run_id}/truth/**", key):
-            bus.publish_raw(key, payload, msg.t_gps_s)
+            bus.publish_raw(key, payload, clock[0])  # published at the record's time, never the payload's
             continue
         if not any(key_matches(e, key) for e in inputs):
             other += 1
             continue
-        node.advance(msg.t_gps_s - hold_sim - 1e-6, early_window_s=early_window)  # the live rule
-        bus.publish_raw(key, payload, msg.t_gps_s)
+        now = clock[0]  # the live rule, on the clock the live ground station had: taken in, then
+        bus.publish_raw(key, payload, now)  # every epoch complete or held long enough is processed
+        node.advance(now - hold_sim - 1e-6, early_window_s=early_window, now_s=now)
     node.flush()
     diffs = {}
     for (key, t), est in replayed.items():
@@ -527,7 +557,7 @@ def replay(log_path, scn) -> dict:
     out = {"mode": "replay", "log": str(log_path), "records": n, "undecodable": bad, "other_keys": other,
            "torn_tail": {"dropped_bytes": stats.dropped_bytes, "reason": stats.reason},
            "errors": scorer.summary(), "vs_live": cmp, "ground_station": node.stats(),
-           "bus_rejected": dict(bus.stats.total.rejected), "ok": True}
+           "bus_rejected": dict(bus.stats.total.rejected), "scorer_rejected": scorer.rejected, "ok": True}
     node.close()
     bus.close()
     return out
@@ -558,6 +588,9 @@ def replay_main(args) -> int:
         res = replay(log, scn)
     except BusLogError as e:
         raise _usage()(f"replay: {e}") from None
+    if res["records"] == 0:
+        raise _usage()(f"replay: {str(log)!r} holds no records"
+                       + (f" ({res['torn_tail']['reason']})" if res["torn_tail"]["reason"] else ""))
     lines = [f"replay of {log}: {res['records']} records ({res['undecodable']} undecodable)"]
     for name, e in sorted(res["errors"].items()):
         rm = e.get("rmse_m")

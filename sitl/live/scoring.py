@@ -1,7 +1,12 @@
 """Errors of the ground station's estimates against the truth, from the bus alone
 (subscribes to ``<run>/truth/**`` and ``<run>/gs/estimate/**``; nothing here feeds back).
 
-Thread-safe: the Zenoh transport calls the callbacks from its own threads."""
+Thread-safe: the Zenoh transport calls the callbacks from its own threads.
+
+A truth or estimate whose time lies outside the scorer's window about its own clock
+(``clock()``: the launcher's paced simulation clock, the batch bus's, the replay's recorded
+one) is refused and counted (``rejected``: "future" / "stale"), so it can neither be scored
+nor fill the truth table with far-future times (`sitl.bus.timeguard`)."""
 from __future__ import annotations
 
 import math
@@ -10,12 +15,17 @@ from collections import defaultdict
 
 import numpy as np
 
+from sitl.bus.timeguard import TimeGuard
+
 
 class ErrorTracker:
     """Position error of every Estimate against the Truth of the same target at the same time."""
 
-    def __init__(self, keep_s: float = 120.0, settle_s: float = 0.0, t0_gps_s: float | None = None):
+    def __init__(self, keep_s: float = 120.0, settle_s: float = 0.0, t0_gps_s: float | None = None, *,
+                 clock=None, max_ahead_s: float = 2.0):
         self.keep_s = keep_s
+        self.clock = clock  # the scorer's own clock (simulated s), or None: no time guard
+        self.guard = TimeGuard(ahead_s=max_ahead_s, behind_s=keep_s)
         self.settle_s = settle_s
         self.t0 = t0_gps_s
         self._truth: dict = defaultdict(dict)  # (kind, id) -> {t: pos}
@@ -26,6 +36,7 @@ class ErrorTracker:
         self.count: dict = defaultdict(int)
         self.estimates = defaultdict(int)
         self.series: dict = defaultdict(list)  # (kind, id) -> [(t, err)]
+        self.last_estimate_t: dict = {}  # (kind, id) -> time of the newest estimate received
 
     def subscribe(self, bus, run_id: str) -> list:
         return [bus.subscribe(f"{run_id}/truth/**", self.on_truth),
@@ -36,10 +47,19 @@ class ErrorTracker:
         parts = key.rsplit("/", 2)
         return parts[-2], parts[-1]
 
+    @property
+    def rejected(self) -> dict:
+        return dict(self.guard.rejected)
+
+    def _admit(self, msg) -> bool:
+        return self.clock is None or self.guard.admit(float(msg.t_gps_s), self.clock())
+
     def on_truth(self, key, msg) -> None:
         tgt = self._target(key)
         t = round(float(msg.t_gps_s), 6)
         with self._lock:
+            if not self._admit(msg):
+                return
             d = self._truth[tgt]
             d[t] = np.array(msg.pos_ecef_m)
             est = self._pending[tgt].pop(t, None)
@@ -57,7 +77,11 @@ class ErrorTracker:
         tgt = self._target(key)
         t = round(float(msg.t_gps_s), 6)
         with self._lock:
+            if not self._admit(msg):
+                return
             self.estimates[tgt] += 1
+            if not self.last_estimate_t.get(tgt, -math.inf) >= t:
+                self.last_estimate_t[tgt] = t
             tr = self._truth[tgt].get(t)
             if tr is None:
                 self._pending[tgt][t] = np.array(msg.pos_ecef_m)

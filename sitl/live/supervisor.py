@@ -107,8 +107,10 @@ class Supervisor:
         c.stderr_path = self.log_dir / f"{c.name}.stderr.log"
         err = open(c.stderr_path, "ab")
         try:
+            # the worker's incarnation (sitl.live.worker.worker_incarnation): its restart count
+            env = {**self.env, "SKYFUSE_INCARNATION": str(c.restarts)}
             c.proc = subprocess.Popen(c.argv, stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=err,
-                                      start_new_session=True, env=self.env, text=True, bufsize=1,
+                                      start_new_session=True, env=env, text=True, bufsize=1,
                                       close_fds=True)
         finally:
             err.close()

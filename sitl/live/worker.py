@@ -38,6 +38,7 @@ class WorkerRuntime:
         self.spec = WorkerSpec.read(spec_path)
         self.scenario = self.spec.scenario_obj()
         self.name = self.spec.name
+        self.incarnation = worker_incarnation()
         self.stop = threading.Event()
         self.out = out if out is not None else sys.stdout
         self._stdin = stdin if stdin is not None else sys.stdin
@@ -128,6 +129,21 @@ class WorkerRuntime:
             self._last_status = now
             return True
         return False
+
+
+INCARNATION_ENV = "SKYFUSE_INCARNATION"
+
+
+def worker_incarnation() -> int:
+    """This worker process's incarnation: ``$SKYFUSE_INCARNATION`` (the supervisor sets it to
+    the worker's restart count: 0, 1, 2, ...), else the start time in microseconds since the
+    Unix epoch (a worker started by hand: unique per start, and a later start is larger)."""
+    import os
+    import time
+    v = os.environ.get(INCARNATION_ENV, "")
+    if v.isdigit() and int(v) < 2**63:
+        return int(v)
+    return time.time_ns() // 1000
 
 
 def _jsonable(v):
