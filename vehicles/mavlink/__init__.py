@@ -5,7 +5,8 @@
                          params=ParamStore(uav_param_specs(mission, nav, i)), on_mission=cb,
                          signing_key=None, tlog="uav1.tlog")
     ep.step(t_gps_s, VehicleTelemetry(lat_rad=..., lon_rad=..., alt_msl_m=..., vel_ned_m_s=(vn, ve, vd), ...))
-    ep.counters        # rejected inputs by reason (REJECT_REASONS) and traffic counts
+    ep.counters        # rejected frames / requests by reason (REJECT_REASONS) and traffic counts
+    ep.datagrams       # one verdict per datagram: accepted, rejected {reason: n}, kernel_dropped
     ep.close()
 
 Modules: telemetry (SI -> MAVLink units), params (the parameter store), mission (the mission
@@ -47,8 +48,10 @@ GCS listens on udp 14550.  Here instance N listens on udp 5760 + 10 N with sysid
 from .endpoint import (
     BASE_PORT,
     CAPABILITIES,
+    DATAGRAM_REJECT_REASONS,
     DEFAULT_GCS,
     DEFAULT_STREAM_RATES_HZ,
+    FUTURE_WINDOW_S,
     KINDS,
     REJECT_REASONS,
     TRAFFIC_COUNTERS,
@@ -56,7 +59,7 @@ from .endpoint import (
     VehicleEndpoint,
     listen_port,
 )
-from .framing import TlogWriter, load_signing_key, split_datagram
+from .framing import SigningStateFile, TlogWriter, frame_datagram, load_signing_key, split_datagram
 from .mission import MissionServer
 from .params import ParamError, ParamSpec, ParamStore, apply_uav_params, sonde_param_specs, uav_param_specs
 from .telemetry import VehicleTelemetry, gps_from_unix_s, unix_s_from_gps
@@ -64,8 +67,10 @@ from .telemetry import VehicleTelemetry, gps_from_unix_s, unix_s_from_gps
 __all__ = [
     "BASE_PORT",
     "CAPABILITIES",
+    "DATAGRAM_REJECT_REASONS",
     "DEFAULT_GCS",
     "DEFAULT_STREAM_RATES_HZ",
+    "FUTURE_WINDOW_S",
     "KINDS",
     "REJECT_REASONS",
     "TRAFFIC_COUNTERS",
@@ -74,10 +79,12 @@ __all__ = [
     "ParamError",
     "ParamSpec",
     "ParamStore",
+    "SigningStateFile",
     "TlogWriter",
     "VehicleEndpoint",
     "VehicleTelemetry",
     "apply_uav_params",
+    "frame_datagram",
     "gps_from_unix_s",
     "listen_port",
     "load_signing_key",

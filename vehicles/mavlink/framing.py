@@ -8,16 +8,29 @@ signature when incompat flag 0x01 is set), a MAVLink 1 frame with 0xFE (6-byte h
 payload, CRC).  Bytes that are not a frame start are skipped up to the next start byte and
 counted once per run as ``garbage``; a frame that runs past the datagram's end is
 ``truncated``.  The CRC (with the message's CRC_EXTRA) is checked later, by pymavlink's
-decode, on each frame.
+decode, on each frame.  :func:`frame_datagram` gives frames and rejects in datagram order
+(the endpoint's one verdict per datagram is its first failure).
 
 Signing (mavlink.io "Message Signing"): signature = first 6 bytes of
 SHA-256(secret_key + frame[:-6]) (the frame up to and including link id and the 48-bit
 timestamp in units of 10 us since 2015-01-01).  :class:`SignatureChecker` verifies the
 signature BEFORE it records the stream's timestamp, so that a forged frame cannot move a
 stream's timestamp forward and lock out the real sender (pymavlink 2.4's check_signature
-records it first); a stream (link id, sysid, compid) must then rise strictly
-(``replayed`` otherwise), and a new stream is accepted if its timestamp is at most one
-minute behind ours.
+records it first); a frame more than the future window ahead of our own clock is
+``future`` (checked before anything is recorded: it neither moves a stream nor our clock); a
+stream (link id, sysid, compid) must then rise strictly (``replayed`` otherwise), a new
+stream is accepted if its timestamp is at most one minute behind ours, and no stream at all
+at or below the checker's ``floor`` (the bound restored after a restart, see
+:class:`SigningStateFile`).
+
+Signing state across restarts (:class:`SigningStateFile`, ``OUT/mav_signing_<sysid>.json``):
+mavlink.io "Timestamp Handling" asks that the timestamp be stored in persistent storage
+(ideally at least once a minute) and that the timestamp used at start-up be the maximum of
+the system clock's and the stored one.  The file holds our last timestamp, the per-stream
+timestamps seen, and ``reserved``: a bound written BEFORE any timestamp above it is sent or
+accepted (the endpoint renews it a few seconds ahead), so that after a crash between two
+saves every frame accepted before it is still at or below ``reserved``.  At start the
+endpoint sends from above ``reserved`` and makes ``reserved`` the floor of every stream.
 
 Key files (:func:`load_signing_key`): 32 raw bytes, or 64 hex characters, or else a
 passphrase whose SHA-256 is the key (what MAVProxy's ``signing setup PASSPHRASE`` uses).
@@ -42,6 +55,9 @@ SIGNATURE_LEN = 13
 IFLAG_SIGNED = 0x01
 #: a new stream's timestamp may lag ours by at most one minute (10 us units)
 NEW_STREAM_MAX_LAG = 60 * 100_000
+#: signing timestamps: 10 us units (100,000 per second)
+SIGNING_TICKS_PER_S = 100_000
+SIGNING_STATE_FORMAT = "skyfuse.mavlink.signing/1"
 
 _TLOG_TIME = struct.Struct(">Q")
 
@@ -61,46 +77,52 @@ class Frame(NamedTuple):
         return bool(self.incompat_flags & IFLAG_SIGNED)
 
 
-def split_datagram(data: bytes) -> tuple[list[Frame], list[str]]:
-    """Frames found in a datagram and the reasons of what was rejected on the way.
+def frame_datagram(data: bytes) -> list:
+    """What a datagram holds, in order: each item a :class:`Frame` or a reject reason (str).
 
     Never raises on any bytes. Reasons: 'garbage' (one per run of non-frame bytes),
     'truncated' (a frame running past the end: the rest of the datagram).
     """
-    frames: list[Frame] = []
-    rejects: list[str] = []
+    items: list = []
     n = len(data)
     i = 0
     while i < n:
         b = data[i]
         if b == STX_V2:
             if n - i < HEADER_LEN_V2 + CRC_LEN:
-                rejects.append("truncated")
+                items.append("truncated")
                 break
             plen, flags = data[i + 1], data[i + 2]
             total = HEADER_LEN_V2 + plen + CRC_LEN + (SIGNATURE_LEN if flags & IFLAG_SIGNED else 0)
             if n - i < total:
-                rejects.append("truncated")
+                items.append("truncated")
                 break
             msgid = data[i + 7] | (data[i + 8] << 8) | (data[i + 9] << 16)
-            frames.append(Frame(bytes(data[i:i + total]), 2, flags, msgid, data[i + 5], data[i + 6]))
+            items.append(Frame(bytes(data[i:i + total]), 2, flags, msgid, data[i + 5], data[i + 6]))
             i += total
         elif b == STX_V1:
             if n - i < HEADER_LEN_V1 + CRC_LEN:
-                rejects.append("truncated")
+                items.append("truncated")
                 break
             total = HEADER_LEN_V1 + data[i + 1] + CRC_LEN
             if n - i < total:
-                rejects.append("truncated")
+                items.append("truncated")
                 break
-            frames.append(Frame(bytes(data[i:i + total]), 1, 0, data[i + 5], data[i + 3], data[i + 4]))
+            items.append(Frame(bytes(data[i:i + total]), 1, 0, data[i + 5], data[i + 3], data[i + 4]))
             i += total
         else:
             j2, j1 = data.find(b"\xfd", i + 1), data.find(b"\xfe", i + 1)
             nxt = min(j for j in (j2, j1, n) if j >= 0)
-            rejects.append("garbage")
+            items.append("garbage")
             i = nxt
-    return frames, rejects
+    return items
+
+
+def split_datagram(data: bytes) -> tuple[list[Frame], list[str]]:
+    """Frames found in a datagram and the reasons of what was rejected on the way
+    (:func:`frame_datagram` split in two lists). Never raises on any bytes."""
+    items = frame_datagram(data)
+    return [x for x in items if not isinstance(x, str)], [x for x in items if isinstance(x, str)]
 
 
 def signature_ok(buf: bytes, key: bytes) -> bool:
@@ -114,7 +136,11 @@ def signature_timestamp(buf: bytes) -> int:
 
 
 class SignatureChecker:
-    """Accept/reject incoming frames when signing is on (see the module docstring)."""
+    """Accept/reject incoming frames when signing is on (see the module docstring).
+
+    ``floor``: no timestamp at or below it is accepted on any stream (0: none; set from the
+    persisted ``reserved`` bound after a restart).  ``streams``: {(link id, sysid, compid):
+    last accepted timestamp}."""
 
     def __init__(self, key: bytes):
         if not isinstance(key, (bytes, bytearray)) or len(key) != 32:
@@ -122,15 +148,33 @@ class SignatureChecker:
                              f"{len(key) if hasattr(key, '__len__') else '?'}")
         self.key = bytes(key)
         self._streams: dict[tuple[int, int, int], int] = {}
+        self.floor = 0
 
-    def check(self, frame: Frame, our_timestamp: int) -> str | None:
-        """None if accepted, else the reject reason ('unsigned', 'bad_signature', 'replayed')."""
+    @property
+    def streams(self) -> dict[tuple[int, int, int], int]:
+        return dict(self._streams)
+
+    def restore(self, streams: dict, floor: int = 0) -> None:
+        """Take back the streams' timestamps and the floor saved before a restart (never lowers
+        what is already known)."""
+        for k, ts in streams.items():
+            k = tuple(int(v) for v in k)
+            self._streams[k] = max(int(ts), self._streams.get(k, 0))
+        self.floor = max(self.floor, int(floor))
+
+    def check(self, frame: Frame, our_timestamp: int, future_limit: int | None = None) -> str | None:
+        """None if accepted, else the reject reason ('unsigned', 'bad_signature', 'future',
+        'replayed'). future_limit: the largest timestamp accepted (None: no limit)."""
         if frame.version != 2 or not frame.signed:
             return "unsigned"
         buf = frame.buf
         if not signature_ok(buf, self.key):
             return "bad_signature"
         ts = signature_timestamp(buf)
+        if future_limit is not None and ts > future_limit:
+            return "future"
+        if ts <= self.floor:
+            return "replayed"
         stream = (buf[-13], frame.sysid, frame.compid)
         last = self._streams.get(stream)
         if last is not None:
@@ -140,6 +184,54 @@ class SignatureChecker:
             return "replayed"
         self._streams[stream] = ts
         return None
+
+
+class SigningStateFile:
+    """One endpoint's signing state on disk (JSON), written atomically (a temporary file in the
+    same directory, then ``os.replace``: a reader, or a restart after a crash, sees the old
+    file or the new one, never a mix; no fsync -- it survives the process, not a power cut)::
+
+        {"format": "skyfuse.mavlink.signing/1", "sysid": 1,
+         "timestamp": T,        # our signing timestamp at the save (10 us since 2015-01-01)
+         "reserved": B,         # nothing above B was sent or accepted before the next save
+         "streams": [[link_id, sysid, compid, last_timestamp], ...]}
+    """
+
+    def __init__(self, path: str | os.PathLike, sysid: int):
+        self.path = os.fspath(path)
+        self.sysid = int(sysid)
+
+    def load(self) -> dict | None:
+        """{"timestamp", "reserved", "streams": {(l, s, c): ts}} or None if there is no file;
+        ValueError if it cannot be read or is not a state of this system id."""
+        import json
+        try:
+            with open(self.path, encoding="utf-8") as f:
+                d = json.load(f)
+        except FileNotFoundError:
+            return None
+        except (OSError, ValueError) as e:
+            raise ValueError(f"signing state {self.path!r} unreadable: {e}") from None
+        try:
+            if d.get("format") != SIGNING_STATE_FORMAT or int(d["sysid"]) != self.sysid:
+                raise ValueError("not a signing state of this system id")
+            out = {"timestamp": int(d["timestamp"]), "reserved": int(d["reserved"]),
+                   "streams": {(int(a), int(b), int(c)): int(t) for a, b, c, t in d["streams"]}}
+        except (KeyError, TypeError, ValueError, AttributeError) as e:
+            raise ValueError(f"signing state {self.path!r} invalid: {e}") from None
+        if not all(0 <= v < 1 << 48 for v in (out["timestamp"], out["reserved"], *out["streams"].values())):
+            raise ValueError(f"signing state {self.path!r} invalid: a timestamp outside 48 bits")
+        return out
+
+    def save(self, timestamp: int, reserved: int, streams: dict) -> None:
+        """Write the state atomically (OSError if the directory cannot be written)."""
+        import json
+        d = {"format": SIGNING_STATE_FORMAT, "sysid": self.sysid, "timestamp": int(timestamp),
+             "reserved": int(reserved), "streams": [[*k, int(t)] for k, t in sorted(streams.items())]}
+        tmp = f"{self.path}.tmp"
+        with open(tmp, "w", encoding="utf-8") as f:
+            json.dump(d, f, separators=(",", ":"))
+        os.replace(tmp, self.path)
 
 
 def load_signing_key(path: str | os.PathLike) -> bytes:
