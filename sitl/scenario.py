@@ -17,14 +17,29 @@ Layout of a scenario (every key optional; the defaults are those of `DEFAULT_SCE
     [mavlink]      enabled, gcs ("HOST:PORT"), base_port (vehicle i listens on base_port + 10 i),
                    signing_key_file, tlog
     [uavs]         count, per_process, center (lat deg, lon deg), radius_m, alt_m, alt_step_m, speed_m_s, nav_rate_hz,
-                   starts (optional list of [lat deg, lon deg, h m], one per UAV)
-    [beacon]       id, mode (seed | legs | static), start ([lat deg, lon deg, h m])
+                   starts (optional list of [lat deg, lon deg, h m], one per UAV; default: a ring of
+                   radius_m about center at heights alt_m + 0 / 1 / 2 x alt_step_m in turn),
+                   pattern: how they fly from there at speed_m_s --
+                     "orbit" (default): level clockwise circles about center, each through its start
+                       (radius its distance from center; at least speed_m_s / 3 deg/s), held by
+                       guidance, for ever (vehicles.uav.Racetrack);
+                     "north": the seed 002 sinusoidal law heading north (speed_m_s +- 10 m/s, climb
+                       15 cos(0.01 t) m/s): the formation leaves the area at ~100 m/s
+    [beacon]       id, start ([lat deg, lon deg, h m]: where it is at the run's start),
+                   mode: "racetrack" (default: a clockwise holding pattern at 115 m/s, 200 s legs north
+                     and south, 180 deg turns at 1.5 deg/s, first leg north from start, centre 11.5 km
+                     north and 4.39 km east of start), "legs" (8 straight 200 s legs and 90 deg turns
+                     at 1.5 deg/s, alternately right and left, first north, then straight on east),
+                     "seed" (seed 002's geodetic law: north at 115 +- 10 m/s) or "static"
+                   (vehicles/beacon.py)
     [sonde]        enabled, id, radar_id, launch ([lat deg, lon deg, h m]), gcpp_offset_m,
                    gcpp_bearing_deg, radar_loss_s ([start, end] after launch), gnss_outage_s
     [ground_station] hold_wall_s (the longest the GS waits for an epoch's messages after
                    its time, wall seconds; it goes on as soon as every source has delivered it), beacon_init_epochs, integrity (the sonde tracker's
                    integrity monitor; its events go out as STATUSTEXT too), lag_window_s (late measurements this
-                   old are re-processed), stale_after_s (a silent link is flagged stale), link_stats_every_s
+                   old are re-processed), stale_after_s (a silent link is flagged stale), link_stats_every_s,
+                   max_ahead_s (an input further ahead of the GS's clock than this is refused as
+                   "future"; one older than the hold plus the lag window as "stale")
     [faults]       network faults, a table LINK = "SPEC" (sitl.netfault's netem-like text), e.g.
                    "mav:1" = "loss=10% delay=100ms~20ms"    (MAVLink of system id 1, both ways;
                                                               "mav:1:up" vehicle->GCS, "mav:1:down")
@@ -49,11 +64,16 @@ from sitl.gnss.orbits import DEFAULT_TOA_GPS_S
 
 DEFAULT_T0_GPS_S = DEFAULT_TOA_GPS_S + 3600.0
 SPEC_VERSION = 1
+UAV_PATTERNS = ("orbit", "north")  # [uavs].pattern (module docstring; vehicles/process.py flies them)
+BEACON_MODES = ("seed", "legs", "static", "racetrack")  # [beacon].mode (vehicles/beacon.py)
+# "orbit": the UAVs' guidance turns at most this fast (vehicles.uav.Racetrack's max_turn_rate_rad_s)
+ORBIT_MAX_TURN_RATE_RAD_S = math.radians(3.0)
 MAX_MAVLINK_VEHICLES = 249  # system ids 1..249: 250 is the ground station's (ADSB / STATUSTEXT), 255 the GCS's
 
 DEFAULT_SCENARIO_TOML = """\
-# skyfuse built-in default scenario: 3 UAVs around a moving radio beacon, one radiosonde
-# tracked by its relayed GNSS and an aerological radar.
+# skyfuse built-in default scenario: 3 UAVs orbiting (15 km, clockwise) the area where a moving
+# radio beacon flies its racetrack (centred on theirs), one radiosonde tracked by its relayed GNSS
+# and an aerological radar.
 [run]
 id = "demo"
 seed = 1
@@ -82,11 +102,12 @@ alt_m = 2000.0
 alt_step_m = 2000.0
 speed_m_s = 100.0
 nav_rate_hz = 1.0
+pattern = "orbit"
 
 [beacon]
 id = "b1"
-mode = "legs"
-start = [45.15, 30.15, 300.0]
+mode = "racetrack"
+start = [45.0466, 30.094, 300.0]
 
 [sonde]
 enabled = true
@@ -104,6 +125,7 @@ integrity = false
 lag_window_s = 5.0
 stale_after_s = 3.0
 link_stats_every_s = 10.0
+max_ahead_s = 2.0
 """
 
 
@@ -247,6 +269,7 @@ class UavSection:
     speed_m_s: float = 100.0
     nav_rate_hz: float = 1.0  # UavNav messages per simulated second (beacon measurements carry the nav anyway)
     starts: tuple = ()  # ((lat deg, lon deg, h m), ...) or () for a ring about center
+    pattern: str = "orbit"  # UAV_PATTERNS: "orbit" (circles about center) or "north" (seed 002 law)
 
     def start_points(self) -> list[tuple]:
         """(lat deg, lon deg, h m) of every UAV: ``starts``, or a ring of radius_m about center
@@ -268,8 +291,8 @@ class UavSection:
 @dataclass(frozen=True)
 class BeaconSection:
     id: str = "b1"
-    mode: str = "legs"
-    start: tuple = (45.15, 30.15, 300.0)
+    mode: str = "racetrack"
+    start: tuple = (45.0466, 30.094, 300.0)
 
 
 @dataclass(frozen=True)
@@ -292,6 +315,9 @@ class GroundStationSection:
     lag_window_s: float = 5.0  # late (out-of-sequence) measurements this old are re-processed (0: dropped)
     stale_after_s: float = 3.0  # a source silent this long (simulated s) is flagged stale
     link_stats_every_s: float = 10.0  # LinkStats of every link this often (and on stale / back)
+    # the time guard: an input more than this ahead of the GS's clock is refused ("future"); one
+    # older than hold_wall_s x speed + lag_window_s behind it is refused ("stale")
+    max_ahead_s: float = 2.0
 
 
 def _fault_link(key: str, link) -> str:
@@ -450,10 +476,11 @@ _SECTIONS: dict[str, tuple[type, dict]] = {
         "speed_m_s": lambda k, v: _number(k, v, lo=0, hi=2000),
         "nav_rate_hz": lambda k, v: _number(k, v, lo=0, lo_open=True, hi=100),
         "starts": lambda k, v: tuple(_geo(f"{k}[{i}]", s) for i, s in enumerate(_list(k, v))),
+        "pattern": lambda k, v: _str(k, v, choices=UAV_PATTERNS),
     }),
     "beacon": (BeaconSection, {
         "id": lambda k, v: _str(k, v, ident=True),
-        "mode": lambda k, v: _str(k, v, choices=("seed", "legs", "static")),
+        "mode": lambda k, v: _str(k, v, choices=BEACON_MODES),
         "start": _geo,
     }),
     "sonde": (SondeSection, {
@@ -473,6 +500,7 @@ _SECTIONS: dict[str, tuple[type, dict]] = {
         "lag_window_s": lambda k, v: _number(k, v, lo=0, hi=600),
         "stale_after_s": lambda k, v: _number(k, v, lo=0, lo_open=True, hi=3600),
         "link_stats_every_s": lambda k, v: _number(k, v, lo=0, lo_open=True, hi=3600),
+        "max_ahead_s": lambda k, v: _number(k, v, lo=0, hi=3600),
     }),
 }
 
@@ -545,11 +573,32 @@ def run_keys(scn: Scenario) -> list[str]:
     return keys
 
 
+def _ground_distance_m(a, b) -> float:
+    """Great-circle distance between (lat deg, lon deg) a and b on the 6371 km sphere, m."""
+    la1, lo1, la2, lo2 = (math.radians(v) for v in (a[0], a[1], b[0], b[1]))
+    h = math.sin(0.5 * (la2 - la1)) ** 2 + math.cos(la1) * math.cos(la2) * math.sin(0.5 * (lo2 - lo1)) ** 2
+    return 2.0 * 6_371_000.0 * math.asin(min(1.0, math.sqrt(h)))
+
+
 def _cross_checks(scn: Scenario) -> None:
     u = scn.uavs
     if u.starts and len(u.starts) != u.count:
         raise ScenarioError(f"scenario: uavs.starts: expected one start per UAV (uavs.count = {u.count}), "
                             f"got {len(u.starts)}")
+    if u.count and u.pattern == "orbit" and not u.speed_m_s > 0:
+        raise ScenarioError(f"scenario: uavs.speed_m_s: expected > 0 with uavs.pattern = \"orbit\", "
+                            f"got {u.speed_m_s:g}")
+    if u.count and u.pattern == "orbit":
+        # each UAV's circle: its start's distance from center (sphere: the guidance measures it on the
+        # ellipsoid, within 0.5 %), at least the tightest turn at speed_m_s (5 % margin)
+        r_min = 1.05 * u.speed_m_s / ORBIT_MAX_TURN_RATE_RAD_S
+        for i, (lat, lon, *_) in enumerate(u.start_points()):
+            r = _ground_distance_m(u.center, (lat, lon))
+            if not r >= max(r_min, 1.0):
+                key = f"uavs.starts[{i}]" if u.starts else "uavs.radius_m"
+                raise ScenarioError(f"scenario: {key}: expected a start at least {max(r_min, 1.0):.0f} m from "
+                                    f"uavs.center with uavs.pattern = \"orbit\" (a circle about center at "
+                                    f"speed_m_s), got {r:.0f} m")
     if u.count and u.count < 3:
         raise ScenarioError(f"scenario: uavs.count: expected 0 or >= 3 (the beacon locator needs 3 UAVs), "
                             f"got {u.count}")

@@ -13,6 +13,12 @@ Modes (see vehicles/uav.py for how the seed's laws are read):
   15 cos(0.01 t) (:func:`seed002_beacon_law`), a :class:`vehicles.uav.KinematicSwarm`.
 * ``mode="legs"`` -- straight legs and constant-rate turns at 115 m/s
   (:func:`legs_and_turns`), level flight, first leg north.
+* ``mode="racetrack"`` -- a holding pattern at 115 m/s (:func:`racetrack`): straight legs of
+  200 s north and south joined by 180 deg right turns at 1.5 deg/s (radius 4.39 km), level,
+  first leg north from the start: a 23 km x 8.8 km loop (period 2 x (200 + 120) = 640 s) whose
+  centre is 11.5 km north and 4.39 km east of the start, flown for ever (held by guidance,
+  vehicles.uav.Racetrack; the live default scenario's beacon: it stays within reach of a
+  formation orbiting that area).
 * ``mode="static"`` -- a beacon that does not move (:class:`vehicles.uav.Hold`).
 """
 from __future__ import annotations
@@ -20,6 +26,8 @@ from __future__ import annotations
 import math
 
 import numpy as np
+
+from sitl.constants import ellipsoid
 
 from vehicles.uav import (
     SEED002_PRINTED_COEFFS,
@@ -29,19 +37,21 @@ from vehicles.uav import (
     LegsAndTurns,
     PrintedLaw,
     PrintedSwarm,
+    Racetrack,
     SinusoidalLaw,
     paper_to_ecef,
 )
 
 __all__ = ["SEED002_BEACON_START", "SEED002_BEACON_SPEED_M_S", "BeaconSwarm", "seed002_beacon_law",
-           "seed002_printed_beacon_law", "seed002_printed_beacon", "legs_and_turns", "seed002_beacon"]
+           "seed002_printed_beacon_law", "seed002_printed_beacon", "legs_and_turns", "racetrack", "seed002_beacon"]
 
 #: Seed 002 beacon start, geodetic reading: (lat deg, lon deg, h m) (OCR: longitude 31, latitude 47.3).
 SEED002_BEACON_START = (47.3, 31.0, 3200.0)
 #: Mean speed v0 of the printed V_eta_p law, m/s.
 SEED002_BEACON_SPEED_M_S = 115.0
 
-_MODES = ("printed", "seed", "legs", "static")
+_MODES = ("printed", "seed", "legs", "racetrack", "static")
+_WGS84 = ellipsoid(None)
 
 
 class BeaconSwarm(KinematicSwarm):
@@ -95,6 +105,28 @@ def legs_and_turns(heading0_rad, speed_m_s: float = 115.0, leg_s: float = 200.0,
     return LegsAndTurns(speed_m_s, heading0_rad, np.array(switches), np.array(rates))
 
 
+def racetrack(start, heading0_rad: float = 0.0, speed_m_s: float = SEED002_BEACON_SPEED_M_S, leg_s: float = 200.0,
+              turn_rate_rad_s: float = math.radians(1.5)) -> Racetrack:
+    """A clockwise holding pattern (:class:`vehicles.uav.Racetrack`) entered at ``start`` (lat
+    deg, lon deg, h m) at the beginning of its first leg, heading heading0_rad: legs of leg_s
+    seconds, turns of radius speed / turn_rate_rad_s (the legs' axis through the pattern's
+    centre, turn radius either side of it), flown again and again, held by guidance (no drift:
+    see Racetrack).  The centre is a half leg along heading0 and a turn radius to its right of
+    the start (in the guidance's own local flat metres, so the start lies on the pattern)."""
+    for name, v in (("speed_m_s", speed_m_s), ("leg_s", leg_s), ("turn_rate_rad_s", turn_rate_rad_s)):
+        if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
+            raise ValueError(f"{name} must be a finite number > 0, got {v!r}")
+    lat, lon = math.radians(start[0]), math.radians(start[1])
+    r, half = speed_m_s / turn_rate_rad_s, 0.5 * leg_s * speed_m_s
+    sa, ca = math.sin(heading0_rad), math.cos(heading0_rad)
+    d_e, d_n = half * sa + r * ca, half * ca - r * sa  # the centre from the start: L u + r n
+    w2 = 1.0 - _WGS84.e2 * math.sin(lat) ** 2
+    n_rad = _WGS84.a_m / math.sqrt(w2)
+    m_rad = n_rad * (1.0 - _WGS84.e2) / w2
+    return Racetrack(lat + d_n / m_rad, lon + d_e / (n_rad * math.cos(lat)), r, speed_m_s, axis_rad=heading0_rad,
+                     half_length_m=half, max_turn_rate_rad_s=2.0 * turn_rate_rad_s)
+
+
 def seed002_beacon(mode: str = "seed", dt_s: float = 0.01, t0_s: float = 0.0, start=SEED002_BEACON_START):
     """The seed 002 beacon (batch shape ()) in the given mode, RK4 step dt_s.  ``start`` is the
     geodetic start of the geodetic modes; "printed" starts at the printed point (batch (1,))."""
@@ -107,6 +139,8 @@ def seed002_beacon(mode: str = "seed", dt_s: float = 0.01, t0_s: float = 0.0, st
         law = seed002_beacon_law()
     elif mode == "legs":
         law = legs_and_turns(0.0)
+    elif mode == "racetrack":
+        law = racetrack(start)
     else:
         law = Hold(())
     return BeaconSwarm(law, lat, lon, h, t0_s=t0_s, dt_s=dt_s)

@@ -27,6 +27,9 @@ Guidance laws
 * :class:`WaypointMission` -- fly a list of geodetic waypoints at a commanded speed with a
   bounded turn rate and climb rate (the mode a MAVLink mission upload drives).
 * :class:`LegsAndTurns` -- straight legs and constant-rate turns on a time schedule.
+* :class:`Racetrack` -- a clockwise holding pattern about a fixed centre held by guidance (an
+  autopilot's loiter mode): a racetrack, or a circle (:meth:`Racetrack.orbit_through`: each
+  vehicle's circle through its start point).
 * :class:`Hold` -- a static vehicle (speed 0).
 * :class:`PrintedLaw` -- the seed's velocity laws as printed, an ODE of the ECEF position
   itself (state [x, y, z], no geodetic state), integrated by :func:`propagate_printed`
@@ -94,6 +97,7 @@ __all__ = [
     "SinusoidalLaw",
     "WaypointMission",
     "LegsAndTurns",
+    "Racetrack",
     "Hold",
     "KinematicState",
     "VehicleTruth",
@@ -184,7 +188,7 @@ def eta_axis_heading_rad(lat_rad, lon_rad):
 # --------------------------------------------------------------------------- guidance laws
 
 # Law codes and the per-vehicle parameter row of the compiled integrator (_integrate_nb).
-_LAW_SINUSOID, _LAW_LEGS, _LAW_HOLD, _LAW_WAYPOINTS = 0, 1, 2, 3
+_LAW_SINUSOID, _LAW_LEGS, _LAW_HOLD, _LAW_WAYPOINTS, _LAW_RACETRACK = 0, 1, 2, 3, 4
 _N_PARAMS = 11
 
 
@@ -325,6 +329,134 @@ class LegsAndTurns:
         p[:, 0] = np.ravel(self.speed_m_s)
         return _LAW_LEGS, p, {"switch_times_s": self.switch_times_s,
                               "turn_rates_rad_s": self.turn_rates_rad_s.reshape(-1, self.switch_times_s.size + 1)}
+
+
+@dataclass(frozen=True, eq=False)
+class Racetrack:
+    """A holding pattern flown clockwise at constant speed, level: a racetrack (stadium) about a
+    fixed centre -- two straight legs of length 2 half_length_m parallel to the axis (heading
+    axis_rad), radius_m either side of it, joined by half circles of radius_m about the axis'
+    ends -- or with half_length_m = 0 a circle of radius_m about the centre (an orbit).  Held by
+    guidance (what an autopilot's loiter / racetrack mode does), evaluated at every RK4 stage:
+
+        (d_e, d_n): the centre's offset from the vehicle, local flat metres (as WaypointMission's)
+        s = -(d_e sin a + d_n cos a), c = -(d_e cos a - d_n sin a)   (vehicle along / right of the axis a)
+        |s| > L: about the near end's centre g = (d_e, d_n) + sign(s) L (sin a, cos a), d = |g|:
+            psi_ref = atan2(g_e, g_n) - pi/2 + atan(radial_gain (d - r) / r),   feed-forward v / r
+        |s| <= L, c < 0 (the leg along a):   psi_ref = a - atan(radial_gain (c + r) / r),   feed-forward 0
+        |s| <= L, c >= 0 (the leg back):     psi_ref = a + pi - atan(radial_gain (r - c) / r)
+        psi' = clip(feed-forward + turn_gain wrap(psi_ref - psi), -max_turn_rate, +max_turn_rate),
+        v_u = 0, v = speed_m_s.
+
+    On the pattern (heading along it) that is the feed-forward alone: straight legs, turns at
+    v / r.  Off it the heading is tilted towards it; linearised on a circle the radial error e
+    obeys e'' + turn_gain e' + (v^2 / r^2 + turn_gain radial_gain v / r) e = 0 (stable; at the
+    defaults and v / r = 100 m/s / 15 km, time constants ~11 s and ~130 s).  Why guidance and not
+    constant turns on a schedule (LegsAndTurns): the heading is relative to local north, and
+    along an east-west displacement north itself turns by sin(lat) dlon, so a constant heading
+    rate is not a constant geodesic curvature, and the error comes back every loop: a constant
+    turn's circle walks ~pi r^2 tan(lat) / R_E per loop (measured: ~110 m per loop at r = 15 km,
+    lat 45 deg, ~2.5 km in 6 h), the scheduled racetrack of the same size as the default
+    beacon's ~41 m per loop (~1.4 km in 6 h).  Here both stay on the pattern (measured: within
+    ~20 m of the nominal circle over 6 h).
+
+    center_lat_rad, center_lon_rad, radius_m, speed_m_s, axis_rad, half_length_m broadcast to
+    the batch shape.
+    """
+
+    center_lat_rad: Any
+    center_lon_rad: Any
+    radius_m: Any
+    speed_m_s: Any
+    axis_rad: Any = 0.0
+    half_length_m: Any = 0.0
+    max_turn_rate_rad_s: Any = math.radians(3.0)
+    turn_gain_1_s: float = 0.1
+    radial_gain: float = 1.0
+    batch_shape: tuple = field(init=False)
+
+    _FIELDS = ("center_lat_rad", "center_lon_rad", "radius_m", "speed_m_s", "axis_rad", "half_length_m",
+               "max_turn_rate_rad_s")
+
+    def __post_init__(self):
+        shape = _broadcast_fields(self, self._FIELDS)
+        object.__setattr__(self, "batch_shape", shape)
+        if np.any(np.abs(self.center_lat_rad) >= np.pi / 2):
+            raise ValueError(f"center_lat_rad must lie in (-pi/2, pi/2) rad (degrees passed?), got "
+                             f"{self.center_lat_rad!r}")
+        for name in ("radius_m", "speed_m_s", "max_turn_rate_rad_s"):
+            if np.any(getattr(self, name) <= 0):
+                raise ValueError(f"{name} must be > 0, got {getattr(self, name)!r}")
+        if np.any(self.half_length_m < 0):
+            raise ValueError(f"half_length_m must be >= 0, got {self.half_length_m!r}")
+        if np.any(self.speed_m_s / self.radius_m > self.max_turn_rate_rad_s):
+            raise ValueError(f"radius_m must be >= speed_m_s / max_turn_rate_rad_s (the tightest turn the "
+                             f"turn rate allows), got {self.radius_m!r}")
+        _positive_scalar("turn_gain_1_s", self.turn_gain_1_s)
+        if not (math.isfinite(self.radial_gain) and self.radial_gain >= 0):
+            raise ValueError(f"radial_gain must be a finite number >= 0, got {self.radial_gain!r}")
+
+    @classmethod
+    def orbit_through(cls, lat_rad, lon_rad, center_lat_rad, center_lon_rad, speed_m_s, **kw) -> "Racetrack":
+        """Circles (half_length 0) about one centre through the start points (lat_rad, lon_rad)
+        (arrays of the batch shape): each radius is its start's distance from the centre (the
+        guidance's own measure, at h = 0), so every vehicle starts on its circle (and, with
+        :meth:`initial_heading`, along it)."""
+        lat, lon = np.broadcast_arrays(_finite_array("lat_rad", lat_rad), _finite_array("lon_rad", lon_rad))
+        d_e, d_n = _center_offset(lat, lon, np.zeros(lat.shape), float(center_lat_rad), float(center_lon_rad),
+                                  ellipsoid(None))
+        r = np.hypot(d_e, d_n)
+        if np.any(r < 1.0):
+            raise ValueError(f"a start point lies at the centre (radius {float(np.min(r)):.3g} m): no circle")
+        return cls(np.full(lat.shape, float(center_lat_rad)), np.full(lat.shape, float(center_lon_rad)), r,
+                   speed_m_s, **kw)
+
+    def _reference(self, y, ell):
+        """(psi_ref, feed-forward rate) at the states y (..., 4) (class docstring)."""
+        d_e, d_n = _center_offset(y[..., 0], y[..., 1], y[..., 2], self.center_lat_rad, self.center_lon_rad, ell)
+        sa, ca = np.sin(self.axis_rad), np.cos(self.axis_rad)
+        s = -(d_e * sa + d_n * ca)
+        c = -(d_e * ca - d_n * sa)
+        r, L, k = self.radius_m, self.half_length_m, self.radial_gain
+        end = np.where(s > 0, L, -L)
+        g_e, g_n = d_e + end * sa, d_n + end * ca
+        turn = (s > L) | (s < -L)
+        ref = np.where(turn, np.arctan2(g_e, g_n) - 0.5 * np.pi + np.arctan(k * (np.hypot(g_e, g_n) - r) / r),
+                       np.where(c < 0, self.axis_rad - np.arctan(k * (c + r) / r),
+                                self.axis_rad + np.pi - np.arctan(k * (r - c) / r)))
+        return ref, np.where(turn, self.speed_m_s / r, 0.0)
+
+    def initial_heading(self, t_s, y):
+        """Along the pattern (the reference heading at the start)."""
+        return np.mod(self._reference(y, ellipsoid(None))[0], 2.0 * np.pi)
+
+    def target(self, state, t_next_s=None):
+        return None
+
+    def commands(self, t_s, y, aux=None, ell: Ellipsoid | None = None):
+        ref, ff = self._reference(y, ellipsoid(ell))
+        rate = np.clip(ff + self.turn_gain_1_s * wrap_pi(ref - y[..., 3]), -self.max_turn_rate_rad_s,
+                       self.max_turn_rate_rad_s)
+        return self.speed_m_s, np.zeros(self.batch_shape), rate
+
+    def advance(self, state, ell):
+        return state.wp_index
+
+    def _kernel_args(self):
+        n = int(np.prod(self.batch_shape, dtype=np.int64))
+        p = np.zeros((n, _N_PARAMS))
+        p[:, :9] = np.stack([np.ravel(self.speed_m_s), np.ravel(self.max_turn_rate_rad_s), np.ravel(self.radius_m),
+                             np.full(n, self.turn_gain_1_s), np.full(n, self.radial_gain),
+                             np.ravel(self.center_lat_rad), np.ravel(self.center_lon_rad), np.ravel(self.axis_rad),
+                             np.ravel(self.half_length_m)], axis=-1)
+        return _LAW_RACETRACK, p, {}
+
+
+def _center_offset(lat, lon, h, lat_c, lon_c, ell):
+    """(d_e, d_n): a point's offset from (lat, lon, h), local flat east / north metres (as
+    WaypointMission._offset and the compiled _offset_nb)."""
+    m, nn = _radii(lat, ell)
+    return wrap_pi(lon_c - lon) * (nn + h) * np.cos(lat), (lat_c - lat) * (m + h)
 
 
 @dataclass(frozen=True, eq=False)
@@ -502,7 +634,7 @@ class VehicleTruth(NamedTuple):
 
 
 def _commands(guidance, t_s, y, aux, ell):
-    if isinstance(guidance, WaypointMission):
+    if isinstance(guidance, (WaypointMission, Racetrack)):
         return guidance.commands(t_s, y, aux, ell)
     return guidance.commands(t_s, y, aux)
 
@@ -638,7 +770,7 @@ if nb is not None:
 
     @nb.njit(cache=True, nogil=True)
     def _rates_nb(law, p, seg, tr, g, t, lat, lon, h, psi, a, e2):
-        """The same law and geodetic rates as SinusoidalLaw/LegsAndTurns/Hold/WaypointMission
+        """The same law and geodetic rates as SinusoidalLaw/LegsAndTurns/Hold/WaypointMission/Racetrack
         .commands + geodetic_rates, for one vehicle (p its parameter row, seg the schedule
         interval of the step, g its waypoint)."""
         if law == 0:
@@ -653,6 +785,26 @@ if nb is not None:
             speed = 0.0
             climb = 0.0
             rate = 0.0
+        elif law == 4:  # Racetrack: p = speed, max rate, radius, turn gain, radial gain, centre lat, lon, axis, L
+            d_e, d_n = _offset_nb(lat, lon, h, p[5], p[6], a, e2)
+            sa, ca = math.sin(p[7]), math.cos(p[7])
+            s = -(d_e * sa + d_n * ca)
+            c = -(d_e * ca - d_n * sa)
+            r = p[2]
+            if s > p[8] or s < -p[8]:
+                end = p[8] if s > 0 else -p[8]
+                g_e, g_n = d_e + end * sa, d_n + end * ca
+                ref = math.atan2(g_e, g_n) - 0.5 * math.pi + math.atan(p[4] * (math.hypot(g_e, g_n) - r) / r)
+                ff = p[0] / r
+            elif c < 0:
+                ref = p[7] - math.atan(p[4] * (c + r) / r)
+                ff = 0.0
+            else:
+                ref = p[7] + math.pi - math.atan(p[4] * (r - c) / r)
+                ff = 0.0
+            rate = min(max(ff + p[3] * _wrap_nb(ref - psi), -p[1]), p[1])
+            climb = 0.0
+            speed = p[0]
         else:
             d_e, d_n = _offset_nb(lat, lon, h, g[0], g[1], a, e2)
             rate = min(max(p[4] * _wrap_nb(math.atan2(d_e, d_n) - psi), -p[1]), p[1])
