@@ -357,12 +357,16 @@ class VehicleGroup:
 # ---------------------------------------------------------------------- MAVLink glue
 
 
-def build_endpoints(group: VehicleGroup, scn, out_dir, name: str = "vehicles"):
+def build_endpoints(group: VehicleGroup, scn, out_dir, name: str = "vehicles", *, clock=None, timer=None):
     """vehicles.mavlink endpoints for this group's vehicles: UAV i (global index) has sysid
     i + 1 and listens on udp base_port + 10 i; the sonde comes after the UAVs. Parameters:
     the UAV's onboard navigation settings and the sonde's flight model (their real values).
     All the group's traffic goes to one .tlog, OUT/mav_<name>.tlog (a restarted worker starts
-    a new file, mav_<name>.r<k>.tlog: nothing recorded is overwritten). None if MAVLink is off."""
+    a new file, mav_<name>.r<k>.tlog: nothing recorded is overwritten). With signing, each
+    vehicle's signing state is kept in OUT/mav_signing_<sysid>.json (loaded by a restarted
+    worker: a replay of frames captured before the restart stays rejected); clock: the signing
+    clock (unix s; the live worker passes the wall clock; None: simulated time); timer: the
+    duration clock of the input budget. None if MAVLink is off."""
     from pathlib import Path
 
     from vehicles.mavlink import EndpointGroup, ParamStore, TlogWriter, VehicleEndpoint, load_signing_key
@@ -400,16 +404,39 @@ def build_endpoints(group: VehicleGroup, scn, out_dir, name: str = "vehicles"):
             eps.append(VehicleEndpoint(sysid=i + 1, kind=kind, gcs=(host, int(port)),
                                        listen=("127.0.0.1", m.base_port + 10 * i), params=params,
                                        on_mission=group.on_mission(i) if kind == "uav" else None,
-                                       signing_key=key, tlog=tlog))
+                                       signing_key=key, tlog=tlog, clock=clock,
+                                       signing_state=(Path(out_dir) / f"mav_signing_{i + 1}.json"
+                                                      if key is not None else None)))
     except Exception:
         for ep in eps:
             ep.close()
         if tlog is not None:
             tlog.close()
         raise
-    eg = EndpointGroup(eps)
+    eg = EndpointGroup(eps, timer=timer)
     eg.tlog_writer = tlog  # shared by the endpoints: closed by the worker after them
     return eg
+
+
+#: the share of an epoch's wall time the group's MAVLink input may take (worker main)
+_MAV_INPUT_SHARE = 0.25
+
+
+def _mavlink_status(endpoints) -> dict:
+    """The status line's ``mavlink`` block: traffic counters; ``datagrams`` (one verdict per
+    datagram: accepted + sum(rejected) + kernel_dropped = datagrams sent to the group's ports);
+    ``rejected`` the same per-datagram reasons (what the launcher sums as rejected inputs);
+    ``frames`` the per-frame rejects (several per datagram possible); ``refused`` valid requests
+    refused (unknown parameter, bad mission...)."""
+    from vehicles.mavlink.endpoint import FRAME_REJECT_REASONS, PROTOCOL_REJECT_REASONS, TRAFFIC_COUNTERS
+    c = endpoints.counters
+    dg = endpoints.datagrams
+    rej = {r: int(n) for r, n in dg["rejected"].items() if n}
+    return {**{k: int(c.get(k, 0)) for k in TRAFFIC_COUNTERS},
+            "datagrams": {"accepted": int(dg["accepted"]), "rejected": rej, "kernel_dropped": int(dg["kernel_dropped"])},
+            "rejected": dict(rej),
+            "frames": {r: int(c[r]) for r in FRAME_REJECT_REASONS if c.get(r)},
+            "refused": {r: int(c[r]) for r in PROTOCOL_REJECT_REASONS if c.get(r)}}
 
 
 def _veto_sonde_param(name, value):
@@ -446,8 +473,9 @@ def main(argv=None) -> int:
         group = VehicleGroup(scn, spec.uav_indices, bus, seq, with_beacon_truth=spec.with_beacon_truth,
                              with_sonde=spec.with_sonde)
         _warm_up(scn, spec)
-        try:
-            endpoints = build_endpoints(group, scn, spec.out_dir, spec.name)
+        from sitl.live.pacer import perf_now, wall_now
+        try:  # the composition root: signing follows the wall clock, the input budget is wall time
+            endpoints = build_endpoints(group, scn, spec.out_dir, spec.name, clock=wall_now, timer=perf_now)
         except (ValueError, OSError) as e:  # a port taken, a bad key file: a configuration error
             rt.emit({"event": "fatal", "error": f"MAVLink: {' '.join(str(e).split())}"})
             return 2
@@ -463,6 +491,9 @@ def main(argv=None) -> int:
         from collections import deque
 
         from sitl.live.pacer import perf_now
+        # MAVLink input may take this share of an epoch's wall time, shared over the group's
+        # sockets (what does not fit waits in the kernel queue; what overflows it is counted)
+        mav_budget_s = _MAV_INPUT_SHARE * dt / scn.run.speed
         step_s = deque(maxlen=2000)  # wall time of each epoch's work (world + bus + MAVLink)
         for t in pacer.epochs(t_first, dt, t_end, max_lag_s=5 * dt):
             w0 = perf_now()
@@ -475,7 +506,7 @@ def main(argv=None) -> int:
                           file=sys.stderr)
             if endpoints is not None:
                 try:
-                    endpoints.step(t, _mav_telemetry(group.telemetry(), len(endpoints)))
+                    endpoints.step(t, _mav_telemetry(group.telemetry(), len(endpoints)), budget_s=mav_budget_s)
                 except Exception as e:
                     errors += 1
                     if errors <= 10 or errors % 100 == 0:
@@ -512,9 +543,7 @@ def _status(group, bus, pacer, endpoints, errors, t, step_s=()) -> dict:
          "uavs": group.n, "lag_s": max(0.0, pacer.sim_now() - (t or 0.0)), "late_epochs": pacer.late_epochs,
          "skipped_epochs": pacer.skipped_epochs, "step_errors": errors, **bus_counters(bus)}
     if endpoints is not None:
-        from vehicles.mavlink import REJECT_REASONS
-        c = dict(endpoints.counters)
-        d["mavlink"] = {**c, "rejected": {r: int(c.get(r, 0)) for r in REJECT_REASONS if c.get(r, 0)}}
+        d["mavlink"] = _mavlink_status(endpoints)
     if step_s:
         a = np.sort(np.array(step_s))
         d["step_ms"] = {"p50": 1e3 * float(a[len(a) // 2]), "p99": 1e3 * float(a[min(len(a) - 1, int(0.99 * len(a)))]),
