@@ -319,3 +319,25 @@ def test_recorder_on_zenoh_records_malformed_payloads_too(tmp_path):
             a.close()
             b.close()
     assert list(read_bus_log(path)) == [("zr/x", p) for p in payloads]
+
+
+def test_recorder_counts_but_does_not_write_payloads_larger_than_any_message(tmp_path):
+    """A flood of huge junk must not fill the disk: over the codec's bound it is counted only."""
+    from sitl.bus import MAX_PAYLOAD_BYTES, BusRecorder
+
+    class RawOnly:
+        def subscribe_raw(self, expr, cb):
+            self.cb = cb
+            return self
+
+        def close(self):
+            pass
+
+    t = RawOnly()
+    rec = BusRecorder(t, tmp_path / "b.log", append=False)
+    t.cb("r/uav/1/nav", b"x" * MAX_PAYLOAD_BYTES)  # at the bound: recorded (and rejected by replay)
+    for _ in range(20):
+        t.cb("r/uav/1/nav", b"x" * (MAX_PAYLOAD_BYTES + 1))
+    rec.close()
+    assert rec.records == 1 and rec.oversize == 20
+    assert (tmp_path / "b.log").stat().st_size < 2 * MAX_PAYLOAD_BYTES

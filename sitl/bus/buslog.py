@@ -45,7 +45,7 @@ from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from typing import Any, BinaryIO, NamedTuple
 
-from .codec import encode
+from .codec import MAX_PAYLOAD_BYTES, encode
 
 log = logging.getLogger("sitl.bus.buslog")
 
@@ -338,7 +338,9 @@ class BusRecorder:
     With a transport that offers ``subscribe_raw`` (`ZenohTransport`), payloads are recorded
     as received, malformed ones included (replay rejects them again, and counts them);
     otherwise (`InMemoryTransport`) every valid message is re-encoded, which gives the same
-    bytes (the codec is deterministic). ``writer``: a `BusLogWriter` or a path."""
+    bytes (the codec is deterministic). ``writer``: a `BusLogWriter` or a path. A payload larger
+    than the codec's bound (`sitl.bus.codec.MAX_PAYLOAD_BYTES`: no message can be that large) is
+    not written, only counted (``oversize``): a flood of huge junk must not fill the disk."""
 
     def __init__(self, transport: Any, path_or_writer: str | os.PathLike | BusLogWriter,
                  key_expr: str = "**", **writer_kw: Any):
@@ -346,6 +348,7 @@ class BusRecorder:
                        else BusLogWriter(path_or_writer, **writer_kw))
         self.key_expr = key_expr
         self.errors = 0
+        self.oversize = 0
         self.raw = hasattr(transport, "subscribe_raw")
         try:
             if self.raw:
@@ -358,6 +361,9 @@ class BusRecorder:
             raise
 
     def _on_raw(self, key: str, payload: bytes) -> None:
+        if len(payload) > MAX_PAYLOAD_BYTES:
+            self.oversize += 1
+            return
         try:
             self.writer.append(key, payload)
         except (BusLogError, RuntimeError) as e:

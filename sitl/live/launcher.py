@@ -417,7 +417,8 @@ def _fill_report(report, sup, scorer, audit, recorder) -> None:
             t0 = scorer.t0 or 0.0
             series[f"{kind}/{tid}"] = [[round(t - t0, 3), round(e, 3)] for t, e in pts[::step]]
         report["error_series"] = series
-    report["bus_log"] = {"records": recorder.records, "errors": recorder.errors} if recorder is not None else None
+    report["bus_log"] = ({"records": recorder.records, "errors": recorder.errors, "oversize_not_recorded": recorder.oversize}
+                         if recorder is not None else None)
     clean = all(c.done and c.exits and c.exits[-1] == 0 for c in sup.children.values())
     report["orphans"] = sup.alive()
     report["ok"] = (clean or report.get("stopped_early", False)) and not report["orphans"] and "error" not in report
