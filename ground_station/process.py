@@ -21,23 +21,65 @@ ADSB_ICAO = {"beacon": 0xB1C000, "sonde": 0x50D000}
 
 
 class GcsLink:
-    """ADSB_VEHICLE and STATUSTEXT to the ground-control endpoint (UDP, pymavlink)."""
+    """ADSB_VEHICLE and STATUSTEXT to the ground-control endpoint (UDP, pymavlink, MAVLink 2).
 
-    def __init__(self, gcs: str, tlog=None):
-        from pymavlink import mavutil
+    signing_key (32 bytes): every frame is signed (mavlink.io "Message Signing"; link id
+    ``link_id``), its timestamp max(previous + 1, clock) -- monotonic within the process, and
+    across a restart of the worker as long as the clock (the wall clock by default: the
+    launcher's, which a restart does not set back) is: a new incarnation starts at the clock's
+    now, past everything the old one sent (its timestamps ran ahead of the clock by one 10 us
+    tick per frame only, i.e. never more than ~0.1 s at the rates here).  The link never reads
+    what comes back, so no peer timestamp moves it.  clock: unix seconds (injected; default
+    sitl.live.pacer.wall_now).
+
+    ``adsb`` never raises on an estimate: a non-finite or malformed position is not sent
+    (``skipped[reason]``); a field MAVLink cannot carry (an altitude beyond int32 mm, a speed
+    beyond the int16/uint16 cm/s fields, a non-finite velocity) is clamped or zeroed, its
+    ADSB_FLAGS_VALID_* bit cleared, and counted (``clamped[field]``)."""
+
+    def __init__(self, gcs: str, tlog=None, *, signing_key: bytes | None = None, clock=None, link_id: int = 0):
+        import socket
+
+        from pymavlink.dialects.v20 import common as m
+
+        from sitl.live.pacer import wall_now
 
         host, port = gcs.rsplit(":", 1)
-        self.conn = mavutil.mavlink_connection(f"udpout:{host}:{int(port)}", source_system=GS_SYSID,
-                                               source_component=191, dialect="common")
-        self.mav = self.conn.mav
+        self.addr = (host, int(port))
+        if signing_key is not None and (not isinstance(signing_key, (bytes, bytearray)) or len(signing_key) != 32):
+            raise ValueError("signing_key must be 32 bytes")
+        self._clock = wall_now if clock is None else clock
+        self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        self.sock.setblocking(False)
+        self.mav = m.MAVLink(self, srcSystem=GS_SYSID, srcComponent=m.MAV_COMP_ID_ONBOARD_COMPUTER)
+        self.signed = signing_key is not None
+        if self.signed:
+            s = self.mav.signing
+            s.secret_key, s.link_id, s.sign_outgoing = bytes(signing_key), int(link_id) & 0xFF, True
+            s.timestamp = max(1, self._clock_ts())
         self._tlog = open(tlog, "ab") if tlog else None
-        self._mav_tlog = self.mav
         self.sent = Counter()
         self.errors = 0
+        self.skipped = Counter()  # ADSB_VEHICLE not sent: why
+        self.clamped = Counter()  # ADSB_VEHICLE fields sent clamped, their valid flag cleared
         self._ids: dict = {}
+
+    def _clock_ts(self) -> int:
+        """The clock in signing units (10 us since 2015-01-01); 0 if it gives no finite time."""
+        from vehicles.mavlink.telemetry import SIGNING_EPOCH_UNIX_S
+        u = float(self._clock())
+        return min((1 << 48) - 1, max(0, int((u - SIGNING_EPOCH_UNIX_S) * 1e5))) if math.isfinite(u) else 0
+
+    def write(self, buf: bytes) -> None:
+        """pymavlink's MAVLink.send writes the packed frame here."""
+        self.sock.sendto(buf, self.addr)
 
     def _send(self, msg) -> None:
         try:
+            if self.signed:
+                ts = self._clock_ts()
+                if ts > self.mav.signing.timestamp:  # never backwards: +1 per frame, or the clock
+                    self.mav.signing.timestamp = ts
             self.mav.send(msg)
             if self._tlog is not None:
                 import struct
@@ -51,42 +93,77 @@ class GcsLink:
             self.errors += 1
 
     def adsb(self, kind: str, target_id: str, est) -> None:
+        """One estimate as ADSB_VEHICLE; never raises (see the class docstring)."""
+        try:
+            msg = self._adsb_message(kind, target_id, est)
+        except Exception as e:  # whatever else an estimate holds: not sent, counted
+            self.skipped[f"invalid:{type(e).__name__}"] += 1
+            return
+        if msg is not None:
+            self._send(msg)
+
+    def _adsb_message(self, kind: str, target_id: str, est):
         from pymavlink.dialects.v20 import common as m
 
         from sitl.geodesy import ecef_to_geodetic
-        lat, lon, h = (float(v) for v in ecef_to_geodetic(est.pos_ecef_m))
+        pos = [float(v) for v in est.pos_ecef_m]
+        vel = [float(v) for v in est.vel_ecef_m_s]
+        if len(pos) != 3 or len(vel) != 3:
+            self.skipped["shape"] += 1
+            return None
+        if not all(math.isfinite(v) for v in pos):
+            self.skipped["non_finite_position"] += 1
+            return None
+        lat, lon, h = (float(v) for v in ecef_to_geodetic(pos))
+        if not (math.isfinite(lat) and math.isfinite(lon) and math.isfinite(h)):
+            self.skipped["non_finite_position"] += 1
+            return None
+        flags = (m.ADSB_FLAGS_VALID_COORDS | m.ADSB_FLAGS_VALID_ALTITUDE | m.ADSB_FLAGS_VALID_HEADING
+                 | m.ADSB_FLAGS_VALID_VELOCITY | m.ADSB_FLAGS_VALID_CALLSIGN)
         # ECEF velocity -> NED
         sl, cl, so, co = math.sin(lat), math.cos(lat), math.sin(lon), math.cos(lon)
-        vx, vy, vz = (float(v) for v in est.vel_ecef_m_s)
+        vx, vy, vz = vel
         ve = -so * vx + co * vy
         vn = -sl * co * vx - sl * so * vy + cl * vz
         vu = cl * co * vx + cl * so * vy + sl * vz
+        if not (math.isfinite(ve) and math.isfinite(vn) and math.isfinite(vu)):
+            self.clamped["velocity"] += 1
+            flags &= ~(m.ADSB_FLAGS_VALID_VELOCITY | m.ADSB_FLAGS_VALID_HEADING)
+            ve = vn = vu = 0.0
+        alt_mm = round(h * 1000.0)
+        if not -2**31 <= alt_mm < 2**31:  # int32 mm: +-2147 km
+            self.clamped["altitude"] += 1
+            flags &= ~m.ADSB_FLAGS_VALID_ALTITUDE
+            alt_mm = max(-2**31, min(2**31 - 1, alt_mm))
+        hor = round(math.hypot(vn, ve) * 100.0)
+        ver = round(vu * 100.0)
+        if hor > 65535 or not -32768 <= ver <= 32767:  # uint16 / int16 cm/s
+            self.clamped["velocity"] += 1
+            flags &= ~m.ADSB_FLAGS_VALID_VELOCITY
+            hor, ver = min(hor, 65535), max(-32768, min(32767, ver))
         key = (kind, target_id)
         n = self._ids.setdefault(key, len(self._ids))
-        icao = ADSB_ICAO.get(kind, 0xAB0000) + n
-        callsign = f"{kind[:3].upper()}{target_id}"[:8].encode()
+        icao = (ADSB_ICAO.get(kind, 0xAB0000) + n) & 0xFFFFFFFF
+        callsign = f"{kind[:3].upper()}{target_id}".encode("ascii", "replace")[:8]
         heading = (math.degrees(math.atan2(ve, vn)) + 360.0) % 360.0
-        flags = (m.ADSB_FLAGS_VALID_COORDS | m.ADSB_FLAGS_VALID_ALTITUDE | m.ADSB_FLAGS_VALID_HEADING
-                 | m.ADSB_FLAGS_VALID_VELOCITY | m.ADSB_FLAGS_VALID_CALLSIGN)
         emitter = m.ADSB_EMITTER_TYPE_LIGHTER_AIR if kind == "sonde" else m.ADSB_EMITTER_TYPE_UAV
-        msg = self.mav.adsb_vehicle_encode(
+        return self.mav.adsb_vehicle_encode(
             icao, int(round(math.degrees(lat) * 1e7)), int(round(math.degrees(lon) * 1e7)),
-            m.ADSB_ALTITUDE_TYPE_GEOMETRIC, int(round(h * 1000)), int(round(heading * 100)) % 36000,
-            max(0, min(65535, int(round(math.hypot(vn, ve) * 100)))), max(-32768, min(32767, int(round(vu * 100)))),
+            m.ADSB_ALTITUDE_TYPE_GEOMETRIC, int(alt_mm), int(round(heading * 100)) % 36000, int(hor), int(ver),
             callsign, emitter, 1, flags, 0)
-        self._send(msg)
 
     def statustext(self, text: str, severity: int = 4) -> None:
-        msg = self.mav.statustext_encode(severity, text[:50].encode())
+        msg = self.mav.statustext_encode(max(0, min(7, int(severity))), str(text).encode("utf-8", "replace")[:50])
         self._send(msg)
 
     def close(self) -> None:
         try:
-            self.conn.close()
+            self.sock.close()
         except OSError:
             pass
         if self._tlog is not None:
             self._tlog.close()
+            self._tlog = None
 
 
 def main(argv=None) -> int:
@@ -106,7 +183,10 @@ def main(argv=None) -> int:
         node = GroundStationNode(bus, spec.run_id, GsConfig.from_scenario(scn))
         if scn.mavlink.enabled:
             try:
-                gcs = GcsLink(scn.mavlink.gcs, out_path(spec, "mav_gs.tlog") if scn.mavlink.tlog else None)
+                from vehicles.mavlink import load_signing_key
+                key = load_signing_key(scn.mavlink.signing_key_file) if scn.mavlink.signing_key_file else None
+                gcs = GcsLink(scn.mavlink.gcs, out_path(spec, "mav_gs.tlog") if scn.mavlink.tlog else None,
+                              signing_key=key)
             except Exception as e:  # no MAVLink: the bus side still runs
                 print(f"gs: MAVLink to {scn.mavlink.gcs} not available: {e}", file=sys.stderr)
         if not rt.wait_start():
