@@ -406,6 +406,9 @@ def _fill_report(report, sup, scorer, audit, recorder) -> None:
     report["messages_sent"] = sent
     report["rejected"] = dict(run_rejected(sup, audit))
     report["bus_payloads"] = audit.as_dict()  # per key kind: accepted, rejected by reason (every key)
+    gs_done = (sup.children.get("gs").last_done if sup.children.get("gs") is not None else {}) or {}
+    if gs_done.get("gs", {}).get("links"):  # the ground station's view of each input link, restarts included
+        report["links"] = gs_done["gs"]["links"]
     if scorer is not None and scorer.rejected:
         report["scorer_rejected"] = scorer.rejected  # truths / estimates outside the scorer's time window
     report["restarts"] = int(sup.counters.get("restarts", 0))

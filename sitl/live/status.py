@@ -22,6 +22,9 @@ def _rejected_total(status: dict) -> Counter:
         for reason, n in rej.items():
             if n:
                 c[f"mavlink:{reason}"] += int(n)
+    dropped = (mav.get("datagrams") or {}).get("kernel_dropped") if isinstance(mav.get("datagrams"), dict) else None
+    if dropped:  # datagrams the kernel dropped before the endpoint read them (SO_RXQ_OVFL)
+        c["mavlink:kernel_dropped"] += int(dropped)
     for k in ("step_errors", "late"):
         if status.get(k):
             c[k] += int(status[k])
