@@ -102,6 +102,9 @@ EXPERIMENTS = {
     "faults": ("sitl.experiments.faults", "network faults on the measurement links (loss, burst loss, delay, "
                                           "partitions) of the beacon and sonde scenarios: RMSE against the baseline, "
                                           "recovery after partitions"),
+    "long-run": ("sitl.experiments.long_run", "the default scenario as `demo --batch` runs it for hours: beacon RMSE "
+                                              "per window against its PCRB, ANEES against its chi-square band, "
+                                              "sonde errors"),
 }
 
 BENCHES = {
