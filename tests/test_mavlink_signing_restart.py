@@ -434,3 +434,43 @@ def test_replay_after_a_sigkilled_worker_restart_is_rejected(tmp_path):
         w.kill()
         gcs.close()
     assert new_pid is not None and dead(new_pid) and udp_free(port)
+
+
+# ---------------------------------------------------------------------------- the worker's wiring
+def test_build_endpoints_keeps_each_vehicles_signing_state_in_the_run_directory(tmp_path):
+    """vehicles.process.build_endpoints (what a (re)started worker calls): with a key, each
+    vehicle's state in OUT/mav_signing_<sysid>.json, on the injected clock; a second build (a
+    restarted worker) loads them and signs above them."""
+    import numpy as np
+
+    from sitl.bus import InMemoryTransport
+    from sitl.scenario import default_scenario
+    from vehicles.process import VehicleGroup, _mav_telemetry, build_endpoints
+
+    key = tmp_path / "signing.key"
+    key.write_bytes(KEY)
+    sink = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    sink.bind(("127.0.0.1", 0))
+    scn = default_scenario().replace(mavlink={"gcs": f"127.0.0.1:{sink.getsockname()[1]}", "base_port": udp_base(4),
+                                              "tlog": False, "signing_key_file": str(key)})
+    clock = FakeClock()
+    g = VehicleGroup(scn, [0, 1, 2], InMemoryTransport(), np.random.SeedSequence(1))
+    last = {}
+    try:
+        for incarnation in range(2):
+            eps = build_endpoints(g, scn, tmp_path, clock=clock)
+            try:
+                if incarnation:
+                    assert all(ep.signing_timestamp > last[ep.sysid] for ep in eps.endpoints)
+                t = scn.run.t0_gps_s + 10.0 * incarnation
+                g.step(t)
+                eps.step(t, _mav_telemetry(g.telemetry(), len(eps)), budget_s=0.05)
+                assert sorted(p.name for p in tmp_path.glob("mav_signing_*.json")) == \
+                    [f"mav_signing_{i}.json" for i in (1, 2, 3, 4)]  # 3 UAVs and the sonde
+                assert all(ep.signing_timestamp >= clock.ts() for ep in eps.endpoints)  # the wall clock, not 2024
+            finally:
+                last = {ep.sysid: ep.signing_timestamp for ep in eps.endpoints}
+                eps.close()
+            clock.now += 5.0
+    finally:
+        sink.close()
