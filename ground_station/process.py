@@ -180,7 +180,7 @@ def main(argv=None) -> int:
     gcs = None
     node = None
     try:
-        node = GroundStationNode(bus, spec.run_id, GsConfig.from_scenario(scn))
+        node = GroundStationNode(bus, spec.run_id, GsConfig.from_scenario(scn), incarnation=rt.incarnation)
         if scn.mavlink.enabled:
             try:
                 from vehicles.mavlink import load_signing_key
@@ -256,10 +256,16 @@ def _status(node, bus, gcs, errors, t, tick_s=()) -> dict:
     from sitl.live.pacer import cpu_now
     from sitl.live.worker import bus_counters
     d = {"event": "status", "t_sim_s": t, "cpu_s": cpu_now(), "epochs": node.counters["epochs"], "estimates": node.counters["estimates"],
-         "late": node.counters["late"], "step_errors": errors, **bus_counters(bus),
+         "late": node.counters["late"],
+         "step_errors": errors + sum(n for k, n in node.counters.items() if k.startswith("step_errors.")),
+         **bus_counters(bus),
          "links_stale": sum(lk.stale for lk in node.links.states())}
-    if gcs is not None:
-        d["mavlink"] = {"sent": dict(gcs.sent), "errors": gcs.errors}
+    for reason in ("future", "stale"):  # the node's time guard: rejected inputs like the bus's
+        if node.counters[f"rejected_{reason}"]:
+            d["rejected"][f"time:{reason}"] = int(node.counters[f"rejected_{reason}"])
+    if gcs is not None:  # skipped / clamped: estimates ADSB_VEHICLE could not carry as they are
+        d["mavlink"] = {"sent": dict(gcs.sent), "errors": gcs.errors, "skipped": dict(gcs.skipped),
+                        "clamped": dict(gcs.clamped)}
     if tick_s:
         a = sorted(tick_s)
         d["tick_ms"] = {"p50": 1e3 * a[len(a) // 2], "p90": 1e3 * a[int(0.9 * len(a))], "p99": 1e3 * a[min(len(a) - 1, int(0.99 * len(a)))],

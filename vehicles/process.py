@@ -21,7 +21,19 @@ InMemoryTransport (tests, ``skyfuse run --batch``).
 
 The beacon's motion is deterministic, so every group flies its own copy (a group's links
 need the beacon); only the first group publishes its truth. Each group draws from its own
-SeedSequence child of run.seed (a restarted group draws a new child: it is a new process).
+SeedSequence child of run.seed.
+
+A restarted group (the launcher restarts a worker that died) is a new incarnation: its
+messages carry ``incarnation`` = the worker's restart count, so the ground station takes them
+as new streams. It resumes the checkpoint its previous incarnation wrote (``OUT/state/<worker>.pkl``,
+at most `CHECKPOINT_WALL_S` old: the whole group, its random generators included): it is the
+simulator that died, not the vehicles, so the group steps through the gap without publishing
+(`VehicleGroup.catch_up`) and goes on as if it had never stopped -- the flight, the sensors'
+error processes and the onboard filters continue; what it would have published in the gap
+is lost, as over a dead link. Without a checkpoint (none written yet, or unreadable) it
+starts afresh from the seed: the deterministic world where it is at the restart epoch (the
+sonde's flight re-simulated from launch), the error processes from their initial state, the
+onboard filters from a least-squares fix (a receiver's cold start).
 """
 from __future__ import annotations
 
@@ -93,10 +105,14 @@ class VehicleGroup:
     """A group of UAVs (+ the beacon, + optionally the sonde), stepped epoch by epoch.
 
     scn: sitl.scenario.Scenario; uav_indices: the global indices of this group's UAVs;
-    transport: a sitl.bus Transport; rng_seq: this group's numpy SeedSequence."""
+    transport: a sitl.bus Transport; rng_seq: this group's numpy SeedSequence; incarnation: which
+    life of the worker this is (0 first, the launcher counts restarts), in every message it
+    publishes, so that the ground station takes a restarted group's messages (whose sequence
+    numbers start over) as a new stream, not as repeats."""
 
     def __init__(self, scn, uav_indices, transport, rng_seq: np.random.SeedSequence, *,
-                 with_beacon_truth: bool = True, with_sonde: bool = True, with_truth: bool = True):
+                 with_beacon_truth: bool = True, with_sonde: bool = True, with_truth: bool = True,
+                 incarnation: int = 0):
         from sitl.gnss import orbits
         from vehicles import beacon as beacon_mod
         from vehicles import uav as uav_mod
@@ -110,6 +126,7 @@ class VehicleGroup:
         self.n = len(self.idx)
         self.with_beacon_truth = with_beacon_truth
         self.with_truth = with_truth
+        self.inc = int(incarnation)
         streams = rng_seq.spawn(2)
         self.rng = np.random.default_rng(streams[0])
         self.epoch = 0
@@ -208,7 +225,7 @@ class VehicleGroup:
         tb = self.beacon.step(trel)
         B, VB = np.asarray(tb.pos_ecef_m).reshape(3), np.asarray(tb.vel_ecef_m_s).reshape(3)
         if self.with_beacon_truth and self.with_truth:
-            self._publish(self.k_tb, Truth(t_gps_s=t, source_id="truth", seq=k, kind="beacon", pos_ecef_m=B,
+            self._publish(self.k_tb, Truth(t_gps_s=t, source_id="truth", seq=k, incarnation=self.inc, kind="beacon", pos_ecef_m=B,
                                            vel_ecef_m_s=VB))
         if self.n:
             self._step_uavs(t, k, trel, B, VB)
@@ -248,17 +265,18 @@ class VehicleGroup:
             x, C = est.x[i], sym[i]
             fix = 3 if ntr[i] >= 4 else (2 if ntr[i] >= 3 else 0)
             if nav_due[i]:
-                self._publish(self.k_nav[i], UavNav(t_gps_s=t, source_id=self.src[i], seq=k, pos_ecef_m=x[0:3],
+                self._publish(self.k_nav[i], UavNav(t_gps_s=t, source_id=self.src[i], seq=k, incarnation=self.inc, pos_ecef_m=x[0:3],
                                                     vel_ecef_m_s=x[3:6], cov=C, n_sats=ntr[i], fix_type=fix))
             if not r_l[i] > 0:
                 self.links_nonpositive += 1
             else:
                 self._publish(self.k_bm[i], BeaconMeasurement(
-                    t_gps_s=t, source_id=self.src[i], seq=k, range_m=r_l[i], range_rate_m_s=rr_l[i],
+                    t_gps_s=t, source_id=self.src[i], seq=k, incarnation=self.inc, range_m=r_l[i],
+                    range_rate_m_s=rr_l[i],
                     var_range_m2=vr_l[i], var_range_rate_m2_s2=vv_l[i], uav_pos_ecef_m=x[0:3],
                     uav_vel_ecef_m_s=x[3:6], uav_cov=C))
             if uav_truth[i]:
-                self._publish(self.k_tu[i], Truth(t_gps_s=t, source_id="truth", seq=k, kind="uav",
+                self._publish(self.k_tu[i], Truth(t_gps_s=t, source_id="truth", seq=k, incarnation=self.inc, kind="uav",
                                                   pos_ecef_m=U[i], vel_ecef_m_s=V[i]))
 
     def _step_sonde(self, t, k) -> None:
@@ -269,23 +287,67 @@ class VehicleGroup:
         self.last_sonde = st
         pos, vel = st.pos_ecef_m, st.vel_ecef_m_s  # (1, 3)
         if self.with_truth:
-            self._publish(self.k_ts, Truth(t_gps_s=t, source_id="truth", seq=k, kind="sonde", pos_ecef_m=pos[0],
+            self._publish(self.k_ts, Truth(t_gps_s=t, source_id="truth", seq=k, incarnation=self.inc, kind="sonde", pos_ecef_m=pos[0],
                                            vel_ecef_m_s=vel[0]))
         rt = self.relay.step(t, pos, vel)
         d = rt.delivered[0]
         self.last_relay = int(d.sum())
         self._publish(self.k_relay, SondeRelay(
-            t_gps_s=t, source_id="gcpp", seq=k, sat_ids=rt.sat_id[d], pseudorange_m=rt.pseudorange_m[0][d],
+            t_gps_s=t, source_id="gcpp", seq=k, incarnation=self.inc, sat_ids=rt.sat_id[d],
+            pseudorange_m=rt.pseudorange_m[0][d],
             pseudo_doppler_m_s=rt.pseudo_doppler_m_s[0][d], var_pseudorange_m2=rt.var_pr_m2[0][d],
             var_pseudo_doppler_m2_s2=rt.var_prr_m2_s2[0][d], sat_pos_ecef_m=rt.sat_pos_ecef_m[0][d],
             sat_vel_ecef_m_s=rt.sat_vel_ecef_m_s[0][d], ground_pos_ecef_m=rt.ground_pos_ecef_m))
         rm = self.radar.step(t, pos, vel)
         if bool(rm.range_valid[0]):
             self._publish(self.k_radar, RadarMeasurement(
-                t_gps_s=t, source_id=self.sonde.radar_id, seq=k, slant_range_m=float(rm.slant_range_m[0]),
+                t_gps_s=t, source_id=self.sonde.radar_id, seq=k, incarnation=self.inc,
+                slant_range_m=float(rm.slant_range_m[0]),
                 az_rad=float(rm.az_rad[0]), el_rad=float(rm.el_rad[0]), var_range_m2=float(rm.var_range_m2[0]),
                 var_az_rad2=float(rm.var_az_rad2[0]), var_el_rad2=float(rm.var_el_rad2[0]),
                 angles_valid=bool(rm.angles_valid[0]), radar_pos_ecef_m=rm.site_pos_ecef_m))
+
+    # ------------------------------------------------------------------ checkpoint and resume
+    def __getstate__(self) -> dict:
+        """Everything but the transport: the world, the sensors' error processes and random
+        generators, the onboard filters, the uploaded missions (the worker's checkpoint)."""
+        d = dict(self.__dict__)
+        d.pop("bus", None)
+        d.pop("_uav_nav", None)
+        return d
+
+    def __setstate__(self, d: dict) -> None:
+        self.__dict__.update(d)
+        self.bus = None
+        if self.n:
+            from vehicles import uav_nav
+            self._uav_nav = uav_nav
+
+    def resume(self, transport, incarnation: int) -> VehicleGroup:
+        """A checkpointed group back on a bus, publishing as a new incarnation."""
+        self.bus = transport
+        self.inc = int(incarnation)
+        return self
+
+    def catch_up(self, t_until_gps_s: float) -> int:
+        """Step every epoch after the last one up to t_until (included) without publishing: the
+        vehicles, their error processes and onboard filters go on as if the worker had never
+        stopped (the real vehicles did); what it would have sent meanwhile is lost, as over a
+        dead link. Returns the epochs stepped."""
+        if self.t_last is None:
+            return 0
+        dt = 1.0 / self.scn.run.rate_hz
+        bus, sent, n = self.bus, self.sent, 0
+        self.bus = _Discard()
+        try:
+            t = self.t_last + dt
+            while t <= t_until_gps_s + 1e-9:
+                self.step(t)
+                t += dt
+                n += 1
+        finally:
+            self.bus, self.sent = bus, sent
+        return n
 
     # ------------------------------------------------------------------ MAVLink side
     def on_mission(self, i: int):
@@ -352,6 +414,56 @@ class VehicleGroup:
                                  float(st.lon_rad[0]), float(st.alt_m[0]), vn, 0.0, 0.0,
                                  math.atan2(vn[1], vn[0]), 3 if sats >= 4 else 0, sats, 5.0, 8.0))
         return out
+
+
+class _Discard:
+    """A transport that drops what is published (VehicleGroup.catch_up)."""
+
+    @staticmethod
+    def publish(key, msg) -> None:
+        pass
+
+
+# ---------------------------------------------------------------------- checkpoints (worker)
+
+CHECKPOINT_WALL_S = 1.0  # the worker checkpoints its group at most this often (wall s), after an epoch
+
+
+def checkpoint_path(spec):
+    from pathlib import Path
+    return Path(spec.out_dir) / "state" / f"{spec.name}.pkl"
+
+
+def write_checkpoint(group: VehicleGroup, path) -> None:
+    """The group's state, written atomically (a kill -9 in the middle leaves the previous one)."""
+    import os
+    import pickle
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_suffix(".tmp")
+    with open(tmp, "wb") as f:
+        pickle.dump(group, f, protocol=pickle.HIGHEST_PROTOCOL)
+    os.replace(tmp, path)
+
+
+def load_checkpoint(path, spec, scn) -> VehicleGroup | None:
+    """The group a previous incarnation of this worker checkpointed (None, with one line on
+    stderr saying why, if there is none or it does not belong to this worker and run). The file
+    is the run's own, written by this worker in its output directory."""
+    import pickle
+    try:
+        with open(path, "rb") as f:
+            g = pickle.load(f)
+    except FileNotFoundError:
+        return None
+    except Exception as e:  # a torn or foreign file: start afresh
+        print(f"{spec.name}: checkpoint {path} unreadable ({type(e).__name__}: {e}); cold start", file=sys.stderr)
+        return None
+    ok = (isinstance(g, VehicleGroup) and g.run_id == spec.run_id and g.idx == list(spec.uav_indices)
+          and g.scn.run.seed == scn.run.seed and g.t_last is not None and (g.sonde is not None) == spec.with_sonde)
+    if not ok:
+        print(f"{spec.name}: checkpoint {path} is not this worker's; cold start", file=sys.stderr)
+        return None
+    return g
 
 
 # ---------------------------------------------------------------------- MAVLink glue
@@ -469,9 +581,17 @@ def main(argv=None) -> int:
     bus = open_bus(spec, scn.bus.lease_ms)
     endpoints = None
     try:
-        seq = np.random.SeedSequence([scn.run.seed, 1000 + spec.group_index])
-        group = VehicleGroup(scn, spec.uav_indices, bus, seq, with_beacon_truth=spec.with_beacon_truth,
-                             with_sonde=spec.with_sonde)
+        # a restarted worker resumes its previous incarnation's checkpoint (the simulator died,
+        # not the vehicles: their flight, sensors and onboard filters go on); else a fresh group
+        ckpt = checkpoint_path(spec)
+        group = load_checkpoint(ckpt, spec, scn) if rt.incarnation > 0 else None
+        resumed = group is not None
+        if resumed:
+            group.resume(bus, rt.incarnation)
+        else:
+            seq = np.random.SeedSequence([scn.run.seed, 1000 + spec.group_index])
+            group = VehicleGroup(scn, spec.uav_indices, bus, seq, with_beacon_truth=spec.with_beacon_truth,
+                                 with_sonde=spec.with_sonde, incarnation=rt.incarnation)
         _warm_up(scn, spec)
         from sitl.live.pacer import perf_now, wall_now
         try:  # the composition root: signing follows the wall clock, the input budget is wall time
@@ -486,7 +606,13 @@ def main(argv=None) -> int:
         t_end = scn.run.t0_gps_s + scn.run.duration_s
         # a (re)started group joins at the current epoch
         k0 = max(0, math.ceil((pacer.sim_now() - scn.run.t0_gps_s) / dt - 1e-9))
+        if resumed:  # the world through the gap, unpublished (VehicleGroup.catch_up)
+            k0 = max(k0, round((group.t_last - scn.run.t0_gps_s) / dt) + 1)
+            caught = group.catch_up(scn.run.t0_gps_s + (k0 - 1) * dt)
+            print(f"{spec.name}: resumed from the checkpoint of t = {group.t_last - caught * dt - scn.run.t0_gps_s:.1f} s, "
+                  f"{caught} epochs caught up", file=sys.stderr)
         t_first = scn.run.t0_gps_s + k0 * dt
+        next_ckpt = 0.0
         errors = 0
         from collections import deque
 
@@ -513,6 +639,12 @@ def main(argv=None) -> int:
                         print(f"{spec.name}: MAVLink step failed ({errors} so far): {type(e).__name__}: {e}",
                               file=sys.stderr)
             step_s.append(perf_now() - w0)
+            if perf_now() >= next_ckpt and group.t_last is not None:
+                next_ckpt = perf_now() + CHECKPOINT_WALL_S
+                try:
+                    write_checkpoint(group, ckpt)
+                except OSError as e:  # the run goes on; a restart would cold-start
+                    print(f"{spec.name}: checkpoint not written: {e}", file=sys.stderr)
             if rt.status_due():
                 rt.emit(_status(group, bus, pacer, endpoints, errors, t, step_s))
         rt.emit({**_status(group, bus, pacer, endpoints, errors, group.t_last, step_s), "event": "done"})
