@@ -1,8 +1,9 @@
 """A vehicle worker killed with SIGKILL in the middle of a live run (issue 19): the launcher
 restarts it, the restarted worker is a new incarnation whose messages (sequence numbers from 0
 again) the ground station takes as new streams, the beacon and sonde estimates are back within
-twice their pre-kill error 10 s after the restart, and a replay of the bus log gives exactly the
-live estimates."""
+twice their pre-kill error 10 s after the restart (or within twice the error of the same run
+never killed, where the run's own error moves more than that), and a replay of the bus log gives
+exactly the live estimates."""
 from __future__ import annotations
 
 import math
@@ -70,13 +71,21 @@ def test_kill_9_of_the_vehicle_worker_restart_recovery_and_exact_replay(tmp_path
         assert lk["restarts"] == 1 and lk["duplicates"] == 0, (src, lk)
     assert gs["beacon_locator"].get("duplicate", 0) == 0 and gs["sonde_tracker"]["duplicates"] == 0
 
-    # 10 s after the restart both estimates are back within twice their error before the kill
+    # 10 s after the restart both estimates are back within twice their error before the kill --
+    # or, where the error of the run itself moves more than that between two 10 s windows (the
+    # beacon's 10 s RMS varies 4 m .. 18 m along its racetrack), within twice what the same run
+    # never killed has over the same window (batch mode: the same components, seed and world)
+    from sitl.live.batch import run_batch
+    t0_gps = scn.run.t0_gps_s
+    ref = {k: [(t - t0_gps, e) for t, e in v] for k, v in run_batch(scn)["series"].items()}
     for kind in ("beacon/b1", "sonde/s0000"):
         series = report["error_series"][kind]
         before = _rms(series, last_old - 10.0, last_old + 0.5)
         after = _rms(series, first_new + 10.0, first_new + 20.0)
-        print(f"{kind}: RMS error {before:.2f} m before the kill, {after:.2f} m 10-20 s after the restart")
-        assert after <= 2.0 * before, (kind, before, after)
+        never_killed = _rms(ref[kind], first_new + 10.0, first_new + 20.0)
+        print(f"{kind}: RMS error {before:.2f} m in the 10 s before the kill, {after:.2f} m 10-20 s after the "
+              f"restart (never killed: {never_killed:.2f} m)")
+        assert after <= 2.0 * max(before, never_killed), (kind, before, after, never_killed)
 
     # the bus log replays to exactly the live estimates
     rep = replay(tmp_path / "bus.log", scn)
