@@ -264,13 +264,20 @@ def test_uploaded_mission_is_flown():
     wp = (lat, lon + 8000.0 / (6.371e6 * math.cos(lat)), h)  # 8 km east, same height
     g.on_mission(1)([wp])
     W = np.array(geodetic_to_ecef(*wp))
+    ref = VehicleGroup(scn, [0, 1, 2], InMemoryTransport(), np.random.SeedSequence(1), with_sonde=False)  # no mission
+    for k in range(3):
+        ref.step(t0 + k)
     d = []
     for k in range(3, 200):
         g.step(t0 + k)
+        ref.step(t0 + k)
         d.append(float(np.linalg.norm(g.last_uav_truth.pos_ecef_m[1] - W)))
     assert d[0] > 7000.0 and min(d) < 200.0  # it reached the waypoint (accept radius 150 m)
-    # the others still fly the scenario's law (heading north)
-    assert abs(float(g.last_uav_truth.heading_rad[0])) < 1e-9
+    # the others still fly the scenario's law (the same truth as without the mission)
+    for f in ("pos_ecef_m", "heading_rad"):
+        assert np.array_equal(np.asarray(getattr(g.last_uav_truth, f))[[0, 2]],
+                              np.asarray(getattr(ref.last_uav_truth, f))[[0, 2]]), f
+    assert not np.allclose(g.last_uav_truth.pos_ecef_m[1], ref.last_uav_truth.pos_ecef_m[1], rtol=0, atol=100.0)
     # its published truth is the mission's path, consistent with its geodetic state
     la, _lon, _h = ecef_to_geodetic(g.last_uav_truth.pos_ecef_m[1])
     assert float(la) == pytest.approx(float(g.last_uav_truth.lat_rad[1]), abs=1e-9)
