@@ -163,8 +163,8 @@ def run_trial(scn, locator: str = "live", progress=None) -> dict:
     per epoch the beacon's and the sonde's truth and published estimate (x (K, 6), P (K, 6, 6))
     and the UAVs' true tracks (U, V (K, N, 3), for the bound)."""
     from sitl.bus import InMemoryTransport
+    from sitl.live.batch import vehicle_groups
 
-    vp = component("vehicles.process")
     gn = component("ground_station.node")
     bl = component("ground_station.beacon_locator")
     run = scn.run
@@ -179,12 +179,7 @@ def run_trial(scn, locator: str = "live", progress=None) -> dict:
         node.locator.close()
         node.locator = bl.BeaconLocator(node.bus, run_ids=[run.id], beacon_id=scn.beacon.id, config=cfg,
                                         source_id="gs")
-    groups = []
-    per = scn.uavs.per_process
-    for g in range(scn.n_uav_processes):
-        idx = list(range(g * per, min(scn.uavs.count, (g + 1) * per)))
-        groups.append(vp.VehicleGroup(scn, idx, bus, np.random.SeedSequence([run.seed, 1000 + g]),
-                                      with_beacon_truth=g == 0, with_sonde=g == 0 and scn.sonde.enabled))
+    groups = vehicle_groups(scn, bus)  # as run_batch builds them
     N = scn.uavs.count
     U = np.full((K, N, 3), np.nan)
     V = np.full((K, N, 3), np.nan)

@@ -18,7 +18,6 @@ def run_batch(scn, *, settle_s: float = 0.0, progress=None, record=None) -> dict
     """record: a path: the run's bus traffic goes to a bus log there (as a live run's)."""
     from sitl.bus import InMemoryTransport
 
-    vp = importlib.import_module("vehicles.process")
     gn = importlib.import_module("ground_station.node")
     run = scn.run
     # [faults]: the bus rules act on the in-memory bus as the workers' publisher filters do live
@@ -39,12 +38,7 @@ def run_batch(scn, *, settle_s: float = 0.0, progress=None, record=None) -> dict
         from sitl.bus.buslog import BusRecorder
         recorder = BusRecorder(bus, record, key_expr=f"{run.id}/**", append=False, clock=lambda: bus.now_s)
     node = gn.GroundStationNode(bus, run.id, gn.GsConfig.from_scenario(scn))
-    groups = []
-    per = scn.uavs.per_process
-    for g in range(scn.n_uav_processes):
-        idx = list(range(g * per, min(scn.uavs.count, (g + 1) * per)))
-        groups.append(vp.VehicleGroup(scn, idx, bus, np.random.SeedSequence([run.seed, 1000 + g]),
-                                      with_beacon_truth=g == 0, with_sonde=g == 0 and scn.sonde.enabled))
+    groups = vehicle_groups(scn, bus)
     dt = 1.0 / run.rate_hz
     K = int(math.floor(run.duration_s * run.rate_hz + 1e-9)) + 1
     for k in range(K):
@@ -68,6 +62,19 @@ def run_batch(scn, *, settle_s: float = 0.0, progress=None, record=None) -> dict
         recorder.close()
     bus.close()
     return out
+
+
+def vehicle_groups(scn, bus) -> list:
+    """The scenario's vehicle groups as the live workers build them (uavs.per_process UAVs each;
+    the first also the beacon's truth and the sonde; seeds SeedSequence([run.seed, 1000 + g]))."""
+    vp = importlib.import_module("vehicles.process")
+    groups = []
+    per = scn.uavs.per_process
+    for g in range(scn.n_uav_processes):
+        idx = list(range(g * per, min(scn.uavs.count, (g + 1) * per)))
+        groups.append(vp.VehicleGroup(scn, idx, bus, np.random.SeedSequence([scn.run.seed, 1000 + g]),
+                                      with_beacon_truth=g == 0, with_sonde=g == 0 and scn.sonde.enabled))
+    return groups
 
 
 def warm_up(scn, epochs: int = 5) -> None:
