@@ -203,7 +203,14 @@ def _add_iono_tropo_args(p: argparse.ArgumentParser) -> None:
 
 
 def _add_sonde_args(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--seed", type=nonnegative_int, default=4, help="seed of the numpy SeedSequence (default 4)")
+    p.add_argument("--seed", type=nonnegative_int, default=None,
+                   help="seed of the numpy SeedSequence (default 4; with --seeds the first seed, default 1)")
+    p.add_argument("--seeds", type=positive_int, default=None, metavar="N",
+                   help="seed study: trial 0 of N seeds (--seed .. --seed + N - 1), each a '--trials 1' flight; "
+                        "fused vs relay-only vs radar-only per seed, overall and per outage, against the targets")
+    p.add_argument("--kinematics", choices=("relaxed", "singer"), default=None,
+                   help="the trackers' sonde motion model: relaxed (default: the velocity relaxes to a wind the "
+                        "tracker estimates, as in the sonde model) or singer (eq 20 as printed)")
     p.add_argument("--out", type=output_dir, default=Path("out/sonde"), metavar="DIR",
                    help="output directory for result.json and PNG figures (default out/sonde)")
     p.add_argument("--trials", type=positive_int, default=20, help="Monte Carlo trials (default 20)")

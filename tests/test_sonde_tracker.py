@@ -246,7 +246,8 @@ def test_relay_only_initialises_from_a_least_squares_fix(world):
         est = trk.step(float(rt.t_gps_s[j]))
     assert trk.counters.init_relay == 1 and trk.counters.relay_updates == 29
     assert np.linalg.norm(est[0].pos_ecef_m - tr.pos_ecef_m[k + 29, 0]) < 5.0
-    assert trk.layout.n == 11 + 24 and trk.state("s1")[1].size == 35  # + one error state per satellite slot
+    # 15 kinematic states (position, velocity, gust acceleration, wind, wind rate), dd, osc, one error state per satellite slot
+    assert trk.layout.n == 17 + 24 and trk.state("s1")[1].size == 41
 
 
 def test_measurement_model_matches_the_world_and_the_compiled_rows_match_numpy(world):
@@ -351,12 +352,12 @@ def test_tracker_rejects_bad_parameters():
 def test_satellite_error_states_persist_through_an_outage_and_new_satellites_get_a_fresh_one():
     trk = SondeTracker(RUN, SondeTrackerParams(mode="relay_only", bias_slots=3))
     L = trk.layout
-    assert L.nb == 3 and L.n == 11 + 3 and L.bias == 11
+    assert L.nb == 3 and L.n == 17 + 3 and L.bias == 17
     s = trk._slot("s1")
     trk._x[s] = 1.0
     trk._P[s] = np.full((L.n, L.n), 0.5) + np.eye(L.n)
     c1 = trk._bias_cols(s, ("G01", "G02"), 0.0)
-    assert sorted(c1.tolist()) == [11, 12]
+    assert sorted(c1.tolist()) == [17, 18]
     # a fresh state: zero, unit variance, uncorrelated
     for k in c1:
         assert trk._x[s, k] == 0.0 and trk._P[s, k, k] == 1.0
@@ -367,7 +368,7 @@ def test_satellite_error_states_persist_through_an_outage_and_new_satellites_get
     np.testing.assert_array_equal(c2, c1[::-1])
     np.testing.assert_array_equal(trk._x[s, c1], [0.3, -0.2])
     c3 = trk._bias_cols(s, ("G01", "R05", "R06"), 11.0)  # G02 set, two new ones: G02's state is reused
-    assert c3[0] == c1[0] and sorted(c3.tolist()) == [11, 12, 13]
+    assert c3[0] == c1[0] and sorted(c3.tolist()) == [17, 18, 19]
     assert trk._x[s, c3[1]] == 0.0 and trk._x[s, c3[2]] == 0.0 and trk.counters.bias_assigned == 4
     c4 = trk._bias_cols(s, ("G01", "R05", "R06", "G07"), 12.0)  # more satellites than states
     assert c4[-1] == -1 and trk.counters.bias_overflow == 1
