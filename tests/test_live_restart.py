@@ -21,8 +21,8 @@ from sitl.scenario import default_scenario
 
 pytestmark = [pytest.mark.live, pytest.mark.slow]
 
-SPEED = 4.0
-KILL_AT_S = 70.0  # simulated seconds into the run: both estimates have converged
+SPEED = 8.0
+KILL_AT_S = 40.0  # simulated seconds into the run: both estimates have converged
 
 
 def _rms(series, lo, hi):
@@ -33,7 +33,7 @@ def _rms(series, lo, hi):
 
 def test_kill_9_of_the_vehicle_worker_restart_recovery_and_exact_replay(tmp_path):
     base = udp_base(4)
-    scn = default_scenario().replace(run={"speed": SPEED, "duration_s": 150.0},
+    scn = default_scenario().replace(run={"speed": SPEED, "duration_s": 120.0},
                                      mavlink={"gcs": "127.0.0.1:9", "base_port": base})  # discard port
     killed = {}
 
