@@ -231,7 +231,7 @@ from sitl.bus import (
 )
 from sitl.atmosphere_std import RHO0_KG_M3, Z_MAX_M, Z_MIN_M, us76_density
 from sitl.constants import C_M_S, WGS84
-from sitl.geodesy import ecef_to_geodetic, enu_rotation
+from sitl.geodesy import ecef_to_geodetic, enu_rotation, geodetic_to_ecef
 from sitl.integrity_events import IntegrityEventPublisher
 from sitl.radio import relay as _relay
 from sitl.radio.radar import (
@@ -337,6 +337,10 @@ class SondeTrackerParams:
     # relaxed: the parachute's terminal speed at sea level, v_d(h) = v_sl sqrt(rho0 / rho(h)) (vehicles.sonde,
     # US76): a descending sonde's target vertical speed -v_d(h) follows its height as a known input; None: off
     descent_rate_sl_m_s: float | None = 5.0
+    # relaxed: the sonde lands on flat ground at the site's height (the radar's, else the ground receiver's)
+    # and stays there (vehicles.sonde's LANDED phase): a descending track whose height reaches it is
+    # landed -- at rest from then on, until a re-initialisation. False: the track coasts on
+    landing: bool = True
     manoeuvre_window: int | None = 10  # epochs of the sliding-window NIS test (None: off)
     reacquire_after: int | None = 5  # re-initialise after this many rejected blocks in a row
     prior_sigma_vel_m_s: float = 20.0
@@ -583,8 +587,27 @@ class SondeTransition:
             out = self._memo[key] = self._build(key)
         return out
 
-    def F(self, x, dt):
-        return self._get(dt)[0]
+    def F(self, x, dt, landed: bool = False):
+        return self._get_landed(dt)[0] if landed else self._get(dt)[0]
+
+    def _get_landed(self, dt):
+        """(F, Q) of a landed sonde (relaxed): at rest -- position held, velocity, gust, wind and
+        wind rate zero (their Q a numerical floor, 1e-8 in SI, keeping P positive definite); the
+        other states as in flight."""
+        key = ("landed", float(dt))
+        out = self._memo.get(key)
+        if out is None:
+            F, Q = (a.copy() for a in self._get(dt))
+            k = self.layout.n_kin
+            F[:k, :] = 0.0
+            F[:, :k] = 0.0
+            F[0:3, 0:3] = np.eye(3)
+            Q[:k, :] = 0.0
+            Q[:, :k] = 0.0
+            Q[3:k, 3:k] = 1e-8 * np.eye(k - 3)
+            F.flags.writeable = Q.flags.writeable = False
+            out = self._memo[key] = (F, Q)
+        return out
 
     def boost(self, dt):
         """Covariance added under the manoeuvre hypothesis over a step dt: an unknown
@@ -603,8 +626,8 @@ class SondeTransition:
             self._memo[key] = out
         return out
 
-    def Q(self, dt):
-        return self._get(dt)[1]
+    def Q(self, dt, landed: bool = False):
+        return self._get_landed(dt)[1] if landed else self._get(dt)[1]
 
     def f(self, x, dt):
         return np.asarray(x, dtype=float) @ self._get(dt)[0].T
@@ -1034,6 +1057,7 @@ class TrackerCounters:
     init_relay: int = 0
     init_waiting: int = 0  # epochs of a sonde that could not initialise it
     reacquired: int = 0  # tracks re-initialised after reacquire_after rejections in a row
+    landings: int = 0  # tracks that reached the ground descending (relaxed kinematics, landing): at rest since
     window_manoeuvre: int = 0  # manoeuvres found by the sliding-window NIS test
     ukf_updates: int = 0  # sonde-epochs updated by the UKF (filter "ukf", or "auto" when needed)
     bias_assigned: int = 0  # satellites given a (fresh) error state
@@ -1103,6 +1127,8 @@ class SondeTracker:
         self._P = np.zeros((0, n, n))
         self._t = np.zeros(0)  # filter time per sonde (NaN before initialisation)
         self._t_init = np.zeros(0)  # time of the track's last (re)initialisation
+        self._landed = np.zeros(0, dtype=bool)  # the track has landed (relaxed kinematics, params.landing)
+        self._ground_h_m = None  # the ground's height (the site's), for the landing
         self._nis = np.zeros(0)  # summed block NIS of the last processed epoch
         self._rejects = np.zeros((0, 2), dtype=np.int64)  # consecutive rejections [relay, radar]
         W = p.manoeuvre_window or 1
@@ -1240,6 +1266,42 @@ class SondeTracker:
         if live.size:
             self._predict(live, t)
             self._nis[live] = np.nan
+        self._land()
+
+    def _land(self) -> None:
+        """Relaxed kinematics with ``landing``: a descending track (its wind state's vertical
+        component -- the target vertical speed -- below 0) whose height has reached the ground's
+        (the site's: flat terrain, as in the sonde model) has landed: its height is set to the
+        ground's, a perfect constraint (P projected onto the ground's tangent plane, a 1 m^2 floor
+        vertically), and it is at rest from then on (velocity, gust, wind and rate zero; the landed
+        transition). Counted ``landings``; a re-initialisation (reacquire) takes it up again."""
+        w = self.layout.wind
+        if w is None or not self.params.landing or self._ground_h_m is None or not self._landed.size:
+            return
+        up = self._transition.enu_rot[2]
+        cand = np.flatnonzero(np.isfinite(self._t) & ~self._landed)
+        if not cand.size:
+            return
+        cand = cand[(self._x[cand, w:w + 3] @ up) < 0.0]
+        if not cand.size:
+            return
+        lat, lon, h = ecef_to_geodetic(self._x[cand, 0:3])
+        hit = h <= self._ground_h_m
+        k = self.layout.n_kin
+        n = self.layout.n
+        for slot, la, lo in zip(cand[hit], np.atleast_1d(lat)[hit], np.atleast_1d(lon)[hit]):
+            nrm = enu_rotation(float(la), float(lo))[2]  # the local vertical
+            self._x[slot, 0:3] = geodetic_to_ecef(float(la), float(lo), self._ground_h_m)
+            self._x[slot, 3:k] = 0.0
+            T = np.eye(n)
+            T[0:3, 0:3] -= np.outer(nrm, nrm)
+            T[3:k, 3:k] = 0.0
+            P = T @ self._P[slot] @ T.T
+            P[0:3, 0:3] += np.outer(nrm, nrm)
+            P[3:k, 3:k] += 1e-8 * np.eye(k - 3)
+            self._P[slot] = 0.5 * (P + P.T)
+            self._landed[slot] = True
+            self.counters.landings += 1
 
     def _run_step(self, t: float, epochs: dict) -> None:
         """One step's filtering (no output); with a lag window, recorded in the history."""
@@ -1281,7 +1343,7 @@ class SondeTracker:
             c.reprocess_runs += 1
             c.reprocessed_epochs += n
 
-    _SNAP_ARRAYS = ("_x", "_P", "_t", "_t_init", "_nis", "_rejects", "_win_nis", "_win_m", "_win_k", "_win_S",
+    _SNAP_ARRAYS = ("_x", "_P", "_t", "_t_init", "_landed", "_nis", "_rejects", "_win_nis", "_win_m", "_win_k", "_win_S",
                     "_win_M", "_bias_last")
 
     def _snapshot(self) -> dict:
@@ -1339,6 +1401,7 @@ class SondeTracker:
             self._P = np.concatenate([self._P, np.zeros((1, n, n))])
             self._t = np.append(self._t, np.nan)
             self._t_init = np.append(self._t_init, np.nan)
+            self._landed = np.append(self._landed, False)
             self._nis = np.append(self._nis, np.nan)
             self._rejects = np.concatenate([self._rejects, np.zeros((1, 2), dtype=np.int64)])
             W = self.params.manoeuvre_window or 1
@@ -1441,9 +1504,10 @@ class SondeTracker:
         if self._transition is not None:
             return
         p = self.params
-        lat, lon, _ = ecef_to_geodetic(np.asarray(site_ecef, float))
+        lat, lon, site_h = ecef_to_geodetic(np.asarray(site_ecef, float))
         r = enu_rotation(lat, lon)  # the model's horizontal / vertical split at the site
         self._transition = SondeTransition(self.layout, p, r)
+        self._ground_h_m = float(site_h)  # flat terrain at the site's height (the landing)
 
     def _radar_site(self, pos):
         key = np.asarray(pos, float).tobytes()
@@ -1469,21 +1533,26 @@ class SondeTracker:
         dts = t - self._t[slots]
         for dt in (dts[:1] if np.all(dts == dts[0]) else np.unique(dts)):
             sel = slots if dts.size == 1 or np.all(dts == dt) else slots[dts == dt]
-            F, Q = self._transition.F(None, dt), self._transition.Q(dt)
-            self._x[sel] = self._advance(self._x[sel], dt)
-            self._P[sel] = kernels.cov_predict(F, self._P[sel], Q, backend=self.params.backend)
+            landed = self._landed[sel]
+            for lnd in ((False, True) if landed.any() else (False,)):
+                ss = sel if not landed.any() else sel[landed == lnd]
+                if not ss.size:
+                    continue
+                F, Q = self._transition.F(None, dt, lnd), self._transition.Q(dt, lnd)
+                self._x[ss] = self._advance(self._x[ss], dt, lnd)
+                self._P[ss] = kernels.cov_predict(F, self._P[ss], Q, backend=self.params.backend)
         self._t[slots] = t
 
-    def _advance(self, x, dt: float):
+    def _advance(self, x, dt: float, landed: bool = False):
         """The predicted means F x of states x (N, n) over dt, plus (relaxed kinematics, descending
         sondes: the wind state's vertical component below 0) the change of the parachute's target
         vertical speed -v_d(h) between the heights before and after the step, along the site's up:
         the descent slows as the air thickens (0.13 m/s^2 at 30 km), a known function of the height
         (an input evaluated at the estimate; its Jacobian, ~dt v_d'(h) in the wind row, is left out)."""
         tr = self._transition
-        xp = x @ tr.F(None, dt).T
+        xp = x @ tr.F(None, dt, landed).T
         w, v_sl = self.layout.wind, self.params.descent_rate_sl_m_s
-        if w is None or v_sl is None:
+        if w is None or v_sl is None or landed:
             return xp
         up = tr.enu_rot[2]
         down = (x[:, w:w + 3] @ up) < 0.0
@@ -1582,6 +1651,7 @@ class SondeTracker:
             P[L.err:L.err + 3, 0:3] = -(J @ S).T
         x, P = self._with_wind(x, P)
         self._x[slot], self._P[slot] = x, 0.5 * (P + P.T)
+        self._landed[slot] = False
         self.counters.init_radar += count
         return True
 
@@ -1626,6 +1696,7 @@ class SondeTracker:
             P[np.ix_(cols[ok], ip)] = c[:, ok].T
         x, P = self._with_wind(x, P)
         self._x[slot], self._P[slot] = x, P
+        self._landed[slot] = False
         self.counters.init_relay += count
         return True
 
@@ -1786,6 +1857,11 @@ class SondeTracker:
         """Predict the group over dt and update it with all its measurements of the epoch: one
         joint update, gated on its NIS; sondes failing the gate are redone block by block
         (relay, then radar), each block gated with the manoeuvre retry."""
+        landed = [bool(self._landed[g[1]]) for g in group]
+        if any(landed) and not all(landed):  # one transition per joint update
+            for lnd in (False, True):
+                self._epoch_update([g for g, x in zip(group, landed) if x == lnd], dt, t)
+            return
         filts = self._filter_for(group)
         if len(set(filts)) > 1:
             for f in ("ekf", "ukf"):
@@ -1816,9 +1892,10 @@ class SondeTracker:
         n_rad = sum(g[3] is not None for g in group)
         c.radar_updates += n_rad
         c.range_only_updates += sum(g[3] is not None and not g[3].angles_valid for g in group)
-        F, Q = self._transition.F(None, dt), self._transition.Q(dt)
+        lnd = bool(self._landed[slots[0]])
+        F, Q = self._transition.F(None, dt, lnd), self._transition.Q(dt, lnd)
         x, P = self._x[slots], self._P[slots]
-        x_pred = self._advance(x, dt)
+        x_pred = self._advance(x, dt, lnd)
         if filt == "ekf":
             h, H = model.h_and_H(x_pred)
             xo, Po, nis = kernels.predict_joseph_update(F, Q, x_pred, P, model.z - h, H, model.R_diag(),
@@ -1920,10 +1997,13 @@ class SondeTracker:
                 models = [([g], self._measurement([g], dt, t)) for g in group]
             for grp, mdl in models:
                 self._mon_models[(dt, tuple(g[1] for g in grp))] = mdl
-            F, Q = self._transition.F(None, dt), self._transition.Q(dt)
             slots = np.array([g[1] for g in group])
-            X[slots] = self._advance(self._x[slots], dt)  # after _measurement: a new satellite's error state is reset
-            P[slots] = kernels.cov_predict(F, self._P[slots], Q, backend=self.params.backend)
+            for lnd in (False, True):  # after _measurement: a new satellite's error state is reset
+                ss = slots[self._landed[slots] == lnd]
+                if ss.size:
+                    F, Q = self._transition.F(None, dt, lnd), self._transition.Q(dt, lnd)
+                    X[ss] = self._advance(self._x[ss], dt, lnd)
+                    P[ss] = kernels.cov_predict(F, self._P[ss], Q, backend=self.params.backend)
             for grp, model in models:
                 sl = np.array([g[1] for g in grp])
                 h, H = model.h_and_H(X[sl])

@@ -195,3 +195,53 @@ def test_cli_seed_study_writes_result_json_and_png(tmp_path, capsys):
     two = E.run_trials(E.SondeScenario(duration_s=20.0, white_baseline=False), 5, [0, 0], modes=("relay_only",),
                        seeds=[5, 6])
     np.testing.assert_array_equal(one["truth_pos"][0], two["truth_pos"][1])
+
+
+# ---------------------------------------------------------------- the 6 h demo: landing
+
+
+def _landing_run(landing: bool):
+    """One sonde bursting at 2 km (lands ~800 s after launch), relayed GNSS until 600 s (descending),
+    nothing after: relay-only tracker to 1500 s. (truth track, tracker, position errors (T,))."""
+    sp = SondeParams(burst_alt_range_m=(2000.0, 2000.0))
+    streams = E._streams(0, [0], [7])
+    lat, lon, h = E.gcpp_site(E.SondeScenario())
+    tr = SondeFlight([streams[0][0]], params=sp, t0_gps_s=T0).simulate(1500)
+    rt = Relay([streams[0][2]], default_constellation("GR"), ground_lat_rad=lat, ground_lon_rad=lon, ground_h_m=h,
+               batch_shape=(1,)).track(tr.t_gps_s[:601], tr.pos_ecef_m[:601], tr.vel_ecef_m_s[:601])
+    trk = SondeTracker("t19", dataclasses.replace(E.tracker_params(E.SondeScenario(), "relay_only"), landing=landing))
+    err = np.full(tr.t_gps_s.size, np.nan)
+    for k in range(tr.t_gps_s.size):
+        t = float(tr.t_gps_s[k])
+        if k <= 600:
+            d = rt.delivered[k, 0]
+            trk.on_message("t19/sonde/s1/relay", SondeRelay(
+                t_gps_s=t, source_id="g", seq=k, sat_ids=rt.sat_id[d], pseudorange_m=rt.pseudorange_m[k, 0][d],
+                pseudo_doppler_m_s=rt.pseudo_doppler_m_s[k, 0][d], var_pseudorange_m2=rt.var_pr_m2[k, 0][d],
+                var_pseudo_doppler_m2_s2=rt.var_prr_m2_s2[k, 0][d], sat_pos_ecef_m=rt.sat_pos_ecef_m[k, 0][d],
+                sat_vel_ecef_m_s=rt.sat_vel_ecef_m_s[k, 0][d], ground_pos_ecef_m=rt.ground_pos_ecef_m))
+        est = trk.step(t)
+        if est:
+            err[k] = np.linalg.norm(est[0].pos_ecef_m - tr.pos_ecef_m[k, 0])
+    return tr, trk, err
+
+
+def test_a_coasting_descending_sonde_lands_and_its_error_stays_bounded():
+    from sitl.geodesy import ecef_to_geodetic
+
+    tr, trk, err = _landing_run(True)
+    land_k = int(np.argmax(tr.phase[:, 0] == 2))
+    assert 700 < land_k < 1000  # the world's sonde lands (and stays) ~800 s after launch
+    assert trk.counters.landings == 1
+    _, x, P = trk.state("s1")
+    lat, lon, h_est = ecef_to_geodetic(x[:3])
+    assert h_est == pytest.approx(E.gcpp_site(E.SondeScenario())[2], abs=1e-3)  # on the ground (flat, the site's height)
+    np.testing.assert_array_equal(x[3:15], 0.0)  # at rest
+    # landed, the error stops growing: the same 200 s after the later landing and at the end, and
+    # inside the filter's own 3-sigma
+    assert err[-1] == pytest.approx(err[land_k + 200], rel=1e-6)
+    assert err[-1] < 3.0 * math.sqrt(np.trace(P[:3, :3]))
+    # the tracker without the landing (its behaviour before) coasts on through the ground, at the wind
+    tr2, trk2, err2 = _landing_run(False)
+    assert trk2.counters.landings == 0
+    assert err2[-1] > 3.0 * err[-1] and err2[-1] > err2[land_k + 200] + 1000.0
