@@ -20,8 +20,8 @@ by filters.integrity.MonitorState and copied in and out as contiguous blocks; th
 arrays are touched by one transposing load and one store per lane group (a trial-major monitor
 reading them in place was slower: LLVM gives up vectorising a loop over a trial's 16 rows that
 touches ~20 arrays, for want of alias checks). With ``fuse`` the block then
-runs the EKF's sequential Joseph update on the lanes it has loaded (the arithmetic of
-_nbkernels._joseph_block), taking the monitor's innovations, mask and R as they are; without,
+runs the EKF's sequential Joseph update on the lanes it has loaded (_nbkernels._joseph_lanes, the
+core of _nbkernels._joseph_block, inlined), taking the monitor's innovations, mask and R as they are; without,
 the inert rows of H are zeroed in H and z, h are written out for a guarded model and any update.
 """
 from __future__ import annotations
@@ -32,6 +32,7 @@ import numba as nb
 import numpy as np
 
 from ._nbkernels import LANES, N_BLOCKS, _jit  # noqa: F401 (LANES: the caller reads it here)
+from ._nbkernels import _joseph_lanes, _joseph_scratch, _lane_columns, _store_lanes
 
 
 @nb.njit(**_jit)
@@ -43,8 +44,8 @@ def _block(g0, g1, N, z, hx, H, P, r_nom, r_est, old, stale, sum_sq, sum_b, jump
     _nbkernels._joseph_block: every quantity of the lane group is held as [row, lane] (P as
     [i, j, lane]) in scratch local to this function, so that each step of the monitor is a loop
     over the lanes that LLVM vectorises. diag(H P- H') runs over the columns of each row
-    that are nonzero in some lane (a pseudorange row has 4 of 8). The update arithmetic is
-    _joseph_block's (without the prediction), statement for statement, so the result equals
+    that are nonzero in some lane (a pseudorange row has 4 of 8). The update is _joseph_block's
+    own core (_nbkernels._joseph_lanes, without the prediction), so the result equals
     ekf_update on the guarded model (tested); H is then not modified. Without ``fuse``: the inert
     rows of H are zeroed in H, z_f, hx_g, inert and r_used written.
 
@@ -90,13 +91,7 @@ def _block(g0, g1, N, z, hx, H, P, r_nom, r_est, old, stale, sum_sq, sum_b, jump
     n_in = np.empty(B, np.int64)
     n_full = np.empty(B, np.int64)
     model_ = np.empty(B, np.int64)  # per lane: the isolation mode of the epoch
-    dx = np.empty((n, B))
-    b = np.empty((n, B))
-    k = np.empty((n, B))
-    nu = np.empty(B)
-    sv = np.empty(B)
-    acc = np.empty(B)
-    idx = np.empty(n, np.int64)
+    dx, b, k, nu, sv, acc = _joseph_scratch(n, B)
     tot = 0
     for g in range(g0, g1):
         t0 = g * B
@@ -157,18 +152,7 @@ def _block(g0, g1, N, z, hx, H, P, r_nom, r_est, old, stale, sum_sq, sum_b, jump
                 for j in range(m):
                     if stale[t, j] > step:
                         sbl[j, q] = math.nan
-        # the columns of each row that are nonzero in some lane
-        for a in range(m):
-            nz = 0
-            for i in range(n):
-                any_ = False
-                for q in range(B):
-                    if Hl[a, i, q] != 0.0:
-                        any_ = True
-                if any_:
-                    nzr[a, nz] = i
-                    nz += 1
-            nzc[a] = nz
+        _lane_columns(Hl, nzr, nzc)  # the columns of each row that are nonzero in some lane
         # per row, across the lanes: diag(H P- H') = sum_i h_i (P_ii h_i + 2 sum_{l > i} P_il h_l), the
         # innovation (a NaN measurement is missing: 0 in its place), the R in its variance (the nominal
         # one or the adaptive estimate when larger), beta, the jump test, the winsorised window samples,
@@ -345,58 +329,10 @@ def _block(g0, g1, N, z, hx, H, P, r_nom, r_est, old, stale, sum_sq, sum_b, jump
             for q in range(nl, B):
                 yl[a, q] = 0.0
                 rl[a, q] = 1.0
-        # the sequential Joseph update (_nbkernels._joseph_block)
-        for i in range(n):
-            for q in range(B):
-                dx[i, q] = 0.0
-        for q in range(B):
-            acc[q] = 0.0
-        for a in range(m):
-            # the row's columns nonzero in some lane before the mask (a masked row's zeros add exact zeros)
-            nz = nzc[a]
-            for c in range(nz):
-                idx[c] = nzr[a, c]
-            for q in range(B):
-                nu[q] = yl[a, q]
-            for c in range(nz):
-                i = idx[c]
-                for q in range(B):
-                    nu[q] -= Hl[a, i, q] * dx[i, q]
-            for i in range(n):
-                for q in range(B):
-                    b[i, q] = 0.0
-            for c in range(nz):
-                l = idx[c]
-                for i in range(l + 1):
-                    for q in range(B):
-                        b[i, q] += Pl[i, l, q] * Hl[a, l, q]
-                for i in range(l + 1, n):
-                    for q in range(B):
-                        b[i, q] += Pl[l, i, q] * Hl[a, l, q]
-            for q in range(B):
-                sv[q] = rl[a, q]
-            for c in range(nz):
-                i = idx[c]
-                for q in range(B):
-                    sv[q] += Hl[a, i, q] * b[i, q]
-            for i in range(n):
-                for q in range(B):
-                    k[i, q] = b[i, q] / sv[q]
-                    dx[i, q] += k[i, q] * nu[q]
-            for q in range(B):
-                acc[q] += nu[q] * nu[q] / sv[q]
-            for i in range(n):
-                for l in range(i, n):
-                    for q in range(B):
-                        Pl[i, l, q] += (sv[q] * k[i, q] - b[i, q]) * k[l, q] - k[i, q] * b[l, q]
-        for q in range(nl):
-            t = t0 + q
-            nis[t] = acc[q]
-            for i in range(n):
-                xo[t, i] = x[t, i] + dx[i, q]
-                for l in range(i, n):
-                    Po[t, i, l] = Pl[i, l, q]
-                    Po[t, l, i] = Pl[i, l, q]
+        # the EKF's sequential Joseph update (the same core as _nbkernels._joseph_block), on the
+        # columns of each row nonzero in some lane before the mask (a masked row's zeros add exact zeros)
+        _joseph_lanes(Pl, Hl, yl, rl, nzr, nzc, dx, b, k, nu, sv, acc)
+        _store_lanes(x, dx, Pl, acc, xo, Po, nis, t0, nl)
     return tot
 
 
