@@ -24,6 +24,8 @@ from typing import NamedTuple
 
 import numpy as np
 
+from .protocols import TransitionModel, require
+
 __all__ = ["AdaptiveQ", "AdaptiveQState", "ScaledTransition"]
 
 
@@ -35,10 +37,10 @@ class AdaptiveQState(NamedTuple):
 class ScaledTransition:
     """A transition model whose Q is ``scale`` x the wrapped model's (f and F unchanged)."""
 
-    def __init__(self, base, scale: float):
-        self.base = base
+    def __init__(self, base: TransitionModel, scale: float):
+        self.base = require(base, TransitionModel, "transition model")
         self.scale = float(scale)
-        self.linear = getattr(base, "linear", False)
+        self.linear = base.linear
 
     def f(self, x, dt):
         return self.base.f(x, dt)
@@ -75,7 +77,7 @@ class AdaptiveQ:
         """Q(0) = Q_min: scale 1, no adaptive diagonal."""
         return AdaptiveQState(1.0, np.zeros(tuple(batch_shape) + (int(n),)))
 
-    def transition(self, base, state: AdaptiveQState) -> ScaledTransition:
+    def transition(self, base: TransitionModel, state: AdaptiveQState) -> ScaledTransition:
         """The wrapped transition with Q = s Q_min (add ``state.q_diag`` to P- after predicting)."""
         return ScaledTransition(base, state.scale)
 

@@ -70,6 +70,7 @@ import numpy as np
 import scipy.stats
 
 from .ekf import UpdateResult, ekf_update, measure
+from .protocols import MeasurementModel
 
 __all__ = ["GuardedModel", "IntegrityConfig", "IntegrityMonitor", "MonitorState", "Report"]
 
@@ -478,13 +479,12 @@ class GuardedModel:
     ``r_floor`` (..., m). Works for the EKF (h_and_H) and for sigma points (h on (K, ..., n):
     the batch axes align on the right)."""
 
-    def __init__(self, base, z, inert, r_scale=None, r_floor=None, prepared=None, r_diag=None):
+    def __init__(self, base: MeasurementModel, z, inert, r_scale=None, r_floor=None, prepared=None, r_diag=None):
         self.base = base
         self.z = np.asarray(z, dtype=float)
         self.inert = np.asarray(inert, dtype=bool)
         self.r_scale = r_scale
         self.r_floor = r_floor
-        self.linear = getattr(base, "linear", False)
         # (x, h, H) already guarded at x (the monitor linearised there): returned for that very x
         self._prepared = prepared
         self._r_diag = r_diag  # the R diagonal to use as it is (floor and scale already applied)
@@ -540,7 +540,7 @@ class IntegrityMonitor:
                             np.zeros(b + (n_channels,), dtype=np.int64), np.zeros(b + (n_channels,), dtype=bool),
                             np.zeros(b + (n_channels,), dtype=np.int64), np.full(b + (int(m),), np.nan), 0)
 
-    def innovations(self, x, P, z, model):
+    def innovations(self, x, P, z, model: MeasurementModel):
         """(nu, a^2, HPH'_jj) at the prior, (..., m) each, by linearisation."""
         hx, H = measure(model, x)
         rd = model.R_diag()
@@ -550,7 +550,8 @@ class IntegrityMonitor:
         hph = np.einsum("...mi,...ij,...mj->...m", H, P, H)
         return np.asarray(z, dtype=float) - hx, hph + np.asarray(rd, dtype=float), hph
 
-    def step(self, state: MonitorState, x, P, z, model, channels, update=ekf_update, **update_kw):
+    def step(self, state: MonitorState, x, P, z, model: MeasurementModel, channels, update=ekf_update,
+             **update_kw):
         """One monitored update: (UpdateResult, MonitorState, Report).
 
         channels: (m,) int in [0, C) with C = state.excluded.shape[-1]. NaN measurements are

@@ -1,19 +1,23 @@
 """State-space models: small immutable objects that the filters hold.
 
-A transition model answers
+A transition model (filters.protocols.TransitionModel) answers
 
     ndim, linear
     f(x, dt) -> (..., n)          x(k+1) = f(x(k)) + w,  w ~ N(0, Q)
     F(x, dt) -> (n, n) | (..., n, n)   Jacobian df/dx ((n, n) for linear models; x may be None)
     Q(dt)    -> (n, n)
 
-and a measurement model answers
+and a measurement model (filters.protocols.MeasurementModel) answers
 
     ndim_meas (m), ndim_state (n)
-    h(x)     -> (..., m)          z = h(x) + v,  v ~ N(0, R)
-    H(x)     -> (..., m, n)       Jacobian dh/dx
-    R()      -> (m, m) | (..., m, m)
-    R_diag() -> (m,) | (..., m) when R is diagonal, else None
+    h(x)       -> (..., m)        z = h(x) + v,  v ~ N(0, R)
+    H(x)       -> (..., m, n)     Jacobian dh/dx
+    h_and_H(x) -> (h(x), H(x))    in one pass (what the EKF-type filters call)
+    R()        -> (m, m) | (..., m, m)
+    R_diag()   -> (m,) | (..., m) when R is diagonal, else None
+
+(``Measurement``: h_and_H from h and H; ``JointMeasurement``: h and H from h_and_H; both
+give R from R_diag).
 
 State arrays carry leading batch axes: x (..., n). A measurement model holds its per-step
 context (satellite positions, ...) and is cheap to build every step: validation is O(1)
@@ -46,8 +50,11 @@ __all__ = [
     "ClockRandomWalk",
     "Composite",
     "seed001_transition",
+    "Measurement",
+    "JointMeasurement",
     "LinearGaussian",
     "PseudorangeDoppler",
+    "ClockFreePseudorangeDoppler",
     "SEED001_N",
     "SEED001_POS",
     "SEED001_BIAS",
@@ -496,9 +503,28 @@ def seed001_transition(
 # measurement models
 
 
+def _R_from_diag(model):
+    d = model.R_diag()
+    if d is None:
+        raise TypeError(f"{type(model).__name__}.R_diag() returned None: a model with a full R defines R()")
+    d = np.asarray(d, dtype=float)
+    return d[..., None] * np.eye(d.shape[-1])
+
+
+class Measurement:
+    """Base of a measurement model written with h(x) and H(x): h_and_H(x) from them, R() from a
+    diagonal R_diag()."""
+
+    def h_and_H(self, x):
+        return self.h(x), self.H(x)
+
+    def R(self):
+        return _R_from_diag(self)
+
+
 class JointMeasurement:
-    """Mixin for a measurement model that computes h and H in one pass (``h_and_H``):
-    h and H come from it."""
+    """Base of a measurement model that computes h and H in one pass (``h_and_H``): h and H
+    come from it, R() from a diagonal R_diag()."""
 
     def h(self, x):
         return self.h_and_H(x)[0]
@@ -506,9 +532,12 @@ class JointMeasurement:
     def H(self, x):
         return self.h_and_H(x)[1]
 
+    def R(self):
+        return _R_from_diag(self)
+
 
 @dataclass(frozen=True, eq=False)
-class LinearGaussian:
+class LinearGaussian(Measurement):
     """z = H x + v,  v ~ N(0, R).  H (m, n) or (..., m, n); R (m, m) or (..., m, m)."""
 
     H_matrix: np.ndarray
@@ -595,8 +624,21 @@ def _compiled_pr_prr(model, x):
     return out.reshape(xb + (2 * S,))
 
 
+class _PseudorangeRows:
+    """The row layout shared by the pseudorange / pseudorange-rate models: S satellites
+    (sat_pos_ecef_m (..., S, 3)), all pseudoranges then all rates."""
+
+    @property
+    def n_sats(self) -> int:
+        return self.sat_pos_ecef_m.shape[-2]
+
+    @property
+    def ndim_meas(self) -> int:
+        return 2 * self.n_sats
+
+
 @dataclass(frozen=True, eq=False)
-class PseudorangeDoppler:
+class PseudorangeDoppler(_PseudorangeRows):
     """Pseudoranges and pseudorange rates to S satellites; seed 001 (and seed 000 eq. 20-22).
 
     Stacked measurement (all pseudoranges, then all rates), m = 2S:
@@ -661,14 +703,6 @@ class PseudorangeDoppler:
         object.__setattr__(self, "idx_bias", int(self.idx_bias))
         object.__setattr__(self, "idx_drift", int(self.idx_drift))
         object.__setattr__(self, "n", n)
-
-    @property
-    def n_sats(self) -> int:
-        return self.sat_pos_ecef_m.shape[-2]
-
-    @property
-    def ndim_meas(self) -> int:
-        return 2 * self.n_sats
 
     @property
     def ndim_state(self) -> int:
@@ -759,3 +793,77 @@ class PseudorangeDoppler:
     def R(self):
         d = self.R_diag()
         return d[..., None] * np.eye(d.shape[-1])
+
+
+@dataclass(frozen=True, eq=False)
+class ClockFreePseudorangeDoppler(_PseudorangeRows, JointMeasurement):
+    """Clock-free pseudoranges and range rates to S satellites, state x = [X (3), V (3)].
+
+        z = [pr_1 .. pr_S, prr_1 .. prr_S],   pr_j = |S_j - X|,
+        prr_j = u_j . (V_S_j - V),  u_j = (S_j - X) / |S_j - X|  (positive when receding)
+        d pr_j / dX = -u_j',   d prr_j / dX = (prr_j u_j - (V_S_j - V))' / |S_j - X|,
+        d prr_j / dV = -u_j'.
+
+    PseudorangeDoppler without the clock states (seed 002: a receiver without a clock; with
+    one, three satellites would not fix the position).
+    Untracked channels (tracked False) give h = 0, a zero H row and variance 1: with the
+    caller's z = 0 there, the innovation and the gain column are exactly 0.
+
+    sat_pos_ecef_m, sat_vel_ecef_m_s (..., S, 3) (NaN allowed where untracked);
+    var_pr_m2, var_prr_m2_s2 scalars or (..., S); tracked (..., S) bool or None (all).
+    """
+
+    sat_pos_ecef_m: np.ndarray
+    sat_vel_ecef_m_s: np.ndarray
+    var_pr_m2: Any
+    var_prr_m2_s2: Any
+    tracked: Any = None
+
+    def __post_init__(self):
+        sp = np.asarray(self.sat_pos_ecef_m, dtype=float)
+        sv = np.asarray(self.sat_vel_ecef_m_s, dtype=float)
+        if sp.ndim < 2 or sp.shape[-1] != 3:
+            raise ValueError(f"sat_pos_ecef_m must have shape (..., S, 3), got {sp.shape}")
+        if sv.shape[-2:] != sp.shape[-2:]:
+            raise ValueError(f"sat_vel_ecef_m_s must have shape (..., {sp.shape[-2]}, 3), got {sv.shape}")
+        tr = np.ones(sp.shape[:-1], bool) if self.tracked is None else np.asarray(self.tracked, dtype=bool)
+        tr = np.broadcast_to(tr, np.broadcast_shapes(tr.shape, sp.shape[:-1], sv.shape[:-1]))
+        for name in ("var_pr_m2", "var_prr_m2_s2"):
+            a = np.asarray(getattr(self, name), dtype=float)
+            if not np.all(np.isfinite(a) & (a > 0)):
+                raise ValueError(f"{name} must be finite and > 0, got {getattr(self, name)!r}")
+        m3 = tr[..., None]
+        # Untracked satellites sit at the Earth's centre: finite geometry, masked afterwards.
+        object.__setattr__(self, "sat_pos_ecef_m", np.where(m3, sp, 0.0))
+        object.__setattr__(self, "sat_vel_ecef_m_s", np.where(m3, sv, 0.0))
+        object.__setattr__(self, "tracked", tr)
+
+    @property
+    def ndim_state(self) -> int:
+        return 6
+
+    def h_and_H(self, x):
+        x = np.asarray(x, dtype=float)
+        if x.ndim < 1 or x.shape[-1] != 6:
+            raise ValueError(f"x must have shape (..., 6), got {x.shape}")
+        d = self.sat_pos_ecef_m - x[..., None, 0:3]
+        rho = np.sqrt(np.sum(d * d, axis=-1))
+        u = d / rho[..., None]
+        w = self.sat_vel_ecef_m_s - x[..., None, 3:6]
+        uw = np.sum(u * w, axis=-1)
+        tr = self.tracked
+        S = self.n_sats
+        hx = np.concatenate([np.where(tr, rho, 0.0), np.where(tr, uw, 0.0)], axis=-1)
+        H = np.zeros(hx.shape[:-1] + (2 * S, 6))
+        t3 = tr[..., None]
+        H[..., :S, 0:3] = np.where(t3, -u, 0.0)
+        H[..., S:, 0:3] = np.where(t3, (uw[..., None] * u - w) / rho[..., None], 0.0)
+        H[..., S:, 3:6] = np.where(t3, -u, 0.0)
+        return hx, H
+
+    def R_diag(self):
+        S = self.n_sats
+        tr = self.tracked
+        pr = np.where(tr, np.broadcast_to(self.var_pr_m2, tr.shape), 1.0)
+        prr = np.where(tr, np.broadcast_to(self.var_prr_m2_s2, tr.shape), 1.0)
+        return np.concatenate([pr, prr], axis=-1).reshape(tr.shape[:-1] + (2 * S,))

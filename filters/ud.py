@@ -40,6 +40,7 @@ import numpy as np
 
 from . import kernels
 from .ekf import measure
+from .protocols import MeasurementModel, TransitionModel, full_R, require
 
 __all__ = ["UDUpdateResult", "ud_factor", "ud_to_cov", "ud_predict", "ud_update", "ud_step", "factor_q"]
 
@@ -257,7 +258,7 @@ def _flat(batch, n, *arrays):
     return [a.reshape((-1,) + a.shape[len(batch):]) for a in arrays]
 
 
-def ud_predict(x, U, d, model, dt, backend=None):
+def ud_predict(x, U, d, model: TransitionModel, dt, backend=None):
     """Thornton MWGS prediction: x- = f(x), U- diag(d-) U-' = F U diag(d) U' F' + Q.
 
     Returns (x-, U-, d-). F may be shared (n, n) or per batch member (..., n, n); Q is
@@ -266,6 +267,7 @@ def ud_predict(x, U, d, model, dt, backend=None):
     """
     x = _as_float("x", x)
     batch, n, U, d = _check_ud(U, d, x)
+    require(model, TransitionModel, "transition model")
     F = np.asarray(model.F(x, dt), dtype=float)
     if F.shape[-2:] != (n, n):
         raise ValueError(f"model.F must have shape (..., {n}, {n}), got {F.shape}")
@@ -308,7 +310,7 @@ def _decorrelated(model, y, H, batch, m, n):
         if not np.all(r > 0):
             raise ValueError("the measurement variances R_diag must be > 0 for scalar updates")
         return y, H, r
-    R = kernels.batched(np.asarray(model.R(), dtype=float), batch + (m, m)).reshape(-1, m, m)
+    R = kernels.batched(np.asarray(full_R(model), dtype=float), batch + (m, m)).reshape(-1, m, m)
     try:
         L = np.linalg.cholesky(R)
     except np.linalg.LinAlgError:
@@ -318,7 +320,7 @@ def _decorrelated(model, y, H, batch, m, n):
     return y, H, np.ones((y.shape[0], m))
 
 
-def ud_update(x, U, d, z, model, backend=None) -> UDUpdateResult:
+def ud_update(x, U, d, z, model: MeasurementModel, backend=None) -> UDUpdateResult:
     """Bierman scalar sequential update, the measurement model linearised at the prior x.
 
     Returns UDUpdateResult(x+, U+, d+, y, nis) with y = z - h(x) and nis = y' S^-1 y.
@@ -348,7 +350,8 @@ def ud_update(x, U, d, z, model, backend=None) -> UDUpdateResult:
                           y, nis.reshape(batch))
 
 
-def ud_step(x, U, d, z, transition, measurement, dt, backend=None) -> UDUpdateResult:
+def ud_step(x, U, d, z, transition: TransitionModel, measurement: MeasurementModel, dt,
+            backend=None) -> UDUpdateResult:
     """ud_predict then ud_update (the same numbers as calling both)."""
     xp, Up, dp = ud_predict(x, U, d, transition, dt, backend=backend)
     return ud_update(xp, Up, dp, z, measurement, backend=backend)

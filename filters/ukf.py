@@ -27,6 +27,7 @@ import numpy as np
 
 from . import kernels
 from .ekf import UpdateResult, _flatten
+from .protocols import SigmaPointMeasurementModel, TransitionModel, full_R, require
 
 
 @dataclass(frozen=True)
@@ -85,7 +86,8 @@ def _points_for(points, n):
     return points
 
 
-def ukf_predict(x, P, model, dt, points: SigmaPoints | None = None, backend=None, exploit_linear=True):
+def ukf_predict(x, P, model: TransitionModel, dt, points: SigmaPoints | None = None, backend=None,
+                exploit_linear=True):
     """Unscented prediction through model.f. Returns (x-, P-).
 
     The unscented transform of a linear map is exact: for a transition model with
@@ -98,7 +100,8 @@ def ukf_predict(x, P, model, dt, points: SigmaPoints | None = None, backend=None
     batch, xf, Pf = _flatten(x, P)
     n = xf.shape[-1]
     sp = _points_for(points, n)
-    if exploit_linear and getattr(model, "linear", False):
+    require(model, TransitionModel, "transition model")
+    if exploit_linear and model.linear:
         F = np.asarray(model.F(x, dt), dtype=float)
         if F.ndim == 2:
             Pp = kernels.cov_predict(F, Pf, model.Q(dt), backend=backend)
@@ -109,7 +112,8 @@ def ukf_predict(x, P, model, dt, points: SigmaPoints | None = None, backend=None
     return mean.reshape(batch + (n,)), Pp.reshape(batch + (n, n))
 
 
-def ukf_update(x, P, z, model, points: SigmaPoints | None = None, backend=None) -> UpdateResult:
+def ukf_update(x, P, z, model: SigmaPointMeasurementModel, points: SigmaPoints | None = None,
+               backend=None) -> UpdateResult:
     """Unscented update with sigma points redrawn from (x-, P-)."""
     x = np.asarray(x, dtype=float)
     P = np.asarray(P, dtype=float)
@@ -117,6 +121,7 @@ def ukf_update(x, P, z, model, points: SigmaPoints | None = None, backend=None) 
     n = xf.shape[-1]
     sp = _points_for(points, n)
     K = 2 * n + 1
+    require(model, SigmaPointMeasurementModel, "measurement model")
     X = kernels.sigma_points(xf, Pf, sp.c, backend=backend)
     Z = np.asarray(model.h(X.reshape((K,) + batch + (n,))), dtype=float)
     m = Z.shape[-1]
@@ -128,6 +133,6 @@ def ukf_update(x, P, z, model, points: SigmaPoints | None = None, backend=None) 
     elif r_diag is not None:
         R = kernels.batched(r_diag, batch + (m,)).reshape(-1, m)[..., None, :] * np.eye(m)
     else:
-        R = kernels.batched(model.R(), batch + (m, m)).reshape(-1, m, m)
+        R = kernels.batched(full_R(model), batch + (m, m)).reshape(-1, m, m)
     xo, Po, y, nis = kernels.ukf_update(xf, Pf, X, Z, z, R, sp.Wm, sp.Wc, backend=backend)
     return UpdateResult(xo.reshape(batch + (n,)), Po.reshape(batch + (n, n)), y.reshape(batch + (m,)), nis.reshape(batch))

@@ -245,6 +245,34 @@ def test_linear_gaussian_equals_kalman_filter(lg, lg_ref, lg_filterpy, backend, 
     assert_close(xs[:, :FP_TRIALS], Ps[:, :FP_TRIALS], xf, Pf, 1e-9, f"{method} vs filterpy KalmanFilter")
 
 
+@pytest.mark.parametrize("backend", BACKENDS)
+@pytest.mark.parametrize("kind", ["diag", "full"])
+def test_predicted_step_with_a_known_input(lg, lg_ref, backend, kind):
+    """ekf_predicted_step (the caller's predicted mean): with x- = F x it is ekf_step bit for bit;
+    with a known input u, x- = F x + u, it equals kernels.cov_predict then ekf_update, and the
+    reference Kalman filter on the shifted measurement z - H u (x+ - u)."""
+    from filters.ekf import ekf_predicted_step
+
+    trans = LinearTransition(lg.F, lg.Q)
+    meas = models.LinearGaussian(lg.H, lg.R[kind])
+    x, P, z = lg.x0, lg.P0, lg.z[kind][0]
+    a = ekf_step(x, P, z, trans, meas, 1.0, backend=backend)
+    b = ekf_predicted_step(x @ lg.F.T, P, z, lg.F, lg.Q, meas, backend=backend)
+    for u, v in zip(a, b):
+        np.testing.assert_array_equal(u, v)
+    u = np.linspace(-2.0, 3.0, lg.n)
+    c = ekf_predicted_step(x @ lg.F.T + u, P, z, lg.F, lg.Q, meas, backend=backend)
+    Pp = kernels.cov_predict(lg.F, P, lg.Q, backend=backend)
+    d = ekf_update(x @ lg.F.T + u, Pp, z, meas, backend=backend)
+    assert rel_max(c.x, d.x) < 1e-12 and rel_max(c.P, d.P) < 1e-12 and rel_max(c.nis, d.nis) < 1e-10
+    xr, Pr = reference_kf(x, P, (z - lg.H @ u)[None], lg.F, lg.Q, lg.H, lg.R[kind])
+    assert rel_max(c.x - u, xr[0]) < 1e-10 and rel_max(c.P, Pr[0]) < 1e-10
+    # a per-trial F / Q: not fused, the same numbers as the numpy prediction then the update
+    Fb = np.broadcast_to(lg.F, (lg.x0.shape[0], lg.n, lg.n))
+    e = ekf_predicted_step(x @ lg.F.T + u, P, z, Fb, np.broadcast_to(lg.Q, Fb.shape), meas, backend=backend)
+    assert rel_max(e.x, d.x) < 1e-12 and rel_max(e.P, d.P) < 1e-12
+
+
 # ============================================================================ seed 001 data
 
 SEED_TRIALS, SEED_STEPS, SEED_DT = 300, 50, Seed001Scenario().dt_s
@@ -528,8 +556,8 @@ class NonlinearTransition:
         return np.diag([0.01, 0.01, 0.05, 0.05])
 
 
-class RangeBearing:
-    """z = [|p|, atan2(py, px)] + v from the origin."""
+class RangeBearing(models.Measurement):
+    """z = [|p|, atan2(py, px)] + v from the origin (h_and_H from h and H: models.Measurement)."""
 
     R_mat = np.diag([0.25, 0.01])
 

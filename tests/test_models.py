@@ -451,3 +451,146 @@ def test_linear_gaussian():
 def test_bad_parameters_raise_value_error_naming_them(make, name):
     with pytest.raises(ValueError, match=name.replace("(", r"\(")):
         make()
+
+
+# ----------------------------------------------------------------------------- the model protocols
+
+
+def _clock_free_case(rng, batch=(4,), S=5):
+    sp = rng.standard_normal(batch + (S, 3)) * 2.0e7
+    sv = rng.standard_normal(batch + (S, 3)) * 3.0e3
+    x = np.concatenate([rng.standard_normal(batch + (3,)) * 1e5, rng.standard_normal(batch + (3,)) * 50.0], -1)
+    return sp, sv, x
+
+
+def test_clock_free_pseudorange_doppler_is_pseudorange_doppler_without_the_clock():
+    """filters.models.ClockFreePseudorangeDoppler (moved from vehicles/uav_nav.py) against
+    PseudorangeDoppler on the 8-state [X, D', V, V'] with the clock states at 0: the same h and
+    the same H with the clock columns removed; untracked channels give h = 0, H = 0, r = 1."""
+    from filters.models import ClockFreePseudorangeDoppler
+
+    rng = np.random.default_rng(3)
+    sp, sv, x = _clock_free_case(rng)
+    cf = ClockFreePseudorangeDoppler(sp, sv, 900.0, 0.04)
+    pd = PseudorangeDoppler(sp, sv, 30.0, 0.2, idx_pos=(0, 1, 2), idx_vel=(4, 5, 6), idx_bias=3, idx_drift=7, n=8)
+    x8 = np.zeros(x.shape[:-1] + (8,))
+    x8[..., 0:3], x8[..., 4:7] = x[..., 0:3], x[..., 3:6]
+    h, H = cf.h_and_H(x)
+    h8, H8 = pd.h_and_H(x8)
+    np.testing.assert_allclose(h, h8, rtol=1e-13)
+    np.testing.assert_allclose(H, H8[..., [0, 1, 2, 4, 5, 6]], rtol=1e-12, atol=1e-15)
+    np.testing.assert_allclose(cf.R_diag(), np.broadcast_to(pd.R_diag(), (4, 10)), rtol=1e-12)
+    np.testing.assert_array_equal(cf.R(), cf.R_diag()[..., None] * np.eye(10))
+    tracked = np.ones((4, 5), bool)
+    tracked[:, 2] = False
+    cfm = ClockFreePseudorangeDoppler(np.where(tracked[..., None], sp, np.nan), sv, 900.0, 0.04, tracked)
+    hm, Hm = cfm.h_and_H(x)
+    assert np.all(hm[:, [2, 7]] == 0.0) and np.all(Hm[:, [2, 7]] == 0.0) and np.all(cfm.R_diag()[:, [2, 7]] == 1.0)
+    np.testing.assert_array_equal(hm[:, [0, 1, 3, 4]], h[:, [0, 1, 3, 4]])
+
+
+def test_every_filters_model_is_a_protocol_model():
+    from filters.beacon import ObserverRangeDoppler
+    from filters.iono_tropo import IonoTropoTransition
+    from filters.models import ClockFreePseudorangeDoppler
+    from filters.protocols import MeasurementModel, SigmaPointMeasurementModel, TransitionModel
+
+    rng = np.random.default_rng(4)
+    sp, sv, _ = _clock_free_case(rng)
+    transitions = [ConstantVelocity(3, q=1.0), ConstantAcceleration(3, q=1.0), Singer(0.2, 5.0),
+                   ClockGaussMarkov(0.1, 3.0), ClockRandomWalk(1e-20), seed001_transition(),
+                   IonoTropoTransition()]
+    measurements = [LinearGaussian(np.eye(2), np.eye(2)), PseudorangeDoppler(sp, sv, 30.0, 0.2),
+                    ClockFreePseudorangeDoppler(sp, sv, 900.0, 0.04),
+                    ObserverRangeDoppler(sp[..., :3, :], sv[..., :3, :], 1.0, 0.01, observer_uncertainty="ignore")]
+    for m in transitions:
+        assert isinstance(m, TransitionModel), m
+        assert isinstance(m.linear, bool)
+    for m in measurements:
+        assert isinstance(m, MeasurementModel) and isinstance(m, SigmaPointMeasurementModel), m
+
+
+class _NoLinear:  # a transition model that does not declare ``linear``
+    def f(self, x, dt):
+        return x
+
+    def F(self, x, dt):
+        return np.eye(2)
+
+    def Q(self, dt):
+        return np.eye(2)
+
+
+class _HOnly:  # a measurement model with h and H but no h_and_H (and not derived from Measurement)
+    def h(self, x):
+        return x
+
+    def H(self, x):
+        return np.broadcast_to(np.eye(2), x.shape[:-1] + (2, 2))
+
+    def R_diag(self):
+        return np.ones(2)
+
+
+class _JointOnly:  # h_and_H and R_diag only: what the EKF-type filters need, and not the UKF
+    def h_and_H(self, x):
+        return x, np.broadcast_to(np.eye(2), x.shape[:-1] + (2, 2))
+
+    def R_diag(self):
+        return np.ones(2)
+
+
+class _FullROnlyByDiagNone(_JointOnly):  # R_diag None (a full R) but no R()
+    def R_diag(self):
+        return None
+
+
+def test_a_model_without_a_protocol_member_fails_naming_it():
+    from filters.ekf import ekf_predict, ekf_step, ekf_update
+    from filters.integrity import IntegrityMonitor
+    from filters.ud import ud_predict, ud_update
+    from filters.ukf import ukf_predict, ukf_update
+
+    x, P = np.zeros((3, 2)), np.broadcast_to(np.eye(2), (3, 2, 2)).copy()
+    U, d = np.broadcast_to(np.eye(2), (3, 2, 2)).copy(), np.ones((3, 2))
+    z = np.zeros((3, 2))
+    good = ConstantVelocity(1, q=1.0)
+    meas = LinearGaussian(np.eye(2), np.eye(2))
+    for call in (lambda: ekf_predict(x, P, _NoLinear(), 1.0), lambda: ekf_step(x, P, z, _NoLinear(), meas, 1.0),
+                 lambda: ukf_predict(x, P, _NoLinear(), 1.0), lambda: ud_predict(x, U, d, _NoLinear(), 1.0)):
+        with pytest.raises(TypeError, match=r"transition model _NoLinear is not a TransitionModel .*no linear"):
+            call()
+    mon = IntegrityMonitor()
+    for call in (lambda: ekf_update(x, P, z, _HOnly()), lambda: ekf_step(x, P, z, good, _HOnly(), 1.0),
+                 lambda: ud_update(x, U, d, z, _HOnly()),
+                 lambda: mon.step(mon.init((3,), 2, 2), x, P, z, _HOnly(), np.arange(2))):
+        with pytest.raises(TypeError, match=r"measurement model _HOnly is not a MeasurementModel .*no h_and_H"):
+            call()
+    with pytest.raises(TypeError, match=r"_JointOnly is not a SigmaPointMeasurementModel .*no h\b"):
+        ukf_update(x, P, z, _JointOnly())
+    with pytest.raises(TypeError, match=r"_FullROnlyByDiagNone returned R_diag\(\) None and has no R\(\)"):
+        ekf_update(x, P, z, _FullROnlyByDiagNone())
+    # the filters take the h_and_H-only model as it is
+    ekf_update(x, P, z, _JointOnly())
+
+
+def test_measurement_bases_complete_a_model():
+    from filters.models import JointMeasurement, Measurement
+
+    class Hh(Measurement, _HOnly):
+        pass
+
+    class Joint(JointMeasurement, _JointOnly):
+        pass
+
+    x = np.arange(6.0).reshape(3, 2)
+    h, H = Hh().h_and_H(x)
+    np.testing.assert_array_equal(h, x)
+    np.testing.assert_array_equal(H, np.broadcast_to(np.eye(2), (3, 2, 2)))
+    j = Joint()
+    np.testing.assert_array_equal(j.h(x), x)
+    np.testing.assert_array_equal(j.H(x), H)
+    np.testing.assert_array_equal(j.R(), np.eye(2))
+    np.testing.assert_array_equal(Hh().R(), np.eye(2))
+    with pytest.raises(TypeError, match="R_diag.. returned None"):
+        type("FullR", (JointMeasurement, _FullROnlyByDiagNone), {})().R()

@@ -87,13 +87,13 @@ import functools
 import itertools
 import math
 from dataclasses import dataclass, field
-from typing import Any, NamedTuple
+from typing import NamedTuple
 
 import numpy as np
 
 from filters.ekf import ekf_predict, ekf_step, ekf_update
 from filters.integrity import IntegrityConfig, IntegrityMonitor
-from filters.models import ConstantVelocity, JointMeasurement
+from filters.models import ClockFreePseudorangeDoppler, ConstantVelocity
 from sitl import geodesy
 from sitl.checks import nonnegative as _nonnegative
 from sitl.checks import positive as _positive
@@ -111,7 +111,6 @@ __all__ = [
     "GnssEpoch",
     "NavEstimate",
     "NavTrack",
-    "ClockFreePseudorangeDoppler",
     "unperturbed",
     "pdop_clock_free",
     "seed002_three_satellites",
@@ -231,6 +230,8 @@ class _MemoTransition:
     """NavConfig.transition() with F and Q (and f's F) memoised per step length (the same
     numbers, without rebuilding them from Kronecker products every epoch); every other
     attribute is the ConstantVelocity model's."""
+
+    linear = True  # (filters.protocols.TransitionModel)
 
     def __init__(self, q: float):
         self.q = float(q)
@@ -404,91 +405,6 @@ def gnss_measure(rng: np.random.Generator, t_gps_s: float, pos_ecef_m, vel_ecef_
 
 
 # --------------------------------------------------------------------------- estimator side
-
-
-@dataclass(frozen=True, eq=False)
-class ClockFreePseudorangeDoppler(JointMeasurement):
-    """Clock-free pseudoranges and range rates to S satellites, state x = [X (3), V (3)].
-
-        z = [pr_1 .. pr_S, prr_1 .. prr_S],   pr_j = |S_j - X|,
-        prr_j = u_j . (V_S_j - V),  u_j = (S_j - X) / |S_j - X|  (positive when receding)
-        d pr_j / dX = -u_j',   d prr_j / dX = (prr_j u_j - (V_S_j - V))' / |S_j - X|,
-        d prr_j / dV = -u_j'.
-
-    filters.models.PseudorangeDoppler without the clock states (it needs two of them).
-    Untracked channels (tracked False) give h = 0, a zero H row and variance 1: with the
-    caller's z = 0 there, the innovation and the gain column are exactly 0.
-
-    sat_pos_ecef_m, sat_vel_ecef_m_s (..., S, 3) (NaN allowed where untracked);
-    var_pr_m2, var_prr_m2_s2 scalars or (..., S); tracked (..., S) bool or None (all).
-    """
-
-    sat_pos_ecef_m: np.ndarray
-    sat_vel_ecef_m_s: np.ndarray
-    var_pr_m2: Any
-    var_prr_m2_s2: Any
-    tracked: Any = None
-
-    def __post_init__(self):
-        sp = np.asarray(self.sat_pos_ecef_m, dtype=float)
-        sv = np.asarray(self.sat_vel_ecef_m_s, dtype=float)
-        if sp.ndim < 2 or sp.shape[-1] != 3:
-            raise ValueError(f"sat_pos_ecef_m must have shape (..., S, 3), got {sp.shape}")
-        if sv.shape[-2:] != sp.shape[-2:]:
-            raise ValueError(f"sat_vel_ecef_m_s must have shape (..., {sp.shape[-2]}, 3), got {sv.shape}")
-        tr = np.ones(sp.shape[:-1], bool) if self.tracked is None else np.asarray(self.tracked, dtype=bool)
-        tr = np.broadcast_to(tr, np.broadcast_shapes(tr.shape, sp.shape[:-1], sv.shape[:-1]))
-        for name in ("var_pr_m2", "var_prr_m2_s2"):
-            a = np.asarray(getattr(self, name), dtype=float)
-            if not np.all(np.isfinite(a) & (a > 0)):
-                raise ValueError(f"{name} must be finite and > 0, got {getattr(self, name)!r}")
-        m3 = tr[..., None]
-        # Untracked satellites sit at the Earth's centre: finite geometry, masked afterwards.
-        object.__setattr__(self, "sat_pos_ecef_m", np.where(m3, sp, 0.0))
-        object.__setattr__(self, "sat_vel_ecef_m_s", np.where(m3, sv, 0.0))
-        object.__setattr__(self, "tracked", tr)
-
-    @property
-    def n_sats(self) -> int:
-        return self.sat_pos_ecef_m.shape[-2]
-
-    @property
-    def ndim_meas(self) -> int:
-        return 2 * self.n_sats
-
-    @property
-    def ndim_state(self) -> int:
-        return _N
-
-    def h_and_H(self, x):
-        x = np.asarray(x, dtype=float)
-        if x.ndim < 1 or x.shape[-1] != _N:
-            raise ValueError(f"x must have shape (..., 6), got {x.shape}")
-        d = self.sat_pos_ecef_m - x[..., None, 0:3]
-        rho = np.sqrt(np.sum(d * d, axis=-1))
-        u = d / rho[..., None]
-        w = self.sat_vel_ecef_m_s - x[..., None, 3:6]
-        uw = np.sum(u * w, axis=-1)
-        tr = self.tracked
-        S = self.n_sats
-        hx = np.concatenate([np.where(tr, rho, 0.0), np.where(tr, uw, 0.0)], axis=-1)
-        H = np.zeros(hx.shape[:-1] + (2 * S, _N))
-        t3 = tr[..., None]
-        H[..., :S, 0:3] = np.where(t3, -u, 0.0)
-        H[..., S:, 0:3] = np.where(t3, (uw[..., None] * u - w) / rho[..., None], 0.0)
-        H[..., S:, 3:6] = np.where(t3, -u, 0.0)
-        return hx, H
-
-    def R_diag(self):
-        S = self.n_sats
-        tr = self.tracked
-        pr = np.where(tr, np.broadcast_to(self.var_pr_m2, tr.shape), 1.0)
-        prr = np.where(tr, np.broadcast_to(self.var_prr_m2_s2, tr.shape), 1.0)
-        return np.concatenate([pr, prr], axis=-1).reshape(tr.shape[:-1] + (2 * S,))
-
-    def R(self):
-        d = self.R_diag()
-        return d[..., None] * np.eye(d.shape[-1])
 
 
 def filter_sat_states(epochs, constellation: Constellation, config: NavConfig = NavConfig()):
