@@ -50,6 +50,7 @@ import numpy as np
 
 from filters import kernels
 from filters.beacon import ObserverRangeDoppler
+from filters.iekf import iterated_update, relinearized_innovation
 
 from .beacon_locator import (
     Frame,
@@ -186,12 +187,17 @@ class CentralFilter:
         y = np.concatenate(ys, axis=-1)
         H = np.concatenate(Hs, axis=-2)
         y0, P0 = np.ascontiguousarray(self.y), np.ascontiguousarray(self.P)
-        yi, Pi, nis = kernels.joseph_update(y0, P0, np.ascontiguousarray(y), np.ascontiguousarray(H),
-                                            r_diag=np.ones(y.shape), backend=self.backend)
+
+        def update(nu, Hl):
+            return kernels.joseph_update(y0, P0, np.ascontiguousarray(nu), np.ascontiguousarray(Hl),
+                                         r_diag=np.ones(nu.shape), backend=self.backend)
+
+        first = update(y, H)
         # iterated EKF (config.update_iterations > 1, as the locator's): the beacon links
         # relinearised at the updated state (the GNSS rows are already linear enough: ~20000 km ranges)
         ng = sum(a.shape[-1] for a in ys[:-1])
-        for _ in range(int(getattr(self.config, "update_iterations", 1)) - 1):
+
+        def linearize(yi):
             xb, G = cyl_to_ecef(yi[:, 0:6], self.frame, jacobian=True)
             Ui = yi[:, 6:].reshape(T, N, 6)
             zhat, HB = ObserverRangeDoppler(Ui[..., 0:3], Ui[..., 3:6], vr, vv,
@@ -201,12 +207,12 @@ class CentralFilter:
             for i in range(N):
                 rows = slice(2 * i, 2 * i + 2)
                 H2[:, rows, 6 + 6 * i:12 + 6 * i] = -HB[:, rows, :]
-            # innovation z - h(x_i) - H_i (x_0 - x_i); for the GNSS rows, kept at their first
-            # linearisation, that is their first innovation
-            yl = np.concatenate([y[:, :ng], ((z - zhat) - np.einsum("tmi,ti->tm", H2, y0 - yi)) * w], axis=-1)
-            Hl = np.concatenate([H[:, :ng], H2 * w[..., None]], axis=-2)
-            yi, Pi, nis = kernels.joseph_update(y0, P0, np.ascontiguousarray(yl), np.ascontiguousarray(Hl),
-                                                r_diag=np.ones(yl.shape), backend=self.backend)
+            # the GNSS rows kept at their first linearisation: their first innovation
+            return (np.concatenate([y[:, :ng], relinearized_innovation(z, zhat, H2, y0, yi) * w], axis=-1),
+                    np.concatenate([H[:, :ng], H2 * w[..., None]], axis=-2))
+
+        it = iterated_update(y0, first[0], linearize, update, int(getattr(self.config, "update_iterations", 1)))
+        yi, Pi, nis = first if it.result is None else it.result
         self.y, self.P = yi, Pi
         return self
 
