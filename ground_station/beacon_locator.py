@@ -276,7 +276,7 @@ after the run and beacon checks, before the plausibility ones; a different messa
 and epoch already held counts ``duplicate_epoch``.  After a partition (every UAV link silent)
 the tracks coast (mode "coast", "lost" after ``max_coast_s``) with the covariance growing, and
 re-converge on the first epochs back: the per-observer gate is judged with that grown
-covariance, so the returning data are not refused.  Measured (``sitl.experiments.faults``'
+covariance, so the returning data are not refused.  Measured (``sitl.app.experiments.network_faults``'
 beacon runs: printed geometry, three satellites, 3 UAVs, 8 trials, 300 s, links down from 150
 s): after a 30 s partition the 10 s RMSE is within 2x the fault-free run's from the heal on
 (8 s with the window ending at the time instead of starting there; nothing gated), after 60 s

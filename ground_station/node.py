@@ -146,7 +146,7 @@ def beacon_locator_config(c: GsConfig):
     beacon_locator.py), the locator `skyfuse experiment beacon` scores, with a blind
     (multilateration) start of beacon_init_epochs epochs.  Checked against "inflate" on this
     scenario's geometry, old and new, and on the seed's geodetic blind start (issue 19; numbers in
-    sitl/experiments/long_run.py's docstring)."""
+    sitl/app/experiments/long_run.py's docstring)."""
     from ground_station.beacon_locator import LocatorConfig
 
     return LocatorConfig(observer_uncertainty="consider", init_epochs=c.beacon_init_epochs,
@@ -180,7 +180,7 @@ class GroundStationNode:
                                      source_id="gs")
         self.tracker = None
         if c.sonde:
-            from sitl.experiments.sonde import SondeScenario, tracker_params
+            from sitl.app.experiments.sonde import SondeScenario, tracker_params
             scn = SondeScenario(dt_s=c.sonde_dt_s, gcpp_offset_m=c.gcpp_offset_m,
                                 gcpp_bearing_deg=c.gcpp_bearing_deg, integrity="on" if c.sonde_integrity else "off")
             params = dataclasses.replace(tracker_params(scn, "fused"), lag_window_s=c.lag_window_s)

@@ -30,7 +30,7 @@ class GcsLink:
     now, past everything the old one sent (its timestamps ran ahead of the clock by one 10 us
     tick per frame only, i.e. never more than ~0.1 s at the rates here).  The link never reads
     what comes back, so no peer timestamp moves it.  clock: unix seconds (injected; default
-    sitl.live.pacer.wall_now).
+    sitl.pacing.wall_now).
 
     ``adsb`` never raises on an estimate: a non-finite or malformed position is not sent
     (``skipped[reason]``); a field MAVLink cannot carry (an altitude beyond int32 mm, a speed
@@ -42,7 +42,7 @@ class GcsLink:
 
         from pymavlink.dialects.v20 import common as m
 
-        from sitl.live.pacer import wall_now
+        from sitl.pacing import wall_now
 
         host, port = gcs.rsplit(":", 1)
         self.addr = (host, int(port))
@@ -84,7 +84,7 @@ class GcsLink:
             if self._tlog is not None:
                 import struct
 
-                from sitl.live.pacer import (
+                from sitl.pacing import (
                     wall_now,  # a tlog stamps wall time (us), by convention
                 )
                 self._tlog.write(struct.pack(">Q", int(wall_now() * 1e6)) + msg.get_msgbuf())
@@ -202,7 +202,7 @@ def main(argv=None) -> int:
         errors = 0
         from collections import deque
 
-        from sitl.live.pacer import perf_now
+        from sitl.pacing import perf_now
         tick_s = deque(maxlen=2000)
         while not rt.stop.is_set():
             if not pacer.wait_until(t):
@@ -253,7 +253,7 @@ def main(argv=None) -> int:
 
 
 def _status(node, bus, gcs, errors, t, tick_s=()) -> dict:
-    from sitl.live.pacer import cpu_now
+    from sitl.pacing import cpu_now
     from sitl.live.worker import bus_counters
     d = {"event": "status", "t_sim_s": t, "cpu_s": cpu_now(), "epochs": node.counters["epochs"], "estimates": node.counters["estimates"],
          "late": node.counters["late"],

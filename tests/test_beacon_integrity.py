@@ -266,11 +266,11 @@ def test_config_checks():
 
 
 def test_experiment_case_isolates_the_injected_faults_and_summarises():
-    """sitl/experiments/beacon.py with integrity on: a 100 m range step on UAV 2's link and a
+    """sitl/app/experiments/beacon.py with integrity on: a 100 m range step on UAV 2's link and a
     100 m pseudorange step on one of UAV 1's satellites (GPS constellation, printed geometry):
     both isolated on their channels (locator: within 2 epochs; UAV 1's filter: within 10 s),
     the events on the bus reach the summary."""
-    from sitl.experiments import beacon as be
+    from sitl.app.experiments import beacon as be
 
     trials, dur = 2, 170.0
     tr, prior = be.scenario("printed", 3, dur, trials, np.random.default_rng([5, 77]))
@@ -295,8 +295,8 @@ def test_experiment_case_isolates_the_injected_faults_and_summarises():
 def test_experiment_bad_integrity_options_are_usage_errors(flags):
     import argparse
 
-    from sitl.cli import UsageError
-    from sitl.experiments import beacon as be
+    from sitl.app.cli import UsageError
+    from sitl.app.experiments import beacon as be
 
     a = argparse.Namespace(uavs=3, duration=200.0, uav_counts=[3], **{"integrity": "off", **flags})
     with pytest.raises(UsageError):

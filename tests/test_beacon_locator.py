@@ -37,7 +37,7 @@ from ground_station.beacon_locator import (
     formation_frame,
     init_fix,
 )
-from sitl import cli
+from sitl.app import cli
 from sitl.bus import BeaconMeasurement, InMemoryTransport, encode, key_for, pack_sealed
 from sitl.geodesy import geodetic_to_ecef
 from sitl.radio.beacon_link import range_and_rate
@@ -478,7 +478,7 @@ def test_prior_config_checks():
 
 def test_scores_per_paper_axis_against_a_hand_computation():
     """errors_m: xi = ECEF y, eta = ECEF z, zeta = ECEF x (the paper's printed start point)."""
-    from sitl.experiments import beacon as ex
+    from sitl.app.experiments import beacon as ex
 
     t = np.arange(0.0, 201.0)
     K, T = t.size, 2
@@ -508,7 +508,7 @@ def test_printed_sweep_trials_that_diverged_with_one_linearisation():
     UAVs: ranges comparable with the prior's error, where the Jacobians at the prediction
     point the wrong way.  The experiment's locator (iterated updates) tracks every trial;
     with update_iterations = 1 the same data diverge (so the test can fail)."""
-    from sitl.experiments import beacon as E
+    from sitl.app.experiments import beacon as E
 
     worst = {}
     for n, bad in ((3, 0), (10, 2)):

@@ -5,7 +5,7 @@ import json
 
 import pytest
 
-from sitl.cli import build_parser, main
+from sitl.app.cli import build_parser, main
 
 
 def test_help_lists_the_flags(capsys):

@@ -5,7 +5,7 @@ import json
 
 import pytest
 
-from sitl.cli import main
+from sitl.app.cli import main
 
 
 def test_bench_sonde_tiny_run(tmp_path, capsys):

@@ -8,7 +8,7 @@ import sys
 
 import pytest
 
-from sitl.cli import build_parser, main
+from sitl.app.cli import build_parser, main
 
 SUBCOMMANDS = [[], ["demo"], ["run"], ["replay"], ["bench", "live"], ["experiment"], ["experiment", "ekf-vs-ukf"], ["experiment", "iono-tropo"], ["bench"],
                ["bench", "filters"], ["bench", "iono-tropo"]]
@@ -66,7 +66,7 @@ def test_unwritable_output_directory(tmp_path, capsys):
 
 def test_console_script_exit_code_without_traceback():
     # the installed entry point, as a user runs it
-    proc = subprocess.run([sys.executable, "-m", "sitl.cli", "experiment", "ekf-vs-ukf", "--trials", "-1"],
+    proc = subprocess.run([sys.executable, "-m", "sitl.app.cli", "experiment", "ekf-vs-ukf", "--trials", "-1"],
                           capture_output=True, text=True, timeout=60)
     assert proc.returncode == 2
     assert "Traceback" not in proc.stderr and proc.stderr.count("\n") == 1
@@ -93,7 +93,7 @@ def test_small_experiment_writes_result_and_figures(tmp_path, capsys):
 
 
 def test_experiment_is_deterministic_for_a_seed(tmp_path):
-    from sitl.experiments.seed001 import Seed001Scenario, run
+    from sitl.app.experiments.ekf_vs_ukf import Seed001Scenario, run
 
     a = run(Seed001Scenario(steps=10), 20, seed=5)
     b = run(Seed001Scenario(steps=10), 20, seed=5)
@@ -103,7 +103,7 @@ def test_experiment_is_deterministic_for_a_seed(tmp_path):
 
 
 def test_bad_scenario_values_are_clear():
-    from sitl.experiments.seed001 import Seed001Scenario
+    from sitl.app.experiments.ekf_vs_ukf import Seed001Scenario
 
     with pytest.raises(ValueError, match="n_sats must be >= 4"):
         Seed001Scenario(n_sats=3)

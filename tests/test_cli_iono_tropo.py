@@ -9,7 +9,7 @@ import pytest
 
 from outputs import is_png as _is_png
 from outputs import strict_json as _strict_json
-from sitl.cli import build_parser, main
+from sitl.app.cli import build_parser, main
 
 VARIANTS = ("code_doppler", "phase_increments", "carrier_phase")
 FIGURES = ("iono_tropo_estimates.png", "iono_tropo_errors.png", "iono_tropo_time_to_1m.png")
@@ -126,7 +126,7 @@ def test_usage_errors_exit_2_with_one_line(extra, needle, tmp_path, capsys):
 
 
 def test_too_few_satellites_through_a_real_process(tmp_path):
-    proc = subprocess.run([sys.executable, "-m", "sitl.cli", "experiment", "iono-tropo", "--el-mask-deg", "80",
+    proc = subprocess.run([sys.executable, "-m", "sitl.app.cli", "experiment", "iono-tropo", "--el-mask-deg", "80",
                            "--out", str(tmp_path / "x")], capture_output=True, text=True, timeout=60)
     assert proc.returncode == 2
     assert "Traceback" not in proc.stderr and proc.stderr.count("\n") == 1

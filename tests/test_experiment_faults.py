@@ -12,10 +12,10 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from sitl.bus import InMemoryTransport, Truth
-from sitl.experiments import beacon as be
-from sitl.experiments import faults as fx
-from sitl.experiments import sonde as so
-from sitl.experiments._common import MeasurementFaults, measurement_faults
+from sitl.app.experiments import beacon as be
+from sitl.app.experiments import network_faults as fx
+from sitl.app.experiments import sonde as so
+from sitl.app.experiments.common import MeasurementFaults, measurement_faults
 
 netfault = pytest.importorskip("sitl.netfault")
 
@@ -285,7 +285,7 @@ def test_result_json_on_a_tiny_run(tmp_path, monkeypatch):
     (["--faults-from", "5000"], "--duration"),
 ])
 def test_usage_errors(tmp_path, argv, text):
-    from sitl.cli import UsageError
+    from sitl.app.cli import UsageError
 
     with pytest.raises(UsageError, match=text):
         fx.run(_parse(["--out", str(tmp_path / "x"), "--quiet", *argv]))

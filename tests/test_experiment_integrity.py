@@ -8,8 +8,8 @@ import pytest
 
 from outputs import is_png as _is_png
 from outputs import strict_json as _strict_json
-from sitl.cli import main
-from sitl.experiments import integrity as ex
+from sitl.app.cli import main
+from sitl.app.experiments import integrity as ex
 
 SHORT = ["experiment", "integrity", "--duration", "100", "--trials", "4", "--seed", "5", "--quiet"]
 

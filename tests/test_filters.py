@@ -27,7 +27,7 @@ from filters import kernels, metrics, models
 from filters.ekf import ekf_predict, ekf_step, ekf_update
 from filters.kernels import resolve_backend
 from filters.ukf import SigmaPoints, ukf_predict, ukf_update
-from sitl.experiments.seed001 import Seed001Scenario, Setup
+from sitl.app.experiments.ekf_vs_ukf import Seed001Scenario, Setup
 
 BACKENDS = ("numpy", "numba")
 N_STATE = models.SEED001_N

@@ -18,7 +18,7 @@ from hypothesis import strategies as st
 from ground_station.node import GroundStationNode, GsConfig
 from sitl.bus import BusLogWriter, InMemoryTransport, decode, encode, key_matches, pack_sealed
 from sitl.bus.schema import POS_MAX_M, T_GPS_MAX_S
-from sitl.live.scoring import ErrorTracker
+from sitl.app.scoring import ErrorTracker
 from sitl.scenario import default_scenario
 from vehicles.process import VehicleGroup
 
@@ -207,8 +207,8 @@ def test_refused_junk_never_changes_a_published_estimate(clean, reference):
 
 
 def test_replay_of_a_log_with_a_far_future_record_gives_the_clean_estimates(clean, tmp_path):
-    from sitl.live.batch import run_batch
-    from sitl.live.launcher import replay
+    from sitl.app.batch import run_batch
+    from sitl.app.launcher import replay
     log = tmp_path / "bus.log"
     run_batch(SCN, record=log)
     ref = replay(log, SCN)

@@ -29,7 +29,7 @@ from hypothesis import strategies as st
 from filters.integrity import IntegrityConfig, IntegrityMonitor, Report
 from filters.models import LinearGaussian
 from sitl.bus import InMemoryTransport, IntegrityEvent, decode, encode, parse_key
-from sitl.experiments import sonde as E
+from sitl.app.experiments import sonde as E
 from sitl.gnss import orbits
 from sitl.integrity_events import EVENT_KINDS, IntegrityEventPublisher, channel_events, events_from_report
 from sitl.measfault import Fault, FaultInjector

@@ -18,8 +18,8 @@ from procs import dead as _dead
 from procs import tcp_free as _tcp_free
 from procs import udp_base
 
-from sitl.live.pacer import Pacer
-from sitl.live.supervisor import Supervisor
+from sitl.pacing import Pacer
+from sitl.app.supervisor import Supervisor
 
 # ------------------------------------------------------------------ pacer
 
@@ -217,8 +217,8 @@ def test_supervisor_kills_a_worker_that_ignores_sigterm(tmp_path):
 
 
 def test_replay_of_a_recorded_batch_run_gives_the_same_estimates(tmp_path):
-    from sitl.live.batch import run_batch
-    from sitl.live.launcher import replay
+    from sitl.app.batch import run_batch
+    from sitl.app.launcher import replay
     from sitl.scenario import default_scenario
 
     scn = default_scenario().replace(run={"duration_s": 15.0}, mavlink={"enabled": False})
@@ -332,7 +332,7 @@ def test_batch_mode_applies_the_scenarios_bus_fault_rules():
     """`--batch` with [faults]: a bus rule drops at the in-memory bus what it drops live at the
     publishers (uav 2's beacon measurements, all of them), seeded; MAVLink / Zenoh links are
     listed as not applied; the locator then hears 2 UAVs instead of 3."""
-    from sitl.live.batch import run_batch
+    from sitl.app.batch import run_batch
     from sitl.scenario import default_scenario, parse_scenario
 
     base = default_scenario().replace(run={"duration_s": 6.0}, mavlink={"enabled": False}, sonde={"enabled": False})

@@ -21,7 +21,7 @@ from procs import tcp_free as _tcp_free
 from procs import udp_base as _base_port
 from procs import udp_free as _udp_free
 
-from sitl.live.launcher import launch, replay
+from sitl.app.launcher import launch, replay
 from sitl.scenario import default_scenario
 
 
@@ -127,7 +127,7 @@ def test_live_demo_multi_process(tmp_path):
     # live = batch (issue 7 acceptance): the same scenario and seed in batch mode (one process,
     # simulated time) gives the same sonde track -- its group was never disturbed, so the live
     # ground station saw the same messages epoch by epoch -- and a beacon RMSE of the same size
-    from sitl.live.batch import run_batch
+    from sitl.app.batch import run_batch
     batch = run_batch(scn)["errors"]
     assert err["sonde/s0000"]["rmse_m"] == pytest.approx(batch["sonde/s0000"]["rmse_m"], rel=0.05)
     assert err["beacon/b1"]["rmse_m"] < 3.0 * batch["beacon/b1"]["rmse_m"] + 10.0

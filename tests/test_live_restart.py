@@ -16,7 +16,7 @@ import pytest
 from procs import dead, udp_base
 
 from sitl.bus import decode, read_bus_log_records
-from sitl.live.launcher import launch, replay
+from sitl.app.launcher import launch, replay
 from sitl.scenario import default_scenario
 
 pytestmark = [pytest.mark.live, pytest.mark.slow]
@@ -75,7 +75,7 @@ def test_kill_9_of_the_vehicle_worker_restart_recovery_and_exact_replay(tmp_path
     # or, where the error of the run itself moves more than that between two 10 s windows (the
     # beacon's 10 s RMS varies 4 m .. 18 m along its racetrack), within twice what the same run
     # never killed has over the same window (batch mode: the same components, seed and world)
-    from sitl.live.batch import run_batch
+    from sitl.app.batch import run_batch
     t0_gps = scn.run.t0_gps_s
     ref = {k: [(t - t0_gps, e) for t, e in v] for k, v in run_batch(scn)["series"].items()}
     for kind in ("beacon/b1", "sonde/s0000"):

@@ -18,12 +18,12 @@ import math
 import numpy as np
 import pytest
 
-from sitl import cli
-from sitl.experiments import long_run as lr
+from sitl.app import cli
+from sitl.app.experiments import long_run as lr
 
 
 def test_a_trial_is_the_batch_demo_run():
-    from sitl.live.batch import run_batch
+    from sitl.app.batch import run_batch
 
     scn = lr.scenario_for("default", 40.0, seed=3)
     trial = lr.run_trial(scn)

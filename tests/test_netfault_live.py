@@ -34,7 +34,7 @@ def test_mavlink_front_takes_each_vehicle_through_its_own_proxy_both_ways():
     that is no vehicle is dropped and counted; closing frees every port and thread."""
     from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
-    from sitl.live.netfaults import LiveFaults
+    from sitl.app.live_faults import LiveFaults
     gcs = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     gcs.bind(("127.0.0.1", 0))
     gcs.settimeout(0.05)
@@ -152,7 +152,7 @@ def control_server(tmp_path):
     fake links, served on the bus (drained by a thread as the launcher's loop does), and an
     OUT/run.json naming them."""
     from sitl.bus import Router, ZenohTransport
-    from sitl.live.launcher import _RunJson
+    from sitl.app.launcher import _RunJson
     from sitl.netfault.control import FaultBoard, serve
     applied = []
     clock = [12.5]
@@ -183,7 +183,7 @@ def control_server(tmp_path):
 
 def test_fault_set_is_applied_acknowledged_and_listed(control_server, capsys):
     from sitl.netfault import parse_spec
-    from sitl.netfault.cli import main
+    from sitl.app.fault_cli import main
     cs = control_server
     out = str(cs["out"])
     canon = parse_spec("loss=10% delay=100ms~20ms").to_text()
@@ -210,7 +210,7 @@ def test_fault_set_is_applied_acknowledged_and_listed(control_server, capsys):
     (["set", "zenoh:nobody", "delay=1s"], "zenoh:gs"),      # not a link name at all
 ])
 def test_fault_set_refuses_bad_input_with_exit_2_and_one_line(control_server, capsys, argv, expect):
-    from sitl.netfault.cli import main
+    from sitl.app.fault_cli import main
     cs = control_server
     assert main(argv + ["--out", str(cs["out"])]) == 2
     err = capsys.readouterr().err.strip()
@@ -222,7 +222,7 @@ def test_launcher_refuses_and_counts_what_it_cannot_apply_and_goes_on(control_se
     """Requests that pass the CLI's checks but not the launcher's (a link missing from this
     run, a TCP link given packet loss): exit 2 with the launcher's one-line reason, counted;
     a good request afterwards still works. No launcher at all: exit 1 after the timeout."""
-    from sitl.netfault.cli import main
+    from sitl.app.fault_cli import main
     cs = control_server
     ep = cs["router"].endpoints[0]
     assert main(["set", "mav:7", "loss=1%", "--zenoh", ep, "--run", "ctl"]) == 2
@@ -250,9 +250,9 @@ def test_a_run_without_faults_refuses_changes_and_loads_no_fault_models(tmp_path
     import sys
 
     from sitl.bus import Router, ZenohTransport
-    from sitl.live.netfaults import NoFaultBoard, serve
-    from sitl.netfault.cli import main
-    code = ("import sys, sitl.live.launcher, sitl.live.netfaults; "
+    from sitl.app.live_faults import NoFaultBoard, serve
+    from sitl.app.fault_cli import main
+    code = ("import sys, sitl.app.launcher, sitl.app.live_faults; "
             "sys.exit(any(m.startswith('sitl.netfault') for m in sys.modules))")
     assert subprocess.run([sys.executable, "-c", code], timeout=60, check=False).returncode == 0
     board = NoFaultBoard()
@@ -321,8 +321,8 @@ def test_live_run_gs_partition_recovers_without_restart_and_fault_set_changes_a_
     request is refused. The run completes, the GS is never restarted and reconnects by itself
     (a second connection through its proxy), estimates resume after the partition, the
     report's faults block holds the history and the truths, nothing is left behind."""
-    from sitl.live.launcher import launch
-    from sitl.netfault.cli import main as fault_main
+    from sitl.app.launcher import launch
+    from sitl.app.fault_cli import main as fault_main
     speed = 10.0
     scn = parse_scenario(f"""
 [run]

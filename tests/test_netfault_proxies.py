@@ -17,7 +17,7 @@ from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 from sitl.bus._zconfig import make_config
 from sitl.bus.router import Router
-from sitl.live.pacer import Pacer
+from sitl.pacing import Pacer
 from sitl.netfault import FaultSpecError, LinkFault
 from sitl.netfault._proxyloop import ProxyLoop
 from sitl.netfault.tcp_proxy import TcpProxy

@@ -8,9 +8,9 @@ from pathlib import Path
 
 from procs import udp_base
 
-from sitl.cli import main
-from sitl.live.preflight import OutDirLock
-from sitl.live.status import format_status
+from sitl.app.cli import main
+from sitl.app.preflight import OutDirLock
+from sitl.app.status import format_status
 
 
 def _scenario(tmp_path: Path, **mavlink) -> Path:

@@ -137,12 +137,12 @@ def test_load_scenario_file_errors(tmp_path):
 def test_cli_usage_error_exits_2_with_one_line(tmp_path):
     p = tmp_path / "bad.toml"
     p.write_text("[uavs]\ncount = 'many'\n")
-    r = subprocess.run([sys.executable, "-m", "sitl.live", "run", str(p), "--out", str(tmp_path / "o")],
+    r = subprocess.run([sys.executable, "-m", "sitl.app", "run", str(p), "--out", str(tmp_path / "o")],
                        capture_output=True, text=True, timeout=60)
     assert r.returncode == 2
     lines = r.stderr.strip().splitlines()
     assert len(lines) == 1 and "uavs.count" in lines[0] and "Traceback" not in r.stderr
-    r = subprocess.run([sys.executable, "-m", "sitl.live", "demo", "--zenoh", "nonsense", "--out",
+    r = subprocess.run([sys.executable, "-m", "sitl.app", "demo", "--zenoh", "nonsense", "--out",
                         str(tmp_path / "o")], capture_output=True, text=True, timeout=60)
     assert r.returncode == 2 and "--zenoh" in r.stderr and len(r.stderr.strip().splitlines()) == 1
 

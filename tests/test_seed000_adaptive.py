@@ -14,9 +14,9 @@ import numpy as np
 import pytest
 import scipy.stats
 
-from sitl.cli import main
-from sitl.experiments.seed000 import IonoTropoScenario, run_streamed
-from sitl.experiments.seed000_studies import adaptive_q_study, ordering_study
+from sitl.app.cli import main
+from sitl.app.experiments.iono_tropo_filters import IonoTropoScenario, run_streamed
+from sitl.app.experiments.iono_tropo_studies import adaptive_q_study, ordering_study
 
 TRIALS = 8
 

@@ -5,8 +5,8 @@ import numpy as np
 import pytest
 import scipy.stats
 
-from sitl.experiments import seed000
-from sitl.experiments.seed000 import IonoTropoScenario, run_code_doppler
+from sitl.app.experiments import iono_tropo_filters
+from sitl.app.experiments.iono_tropo_filters import IonoTropoScenario, run_code_doppler
 
 TRIALS = 8
 
@@ -61,24 +61,24 @@ def test_the_filter_never_sees_truth(monkeypatch):
     # ephemeris_for_filter from the receiver's own outputs (the tracked satellites' columns,
     # with the matching sub-constellation) and the filter's clock estimate
     outputs, ephem_calls, models = [], [], []
-    real_step = seed000.Receiver.step
+    real_step = iono_tropo_filters.Receiver.step
 
     def step(self, *a, **kw):
         obs = real_step(self, *a, **kw)
         outputs.append(obs)
         return obs
 
-    real_model = seed000.IonoTropoGnss
+    real_model = iono_tropo_filters.IonoTropoGnss
 
     def model(*a, **kw):
         m = real_model(*a, **kw)
         models.append(m)
         return m
 
-    monkeypatch.setattr(seed000.Receiver, "step", step)
-    monkeypatch.setattr(seed000, "ephemeris_for_filter",
+    monkeypatch.setattr(iono_tropo_filters.Receiver, "step", step)
+    monkeypatch.setattr(iono_tropo_filters, "ephemeris_for_filter",
                         lambda t, pr, const, **kw: _spy(ephem_calls, outputs, t, pr, const, **kw))
-    monkeypatch.setattr(seed000, "IonoTropoGnss", model)
+    monkeypatch.setattr(iono_tropo_filters, "IonoTropoGnss", model)
     run_code_doppler(IonoTropoScenario(duration_s=1.0), 2, seed=1)
     assert len(models) == len(ephem_calls) == len(outputs) == 11
     for m, (sp, sv), obs in zip(models, ephem_calls, outputs):

@@ -4,8 +4,8 @@ import numpy as np
 import pytest
 import scipy.stats
 
-from sitl.experiments import seed000
-from sitl.experiments.seed000 import (
+from sitl.app.experiments import iono_tropo_filters
+from sitl.app.experiments.iono_tropo_filters import (
     IonoTropoScenario,
     run_cmc_increments,
     run_code_doppler,
@@ -79,13 +79,13 @@ def test_increments_spanning_a_slip_are_not_used(slip_run):
 
 def test_detector_gets_phase_and_doppler_only(monkeypatch):
     calls = []
-    real = seed000.CycleSlipDetector.update
+    real = iono_tropo_filters.CycleSlipDetector.update
 
     def update(self, *a, **kw):
         calls.append((a, kw))
         return real(self, *a, **kw)
 
-    monkeypatch.setattr(seed000.CycleSlipDetector, "update", update)
+    monkeypatch.setattr(iono_tropo_filters.CycleSlipDetector, "update", update)
     run_streamed(IonoTropoScenario(duration_s=1.0, cmc_window_s=0.5), 2, seed=1, variant=2)
     assert len(calls) == 11
     for a, kw in calls:
@@ -141,18 +141,18 @@ def test_code_noise_states_equal_batch_gls_with_the_full_noise_covariance():
 
     # sequential, with the code noises as states
     x, P = x0, P0[None]
-    x, P = seed000._append_states(x, P, S)
+    x, P = iono_tropo_filters._append_states(x, P, S)
     P[:, nb:, nb:] = np.eye(S) * sd**2
-    m_s = seed000._CodeNoiseStateModel(base, nb + np.arange(S), np.zeros(0, int), np.zeros(0, int),
+    m_s = iono_tropo_filters._CodeNoiseStateModel(base, nb + np.arange(S), np.zeros(0, int), np.zeros(0, int),
                                        np.zeros(0, int), np.zeros((1, 0)), np.zeros((1, 0), bool), 0.0)
     res = ekf_update(x, P, z_s, m_s)
-    x, P = seed000._append_states(res.x, res.P, S)
+    x, P = iono_tropo_filters._append_states(res.x, res.P, S)
     P[:, nb + S:, nb + S:] = np.eye(S) * sd**2
     new = nb + S + np.arange(S)
-    m_k = seed000._CodeNoiseStateModel(base, new, np.arange(S), new, nb + np.arange(S), coef,
+    m_k = iono_tropo_filters._CodeNoiseStateModel(base, new, np.arange(S), new, nb + np.arange(S), coef,
                                        np.ones((1, S), bool), 2 * sph**2)
     res = ekf_update(x, P, np.concatenate([z_k, E], axis=1), m_k)
-    x_seq, P_seq = seed000._drop_states(res.x, res.P, list(range(nb, nb + 2 * S)))
+    x_seq, P_seq = iono_tropo_filters._drop_states(res.x, res.P, list(range(nb, nb + 2 * S)))
 
     # batch GLS on the base state: z = [z_s, z_k, E], noise covariance written out by hand
     Hb = np.zeros((5 * S, nb))
@@ -190,14 +190,14 @@ def test_code_noise_states_never_adapt_even_with_eq7_on_every_state(monkeypatch)
     from filters.iono_tropo import N_BASE
 
     seen = []
-    real = seed000.AdaptiveQ
+    real = iono_tropo_filters.AdaptiveQ
 
     def spy(*a, **k):
         q = real(*a, **k)
         seen.append(q.states)
         return q
 
-    monkeypatch.setattr(seed000, "AdaptiveQ", spy)
+    monkeypatch.setattr(iono_tropo_filters, "AdaptiveQ", spy)
     r = run_streamed(IonoTropoScenario(duration_s=100.0, adaptive_q=True, adaptive_q_scope="all"), 2, seed=0,
                      variant=2)
     assert seen == [tuple(range(N_BASE))]

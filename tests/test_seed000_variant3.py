@@ -4,8 +4,8 @@ import numpy as np
 import pytest
 import scipy.stats
 
-from sitl.experiments import seed000
-from sitl.experiments.seed000 import (
+from sitl.app.experiments import iono_tropo_filters
+from sitl.app.experiments.iono_tropo_filters import (
     IonoTropoScenario,
     run_carrier_phase,
     run_code_doppler,
@@ -86,7 +86,7 @@ def test_slips_reset_k_and_are_all_seen(equator_runs, rise_set_run):
 def test_state_dimension_follows_the_tracked_set(runs, rise_set_run):
     for r in (runs[1], rise_set_run):
         ns = np.asarray(r["n_state"])
-        np.testing.assert_array_equal(ns, seed000.N_BASE + np.asarray(r["n_visible"]))
+        np.testing.assert_array_equal(ns, iono_tropo_filters.N_BASE + np.asarray(r["n_visible"]))
         assert np.unique(ns).size > 1
     amb = rise_set_run["ambiguity"]
     n0 = int(rise_set_run["n_visible"][0])
@@ -96,13 +96,13 @@ def test_state_dimension_follows_the_tracked_set(runs, rise_set_run):
 
 def test_detector_gets_phase_and_doppler_only(monkeypatch):
     calls = []
-    real = seed000.CycleSlipDetector.update
+    real = iono_tropo_filters.CycleSlipDetector.update
 
     def update(self, *a, **kw):
         calls.append((a, kw))
         return real(self, *a, **kw)
 
-    monkeypatch.setattr(seed000.CycleSlipDetector, "update", update)
+    monkeypatch.setattr(iono_tropo_filters.CycleSlipDetector, "update", update)
     run_streamed(IonoTropoScenario(duration_s=1.0), 2, seed=1, variant=3)
     assert len(calls) == 11
     for a, kw in calls:
@@ -124,7 +124,7 @@ def test_phase_of_fewer_satellites(runs):
     scn = IonoTropoScenario(duration_s=300.0, phase_max_sats=1)
     one = run_carrier_phase(scn, TRIALS, seed=0)
     four = run_carrier_phase(IonoTropoScenario(duration_s=300.0, phase_max_sats=4), TRIALS, seed=0)
-    assert one["n_state"].max() == seed000.N_BASE + 1 and four["n_state"].max() == seed000.N_BASE + 4
+    assert one["n_state"].max() == iono_tropo_filters.N_BASE + 1 and four["n_state"].max() == iono_tropo_filters.N_BASE + 4
     assert one["ambiguity"]["rises"] == 1
     np.testing.assert_array_equal(one["n_visible"], v1["n_visible"])
     e1, e_one, e_four, e_all = (r["final_error_m"]["iono_zenith"] for r in (v1, one, four, v3))

@@ -24,8 +24,8 @@ from scipy.stats import chi2
 from filters.metrics import nees
 from ground_station.sonde_tracker import SondeTracker, SondeTrackerParams, layout_for, relaxed_axis_discretisation
 from sitl.bus import SondeRelay
-from sitl.cli import main
-from sitl.experiments import sonde as E
+from sitl.app.cli import main
+from sitl.app.experiments import sonde as E
 from sitl.gnss.orbits import DEFAULT_TOA_GPS_S, default_constellation
 from sitl.radio.relay import Relay, RelayParams
 from vehicles.sonde import SondeFlight, SondeParams, axis_discretisation, descent_speed_m_s

@@ -32,8 +32,8 @@ from sitl.bus import (
     encode,
     pack_sealed,
 )
-from sitl.cli import main
-from sitl.experiments import sonde as E
+from sitl.app.cli import main
+from sitl.app.experiments import sonde as E
 from sitl.geodesy import enu_rotation, geodetic_to_ecef
 from sitl.gnss.orbits import DEFAULT_TOA_GPS_S, default_constellation
 from sitl.radio.radar import Radar

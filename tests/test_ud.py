@@ -227,7 +227,7 @@ SEED_TRIALS, SEED_STEPS = 40, 30
 @pytest.fixture(scope="module")
 def seed001():
     """40 trials x 30 steps of the seed 001 scenario (11 states, 4 satellites, m = 8)."""
-    from sitl.experiments.seed001 import Seed001Scenario, Setup
+    from sitl.app.experiments.ekf_vs_ukf import Seed001Scenario, Setup
 
     scn = Seed001Scenario(steps=SEED_STEPS)
     setup = Setup.make(scn)

@@ -5,7 +5,7 @@ EKFs of vehicles.uav_nav), the beacon (vehicles.beacon) and the beacon links
 (sitl.radio.beacon_link) at each of its UAVs; the first group also flies the radiosonde
 (vehicles.sonde) with its relay and radar (sitl.radio). Every epoch (1 / run.rate_hz of
 simulated time) it publishes on the bus what the batch experiments publish on the in-memory
-bus (sitl/experiments/beacon.py and sonde.py build the same objects):
+bus (sitl/app/experiments/beacon.py and sonde.py build the same objects):
 
     <run>/uav/<i>/nav               UavNav               each UAV's onboard estimate
     <run>/uav/<i>/beacon/<b>        BeaconMeasurement    range / Doppler + the UAV's nav snapshot
@@ -16,7 +16,7 @@ bus (sitl/experiments/beacon.py and sonde.py build the same objects):
 and drives each vehicle's MAVLink endpoint (vehicles.mavlink) with its telemetry.
 
 `VehicleGroup` is the step function (simulation time in, messages out, no clock, no sleep);
-the worker main paces it with sitl.live.pacer. A batch run steps the same object over an
+the worker main paces it with sitl.pacing. A batch run steps the same object over an
 InMemoryTransport (tests, ``skyfuse run --batch``).
 
 The beacon's motion is deterministic, so every group flies its own copy (a group's links
@@ -176,7 +176,7 @@ class VehicleGroup:
 
     # ------------------------------------------------------------------ sonde
     def _build_sonde(self, seq: np.random.SeedSequence) -> None:
-        from sitl.experiments.sonde import SondeScenario, _sonde_params
+        from sitl.app.experiments.sonde import SondeScenario, _sonde_params
         from sitl.geodesy import ecef_to_geodetic, enu_to_ecef
         from sitl.gnss.orbits import default_constellation
         from sitl.radio.radar import Radar, RadarParams
@@ -593,7 +593,7 @@ def main(argv=None) -> int:
             group = VehicleGroup(scn, spec.uav_indices, bus, seq, with_beacon_truth=spec.with_beacon_truth,
                                  with_sonde=spec.with_sonde, incarnation=rt.incarnation)
         _warm_up(scn, spec)
-        from sitl.live.pacer import perf_now, wall_now
+        from sitl.pacing import perf_now, wall_now
         try:  # the composition root: signing follows the wall clock, the input budget is wall time
             endpoints = build_endpoints(group, scn, spec.out_dir, spec.name, clock=wall_now, timer=perf_now)
         except (ValueError, OSError) as e:  # a port taken, a bad key file: a configuration error
@@ -616,7 +616,7 @@ def main(argv=None) -> int:
         errors = 0
         from collections import deque
 
-        from sitl.live.pacer import perf_now
+        from sitl.pacing import perf_now
         # MAVLink input may take this share of an epoch's wall time, shared over the group's
         # sockets (what does not fit waits in the kernel queue; what overflows it is counted)
         mav_budget_s = _MAV_INPUT_SHARE * dt / scn.run.speed
@@ -669,7 +669,7 @@ def _warm_up(scn, spec) -> None:
 
 
 def _status(group, bus, pacer, endpoints, errors, t, step_s=()) -> dict:
-    from sitl.live.pacer import cpu_now
+    from sitl.pacing import cpu_now
     from sitl.live.worker import bus_counters
     d = {"event": "status", "t_sim_s": t, "cpu_s": cpu_now(), "epochs": group.epoch, "vehicles": group.n + (group.sonde is not None),
          "uavs": group.n, "lag_s": max(0.0, pacer.sim_now() - (t or 0.0)), "late_epochs": pacer.late_epochs,

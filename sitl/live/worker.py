@@ -25,7 +25,7 @@ import threading
 from collections import Counter
 from pathlib import Path
 
-from sitl.live.pacer import Pacer, perf_now
+from sitl.pacing import Pacer, perf_now
 from sitl.scenario import WorkerSpec
 
 NETFAULT_STATUS_WALL_S = 5.0  # the status lines carry the bus-fault truths at most this often

@@ -39,7 +39,7 @@ CALL_TIMEOUT_S = 10.0
 
 def default_clock(speed: float) -> Callable[[], float]:
     """Simulation time starting at 0 now, at ``speed`` x real time (the Pacer's mapping)."""
-    from sitl.live.pacer import Pacer
+    from sitl.pacing import Pacer
     return Pacer(speed, 0.0).sim_now
 
 
@@ -85,7 +85,7 @@ class ProxyLoop:
 
     @classmethod
     def from_pacer(cls, pacer, *, name: str = "netfault-proxy") -> ProxyLoop:
-        """A loop on a `sitl.live.pacer.Pacer`'s time (its ``sim_now`` and ``speed``)."""
+        """A loop on a `sitl.pacing.Pacer`'s time (its ``sim_now`` and ``speed``)."""
         return cls(pacer.sim_now, pacer.speed, name=name)
 
     # ---- used on the loop thread -------------------------------------------------------

@@ -26,7 +26,7 @@ from typing import Any
 
 # the control keys and the launcher's request loop live with the launcher's wiring (no numpy /
 # scipy import: a run without faults must not pay for this package); re-exported here
-from sitl.live.netfaults import (  # noqa: E402
+from sitl.app.live_faults import (  # noqa: E402
     ACK_SUFFIX,
     CTL_SUFFIX,
     ERROR_PREFIX,

@@ -1,4 +1,4 @@
-"""Seed 000 studies on top of the three-variant runner (sitl/experiments/seed000.py).
+"""Seed 000 studies on top of the three-variant runner (sitl/app/experiments/iono_tropo_filters.py).
 
 * :func:`adaptive_q_study` -- what the adaptive process noise of eq 7 does. The same
   simulated data (same seed) run with eq 7 off, with eq 7 on every state as in the seed
@@ -17,7 +17,7 @@ import math
 
 import numpy as np
 
-from sitl.experiments.seed000 import IonoTropoScenario, run_streamed
+from sitl.app.experiments.iono_tropo_filters import IonoTropoScenario, run_streamed
 
 VARIANT_NAMES = {1: "code_doppler", 2: "phase_increments", 3: "carrier_phase"}
 ADAPTIVE_CONFIGS = {

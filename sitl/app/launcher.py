@@ -6,7 +6,7 @@ run / demo:
   2. an embedded Zenoh router (sitl.bus.router.Router), unless --zenoh names external ones;
   3. the launcher's own bus session: the bus log (every ``<run>/**`` payload, crash-safe,
      OUT/bus.log) and the errors of the ground station's estimates against the truth;
-  4. the workers (sitl.live.supervisor): the vehicle groups and the ground station, each a
+  4. the workers (sitl.app.supervisor): the vehicle groups and the ground station, each a
      ``python -m MODULE SPEC.json`` (OUT/specs/); once every one is ready, the common start
      time; a worker that dies is reported and restarted;
   5. a status line every wall second (stderr): simulated time, vehicles, messages per
@@ -15,7 +15,7 @@ run / demo:
      stop it early; in both cases every worker is stopped (process groups, SIGTERM then
      SIGKILL) and every session and port closed. OUT/report.json and a printed summary.
 
-Network faults (issue 8, sitl.live.netfaults): with a [faults] table in the scenario the
+Network faults (issue 8, sitl.app.live_faults): with a [faults] table in the scenario the
 launcher puts a fault proxy on every worker's Zenoh link and every vehicle's MAVLink link and
 the workers filter their own publications; ``<run>/ctl/fault`` changes any of them while the
 run goes (`skyfuse fault set`, which finds the router in OUT/run.json). report.json gets a
@@ -44,7 +44,7 @@ import sys
 import threading
 from pathlib import Path
 
-from sitl.live.pacer import Pacer, perf_now, wall_now
+from sitl.pacing import Pacer, perf_now, wall_now
 
 READY_TIMEOUT_S = 240.0  # first start compiles / loads the numba kernels
 END_GRACE_WALL_S = 20.0  # after the last epoch: how long workers may take to finish
@@ -54,12 +54,12 @@ END_GRACE_WALL_S = 20.0  # after the last epoch: how long workers may take to fi
 
 
 def _usage():
-    from sitl.cli import UsageError
+    from sitl.app.cli import UsageError
     return UsageError
 
 
 def _common_args(p: argparse.ArgumentParser, default_out: str) -> None:
-    from sitl.cli import nonnegative_int, positive_float
+    from sitl.app.cli import nonnegative_int, positive_float
     p.add_argument("--speed", type=positive_float, default=None, help="x real time (default: the scenario's)")
     p.add_argument("--duration", type=positive_float, default=None, metavar="S",
                    help="simulated seconds, then everything stops (default: the scenario's)")
@@ -129,11 +129,11 @@ def demo_main(args) -> int:
 
 
 def _main(scn, args) -> int:
-    from sitl.experiments._common import prepare_out
-    from sitl.live.preflight import OutDirLock, PreflightError, preflight
+    from sitl.app.experiments.common import prepare_out
+    from sitl.app.preflight import OutDirLock, PreflightError, preflight
     out = prepare_out(Path(args.out))
     lock = OutDirLock(out)
-    try:  # before anything starts: a mistake costs one line and exit 2 (sitl.live.preflight)
+    try:  # before anything starts: a mistake costs one line and exit 2 (sitl.app.preflight)
         lock.acquire()
         preflight(scn, live=not args.batch)
     except PreflightError as e:
@@ -154,8 +154,8 @@ def _main(scn, args) -> int:
 
 
 def _batch(scn, out: Path, args) -> int:
-    from sitl.experiments._common import strict
-    from sitl.live.batch import run_batch
+    from sitl.app.experiments.common import strict
+    from sitl.app.batch import run_batch
     t0 = perf_now()
     res = run_batch(scn, progress=None if args.quiet else (lambda m: print(m, file=sys.stderr)))
     doc = {"mode": "batch", "scenario": scn.to_dict(), "wall_s": perf_now() - t0, "errors": res["errors"],
@@ -184,10 +184,10 @@ def launch(scn, out: Path, *, quiet: bool = False, stop: threading.Event | None 
     called once the workers have started their run (tests use it to inject faults)."""
     from sitl.bus.buslog import BusRecorder
     from sitl.bus.zenoh_transport import ZenohTransport
-    from sitl.experiments._common import strict
-    from sitl.live.scoring import ErrorTracker
-    from sitl.live.status import StatusBoard, format_status
-    from sitl.live.supervisor import Supervisor
+    from sitl.app.experiments.common import strict
+    from sitl.app.scoring import ErrorTracker
+    from sitl.app.status import StatusBoard, format_status
+    from sitl.app.supervisor import Supervisor
     from sitl.scenario import worker_specs
 
     from sitl.bus.audit import PayloadAudit
@@ -222,9 +222,9 @@ def launch(scn, out: Path, *, quiet: bool = False, stop: threading.Event | None 
         except (RouterError, ZenohTransportError, ZenohConfigError) as e:
             report["error"] = " ".join(str(e).split())
             return report
-        from sitl.live.netfaults import NoFaultBoard, serve
+        from sitl.app.live_faults import NoFaultBoard, serve
         if scn.faults:
-            from sitl.live.netfaults import LiveFaults
+            from sitl.app.live_faults import LiveFaults
             try:
                 live_faults = LiveFaults(scn, endpoints)
             except (OSError, ValueError) as e:
@@ -341,7 +341,7 @@ def launch(scn, out: Path, *, quiet: bool = False, stop: threading.Event | None 
         if tty and not quiet:
             status_stream.write("\n")
         report["wall_s"] = perf_now() - t_wall0
-        from sitl.live.pacer import cpu_now
+        from sitl.pacing import cpu_now
         report["launcher_cpu_s"] = cpu_now()  # this process: the embedded router, the log, the scorer
         report["shutdown"] = shutdown
         if sup is not None:
@@ -376,7 +376,7 @@ def _start_warm_up(scenario_json: Path, log_dir: Path):
     import subprocess
     log_dir.mkdir(parents=True, exist_ok=True)
     with open(log_dir / "warm_up.stderr.log", "ab") as err:
-        return subprocess.Popen([sys.executable, "-m", "sitl.live.batch", str(scenario_json), "--warm-up"],
+        return subprocess.Popen([sys.executable, "-m", "sitl.app.batch", str(scenario_json), "--warm-up"],
                                 stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=err)
 
 
@@ -392,7 +392,7 @@ def _finish_warm_up(p, stop: threading.Event) -> None:
 
 
 def _fill_report(report, sup, scorer, audit, recorder) -> None:
-    from sitl.live.status import run_rejected
+    from sitl.app.status import run_rejected
     workers = {}
     sent = 0
     for c in sup.children.values():
@@ -499,7 +499,7 @@ def replay(log_path, scn) -> dict:
 
     from sitl.bus import BusDecodeError, InMemoryTransport, decode, key_matches
     from sitl.bus.buslog import BusLogStats, read_bus_log_records
-    from sitl.live.scoring import ErrorTracker
+    from sitl.app.scoring import ErrorTracker
 
     gn = importlib.import_module("ground_station.node")
     run_id = scn.run.id
@@ -568,7 +568,7 @@ def replay(log_path, scn) -> dict:
 
 
 def replay_main(args) -> int:
-    from sitl.experiments._common import strict
+    from sitl.app.experiments.common import strict
     from sitl.scenario import (
         ScenarioError,
         default_scenario,

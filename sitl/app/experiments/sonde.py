@@ -68,7 +68,7 @@ from pathlib import Path
 
 import numpy as np
 
-from sitl.experiments._common import (component, measurement_faults, prepare_out, progress_printer, save_figure,
+from sitl.app.experiments.common import (component, measurement_faults, prepare_out, progress_printer, save_figure,
                                       strict)
 
 MODES = ("fused", "radar_only", "relay_only")
@@ -92,7 +92,7 @@ def integrity_config():
     return IntegrityConfig(**SONDE_INTEGRITY)
 
 
-# the trackers' monitor settings (see sitl/experiments/sonde.py's integrity note in the report)
+# the trackers' monitor settings (see sitl/app/experiments/sonde.py's integrity note in the report)
 SONDE_INTEGRITY = {"jump_sigma": 3.5, "window": 30, "window_alpha": 1e-4, "bias_alpha": None, "persist": 2,
                    "readmit_after": 10}
 
@@ -1155,7 +1155,7 @@ def run(scn: SondeScenario, trials: int, seed: int, *, backend=None, progress=No
 
 
 def main(args) -> int:
-    from sitl.cli import UsageError
+    from sitl.app.cli import UsageError
 
     try:
         scn = scenario_from_args(args)

@@ -18,7 +18,7 @@ import sys
 import time
 from pathlib import Path
 
-from sitl.live.netfaults import (  # the parser (light)
+from sitl.app.live_faults import (  # the parser (light)
     DEFAULT_OUTS,
     add_fault_args,
 )
@@ -32,7 +32,7 @@ class _Usage(Exception):
 
 def _usage(msg: str):
     try:
-        from sitl.cli import UsageError
+        from sitl.app.cli import UsageError
     except ImportError:  # pragma: no cover
         return _Usage(msg)
     return UsageError(msg)
@@ -166,8 +166,8 @@ def fault_main(args) -> int:
 
 
 def main(argv=None) -> int:
-    """Stand-alone entry (`python -m sitl.netfault.cli set LINK SPEC...`), the same as `skyfuse fault`."""
-    from sitl.cli import UsageError, _Parser
+    """Stand-alone entry (`python -m sitl.app.fault_cli set LINK SPEC...`), the same as `skyfuse fault`."""
+    from sitl.app.cli import UsageError, _Parser
     p = _Parser(prog="skyfuse fault", description=__doc__.split("\n\n")[0])
     add_fault_args(p)
     try:

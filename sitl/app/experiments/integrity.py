@@ -85,7 +85,7 @@ from filters.models import (
     PseudorangeDoppler,
 )
 from sitl import geodesy
-from sitl.experiments._common import prepare_out, progress_printer, save_figure, strict
+from sitl.app.experiments.common import prepare_out, progress_printer, save_figure, strict
 from sitl.gnss import orbits
 from sitl.gnss.clock import ClockModel
 from sitl.gnss.receiver import Receiver, ReceiverConfig
@@ -937,7 +937,7 @@ def scenario_from_args(args) -> IntegrityScenario:
 
 
 def main(args) -> int:
-    from sitl.cli import UsageError
+    from sitl.app.cli import UsageError
 
     try:
         scn = scenario_from_args(args)

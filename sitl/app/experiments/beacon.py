@@ -73,7 +73,7 @@ from pathlib import Path
 
 import numpy as np
 
-from sitl.experiments._common import (component, measurement_faults, prepare_out, progress_printer, save_figure,
+from sitl.app.experiments.common import (component, measurement_faults, prepare_out, progress_printer, save_figure,
                                       strict)
 
 PAPER_ERRORS_M = {"xi": 25.0, "eta": 9.0, "zeta": 15.0}
@@ -839,7 +839,7 @@ def plot(out: Path, cases: dict, sweep: list, meta: str, geometry: str = "printe
 
 def check_args(args):
     """Range checks beyond argparse's types; UsageError (one line) on a bad value."""
-    from sitl.cli import UsageError
+    from sitl.app.cli import UsageError
 
     if args.uavs < 3:
         raise UsageError(f"--uavs: at least 3 UAVs are needed, got {args.uavs}")

@@ -38,7 +38,7 @@ import time
 
 
 def add_args(p) -> None:
-    from sitl.cli import nonnegative_int, output_file, positive_int
+    from sitl.app.cli import nonnegative_int, output_file, positive_int
 
     p.add_argument("--trials", type=positive_int, default=10_000, help="trials stepped together (default 10000)")
     p.add_argument("--steps", type=positive_int, default=5, help="steps per timing (default 5)")
@@ -59,7 +59,7 @@ def _setup(trials: int, seed: int):
     import numpy as np
 
     from filters.models import PseudorangeDoppler
-    from sitl.experiments import integrity as ex
+    from sitl.app.experiments import integrity as ex
     from sitl.gnss.world import ephemeris_for_filter, geometry_track
 
     scn = ex.IntegrityScenario(duration_s=60.0, faults=False)
@@ -211,7 +211,7 @@ def main(args) -> int:
     res = run(args.trials, args.steps, args.rounds, args.seed, args.backend, progress=prog)
     print(table(res))
     if args.json is not None:
-        from sitl.experiments._common import strict
+        from sitl.app.experiments.common import strict
 
         args.json.write_text(json.dumps(strict(res), indent=1, allow_nan=False))
     return 0

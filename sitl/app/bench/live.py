@@ -47,7 +47,7 @@ def _sizes(text: str) -> list[int]:
 
 
 def add_args(p) -> None:
-    from sitl.cli import output_file, positive_float, positive_int
+    from sitl.app.cli import output_file, positive_float, positive_int
     p.add_argument("--uavs", type=_sizes, default=_sizes("50,100,200,300"), metavar="N,N,...",
                    help="swarm sizes to try (default 50,100,200,300)")
     p.add_argument("--rate", type=positive_float, default=10.0, help="epochs per second (default 10)")
@@ -111,12 +111,12 @@ class _Probe:
         self._thread.start()
 
     def _on(self, key, msg):
-        from sitl.live.pacer import perf_now
+        from sitl.pacing import perf_now
         if self.measure.is_set():
             self.lat.append(perf_now() - msg.t_gps_s)
 
     def _run(self):
-        from sitl.live.pacer import perf_now
+        from sitl.pacing import perf_now
         k = 0
         while not self.stop.wait(self.period):
             self.pub.publish(self.key, self._UavNav(t_gps_s=perf_now(), seq=k, **self._msg))
@@ -137,7 +137,7 @@ def _pct(values, q):
 
 
 def run_size(n: int, args, router_ep: str) -> dict:
-    from sitl.live.launcher import launch
+    from sitl.app.launcher import launch
     from sitl.scenario import default_scenario
 
     sink = _Sink() if not args.no_mavlink else None
@@ -162,7 +162,7 @@ def run_size(n: int, args, router_ep: str) -> dict:
 
     out = Path(args.out) / f"n{n}"
     out.mkdir(parents=True, exist_ok=True)
-    from sitl.live.pacer import cpu_now
+    from sitl.pacing import cpu_now
     cpu0 = cpu_now()
     try:
         rep = launch(scn, out, quiet=True, on_started=on_started)
@@ -200,7 +200,7 @@ def run_size(n: int, args, router_ep: str) -> dict:
 
 def main(args) -> int:
     from sitl.bus.router import Router
-    from sitl.experiments._common import prepare_out, strict
+    from sitl.app.experiments.common import prepare_out, strict
 
     prepare_out(Path(args.out))
     rows = []

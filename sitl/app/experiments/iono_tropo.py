@@ -1,7 +1,7 @@
 """`skyfuse experiment iono-tropo`: seed 000, zenith ionospheric (I_g) and tropospheric (U_g)
 delays estimated by an EKF from a single-frequency GPS+GLONASS receiver.
 
-The three variants of the seed (sitl.experiments.seed000.run_streamed) run on one scenario
+The three variants of the seed (sitl.app.experiments.iono_tropo_filters.run_streamed) run on one scenario
 and one seed, hence on the same simulated data:
 
 * ``code_doppler``      variant 1: pseudoranges + pseudorange rates (paper: ~500 s to 1 m);
@@ -23,9 +23,9 @@ from pathlib import Path
 
 import numpy as np
 
-from sitl.experiments._common import prepare_out, progress_printer, save_figure, strict
+from sitl.app.experiments.common import prepare_out, progress_printer, save_figure, strict
 
-from sitl.experiments import seed000
+from sitl.app.experiments import iono_tropo_filters
 
 VARIANTS = {"code_doppler": 1, "phase_increments": 2, "carrier_phase": 3}  # name -> seed000 variant
 LABELS = {
@@ -54,7 +54,7 @@ FLAGS = {"duration_s": "--duration", "dt_s": "--duration", "sigma_pr_m": "--sigm
 
 
 # ------------------------------------------------------------------ scenario and runs
-def scenario_from_args(args) -> seed000.IonoTropoScenario:
+def scenario_from_args(args) -> iono_tropo_filters.IonoTropoScenario:
     """The scenario of the command line; ValueError (naming the flag) on a bad value."""
     kw = {"duration_s": args.duration, "sigma_pr_m": args.sigma_pr, "sigma_prr_m_s": args.sigma_prr,
           "sigma_phase_m": args.sigma_phase, "el_mask_deg": args.el_mask_deg,
@@ -68,7 +68,7 @@ def scenario_from_args(args) -> seed000.IonoTropoScenario:
     if args.adaptive_q_gain is not None:
         kw["adaptive_q_gain"] = args.adaptive_q_gain
     try:
-        return seed000.IonoTropoScenario(**kw)
+        return iono_tropo_filters.IonoTropoScenario(**kw)
     except ValueError as exc:
         msg = " ".join(str(exc).split())  # one line
         flag = next((f for name, f in FLAGS.items() if msg.startswith((name + " ", name + ":"))), None)
@@ -80,14 +80,14 @@ def selected_variants(choice: str) -> list[str]:
 
 
 def run_all(scn, names, trials: int, seed: int, backend=None, progress=None) -> dict:
-    """{name: seed000.run_streamed(...)} for the named variants, same scenario and seed."""
+    """{name: iono_tropo_filters.run_streamed(...)} for the named variants, same scenario and seed."""
     out = {}
     for name in names:
         v = VARIANTS[name]
         if progress:
             progress(f"[{name}] variant {v}: {trials} trials x {scn.n_epochs} epochs")
         prog = (lambda msg, _n=name: progress(f"[{_n}] {msg}")) if progress else None
-        out[name] = seed000.run_streamed(scn, trials, seed, variant=v, progress=prog, backend=backend)
+        out[name] = iono_tropo_filters.run_streamed(scn, trials, seed, variant=v, progress=prog, backend=backend)
     return out
 
 
@@ -287,7 +287,7 @@ def plot(results: dict, scn, trials: int, seed: int, out: Path) -> list[Path]:
 
 
 def main(args) -> int:
-    from sitl.cli import UsageError
+    from sitl.app.cli import UsageError
 
     # every check before any run: the scenario (incl. satellites in view) and the output
     try:
@@ -308,7 +308,7 @@ def main(args) -> int:
         raise
     files = write(out, scn, args.trials, args.seed, results)
     for res in results.values():
-        print(seed000.summary(res))
+        print(iono_tropo_filters.summary(res))
         print()
     print(comparison_table(results))
     print("wrote " + ", ".join(str(f) for f in files))
@@ -317,7 +317,7 @@ def main(args) -> int:
 
 def _study(args, scn, out: Path, backend) -> int:
     """`--study adaptive-q|ordering`: writes DIR/<study>.json and a PNG."""
-    from sitl.experiments import seed000_studies as studies
+    from sitl.app.experiments import iono_tropo_studies as studies
 
     prog = progress_printer(args.quiet)
     if args.study == "adaptive-q":

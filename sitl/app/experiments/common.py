@@ -47,7 +47,7 @@ def progress_printer(quiet: bool):
 
 def prepare_out(out: Path) -> Path:
     """Create the output directory; a usage error (exit 2, one line) if it cannot be written."""
-    from sitl.cli import UsageError
+    from sitl.app.cli import UsageError
 
     try:
         out.mkdir(parents=True, exist_ok=True)

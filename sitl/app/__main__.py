@@ -1,18 +1,18 @@
-"""``python -m sitl.live {run,demo,replay} ...``: the live commands before (and besides) their
-registration in `skyfuse` (sitl/cli.py)."""
+"""``python -m sitl.app {run,demo,replay} ...``: the live commands before (and besides) their
+registration in `skyfuse` (sitl/app/cli.py)."""
 import sys
 
 
 def main(argv=None) -> int:
-    from sitl.cli import UsageError, _Parser
-    from sitl.live import launcher
+    from sitl.app.cli import UsageError, _Parser
+    from sitl.app import launcher
 
-    p = _Parser(prog="python -m sitl.live")
+    p = _Parser(prog="python -m sitl.app")
     sub = p.add_subparsers(dest="command", required=True)
     launcher.add_run_args(sub.add_parser("run", help="run a scenario live"))
     launcher.add_demo_args(sub.add_parser("demo", help="run the built-in default scenario live"))
     launcher.add_replay_args(sub.add_parser("replay", help="replay a bus log through the ground station"))
-    from sitl.bench import live as bench_live
+    from sitl.app.bench import live as bench_live
     bench_live.add_args(sub.add_parser("bench", help="skyfuse bench live"))
     try:
         args = p.parse_args(argv)

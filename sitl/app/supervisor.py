@@ -26,7 +26,7 @@ from collections import Counter
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from sitl.live.pacer import perf_now
+from sitl.pacing import perf_now
 
 
 @dataclass

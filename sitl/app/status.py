@@ -3,7 +3,7 @@ from __future__ import annotations
 
 from collections import Counter
 
-from sitl.live.pacer import perf_now
+from sitl.pacing import perf_now
 
 
 def _rejected_total(status: dict) -> Counter:

@@ -90,30 +90,30 @@ def output_file(text: str) -> Path:
 
 EXPERIMENTS = {
     # name -> (module, one-line description); modules are imported only when run
-    "ekf-vs-ukf": ("sitl.experiments.seed001", "seed 001: EKF vs UKF on a 4-satellite receiver, Monte Carlo with the PCRB"),
-    "iono-tropo": ("sitl.experiments.iono_tropo", "seed 000: zenith iono/tropo delays by an EKF from a single-frequency "
+    "ekf-vs-ukf": ("sitl.app.experiments.ekf_vs_ukf", "seed 001: EKF vs UKF on a 4-satellite receiver, Monte Carlo with the PCRB"),
+    "iono-tropo": ("sitl.app.experiments.iono_tropo", "seed 000: zenith iono/tropo delays by an EKF from a single-frequency "
                                                   "GPS+GLONASS receiver: code+Doppler vs phase increments vs carrier phase"),
-    "sonde": ("sitl.experiments.sonde", "seed 004: radiosonde tracking, relayed GNSS fused with an aerological radar "
+    "sonde": ("sitl.app.experiments.sonde", "seed 004: radiosonde tracking, relayed GNSS fused with an aerological radar "
                                         "vs each alone, over the in-memory bus, RMSE by ground range to 250 km"),
-    "beacon": ("sitl.experiments.beacon", "seed 002: a moving radio beacon located from >= 3 UAVs' range and Doppler "
+    "beacon": ("sitl.app.experiments.beacon", "seed 002: a moving radio beacon located from >= 3 UAVs' range and Doppler "
                                           "over the in-memory bus; decomposed vs centralised, against the PCRB"),
-    "integrity": ("sitl.experiments.integrity", "seed 003: fault detection/isolation on faulty GNSS data, plain vs "
+    "integrity": ("sitl.app.experiments.integrity", "seed 003: fault detection/isolation on faulty GNSS data, plain vs "
                                                 "adaptive-robust EKF (+ bias estimation), Pd/Pfa, ROC"),
-    "faults": ("sitl.experiments.faults", "network faults on the measurement links (loss, burst loss, delay, "
+    "faults": ("sitl.app.experiments.network_faults", "network faults on the measurement links (loss, burst loss, delay, "
                                           "partitions) of the beacon and sonde scenarios: RMSE against the baseline, "
                                           "recovery after partitions"),
-    "long-run": ("sitl.experiments.long_run", "the default scenario as `demo --batch` runs it for hours: beacon RMSE "
+    "long-run": ("sitl.app.experiments.long_run", "the default scenario as `demo --batch` runs it for hours: beacon RMSE "
                                               "per window against its PCRB, ANEES against its chi-square band, "
                                               "sonde errors"),
 }
 
 BENCHES = {
-    "filters": ("sitl.bench.filters", "batched EKF/UKF time per trial-step against FilterPy"),
-    "iono-tropo": ("sitl.bench.iono_tropo", "a 1200 s seed 000 variant-3 run (12 satellites) against real time"),
-    "sonde": ("sitl.bench.sonde", "a 2 h seed 004 sonde flight at 1 Hz (fused tracker) against real time"),
-    "beacon": ("sitl.bench.beacon", "one 1000 s seed 002 beacon trial (3 UAVs, bus and locator) against real time"),
-    "integrity": ("sitl.bench.integrity", "the seed 003 integrity monitor's cost on a 10,000-trial EKF step"),
-    "live": ("sitl.bench.live", "the largest swarm the live SITL keeps at real time (10 Hz), bus latency, CPU per UAV"),
+    "filters": ("sitl.app.bench.filters", "batched EKF/UKF time per trial-step against FilterPy"),
+    "iono-tropo": ("sitl.app.bench.iono_tropo", "a 1200 s seed 000 variant-3 run (12 satellites) against real time"),
+    "sonde": ("sitl.app.bench.sonde", "a 2 h seed 004 sonde flight at 1 Hz (fused tracker) against real time"),
+    "beacon": ("sitl.app.bench.beacon", "one 1000 s seed 002 beacon trial (3 UAVs, bus and locator) against real time"),
+    "integrity": ("sitl.app.bench.integrity", "the seed 003 integrity monitor's cost on a 10,000-trial EKF step"),
+    "live": ("sitl.app.bench.live", "the largest swarm the live SITL keeps at real time (10 Hz), bus latency, CPU per UAV"),
 }
 
 
@@ -148,7 +148,7 @@ def finite_float(text: str) -> float:
 
 
 def _add_iono_tropo_args(p: argparse.ArgumentParser) -> None:
-    # defaults are the seed's (sitl.experiments.seed000.IonoTropoScenario); range checks
+    # defaults are the seed's (sitl.app.experiments.iono_tropo_filters.IonoTropoScenario); range checks
     # beyond "positive" are the scenario's, reported as usage errors before any run
     p.add_argument("--variant", choices=("all",) + IONO_TROPO_VARIANTS, default="all",
                    help="code_doppler = variant 1 (pseudorange + rate), phase_increments = variant 2 (plus "
@@ -289,7 +289,7 @@ def _add_beacon_args(p: argparse.ArgumentParser) -> None:
 
 
 def _add_integrity_args(p: argparse.ArgumentParser) -> None:
-    # defaults: sitl.experiments.integrity.IntegrityScenario; its checks are usage errors before any run
+    # defaults: sitl.app.experiments.integrity.IntegrityScenario; its checks are usage errors before any run
     p.add_argument("--trials", type=positive_int, default=200, help="Monte Carlo trials (default 200)")
     p.add_argument("--seed", type=nonnegative_int, default=3, help="seed of the numpy SeedSequence (default 3)")
     p.add_argument("--out", type=output_dir, default=Path("out/integrity"), metavar="DIR",
@@ -323,7 +323,7 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=_Parser)
     sub.required = True
 
-    from sitl.live import launcher as _live  # light at import: the live machinery loads in run/demo
+    from sitl.app import launcher as _live  # light at import: the live machinery loads in run/demo
 
     _live.add_demo_args(sub.add_parser(
         "demo", help="the live SITL on the built-in default scenario (3 UAVs, a moving beacon, a radiosonde)",
@@ -336,7 +336,7 @@ def build_parser() -> argparse.ArgumentParser:
                                          description="Run a recorded bus log (OUT/bus.log) through the batch "
                                                      "ground station and compare its estimates with the recorded ones."))
 
-    from sitl.live import netfaults as _fault  # light: the fault models load only when the command runs
+    from sitl.app import live_faults as _fault  # light: the fault models load only when the command runs
 
     _fault.add_fault_args(sub.add_parser(
         "fault", help="change or list a running live run's network faults (set LINK SPEC..., list)",
@@ -409,10 +409,10 @@ def _dispatch(args: argparse.Namespace) -> int:
 
 def _run(args: argparse.Namespace, importlib) -> int:
     if args.command in ("demo", "run", "replay"):
-        live = importlib.import_module("sitl.live.launcher")
+        live = importlib.import_module("sitl.app.launcher")
         return {"demo": live.demo_main, "run": live.run_main, "replay": live.replay_main}[args.command](args)
     if args.command == "fault":
-        return importlib.import_module("sitl.netfault.cli").fault_main(args)
+        return importlib.import_module("sitl.app.fault_cli").fault_main(args)
     if args.command == "experiment":
         mod = importlib.import_module(EXPERIMENTS[args.experiment][0])
         return mod.main(args)
@@ -436,9 +436,9 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":  # pragma: no cover
-    # `python -m sitl.cli` runs this file as __main__, a second copy of the module: the
-    # experiments raise sitl.cli.UsageError, which __main__.UsageError would not catch.
+    # `python -m sitl.app.cli` runs this file as __main__, a second copy of the module: the
+    # experiments raise sitl.app.cli.UsageError, which __main__.UsageError would not catch.
     # Run the imported module's main, as the `skyfuse` console script does.
-    from sitl.cli import main as _main
+    from sitl.app.cli import main as _main
 
     sys.exit(_main())

@@ -11,7 +11,7 @@ import math
 
 import numpy as np
 
-from sitl.live.scoring import ErrorTracker
+from sitl.app.scoring import ErrorTracker
 
 
 def run_batch(scn, *, settle_s: float = 0.0, progress=None, record=None) -> dict:
@@ -27,7 +27,7 @@ def run_batch(scn, *, settle_s: float = 0.0, progress=None, record=None) -> dict
     rules = [(name[4:], spec) for name, spec in links if name.startswith("bus:")]
     mf = None
     if rules:
-        from sitl.experiments._common import MeasurementFaults
+        from sitl.app.experiments.common import MeasurementFaults
         mf = MeasurementFaults(rules, ["**"], seed=int(run.seed), t0_gps_s=run.t0_gps_s)
     bus = InMemoryTransport(start_t_gps_s=run.t0_gps_s, faults=[mf] if mf is not None else ())
     scorer = ErrorTracker(keep_s=1e9, settle_s=settle_s, t0_gps_s=run.t0_gps_s, clock=lambda: bus.now_s,
@@ -91,14 +91,14 @@ def warm_up(scn, epochs: int = 5) -> None:
 
 
 def main(argv=None) -> int:
-    """``python -m sitl.live.batch SCENARIO.json --warm-up``: warm the compiled kernels."""
+    """``python -m sitl.app.batch SCENARIO.json --warm-up``: warm the compiled kernels."""
     import json
     import sys
 
     from sitl.scenario import _to_toml_like, scenario_from_dict
     argv = sys.argv[1:] if argv is None else argv
     if len(argv) != 2 or argv[1] != "--warm-up":
-        print("usage: python -m sitl.live.batch SCENARIO.json --warm-up", file=sys.stderr)
+        print("usage: python -m sitl.app.batch SCENARIO.json --warm-up", file=sys.stderr)
         return 2
     with open(argv[0], encoding="utf-8") as f:
         scn = scenario_from_dict(_to_toml_like(json.load(f)), argv[0])

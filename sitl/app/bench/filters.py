@@ -24,7 +24,7 @@ from filters.ukf import SigmaPoints, ukf_predict, ukf_update
 
 def _scenario_data(n_trials, n_steps, seed=7):
     """Measurements and filter-side satellite states of the seed 001 scenario."""
-    from sitl.experiments.seed001 import Seed001Scenario, Setup
+    from sitl.app.experiments.ekf_vs_ukf import Seed001Scenario, Setup
 
     setup = Setup.make(Seed001Scenario(steps=n_steps))
     zs, sps, svs = [], [], []
@@ -155,7 +155,7 @@ def main(args) -> int:
     try:
         import filterpy  # noqa: F401
     except ImportError:
-        from sitl.cli import UsageError
+        from sitl.app.cli import UsageError
 
         raise UsageError("bench filters needs FilterPy as its peer: pip install 'skyfuse[bench]'") from None
     backends = (args.backend, "numpy") if args.backend == "numba" else ("numpy",)

@@ -1,6 +1,6 @@
 """`skyfuse bench sonde`: a 2 h radiosonde flight at 1 Hz (seed 004), one sonde, against real time.
 
-The case of issue 5: the experiment's scenario (`sitl.experiments.sonde.SondeScenario`,
+The case of issue 5: the experiment's scenario (`sitl.app.experiments.sonde.SondeScenario`,
 default 7200 s at 1 Hz, the relay's error budget, the radar loss and the GNSS outage), one
 trial. The target is the fused tracker under 10 s. Cases, all measured in the same run,
 rounds interleaved, each figure the minimum over rounds (the machine's speed drifts; the
@@ -30,7 +30,7 @@ TARGET_S = 10.0
 
 
 def add_args(p) -> None:
-    from sitl.cli import nonnegative_int, output_file, positive_float, positive_int
+    from sitl.app.cli import nonnegative_int, output_file, positive_float, positive_int
 
     p.add_argument("--duration", type=positive_float, default=7200.0, metavar="S",
                    help="simulated flight time, s at 1 Hz (default 7200: the 2 h flight)")
@@ -42,7 +42,7 @@ def add_args(p) -> None:
 
 
 def _world_only(scn, seed: int, chunk: int = 300) -> float:
-    from sitl.experiments.sonde import world
+    from sitl.app.experiments.sonde import world
 
     w0 = time.perf_counter()
     _, _, _, _, track, radar, relay = world(scn, seed, [0])
@@ -56,8 +56,8 @@ def _world_only(scn, seed: int, chunk: int = 300) -> float:
 def _no_bus(scn, seed: int, chunk: int = 300) -> tuple[float, float, int]:
     """(wall, tracker share, estimates) of world + messages + the fused tracker, no bus."""
     from sitl.bus import RadarMeasurement, SondeRelay
-    from sitl.experiments._common import component
-    from sitl.experiments.sonde import RADAR_ID, RUN_ID, tracker_params, world
+    from sitl.app.experiments.common import component
+    from sitl.app.experiments.sonde import RADAR_ID, RUN_ID, tracker_params, world
 
     SondeTracker = component("ground_station.sonde_tracker").SondeTracker
     w0 = time.perf_counter()
@@ -94,7 +94,7 @@ def _no_bus(scn, seed: int, chunk: int = 300) -> tuple[float, float, int]:
 
 
 def _over_bus(scn, seed: int, modes) -> tuple[float, dict]:
-    from sitl.experiments.sonde import run_trials
+    from sitl.app.experiments.sonde import run_trials
 
     w0 = time.perf_counter()
     raw = run_trials(scn, seed, [0], modes=modes)
@@ -102,7 +102,7 @@ def _over_bus(scn, seed: int, modes) -> tuple[float, dict]:
 
 
 def run(duration_s: float = 7200.0, rounds: int = 2, seed: int = 4, trio: bool = True, progress=None) -> dict:
-    from sitl.experiments.sonde import MODES, SondeScenario
+    from sitl.app.experiments.sonde import MODES, SondeScenario
 
     scn = SondeScenario(duration_s=duration_s, white_baseline=False)
     say = progress or (lambda msg: None)

@@ -51,7 +51,7 @@ def _world_only(scn, seed: int) -> float:
 
 def run(duration_s=1200.0, trials=1, rounds=1, el_mask_deg=BENCH_MASK_DEG, seed=0, backends=("numba", "numpy"),
         progress=None, adaptive_q="dynamic") -> dict:
-    from sitl.experiments.seed000 import IonoTropoScenario, run_streamed
+    from sitl.app.experiments.iono_tropo_filters import IonoTropoScenario, run_streamed
 
     aq = {"adaptive_q": adaptive_q != "off"} | ({"adaptive_q_scope": adaptive_q} if adaptive_q != "off" else {})
     scn = IonoTropoScenario(duration_s=duration_s, el_mask_deg=el_mask_deg, **aq)
@@ -102,7 +102,7 @@ def table(res: dict) -> str:
 
 def main(args) -> int:
     from filters import kernels
-    from sitl.cli import UsageError
+    from sitl.app.cli import UsageError
 
     backends = ("numba", "numpy") if kernels.HAVE_NUMBA else ("numpy",)
     if args.backend == "numpy":

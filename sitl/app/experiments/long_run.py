@@ -1,7 +1,7 @@
 """`skyfuse experiment long-run`: do the live SITL's estimates stay right over hours? (issue 19)
 
 What runs: the built-in default scenario (sitl/scenario.py) exactly as ``skyfuse demo --batch``
-runs it (sitl/live/batch.py's run_batch: vehicles.process.VehicleGroup and
+runs it (sitl/app/batch.py's run_batch: vehicles.process.VehicleGroup and
 ground_station.node.GroundStationNode stepped in simulation time over one InMemoryTransport,
 the same seeds), for ``--duration`` seconds, ``--trials`` times: trial j is the scenario with
 run.seed = seed + j (trial 0 is ``skyfuse demo --batch --seed S --duration D``; the sonde flies
@@ -10,7 +10,7 @@ same with or without it).  What the ground station publishes (``<run>/gs/estimat
 the truth are taken off the bus each epoch; nothing is fed back.
 
 The bound: the posterior Cramér-Rao bound of the beacon's position for the centralised model
-(ground_station.beacon_central.pcrb_central through sitl.experiments.beacon.pcrb_series, at the
+(ground_station.beacon_central.pcrb_central through sitl.app.experiments.beacon.pcrb_series, at the
 true UAV and beacon tracks -- deterministic, the same in every trial -- with the blind start's
 weak height and velocity priors): it counts the UAVs' GNSS information and their own navigation
 uncertainty, so no decomposed locator can beat it on average.
@@ -86,7 +86,7 @@ from pathlib import Path
 
 import numpy as np
 
-from sitl.experiments._common import component, prepare_out, progress_printer, save_figure, strict
+from sitl.app.experiments.common import component, prepare_out, progress_printer, save_figure, strict
 
 GEOMETRIES = ("default", "north")
 LOCATORS = ("live", "inflate")
@@ -163,7 +163,7 @@ def run_trial(scn, locator: str = "live", progress=None) -> dict:
     per epoch the beacon's and the sonde's truth and published estimate (x (K, 6), P (K, 6, 6))
     and the UAVs' true tracks (U, V (K, N, 3), for the bound)."""
     from sitl.bus import InMemoryTransport
-    from sitl.live.batch import vehicle_groups
+    from sitl.app.batch import vehicle_groups
 
     gn = component("ground_station.node")
     bl = component("ground_station.beacon_locator")
@@ -208,7 +208,7 @@ def pcrb_sqrt_trace(trial: dict, scn) -> np.ndarray:
     trial's true tracks, with its locator's model (q) and blind-start priors."""
     from sitl.gnss import orbits
 
-    be = component("sitl.experiments.beacon")
+    be = component("sitl.app.experiments.beacon")
     uav_nav = component("vehicles.uav_nav")
     if abs(scn.run.t0_gps_s - uav_nav.SEED002_T0_GPS_S) > 1e-6:
         raise ValueError("the bound is computed from the seed 002 start time (run.t0_gps_s of the default scenario)")
@@ -483,7 +483,7 @@ def plot(out: Path, doc: dict) -> Path:
 
 
 def add_args(p) -> None:
-    from sitl.cli import nonnegative_float, nonnegative_int, output_dir, positive_float, positive_int
+    from sitl.app.cli import nonnegative_float, nonnegative_int, output_dir, positive_float, positive_int
 
     p.add_argument("--duration", type=positive_float, default=21600.0, metavar="S",
                    help="simulated seconds of each run at 1 Hz (default 21600: 6 h)")
@@ -508,7 +508,7 @@ def add_args(p) -> None:
 
 
 def run(args) -> dict:
-    from sitl.cli import UsageError
+    from sitl.app.cli import UsageError
 
     if args.duration > 10 * 86400:
         raise UsageError(f"--duration: at most {10 * 86400} s, got {args.duration:g}")

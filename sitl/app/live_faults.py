@@ -31,7 +31,7 @@ from collections import Counter
 from collections.abc import Callable
 from pathlib import Path
 
-from sitl.live.pacer import wall_now
+from sitl.pacing import wall_now
 
 PRESTART_OFFSET_S = 1e6  # simulated seconds below zero before the start (module text)
 # the proxies' receiver-side MAVLink tap (pymavlink parses every forwarded datagram: measured
@@ -62,7 +62,7 @@ def ack_key(run_id: str) -> str:
 
 
 # ---------------------------------------------------------------------- `skyfuse fault` arguments
-# (the parser is built at every `skyfuse` call: it lives here, light; sitl.netfault.cli runs it)
+# (the parser is built at every `skyfuse` call: it lives here, light; sitl.app.fault_cli runs it)
 
 DEFAULT_TIMEOUT_S = 5.0
 DEFAULT_OUTS = ("out/demo", "out/run")
