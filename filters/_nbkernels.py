@@ -27,7 +27,7 @@ os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 import numba as nb
 import numpy as np
 
-from ._nbentry import declare, ro
+from .nbdispatch import declare, ro
 
 # fastmath without nnan/ninf: a failed Cholesky is reported as NaN and must stay NaN.
 _jit = dict(cache=True, nogil=True, error_model="numpy", fastmath={"contract", "arcp", "nsz", "reassoc"})

@@ -12,7 +12,7 @@ from __future__ import annotations
 import numba as nb
 import numpy as np
 
-from ._nbentry import declare, ready, ro, rw
+from .nbdispatch import declare, ready, ro, rw
 
 _jit = dict(cache=True, nogil=True, error_model="numpy")
 

@@ -19,11 +19,11 @@ from __future__ import annotations
 import numpy as np
 
 try:  # the compiled path is optional; the numpy path is always there
-    from . import _nbentry, _nbkernels
+    from . import nbdispatch, _nbkernels
 
     HAVE_NUMBA = True
 except ImportError:  # pragma: no cover - exercised only where numba is missing
-    _nbentry = _nbkernels = None
+    nbdispatch = _nbkernels = None
     HAVE_NUMBA = False
 
 BACKENDS = ("numpy", "numba")
@@ -32,6 +32,15 @@ _default_backend = "numba" if HAVE_NUMBA else "numpy"
 
 def default_backend() -> str:
     return _default_backend
+
+
+def numba_threads():
+    """numba's thread count, or False without numba."""
+    if not HAVE_NUMBA:
+        return False
+    import numba
+
+    return numba.get_num_threads()
 
 
 def set_default_backend(name: str) -> None:
@@ -140,11 +149,11 @@ _DRIVERS: dict = {}
 
 def _nbk(name, N):
     """The compiled serial or parallel driver of a kernel, with its one signature (read-only
-    inputs: filters/_nbentry.py) compiled or loaded on first use."""
+    inputs: filters/nbdispatch.py) compiled or loaded on first use."""
     key = (name, N >= PARALLEL_MIN_TRIALS)
     d = _DRIVERS.get(key)
     if d is None:
-        d = _DRIVERS[key] = _nbentry.ready(getattr(_nbkernels, f"{name}_{'par' if key[1] else 'ser'}"))
+        d = _DRIVERS[key] = nbdispatch.ready(getattr(_nbkernels, f"{name}_{'par' if key[1] else 'ser'}"))
     return d
 
 
@@ -166,7 +175,7 @@ def cov_predict(F, P, Q, backend=None):
     if backend == "numba" and Q.ndim == 2:
         if np.ndim(F) == 2:
             return _nbk("predict", P.shape[0])(_c(F), _c(P), _c(Q))
-        return _nbentry.ready(_nbkernels._batched_predict_par)(_c(F), _c(P), _c(Q))
+        return nbdispatch.ready(_nbkernels._batched_predict_par)(_c(F), _c(P), _c(Q))
     return _np_cov_predict(F, P, Q)
 
 

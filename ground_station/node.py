@@ -62,10 +62,15 @@ class GsConfig:
     lag_window_s: float = 5.0  # late (out-of-sequence) measurements this old are re-processed (0: dropped)
     max_ahead_s: float = 2.0  # an input further ahead of the node's clock than this is refused (future)
     hold_s: float = 1.0  # the longest an epoch waits for its inputs (simulated s): the guard's window behind
+    # the sonde tracker's parameters (SondeTrackerParams; required with ``sonde``): the composition
+    # root derives them from the world's models (sitl.app.components.sonde_tracker_params); the
+    # node applies its own lag window to them
+    sonde_tracker: object | None = None
 
     @classmethod
-    def from_scenario(cls, scn) -> GsConfig:
-        return cls(beacon_id=scn.beacon.id, beacon_init_epochs=scn.ground_station.beacon_init_epochs,
+    def from_scenario(cls, scn, sonde_tracker=None) -> GsConfig:
+        """The scenario's settings; ``sonde_tracker``: the tracker's parameters (with a sonde)."""
+        return cls(sonde_tracker=sonde_tracker, beacon_id=scn.beacon.id, beacon_init_epochs=scn.ground_station.beacon_init_epochs,
                    sonde=scn.sonde.enabled, radar_id=scn.sonde.radar_id, sonde_dt_s=1.0 / scn.run.rate_hz,
                    gcpp_offset_m=scn.sonde.gcpp_offset_m, gcpp_bearing_deg=scn.sonde.gcpp_bearing_deg,
                    sonde_integrity=scn.ground_station.integrity,
@@ -180,10 +185,10 @@ class GroundStationNode:
                                      source_id="gs")
         self.tracker = None
         if c.sonde:
-            from sitl.app.experiments.sonde import SondeScenario, tracker_params
-            scn = SondeScenario(dt_s=c.sonde_dt_s, gcpp_offset_m=c.gcpp_offset_m,
-                                gcpp_bearing_deg=c.gcpp_bearing_deg, integrity="on" if c.sonde_integrity else "off")
-            params = dataclasses.replace(tracker_params(scn, "fused"), lag_window_s=c.lag_window_s)
+            if c.sonde_tracker is None:
+                raise ValueError("GsConfig.sonde_tracker: the sonde tracker's parameters are required with sonde on "
+                                 "(sitl.app.components.gs_config builds them from the scenario)")
+            params = dataclasses.replace(c.sonde_tracker, lag_window_s=c.lag_window_s)
             self.tracker = SondeTracker(run_id, params, radar_id=c.radar_id, source_id="gs")
             self.tracker.attach(self.bus)
         self.estimates: dict[tuple[str, str], Estimate] = {}

@@ -66,7 +66,7 @@ class GcsLink:
 
     def _clock_ts(self) -> int:
         """The clock in signing units (10 us since 2015-01-01); 0 if it gives no finite time."""
-        from vehicles.mavlink.telemetry import SIGNING_EPOCH_UNIX_S
+        from sitl.mavlink.framing import SIGNING_EPOCH_UNIX_S
         u = float(self._clock())
         return min((1 << 48) - 1, max(0, int((u - SIGNING_EPOCH_UNIX_S) * 1e5))) if math.isfinite(u) else 0
 
@@ -166,6 +166,40 @@ class GcsLink:
             self._tlog = None
 
 
+def _from_json(tp, v):
+    """A JSON value back to the type ``tp`` a parameter dataclass declares: nested dataclasses
+    (also as ``X | None``) rebuilt, lists back to tuples."""
+    import dataclasses
+    import types
+    import typing
+
+    if isinstance(v, dict):
+        cands = typing.get_args(tp) if isinstance(tp, types.UnionType) or typing.get_origin(tp) is typing.Union else (tp,)
+        for c in cands:
+            if dataclasses.is_dataclass(c):
+                return _dataclass_from_json(c, v)
+        return {k: _from_json(object, x) for k, x in v.items()}
+    if isinstance(v, list):
+        return tuple(_from_json(object, x) for x in v)
+    return v
+
+
+def _dataclass_from_json(cls, d: dict):
+    import typing
+
+    hints = typing.get_type_hints(cls)
+    return cls(**{k: _from_json(hints.get(k, object), x) for k, x in d.items()})
+
+
+def sonde_tracker_from_spec(spec):
+    """The sonde tracker's SondeTrackerParams from the spec's ``params`` (None when it has none:
+    no sonde). JSON floats round-trip exactly (repr), so they are the composition root's own."""
+    from ground_station.sonde_tracker import SondeTrackerParams
+
+    d = spec.params.get("sonde_tracker")
+    return None if d is None else _dataclass_from_json(SondeTrackerParams, d)
+
+
 def main(argv=None) -> int:
     from ground_station.node import GroundStationNode, GsConfig
     from sitl.live.worker import WorkerRuntime, open_bus, out_path
@@ -180,10 +214,11 @@ def main(argv=None) -> int:
     gcs = None
     node = None
     try:
-        node = GroundStationNode(bus, spec.run_id, GsConfig.from_scenario(scn), incarnation=rt.incarnation)
+        node = GroundStationNode(bus, spec.run_id, GsConfig.from_scenario(scn, sonde_tracker_from_spec(spec)),
+                                 incarnation=rt.incarnation)
         if scn.mavlink.enabled:
             try:
-                from vehicles.mavlink import load_signing_key
+                from sitl.mavlink.framing import load_signing_key
                 key = load_signing_key(scn.mavlink.signing_key_file) if scn.mavlink.signing_key_file else None
                 gcs = GcsLink(scn.mavlink.gcs, out_path(spec, "mav_gs.tlog") if scn.mavlink.tlog else None,
                               signing_key=key)

@@ -68,3 +68,6 @@ def ellipsoid(name_or_obj: "str | Ellipsoid | None") -> Ellipsoid:
 def glonass_l1_hz(k):
     """GLONASS L1 carrier for FDMA channel k (-7..+6), Hz. Works on arrays."""
     return F_GLO_L1_BASE_HZ + k * F_GLO_L1_STEP_HZ
+
+#: MAVLink system ids of vehicles: 1..249 (250 is the ground station's: ADSB / STATUSTEXT; 255 the GCS's)
+MAX_MAVLINK_VEHICLES = 249

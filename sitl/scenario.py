@@ -60,15 +60,15 @@ from typing import Any
 
 # GPS time of the built-in almanac's epoch + 1 h (the seed 002 start; vehicles.uav_nav
 # .SEED002_T0_GPS_S, which sitl may not import)
+from sitl.constants import MAX_MAVLINK_VEHICLES  # noqa: F401  (system ids 1..249; checked here)
 from sitl.gnss.orbits import DEFAULT_TOA_GPS_S
 
 DEFAULT_T0_GPS_S = DEFAULT_TOA_GPS_S + 3600.0
-SPEC_VERSION = 1
+SPEC_VERSION = 2  # 2: params (the component's parameters the composition root built)
 UAV_PATTERNS = ("orbit", "north")  # [uavs].pattern (module docstring; vehicles/process.py flies them)
 BEACON_MODES = ("seed", "legs", "static", "racetrack")  # [beacon].mode (vehicles/beacon.py)
 # "orbit": the UAVs' guidance turns at most this fast (vehicles.uav.Racetrack's max_turn_rate_rad_s)
 ORBIT_MAX_TURN_RATE_RAD_S = math.radians(3.0)
-MAX_MAVLINK_VEHICLES = 249  # system ids 1..249: 250 is the ground station's (ADSB / STATUSTEXT), 255 the GCS's
 
 DEFAULT_SCENARIO_TOML = """\
 # skyfuse built-in default scenario: 3 UAVs orbiting (15 km, clockwise) the area where a moving
@@ -218,7 +218,8 @@ def _hostport(key, v) -> tuple:
     return s
 
 
-def _endpoint(key, v) -> str:
+def zenoh_endpoint(key, v) -> str:
+    """A Zenoh endpoint "PROTO/HOST:PORT" (tcp, udp, quic, tls) named ``key``: the text, or ScenarioError."""
     s = _str(key, v)
     proto, sep, rest = s.partition("/")
     host, sep2, port = rest.rpartition(":")
@@ -305,6 +306,7 @@ class SondeSection:
     gcpp_bearing_deg: float = 140.0
     radar_loss_s: tuple = (30.0, 330.0)
     gnss_outage_s: tuple = (3600.0, 3720.0)
+    wind_scale: float = 1.15  # the sonde model's wind profile x this (the default winter jet: 58 -> 67 m/s at 11 km)
 
 
 @dataclass(frozen=True)
@@ -321,30 +323,14 @@ class GroundStationSection:
 
 
 def _fault_link(key: str, link) -> str:
-    """A link name of the [faults] table (``mav:<sysid>[:up|:down]``, ``zenoh:<worker>``,
-    ``bus:<key expression>``); the worker / system id ranges are checked in _cross_checks."""
-    if not isinstance(link, str) or not link:
-        raise _err(key, "a link name", link)
-    kind, sep, rest = link.partition(":")
-    if kind == "mav" and sep:
-        parts = rest.split(":")
-        if (1 <= len(parts) <= 2 and parts[0].isdigit() and 1 <= int(parts[0]) <= MAX_MAVLINK_VEHICLES
-                and (len(parts) == 1 or parts[1] in ("up", "down"))):
-            return f"mav:{int(parts[0])}" + (f":{parts[1]}" if len(parts) == 2 else "")
-        raise _err(key, f'expected "mav:SYSID" or "mav:SYSID:up|down" with SYSID in 1..{MAX_MAVLINK_VEHICLES}',
-                   show_got=False)
-    if kind == "zenoh" and sep:
-        if rest == "gs" or (rest.startswith("vehicles") and rest[8:].isdigit()):
-            return link
-        raise _err(key, 'expected a worker\'s session "zenoh:gs" or "zenoh:vehicles<k>"', show_got=False)
-    if kind == "bus" and sep:
-        from sitl.bus import KeyExprError, validate_key_expr
-        try:
-            validate_key_expr(rest)
-        except KeyExprError as e:
-            raise _err(key, f"expected a bus key expression ({e})", show_got=False) from None
-        return link
-    raise _err(key, 'expected a link "mav:SYSID", "zenoh:WORKER" or "bus:KEY/EXPR"', show_got=False)
+    """A link name of the [faults] table, checked and normalised (sitl.netfault.spec.canonical_link);
+    the worker / system id ranges are checked in _cross_checks."""
+    from sitl.netfault.spec import LinkNameError, canonical_link
+
+    try:
+        return canonical_link(link)
+    except LinkNameError as e:
+        raise _err(key, e.expected, link, show_got=e.show_got) from None
 
 
 def fault_spec_text(key: str, text) -> str:
@@ -454,8 +440,8 @@ _SECTIONS: dict[str, tuple[type, dict]] = {
         "t0_gps_s": lambda k, v: _number(k, v, lo=0),
     }),
     "bus": (BusSection, {
-        "zenoh": lambda k, v: tuple(_endpoint(f"{k}[{i}]", e) for i, e in enumerate(_list(k, v))),
-        "listen": _endpoint,
+        "zenoh": lambda k, v: tuple(zenoh_endpoint(f"{k}[{i}]", e) for i, e in enumerate(_list(k, v))),
+        "listen": zenoh_endpoint,
         "log": _bool,
         "lease_ms": lambda k, v: _int(k, v, lo=100, hi=600000),
     }),
@@ -492,6 +478,7 @@ _SECTIONS: dict[str, tuple[type, dict]] = {
         "gcpp_bearing_deg": lambda k, v: _number(k, v, lo=0, hi=360),
         "radar_loss_s": _interval,
         "gnss_outage_s": _interval,
+        "wind_scale": lambda k, v: _number(k, v, lo=0, hi=10),
     }),
     "ground_station": (GroundStationSection, {
         "hold_wall_s": lambda k, v: _number(k, v, lo=0, hi=60),
@@ -680,6 +667,9 @@ class WorkerSpec:
     with_beacon_truth: bool = False  # this group publishes the beacon's truth
     with_sonde: bool = False
     status_interval_wall_s: float = 1.0
+    # the component's parameters that the scenario does not hold, built by the composition root
+    # (JSON: e.g. the GS's sonde tracker tuning, sitl.app.components.gs_spec_params)
+    params: dict = field(default_factory=dict)
     spec_version: int = SPEC_VERSION
 
     def to_json(self) -> str:

@@ -295,7 +295,7 @@ def test_experiment_case_isolates_the_injected_faults_and_summarises():
 def test_experiment_bad_integrity_options_are_usage_errors(flags):
     import argparse
 
-    from sitl.app.cli import UsageError
+    from sitl.app.args import UsageError
     from sitl.app.experiments import beacon as be
 
     a = argparse.Namespace(uavs=3, duration=200.0, uav_counts=[3], **{"integrity": "off", **flags})

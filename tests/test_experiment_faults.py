@@ -285,7 +285,7 @@ def test_result_json_on_a_tiny_run(tmp_path, monkeypatch):
     (["--faults-from", "5000"], "--duration"),
 ])
 def test_usage_errors(tmp_path, argv, text):
-    from sitl.app.cli import UsageError
+    from sitl.app.args import UsageError
 
     with pytest.raises(UsageError, match=text):
         fx.run(_parse(["--out", str(tmp_path / "x"), "--quiet", *argv]))

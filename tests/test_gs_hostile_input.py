@@ -16,6 +16,7 @@ from hypothesis import HealthCheck, Phase, given, settings
 from hypothesis import strategies as st
 
 from ground_station.node import GroundStationNode, GsConfig
+from sitl.app.components import gs_config
 from sitl.bus import BusLogWriter, InMemoryTransport, decode, encode, key_matches, pack_sealed
 from sitl.bus.schema import POS_MAX_M, T_GPS_MAX_S
 from sitl.app.scoring import ErrorTracker
@@ -63,7 +64,7 @@ def _gs(by_epoch, junk=(), *, scn=SCN):
     processed once complete, or hold_wall_s x speed after its time; ground_station.process);
     returns (estimates [(key, t, pos, cov)], node stats)."""
     bus = InMemoryTransport(start_t_gps_s=scn.run.t0_gps_s)
-    cfg = GsConfig.from_scenario(scn)
+    cfg = gs_config(scn)
     node = GroundStationNode(bus, scn.run.id, cfg)
     early = 2.5 / scn.run.rate_hz
     got = []
@@ -246,7 +247,7 @@ def _run_with_restart(kill_k: int, gap: int, new_incarnation: bool):
     bus = InMemoryTransport(start_t_gps_s=scn.run.t0_gps_s)
     scorer = ErrorTracker(keep_s=1e9, t0_gps_s=scn.run.t0_gps_s, clock=lambda: bus.now_s)
     scorer.subscribe(bus, scn.run.id)
-    node = GroundStationNode(bus, scn.run.id, GsConfig.from_scenario(scn))
+    node = GroundStationNode(bus, scn.run.id, gs_config(scn))
     seq = lambda: np.random.SeedSequence([scn.run.seed, 1000])  # noqa: E731  (the worker's own)
     idx = list(range(scn.uavs.count))
     g = VehicleGroup(scn, idx, bus, seq())

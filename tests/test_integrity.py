@@ -6,6 +6,7 @@ import scipy.stats
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from filters import kernels
 from filters.ekf import ekf_predict, ekf_update
 from filters.integrity import GuardedModel, IntegrityConfig, IntegrityMonitor
 from filters.models import LinearGaussian
@@ -581,7 +582,7 @@ print(os.environ["OMP_WAIT_POLICY"], sorted(burn)[len(burn) // 2])
 """
 
 
-@pytest.mark.skipif(not __import__("filters.kernels").kernels.HAVE_NUMBA, reason="numba not installed")
+@pytest.mark.skipif(not kernels.HAVE_NUMBA, reason="numba not installed")
 def test_the_kernels_worker_threads_do_not_spin_after_a_parallel_kernel():
     """filters/_nbkernels.py sets OMP_WAIT_POLICY=PASSIVE before numba loads libgomp: after a
     parallel kernel the workers sleep instead of spinning for milliseconds (which took a core

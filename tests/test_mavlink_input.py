@@ -21,7 +21,8 @@ from hypothesis import strategies as st
 from pymavlink.dialects.v20 import ardupilotmega as mav
 
 from vehicles.mavlink import DATAGRAM_REJECT_REASONS, EndpointGroup, VehicleEndpoint
-from vehicles.mavlink.telemetry import SIGNING_EPOCH_UNIX_S, unix_s_from_gps
+from sitl.mavlink.framing import SIGNING_EPOCH_UNIX_S
+from vehicles.mavlink.telemetry import unix_s_from_gps
 
 QUIET = {k: 0 for k in (0, 1, 2, 24, 30, 33)}
 T0_GPS_S = 1_400_000_000.0

@@ -23,7 +23,7 @@ from procs import dead, udp_base, udp_free
 from pymavlink.dialects.v20 import ardupilotmega as mav
 
 from vehicles.mavlink import FUTURE_WINDOW_S, SigningStateFile, VehicleEndpoint
-from vehicles.mavlink.telemetry import SIGNING_EPOCH_UNIX_S
+from sitl.mavlink.framing import SIGNING_EPOCH_UNIX_S
 
 KEY = bytes(range(32))
 QUIET = {k: 0 for k in (0, 1, 2, 24, 30, 33)}  # no streams: only what a test asks for is sent

@@ -14,7 +14,7 @@ from pymavlink.dialects.v20 import ardupilotmega as mavlink2
 from sitl.timescales import gps_seconds_from_utc, utc_from_gps_seconds
 from vehicles.mavlink import ParamError, ParamSpec, ParamStore, listen_port, load_signing_key, split_datagram
 from vehicles.mavlink import telemetry as tm
-from vehicles.mavlink.framing import SignatureChecker
+from sitl.mavlink.framing import SignatureChecker
 
 KEY = hashlib.sha256(b"skyfuse test key").digest()
 

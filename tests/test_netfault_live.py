@@ -250,7 +250,7 @@ def test_a_run_without_faults_refuses_changes_and_loads_no_fault_models(tmp_path
     import sys
 
     from sitl.bus import Router, ZenohTransport
-    from sitl.app.live_faults import NoFaultBoard, serve
+    from sitl.bus.faultctl import NoFaultBoard, serve
     from sitl.app.fault_cli import main
     code = ("import sys, sitl.app.launcher, sitl.app.live_faults; "
             "sys.exit(any(m.startswith('sitl.netfault') for m in sys.modules))")

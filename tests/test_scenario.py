@@ -245,10 +245,11 @@ def test_any_faults_table_survives_the_spec_json_in_order(tmp_path_factory, entr
 def test_ground_station_link_keys_reach_the_components():
     """[ground_station] lag_window_s / stale_after_s / link_stats_every_s reach the GS node's
     locator, tracker and link monitor; out-of-range values are one-line errors."""
-    from ground_station.node import GroundStationNode, GsConfig
+    from ground_station.node import GroundStationNode
+    from sitl.app.components import gs_config
 
     scn = parse_scenario("[ground_station]\nlag_window_s = 2.5\nstale_after_s = 7.0\nlink_stats_every_s = 4.0\n")
-    cfg = GsConfig.from_scenario(scn)
+    cfg = gs_config(scn)
     assert (cfg.lag_window_s, cfg.stale_after_s, cfg.link_stats_every_s) == (2.5, 7.0, 4.0)
     node = GroundStationNode(None, "r", cfg)
     try:

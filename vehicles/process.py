@@ -176,17 +176,14 @@ class VehicleGroup:
 
     # ------------------------------------------------------------------ sonde
     def _build_sonde(self, seq: np.random.SeedSequence) -> None:
-        from sitl.app.experiments.sonde import SondeScenario, _sonde_params
         from sitl.geodesy import ecef_to_geodetic, enu_to_ecef
         from sitl.gnss.orbits import default_constellation
         from sitl.radio.radar import Radar, RadarParams
         from sitl.radio.relay import Relay, RelayParams
-        from vehicles.sonde import SondeFlight
+        from vehicles.sonde import SondeFlight, SondeParams
 
         s = self.scn.sonde
         dt = 1.0 / self.scn.run.rate_hz
-        sscn = SondeScenario(dt_s=dt, gcpp_offset_m=s.gcpp_offset_m, gcpp_bearing_deg=s.gcpp_bearing_deg,
-                             radar_loss_s=s.radar_loss_s, gnss_outage_s=s.gnss_outage_s)
         rngs = [np.random.default_rng(c) for c in seq.spawn(3)]
         lat0, lon0, h0 = math.radians(s.launch[0]), math.radians(s.launch[1]), s.launch[2]
         b = math.radians(s.gcpp_bearing_deg)
@@ -194,7 +191,7 @@ class VehicleGroup:
         lat, lon, h = (float(v) for v in ecef_to_geodetic(enu_to_ecef(enu, lat0, lon0, h0)))
         t0 = self.t0
         self.flight = SondeFlight([rngs[0]], launch_lat_rad=lat0, launch_lon_rad=lon0, launch_h_m=h0, t0_gps_s=t0,
-                                  params=_sonde_params(sscn), dt_s=dt)
+                                  params=SondeParams.with_wind_scale(s.wind_scale), dt_s=dt)
         self.radar = Radar([rngs[1]], site_lat_rad=lat, site_lon_rad=lon, site_h_m=h,
                            params=RadarParams(loss_schedule=((t0 + s.radar_loss_s[0], t0 + s.radar_loss_s[1]),)),
                            batch_shape=(1,))

@@ -242,6 +242,11 @@ class SondeParams:
             raise ValueError(f"wind_from_rad must be a scalar or have one value per altitude knot ({alt.size})")
 
 
+    @classmethod
+    def with_wind_scale(cls, scale: float):
+        """The default parameters with the wind profile's speeds x scale."""
+        return cls(wind_speed_m_s=tuple(scale * v for v in cls().wind_speed_m_s))
+
     def wind_enu_m_s(self, h_m) -> np.ndarray:
         """Mean wind (..., 2) [east, north] at altitude(s) h_m (linear in components)."""
         alt, spd = np.asarray(self.wind_alt_m, float), np.asarray(self.wind_speed_m_s, float)

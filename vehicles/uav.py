@@ -753,7 +753,7 @@ def _step_times(t0: float, t1: float, dt: float, breakpoints) -> np.ndarray:
 
 
 if nb is not None:
-    from filters._nbentry import declare, ready, ro, rw
+    from filters.nbdispatch import declare, ready, ro, rw
 
     _TWO_PI = 2.0 * math.pi
 
@@ -844,7 +844,7 @@ if nb is not None:
                     k_wp = min(k_wp + 1, cnti)
         return lat, lon, h, psi, k_wp
 
-    # one compiled version each (filters/_nbentry.py): the guidance's arrays may be read-only
+    # one compiled version each (filters/nbdispatch.py): the guidance's arrays may be read-only
     @declare(nb.int64, rw(2), rw(1, nb.int64), ro(2), ro(1), ro(2), ro(3), ro(1, dtype=nb.int64), ro(1), nb.float64,
              nb.float64)
     @nb.njit(cache=True, nogil=True)

@@ -4,7 +4,7 @@ import sys
 
 
 def main(argv=None) -> int:
-    from sitl.app.cli import UsageError, _Parser
+    from sitl.app.args import UsageError, Parser as _Parser
     from sitl.app import launcher
 
     p = _Parser(prog="python -m sitl.app")

@@ -3,10 +3,9 @@ ground_station.node.GroundStationNode) stepped in one process in simulation time
 InMemoryTransport -- deterministic for a seed, as fast as the machine goes. The reference the
 live run is compared with (the same scenario and seed give the same statistics).
 
-vehicles / ground_station are loaded by module name (sitl never imports them statically)."""
+The composition root imports the components statically (function-level: a light import)."""
 from __future__ import annotations
 
-import importlib
 import math
 
 import numpy as np
@@ -18,7 +17,8 @@ def run_batch(scn, *, settle_s: float = 0.0, progress=None, record=None) -> dict
     """record: a path: the run's bus traffic goes to a bus log there (as a live run's)."""
     from sitl.bus import InMemoryTransport
 
-    gn = importlib.import_module("ground_station.node")
+    from ground_station import node as gn
+    from sitl.app.components import gs_config
     run = scn.run
     # [faults]: the bus rules act on the in-memory bus as the workers' publisher filters do live
     # (same models, times since the run's start, deterministic for the seed); the MAVLink and Zenoh
@@ -37,7 +37,7 @@ def run_batch(scn, *, settle_s: float = 0.0, progress=None, record=None) -> dict
     if record is not None:
         from sitl.bus.buslog import BusRecorder
         recorder = BusRecorder(bus, record, key_expr=f"{run.id}/**", append=False, clock=lambda: bus.now_s)
-    node = gn.GroundStationNode(bus, run.id, gn.GsConfig.from_scenario(scn))
+    node = gn.GroundStationNode(bus, run.id, gs_config(scn))
     groups = vehicle_groups(scn, bus)
     dt = 1.0 / run.rate_hz
     K = int(math.floor(run.duration_s * run.rate_hz + 1e-9)) + 1
@@ -67,7 +67,7 @@ def run_batch(scn, *, settle_s: float = 0.0, progress=None, record=None) -> dict
 def vehicle_groups(scn, bus) -> list:
     """The scenario's vehicle groups as the live workers build them (uavs.per_process UAVs each;
     the first also the beacon's truth and the sonde; seeds SeedSequence([run.seed, 1000 + g]))."""
-    vp = importlib.import_module("vehicles.process")
+    from vehicles import process as vp
     groups = []
     per = scn.uavs.per_process
     for g in range(scn.n_uav_processes):

@@ -7,113 +7,131 @@ heavy modules lazily so that `skyfuse --help` stays instant.
 from __future__ import annotations
 
 import argparse
-import os
 import sys
 from pathlib import Path
 
-EXIT_USAGE = 2
-
-
-class UsageError(Exception):
-    """A bad input from the user: reported as one line, exit status 2."""
-
-
-class _Parser(argparse.ArgumentParser):
-    def error(self, message: str):  # argparse's default prints the whole usage block
-        raise UsageError(f"{self.prog}: {message}")
-
-
-# --- argument types: each rejects bad values with a one-line reason ----------------------
-
-def _int_at_least(lowest: int, what: str):
-    def parse(text: str) -> int:
-        try:
-            value = int(text)
-        except ValueError:
-            raise argparse.ArgumentTypeError(f"expected {what}, got {text!r}") from None
-        if value < lowest:
-            raise argparse.ArgumentTypeError(f"expected {what}, got {value}")
-        return value
-
-    return parse
-
-
-positive_int = _int_at_least(1, "a positive integer")
-nonnegative_int = _int_at_least(0, "an integer >= 0")
-
-
-def positive_float(text: str) -> float:
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a positive number, got {text!r}") from None
-    if not value > 0 or value != value or value == float("inf"):
-        raise argparse.ArgumentTypeError(f"expected a positive finite number, got {text}")
-    return value
-
-
-def nonnegative_float(text: str) -> float:
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a number >= 0, got {text!r}") from None
-    if not value >= 0 or value == float("inf"):
-        raise argparse.ArgumentTypeError(f"expected a finite number >= 0, got {text}")
-    return value
-
-
-def output_dir(text: str) -> Path:
-    """An output directory: created if missing, and it must be writable."""
-    path = Path(text)
-    try:
-        path.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise argparse.ArgumentTypeError(f"cannot create output directory {text!r}: {exc.strerror}") from None
-    if not path.is_dir():
-        raise argparse.ArgumentTypeError(f"output path {text!r} is not a directory")
-    if not os.access(path, os.W_OK | os.X_OK):
-        raise argparse.ArgumentTypeError(f"output directory {text!r} is not writable")
-    return path
-
-
-def output_file(text: str) -> Path:
-    path = Path(text)
-    parent = path.parent if str(path.parent) else Path(".")
-    if not parent.is_dir():
-        raise argparse.ArgumentTypeError(f"directory of {text!r} does not exist")
-    if not os.access(parent, os.W_OK | os.X_OK):
-        raise argparse.ArgumentTypeError(f"directory of {text!r} is not writable")
-    return path
-
+from sitl.app.args import (  # noqa: F401  (the vocabulary of every subcommand's flags)
+    EXIT_USAGE,
+    Parser,
+    UsageError,
+    int_at_least,
+    nonnegative_float,
+    nonnegative_int,
+    output_dir,
+    output_file,
+    positive_float,
+    positive_int,
+)
 
 # --- subcommands -------------------------------------------------------------------------
 
+# the subcommands' modules, imported when a subcommand is built or run (static imports: the
+# import contract sees them; `skyfuse --help` stays light)
+def _ekf_vs_ukf_experiments():
+    from sitl.app.experiments import ekf_vs_ukf
+
+    return ekf_vs_ukf
+
+
+def _iono_tropo_experiments():
+    from sitl.app.experiments import iono_tropo
+
+    return iono_tropo
+
+
+def _sonde_experiments():
+    from sitl.app.experiments import sonde
+
+    return sonde
+
+
+def _beacon_experiments():
+    from sitl.app.experiments import beacon
+
+    return beacon
+
+
+def _integrity_experiments():
+    from sitl.app.experiments import integrity
+
+    return integrity
+
+
+def _faults_experiments():
+    from sitl.app.experiments import network_faults
+
+    return network_faults
+
+
+def _long_run_experiments():
+    from sitl.app.experiments import long_run
+
+    return long_run
+
+
+def _filters_bench():
+    from sitl.app.bench import filters
+
+    return filters
+
+
+def _iono_tropo_bench():
+    from sitl.app.bench import iono_tropo
+
+    return iono_tropo
+
+
+def _sonde_bench():
+    from sitl.app.bench import sonde
+
+    return sonde
+
+
+def _beacon_bench():
+    from sitl.app.bench import beacon
+
+    return beacon
+
+
+def _integrity_bench():
+    from sitl.app.bench import integrity
+
+    return integrity
+
+
+def _live_bench():
+    from sitl.app.bench import live
+
+    return live
+
+
+
 EXPERIMENTS = {
-    # name -> (module, one-line description); modules are imported only when run
-    "ekf-vs-ukf": ("sitl.app.experiments.ekf_vs_ukf", "seed 001: EKF vs UKF on a 4-satellite receiver, Monte Carlo with the PCRB"),
-    "iono-tropo": ("sitl.app.experiments.iono_tropo", "seed 000: zenith iono/tropo delays by an EKF from a single-frequency "
+    # name -> (its module's loader, one-line description)
+    "ekf-vs-ukf": (_ekf_vs_ukf_experiments, "seed 001: EKF vs UKF on a 4-satellite receiver, Monte Carlo with the PCRB"),
+    "iono-tropo": (_iono_tropo_experiments, "seed 000: zenith iono/tropo delays by an EKF from a single-frequency "
                                                   "GPS+GLONASS receiver: code+Doppler vs phase increments vs carrier phase"),
-    "sonde": ("sitl.app.experiments.sonde", "seed 004: radiosonde tracking, relayed GNSS fused with an aerological radar "
+    "sonde": (_sonde_experiments, "seed 004: radiosonde tracking, relayed GNSS fused with an aerological radar "
                                         "vs each alone, over the in-memory bus, RMSE by ground range to 250 km"),
-    "beacon": ("sitl.app.experiments.beacon", "seed 002: a moving radio beacon located from >= 3 UAVs' range and Doppler "
+    "beacon": (_beacon_experiments, "seed 002: a moving radio beacon located from >= 3 UAVs' range and Doppler "
                                           "over the in-memory bus; decomposed vs centralised, against the PCRB"),
-    "integrity": ("sitl.app.experiments.integrity", "seed 003: fault detection/isolation on faulty GNSS data, plain vs "
+    "integrity": (_integrity_experiments, "seed 003: fault detection/isolation on faulty GNSS data, plain vs "
                                                 "adaptive-robust EKF (+ bias estimation), Pd/Pfa, ROC"),
-    "faults": ("sitl.app.experiments.network_faults", "network faults on the measurement links (loss, burst loss, delay, "
+    "faults": (_faults_experiments, "network faults on the measurement links (loss, burst loss, delay, "
                                           "partitions) of the beacon and sonde scenarios: RMSE against the baseline, "
                                           "recovery after partitions"),
-    "long-run": ("sitl.app.experiments.long_run", "the default scenario as `demo --batch` runs it for hours: beacon RMSE "
+    "long-run": (_long_run_experiments, "the default scenario as `demo --batch` runs it for hours: beacon RMSE "
                                               "per window against its PCRB, ANEES against its chi-square band, "
                                               "sonde errors"),
 }
 
 BENCHES = {
-    "filters": ("sitl.app.bench.filters", "batched EKF/UKF time per trial-step against FilterPy"),
-    "iono-tropo": ("sitl.app.bench.iono_tropo", "a 1200 s seed 000 variant-3 run (12 satellites) against real time"),
-    "sonde": ("sitl.app.bench.sonde", "a 2 h seed 004 sonde flight at 1 Hz (fused tracker) against real time"),
-    "beacon": ("sitl.app.bench.beacon", "one 1000 s seed 002 beacon trial (3 UAVs, bus and locator) against real time"),
-    "integrity": ("sitl.app.bench.integrity", "the seed 003 integrity monitor's cost on a 10,000-trial EKF step"),
-    "live": ("sitl.app.bench.live", "the largest swarm the live SITL keeps at real time (10 Hz), bus latency, CPU per UAV"),
+    "filters": (_filters_bench, "batched EKF/UKF time per trial-step against FilterPy"),
+    "iono-tropo": (_iono_tropo_bench, "a 1200 s seed 000 variant-3 run (12 satellites) against real time"),
+    "sonde": (_sonde_bench, "a 2 h seed 004 sonde flight at 1 Hz (fused tracker) against real time"),
+    "beacon": (_beacon_bench, "one 1000 s seed 002 beacon trial (3 UAVs, bus and locator) against real time"),
+    "integrity": (_integrity_bench, "the seed 003 integrity monitor's cost on a 10,000-trial EKF step"),
+    "live": (_live_bench, "the largest swarm the live SITL keeps at real time (10 Hz), bus latency, CPU per UAV"),
 }
 
 
@@ -254,7 +272,7 @@ def _uav_counts(text: str) -> list[int]:
 
 
 def _add_beacon_args(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--uavs", type=_int_at_least(3, "an integer >= 3 (three UAVs at least)"), default=3,
+    p.add_argument("--uavs", type=int_at_least(3, "an integer >= 3 (three UAVs at least)"), default=3,
                    help="UAVs of the two main cases (default 3, as in the seed)")
     p.add_argument("--duration", type=positive_float, default=1000.0, metavar="S",
                    help="simulated time, s at 1 Hz; > 105 (errors are scored after the first 100 s) (default 1000)")
@@ -319,8 +337,8 @@ def _add_integrity_args(p: argparse.ArgumentParser) -> None:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = _Parser(prog="skyfuse", description="GNSS-aided tracking software-in-the-loop: experiments, benchmarks and the live SITL.")
-    sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=_Parser)
+    parser = Parser(prog="skyfuse", description="GNSS-aided tracking software-in-the-loop: experiments, benchmarks and the live SITL.")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=Parser)
     sub.required = True
 
     from sitl.app import launcher as _live  # light at import: the live machinery loads in run/demo
@@ -344,7 +362,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     exp = sub.add_parser("experiment", help="run a reproducible experiment of a seed paper",
                          description="Run an experiment; each writes DIR/result.json and PNG figures.")
-    exp_sub = exp.add_subparsers(dest="experiment", metavar="EXPERIMENT", parser_class=_Parser)
+    exp_sub = exp.add_subparsers(dest="experiment", metavar="EXPERIMENT", parser_class=Parser)
     exp_sub.required = True
     for name, (_, doc) in EXPERIMENTS.items():
         p = exp_sub.add_parser(name, help=doc, description=doc)
@@ -359,13 +377,11 @@ def build_parser() -> argparse.ArgumentParser:
         elif name == "integrity":
             _add_integrity_args(p)
         else:  # newer experiments declare their own flags: add_args(parser) in their module
-            import importlib
-
-            importlib.import_module(EXPERIMENTS[name][0]).add_args(p)
+            EXPERIMENTS[name][0]().add_args(p)
 
     bench = sub.add_parser("bench", help="speed benchmarks, each against a peer measured in the same run",
                            description="Benchmarks report ratios against a peer measured in the same run.")
-    bench_sub = bench.add_subparsers(dest="bench", metavar="BENCH", parser_class=_Parser)
+    bench_sub = bench.add_subparsers(dest="bench", metavar="BENCH", parser_class=Parser)
     bench_sub.required = True
     for name, (_, doc) in BENCHES.items():
         p = bench_sub.add_parser(name, help=doc, description=doc)
@@ -392,32 +408,31 @@ def build_parser() -> argparse.ArgumentParser:
             p.add_argument("--json", type=output_file, default=None, metavar="FILE", help="also write the result as JSON")
             p.add_argument("--quiet", action="store_true", help="no progress lines")
         else:  # newer benches declare their own flags: add_args(parser) in their module
-            import importlib
-
-            importlib.import_module(BENCHES[name][0]).add_args(p)
+            BENCHES[name][0]().add_args(p)
     return parser
 
 
 def _dispatch(args: argparse.Namespace) -> int:
-    import importlib
-
     from sitl.runtime import batch_mode
 
     with batch_mode():  # BLAS on one thread (see sitl/runtime.py)
-        return _run(args, importlib)
+        return _run(args)
 
 
-def _run(args: argparse.Namespace, importlib) -> int:
+def _run(args: argparse.Namespace) -> int:
     if args.command in ("demo", "run", "replay"):
-        live = importlib.import_module("sitl.app.launcher")
+        from sitl.app import launcher as live
+
         return {"demo": live.demo_main, "run": live.run_main, "replay": live.replay_main}[args.command](args)
     if args.command == "fault":
-        return importlib.import_module("sitl.app.fault_cli").fault_main(args)
+        from sitl.app.fault_cli import fault_main
+
+        return fault_main(args)
     if args.command == "experiment":
-        mod = importlib.import_module(EXPERIMENTS[args.experiment][0])
+        mod = EXPERIMENTS[args.experiment][0]()
         return mod.main(args)
     if args.command == "bench":
-        mod = importlib.import_module(BENCHES[args.bench][0])
+        mod = BENCHES[args.bench][0]()
         return mod.main(args)
     raise UsageError(f"skyfuse: unknown command {args.command!r}")
 

@@ -23,19 +23,11 @@ from sitl.app.live_faults import (  # the parser (light)
     add_fault_args,
 )
 
+from sitl.app.args import UsageError
+
 EXIT_OK, EXIT_NO_ANSWER, EXIT_USAGE = 0, 1, 2
 
 
-class _Usage(Exception):
-    pass
-
-
-def _usage(msg: str):
-    try:
-        from sitl.app.cli import UsageError
-    except ImportError:  # pragma: no cover
-        return _Usage(msg)
-    return UsageError(msg)
 
 
 def _target(args) -> tuple[list[str], str, dict]:
@@ -45,11 +37,11 @@ def _target(args) -> tuple[list[str], str, dict]:
     if args.out is not None:
         path = Path(args.out) / "run.json"
         if not path.is_file() and not args.zenoh:
-            raise _usage(f"fault: {str(path)!r}: no such file (is a live run writing to {str(args.out)!r}?)")
+            raise UsageError(f"fault: {str(path)!r}: no such file (is a live run writing to {str(args.out)!r}?)")
     elif not args.zenoh:
         found = [Path(d) / "run.json" for d in DEFAULT_OUTS if (Path(d) / "run.json").is_file()]
         if not found:
-            raise _usage("fault: no run found: give --out DIR (the run's output directory) or --zenoh tcp/HOST:PORT")
+            raise UsageError("fault: no run found: give --out DIR (the run's output directory) or --zenoh tcp/HOST:PORT")
         path = max(found, key=lambda p: p.stat().st_mtime)
     if path is not None and path.is_file():
         try:
@@ -57,20 +49,20 @@ def _target(args) -> tuple[list[str], str, dict]:
             if not isinstance(doc, dict):
                 raise ValueError("not an object")
         except (OSError, ValueError) as e:
-            raise _usage(f"fault: {str(path)!r}: not a run.json: {e}") from None
+            raise UsageError(f"fault: {str(path)!r}: not a run.json: {e}") from None
     endpoints = list(args.zenoh) if args.zenoh else list(doc.get("zenoh") or [])
     if not endpoints:
-        raise _usage(f"fault: {str(path)!r} names no Zenoh router; give --zenoh tcp/HOST:PORT")
-    from sitl.scenario import ScenarioError, _endpoint
+        raise UsageError(f"fault: {str(path)!r} names no Zenoh router; give --zenoh tcp/HOST:PORT")
+    from sitl.scenario import ScenarioError, zenoh_endpoint
     for e in endpoints:
         try:
-            _endpoint("--zenoh", e)
+            zenoh_endpoint("--zenoh", e)
         except ScenarioError as err:
-            raise _usage(str(err).replace("scenario: ", "fault: ")) from None
+            raise UsageError(str(err).replace("scenario: ", "fault: ")) from None
     run_id = args.run or doc.get("run_id") or "demo"
     from sitl.bus import is_valid_id
     if not is_valid_id(run_id):
-        raise _usage(f"fault: --run: expected 1..64 characters of [A-Za-z0-9_.-], got {run_id!r}")
+        raise UsageError(f"fault: --run: expected 1..64 characters of [A-Za-z0-9_.-], got {run_id!r}")
     return endpoints, run_id, doc
 
 
@@ -118,23 +110,23 @@ def fault_main(args) -> int:
     from sitl.netfault import FaultSpecError, parse_spec
     from sitl.netfault.control import LIST_LINK, canonical_link
     if not (args.timeout > 0 and args.timeout < 3600):
-        raise _usage(f"fault: --timeout: expected seconds in (0, 3600), got {args.timeout}")
+        raise UsageError(f"fault: --timeout: expected seconds in (0, 3600), got {args.timeout}")
     if args.fault_command == "set":
         spec = " ".join(args.spec)
         try:
             link = canonical_link(args.link)
         except ValueError as e:
-            raise _usage(f"fault: {e}") from None
+            raise UsageError(f"fault: {e}") from None
         try:
             parsed = parse_spec(spec)
         except FaultSpecError as e:
-            raise _usage(" ".join(str(e).split())) from None
+            raise UsageError(" ".join(str(e).split())) from None
         if link.startswith("zenoh:"):  # a byte stream: delay, rate and partitions only
             from sitl.netfault.tcp_proxy import _stream_spec
             try:
                 _stream_spec(parsed, link)
             except ValueError as e:
-                raise _usage(f"fault: {' '.join(str(e).split())}") from None
+                raise UsageError(f"fault: {' '.join(str(e).split())}") from None
     else:
         link, spec = LIST_LINK, ""
     endpoints, run_id, doc = _target(args)
@@ -144,7 +136,7 @@ def fault_main(args) -> int:
     if args.fault_command == "set" and doc.get("links") is not None and not link.startswith("bus:"):
         known = set(doc["links"])
         if link not in known and not ({f"{link}:up", f"{link}:down"} <= known):
-            raise _usage(f"fault: unknown link {link!r} in run {run_id!r} (links: {', '.join(sorted(known)) or 'none'})")
+            raise UsageError(f"fault: unknown link {link!r} in run {run_id!r} (links: {', '.join(sorted(known)) or 'none'})")
     ans = _request(endpoints, run_id, link, spec, args.timeout)
     if ans is None:
         print(f"fault: no launcher of run {run_id!r} answered at {', '.join(endpoints)} within {args.timeout:g} s",
@@ -152,7 +144,7 @@ def fault_main(args) -> int:
         return EXIT_NO_ANSWER
     ok, text = ans
     if not ok:
-        raise _usage(f"fault: the launcher refused it: {text}")
+        raise UsageError(f"fault: the launcher refused it: {text}")
     if args.fault_command == "list":
         try:
             cur = json.loads(text)
@@ -167,7 +159,7 @@ def fault_main(args) -> int:
 
 def main(argv=None) -> int:
     """Stand-alone entry (`python -m sitl.app.fault_cli set LINK SPEC...`), the same as `skyfuse fault`."""
-    from sitl.app.cli import UsageError, _Parser
+    from sitl.app.args import UsageError, Parser as _Parser
     p = _Parser(prog="skyfuse fault", description=__doc__.split("\n\n")[0])
     add_fault_args(p)
     try:

@@ -35,7 +35,7 @@ vehicles / ground_station are started by module name (sitl never imports them st
 from __future__ import annotations
 
 import argparse
-import importlib
+import dataclasses
 import json
 import math
 import os
@@ -44,6 +44,7 @@ import sys
 import threading
 from pathlib import Path
 
+from sitl.app.args import UsageError
 from sitl.pacing import Pacer, perf_now, wall_now
 
 READY_TIMEOUT_S = 240.0  # first start compiles / loads the numba kernels
@@ -53,13 +54,8 @@ END_GRACE_WALL_S = 20.0  # after the last epoch: how long workers may take to fi
 # ---------------------------------------------------------------------- arguments
 
 
-def _usage():
-    from sitl.app.cli import UsageError
-    return UsageError
-
-
 def _common_args(p: argparse.ArgumentParser, default_out: str) -> None:
-    from sitl.app.cli import nonnegative_int, positive_float
+    from sitl.app.args import nonnegative_int, positive_float
     p.add_argument("--speed", type=positive_float, default=None, help="x real time (default: the scenario's)")
     p.add_argument("--duration", type=positive_float, default=None, metavar="S",
                    help="simulated seconds, then everything stops (default: the scenario's)")
@@ -110,7 +106,7 @@ def _scenario_with_overrides(scn, args):
     try:
         return scenario_from_dict(_to_toml_like(d), scn.source + " + command line")
     except ScenarioError as e:
-        raise _usage()(str(e).replace("scenario: bus.zenoh", "--zenoh").replace("scenario: mavlink.gcs", "--gcs")
+        raise UsageError(str(e).replace("scenario: bus.zenoh", "--zenoh").replace("scenario: mavlink.gcs", "--gcs")
                        ) from None
 
 
@@ -119,7 +115,7 @@ def run_main(args) -> int:
     try:
         scn = load_scenario(args.scenario)
     except ScenarioError as e:
-        raise _usage()(str(e)) from None
+        raise UsageError(str(e)) from None
     return _main(_scenario_with_overrides(scn, args), args)
 
 
@@ -138,7 +134,7 @@ def _main(scn, args) -> int:
         preflight(scn, live=not args.batch)
     except PreflightError as e:
         lock.release()
-        raise _usage()(str(e)) from None
+        raise UsageError(str(e)) from None
     try:
         if args.batch:
             return _batch(scn, out, args)
@@ -188,9 +184,9 @@ def launch(scn, out: Path, *, quiet: bool = False, stop: threading.Event | None 
     from sitl.app.scoring import ErrorTracker
     from sitl.app.status import StatusBoard, format_status
     from sitl.app.supervisor import Supervisor
-    from sitl.scenario import worker_specs
-
+    from sitl.app.components import gs_spec_params
     from sitl.bus.audit import PayloadAudit
+    from sitl.scenario import worker_specs
 
     stop = stop if stop is not None else threading.Event()
     status_stream = status_stream if status_stream is not None else sys.stderr
@@ -222,7 +218,7 @@ def launch(scn, out: Path, *, quiet: bool = False, stop: threading.Event | None 
         except (RouterError, ZenohTransportError, ZenohConfigError) as e:
             report["error"] = " ".join(str(e).split())
             return report
-        from sitl.app.live_faults import NoFaultBoard, serve
+        from sitl.bus.faultctl import NoFaultBoard, serve
         if scn.faults:
             from sitl.app.live_faults import LiveFaults
             try:
@@ -250,6 +246,8 @@ def launch(scn, out: Path, *, quiet: bool = False, stop: threading.Event | None 
         sup = Supervisor(out / "logs", grace_s=3.0)  # closing a Zenoh session + interpreter exit: ~1 s
         spec_paths = []
         for spec in worker_specs(scn, endpoints, out, live_faults.overrides if live_faults is not None else None):
+            if spec.role == "ground_station":
+                spec = dataclasses.replace(spec, params=gs_spec_params(scn))
             path = spec.write(spec_dir / f"{spec.name}.json")
             spec_paths.append(path)
             sup.add_module(spec.name, spec.module, str(path), restart=True)
@@ -499,9 +497,10 @@ def replay(log_path, scn) -> dict:
 
     from sitl.bus import BusDecodeError, InMemoryTransport, decode, key_matches
     from sitl.bus.buslog import BusLogStats, read_bus_log_records
+    from ground_station import node as gn
+    from sitl.app.components import gs_config
     from sitl.app.scoring import ErrorTracker
 
-    gn = importlib.import_module("ground_station.node")
     run_id = scn.run.id
     bus = InMemoryTransport(synchronous=True, start_t_gps_s=scn.run.t0_gps_s)
     clock = [-math.inf]  # the recorded clock: the current record's receive time
@@ -509,7 +508,7 @@ def replay(log_path, scn) -> dict:
     scorer = ErrorTracker(t0_gps_s=scn.run.t0_gps_s, clock=lambda: clock[0],
                           max_ahead_s=scn.ground_station.max_ahead_s)
     bus.subscribe(f"{run_id}/truth/**", scorer.on_truth)
-    node = gn.GroundStationNode(bus, run_id, gn.GsConfig.from_scenario(scn))
+    node = gn.GroundStationNode(bus, run_id, gs_config(scn))
     replayed = {}
     bus.subscribe(f"{run_id}/gs/estimate/**", lambda k, m: replayed.__setitem__((k, round(m.t_gps_s, 6)), m))
     bus.subscribe(f"{run_id}/gs/estimate/**", scorer.on_estimate)
@@ -577,7 +576,7 @@ def replay_main(args) -> int:
     )
     log = Path(args.log)
     if not log.is_file():
-        raise _usage()(f"replay: {str(log)!r}: no such file")
+        raise UsageError(f"replay: {str(log)!r}: no such file")
     try:
         if args.scenario is not None:
             scn = load_scenario(args.scenario)
@@ -586,14 +585,14 @@ def replay_main(args) -> int:
         else:
             scn = default_scenario()
     except (ScenarioError, ValueError) as e:
-        raise _usage()(str(e)) from None
+        raise UsageError(str(e)) from None
     from sitl.bus.buslog import BusLogError
     try:
         res = replay(log, scn)
     except BusLogError as e:
-        raise _usage()(f"replay: {e}") from None
+        raise UsageError(f"replay: {e}") from None
     if res["records"] == 0:
-        raise _usage()(f"replay: {str(log)!r} holds no records"
+        raise UsageError(f"replay: {str(log)!r} holds no records"
                        + (f" ({res['torn_tail']['reason']})" if res["torn_tail"]["reason"] else ""))
     lines = [f"replay of {log}: {res['records']} records ({res['undecodable']} undecodable)"]
     for name, e in sorted(res["errors"].items()):

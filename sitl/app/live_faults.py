@@ -27,8 +27,6 @@ from __future__ import annotations
 import argparse
 import selectors
 import socket
-from collections import Counter
-from collections.abc import Callable
 from pathlib import Path
 
 from sitl.pacing import wall_now
@@ -40,26 +38,6 @@ MAV_TAP_MAX_VEHICLES = 32
 # the MAVLink truths keep their per-packet schedule (~26 B a packet) only while vehicles x
 # simulated seconds stays below this (3 vehicles x 2 h at ~15 packets/s: ~8 MB); counters always
 MAV_RECORD_MAX_VEHICLE_S = 3 * 7200
-
-# ---------------------------------------------------------------------- the control key
-# (here rather than in sitl.netfault.control, which re-exports them: importing that package
-# loads the fault models, numpy and scipy; a run without faults must not pay for it)
-
-CTL_SUFFIX = "ctl/fault"
-ACK_SUFFIX = "ctl/fault/ack"
-LIST_LINK = "?"
-ERROR_PREFIX = "error: "
-NO_FAULTS = ("this run has no [faults] table; start it with one (an empty [faults] is enough) "
-             "to change faults at run time")
-
-
-def control_key(run_id: str) -> str:
-    return f"{run_id}/{CTL_SUFFIX}"
-
-
-def ack_key(run_id: str) -> str:
-    return f"{run_id}/{ACK_SUFFIX}"
-
 
 # ---------------------------------------------------------------------- `skyfuse fault` arguments
 # (the parser is built at every `skyfuse` call: it lives here, light; sitl.app.fault_cli runs it)
@@ -92,65 +70,6 @@ def _where(p: argparse.ArgumentParser) -> None:
     p.add_argument("--run", default=None, metavar="ID", help="the run id (default: run.json's, else 'demo')")
     p.add_argument("--timeout", type=float, default=DEFAULT_TIMEOUT_S, metavar="S",
                    help=f"how long to wait for the launcher's answer (default {DEFAULT_TIMEOUT_S:g} s)")
-
-
-
-class NoFaultBoard:
-    """The board of a run without [faults]: no links; every change is refused (counted)."""
-
-    def __init__(self):
-        self.links: dict = {}
-        self.bad: Counter = Counter()
-        self.requests = 0
-        self.on_change: Callable[[], None] | None = None
-
-    def current(self) -> dict:
-        return {}
-
-    def handle(self, msg) -> tuple[bool, str]:
-        self.requests += 1
-        if msg.link == LIST_LINK:
-            return True, "{}"
-        self.bad["no faults in this run"] += 1
-        return False, NO_FAULTS
-
-    def report(self) -> dict:
-        return {"links": {}, "requests": self.requests, "bad_requests": dict(self.bad), "errors": []}
-
-
-def serve(board, bus, run_id: str, *, on_line: Callable[[str], None] | None = None):
-    """Subscribe the launcher's bus to the control key: each request is applied through the
-    board and acknowledged on the ack key (same seq). Returns the subscription (queue mode:
-    requests are handled when the launcher drains its bus)."""
-    from collections import OrderedDict
-
-    from sitl.bus.schema import FaultControl
-    done: OrderedDict = OrderedDict()  # (source_id, seq) -> answer: a repeated request is answered, not re-applied
-
-    def on_request(key: str, msg) -> None:
-        if not isinstance(msg, FaultControl) or key != control_key(run_id):
-            return
-        rid = (msg.source_id, msg.seq)
-        if rid in done:
-            reply = done[rid]
-        else:
-            ok, text = board.handle(msg)
-            if on_line is not None and msg.link != LIST_LINK:
-                on_line(f"[fault] {msg.link} = {text}" if ok else f"[fault] refused {msg.link!r}: {text}")
-            reply = text if ok else ERROR_PREFIX + text
-            done[rid] = reply
-            while len(done) > 256:
-                done.popitem(last=False)
-        try:
-            bus.publish(ack_key(run_id), FaultControl(t_gps_s=msg.t_gps_s, source_id="launcher", seq=msg.seq,
-                                                      link=msg.link, spec=reply[:1000]))
-        except Exception as e:  # the answer is best effort; the change is applied and logged
-            board.bad["ack failed"] += 1
-            if on_line is not None:
-                on_line(f"[fault] ack failed: {type(e).__name__}: {e}")
-
-    return bus.subscribe(control_key(run_id), on_request)
-
 
 
 

@@ -18,6 +18,7 @@ one machine must not find each other). Open it before starting worker processes 
 
 from __future__ import annotations
 
+import atexit
 import json
 import logging
 import threading
@@ -46,7 +47,7 @@ def _close_all_at_exit() -> None:
 
 
 # before the interpreter joins its threads (see sitl.bus.zenoh_transport)
-getattr(threading, "_register_atexit", __import__("atexit").register)(_close_all_at_exit)
+getattr(threading, "_register_atexit", atexit.register)(_close_all_at_exit)
 
 
 class RouterError(RuntimeError):

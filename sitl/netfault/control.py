@@ -24,9 +24,9 @@ from collections.abc import Callable
 from dataclasses import asdict, is_dataclass
 from typing import Any
 
-# the control keys and the launcher's request loop live with the launcher's wiring (no numpy /
-# scipy import: a run without faults must not pay for this package); re-exported here
-from sitl.app.live_faults import (  # noqa: E402
+# the control keys and the request loop are the bus's (light: a run without faults does not load
+# this package); the board below answers them in a run with faults
+from sitl.bus.faultctl import (  # noqa: F401
     ACK_SUFFIX,
     CTL_SUFFIX,
     ERROR_PREFIX,
@@ -39,11 +39,16 @@ from sitl.app.live_faults import (  # noqa: E402
 
 def canonical_link(link: str) -> str:
     """A link name checked and normalised as the scenario's [faults] keys (ValueError, one line)."""
-    from sitl.scenario import ScenarioError, _fault_link
+    from sitl.netfault.spec import LinkNameError
+    from sitl.netfault.spec import canonical_link as check
+
     try:
-        return _fault_link("link", link)
-    except ScenarioError as e:
-        raise ValueError(str(e).replace("scenario: link: ", f"link {link!r}: ")) from None
+        return check(link)
+    except LinkNameError as e:
+        if not e.show_got:
+            raise ValueError(f"link {link!r}: {e.expected}") from None
+        g = repr(link)
+        raise ValueError(f"link {link!r}: expected {e.expected}, got {g if len(g) <= 60 else g[:57] + '...'}") from None
 
 
 def spec_text(spec) -> str:

@@ -432,3 +432,44 @@ def parse_spec(text: str | FaultSpec | None) -> FaultSpec:
 def spec_fields() -> tuple[str, ...]:
     """Names of the FaultSpec fields (for tools that list them)."""
     return tuple(f.name for f in fields(FaultSpec))
+
+
+# ---------------------------------------------------------------- link names
+
+class LinkNameError(ValueError):
+    """A bad link name: ``expected`` says what a link name is; ``show_got``: whether the bad
+    value belongs in the message (not when ``expected`` already quotes the forms)."""
+
+    def __init__(self, expected: str, show_got: bool):
+        super().__init__(expected)
+        self.expected, self.show_got = expected, show_got
+
+
+def canonical_link(link) -> str:
+    """A network-fault link name, checked and normalised: ``mav:<sysid>[:up|:down]`` (sysid in
+    1..MAX_MAVLINK_VEHICLES), ``zenoh:<worker>`` (``gs`` or ``vehicles<k>``) or ``bus:<key
+    expression>``. LinkNameError otherwise."""
+    from sitl.constants import MAX_MAVLINK_VEHICLES
+
+    if not isinstance(link, str) or not link:
+        raise LinkNameError("a link name", True)
+    kind, sep, rest = link.partition(":")
+    if kind == "mav" and sep:
+        parts = rest.split(":")
+        if (1 <= len(parts) <= 2 and parts[0].isdigit() and 1 <= int(parts[0]) <= MAX_MAVLINK_VEHICLES
+                and (len(parts) == 1 or parts[1] in ("up", "down"))):
+            return f"mav:{int(parts[0])}" + (f":{parts[1]}" if len(parts) == 2 else "")
+        raise LinkNameError(f'expected "mav:SYSID" or "mav:SYSID:up|down" with SYSID in 1..{MAX_MAVLINK_VEHICLES}',
+                            False)
+    if kind == "zenoh" and sep:
+        if rest == "gs" or (rest.startswith("vehicles") and rest[8:].isdigit()):
+            return link
+        raise LinkNameError('expected a worker\'s session "zenoh:gs" or "zenoh:vehicles<k>"', False)
+    if kind == "bus" and sep:
+        from sitl.bus import KeyExprError, validate_key_expr
+        try:
+            validate_key_expr(rest)
+        except KeyExprError as e:
+            raise LinkNameError(f"expected a bus key expression ({e})", False) from None
+        return link
+    raise LinkNameError('expected a link "mav:SYSID", "zenoh:WORKER" or "bus:KEY/EXPR"', False)

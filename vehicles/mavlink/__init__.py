@@ -59,7 +59,7 @@ from .endpoint import (
     VehicleEndpoint,
     listen_port,
 )
-from .framing import SigningStateFile, TlogWriter, frame_datagram, load_signing_key, split_datagram
+from sitl.mavlink.framing import SigningStateFile, TlogWriter, frame_datagram, load_signing_key, split_datagram
 from .mission import MissionServer
 from .params import ParamError, ParamSpec, ParamStore, apply_uav_params, sonde_param_specs, uav_param_specs
 from .telemetry import VehicleTelemetry, gps_from_unix_s, unix_s_from_gps

@@ -80,7 +80,7 @@ from typing import Callable, Iterable, Sequence
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 from . import telemetry as tm
-from .framing import (SIGNING_TICKS_PER_S, SignatureChecker, SigningStateFile, TlogWriter, frame_datagram,
+from sitl.mavlink.framing import (SIGNING_TICKS_PER_S, SignatureChecker, SigningStateFile, TlogWriter, frame_datagram,
                       signature_timestamp)
 from .mission import MissionServer
 from .params import ParamError, ParamStore

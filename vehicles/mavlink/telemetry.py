@@ -19,12 +19,11 @@ import math
 from typing import NamedTuple
 
 from sitl.constants import GPS_UTC_LEAP_S
+from sitl.mavlink.framing import SIGNING_EPOCH_UNIX_S  # noqa: F401  (the signing clock's epoch)
 from sitl.timescales import GPS_EPOCH
 
 #: unix seconds of the GPS epoch 1980-01-06T00:00:00 UTC (315964800)
 GPS_EPOCH_UNIX_S = GPS_EPOCH.timestamp()
-#: unix seconds of 2015-01-01T00:00:00 UTC, the epoch of MAVLink 2 signing timestamps
-SIGNING_EPOCH_UNIX_S = 1_420_070_400.0
 
 INT16_MAX, INT32_MAX, UINT16_MAX, UINT32_MAX, UINT8_MAX = 32767, 2147483647, 65535, 4294967295, 255
 

@@ -34,8 +34,8 @@ CASES = ("three_satellites", "constellation")
 
 
 def add_args(p) -> None:
-    from sitl.app.cli import (
-        _int_at_least,
+    from sitl.app.args import (
+        int_at_least as _int_at_least,
         nonnegative_int,
         output_file,
         positive_float,
@@ -59,16 +59,14 @@ def _scenario(uavs, duration_s, seed):
     """The experiment's default (printed) geometry for one trial: (tracks, prior)."""
     import numpy as np
 
-    from sitl.app.experiments.common import component
-    ex = component("sitl.app.experiments.beacon")
+    from sitl.app.experiments import beacon as ex
     return ex.scenario("printed", uavs, duration_s, 1, np.random.default_rng([seed, 77, uavs, 1]))
 
 
 def _bus_trial(case, tracks, seed, prior=None):
     """What the experiment runs for one trial (its run_case), timed; returns (wall, res, split)."""
 
-    from sitl.app.experiments.common import component
-    ex = component("sitl.app.experiments.beacon")
+    from sitl.app.experiments import beacon as ex
     tm = {}
     t0 = time.perf_counter()
     res = ex.run_case(case, tracks, 1, seed, locators=(ex.PRODUCTION,), central=False, timing=tm, prior=prior)
@@ -79,10 +77,9 @@ def _direct_trial(case, tracks, seed, prior=None):
     """The same components and random draws as run_case, the locator fed arrays (no bus)."""
     import numpy as np
 
-    from sitl.app.experiments.common import component
-    ex = component("sitl.app.experiments.beacon")
-    uav_nav = component("vehicles.uav_nav")
-    bl = component("ground_station.beacon_locator")
+    from sitl.app.experiments import beacon as ex
+    from vehicles import uav_nav
+    from ground_station import beacon_locator as bl
     from sitl.radio import beacon_link
 
     t0 = time.perf_counter()
@@ -121,9 +118,8 @@ def _world_only(case, tracks, seed):
     (no filter, no bus)."""
     import numpy as np
 
-    from sitl.app.experiments.common import component
-    ex = component("sitl.app.experiments.beacon")
-    uav_nav = component("vehicles.uav_nav")
+    from sitl.app.experiments import beacon as ex
+    from vehicles import uav_nav
     from sitl.radio import beacon_link
 
     t0 = time.perf_counter()
@@ -198,8 +194,7 @@ def _bus_only(tracks, nav_x, nav_P, est_x, est_P):
 def run(duration_s=1000.0, uavs=3, case="three_satellites", rounds=3, seed=1, progress=None) -> dict:
     import numpy as np
 
-    from sitl.app.experiments.common import component
-    ex = component("sitl.app.experiments.beacon")
+    from sitl.app.experiments import beacon as ex
     say = progress or (lambda msg: None)
     try:
         import os
@@ -281,7 +276,7 @@ def table(res: dict) -> str:
 
 
 def main(args) -> int:
-    from sitl.app.cli import UsageError
+    from sitl.app.args import UsageError
 
     if args.duration > 36000.0:
         raise UsageError(f"bench beacon: --duration: at most 36000 s, got {args.duration:g}")

@@ -147,7 +147,7 @@ def table(rows, backends) -> str:
         out.append(f"{r['filter']:<6} {r['trials']:>7} | {r['filterpy_s_per_trial_step'] * 1e6:>11.2f} | {cells}")
     out.append("times are per trial-step (predict + update, model evaluation included), best of "
                f"{rows[0]['rounds']} interleaved rounds per side; "
-               f"numba threads: {kernels.HAVE_NUMBA and __import__('numba').get_num_threads()}")
+               f"numba threads: {kernels.numba_threads()}")
     return "\n".join(out)
 
 
@@ -155,7 +155,7 @@ def main(args) -> int:
     try:
         import filterpy  # noqa: F401
     except ImportError:
-        from sitl.app.cli import UsageError
+        from sitl.app.args import UsageError
 
         raise UsageError("bench filters needs FilterPy as its peer: pip install 'skyfuse[bench]'") from None
     backends = (args.backend, "numpy") if args.backend == "numba" else ("numpy",)

@@ -33,12 +33,13 @@ ratio of minima ranged 26-60 % over three runs of the same code, the paired medi
 from __future__ import annotations
 
 import json
+import os
 import sys
 import time
 
 
 def add_args(p) -> None:
-    from sitl.app.cli import nonnegative_int, output_file, positive_int
+    from sitl.app.args import nonnegative_int, output_file, positive_int
 
     p.add_argument("--trials", type=positive_int, default=10_000, help="trials stepped together (default 10000)")
     p.add_argument("--steps", type=positive_int, default=5, help="steps per timing (default 5)")
@@ -186,7 +187,7 @@ def run(trials: int, steps: int, rounds: int, seed: int, backend: str, progress=
             "overhead_vs_fused": best["monitored"] / best["fused"] - 1.0,
             "median_paired_overhead": {u: {k: float(np.median(v)) for k, v in d.items()} for u, d in paired.items()},
             "excluded_fraction": float(np.mean(state["ms"].excluded)),
-            "load_average": list(__import__("os").getloadavg())}
+            "load_average": list(os.getloadavg())}
 
 
 def table(res: dict) -> str:

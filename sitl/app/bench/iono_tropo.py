@@ -102,7 +102,7 @@ def table(res: dict) -> str:
 
 def main(args) -> int:
     from filters import kernels
-    from sitl.app.cli import UsageError
+    from sitl.app.args import UsageError
 
     backends = ("numba", "numpy") if kernels.HAVE_NUMBA else ("numpy",)
     if args.backend == "numpy":

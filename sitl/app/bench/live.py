@@ -47,7 +47,7 @@ def _sizes(text: str) -> list[int]:
 
 
 def add_args(p) -> None:
-    from sitl.app.cli import output_file, positive_float, positive_int
+    from sitl.app.args import output_file, positive_float, positive_int
     p.add_argument("--uavs", type=_sizes, default=_sizes("50,100,200,300"), metavar="N,N,...",
                    help="swarm sizes to try (default 50,100,200,300)")
     p.add_argument("--rate", type=positive_float, default=10.0, help="epochs per second (default 10)")

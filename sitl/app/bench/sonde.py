@@ -30,7 +30,7 @@ TARGET_S = 10.0
 
 
 def add_args(p) -> None:
-    from sitl.app.cli import nonnegative_int, output_file, positive_float, positive_int
+    from sitl.app.args import nonnegative_int, output_file, positive_float, positive_int
 
     p.add_argument("--duration", type=positive_float, default=7200.0, metavar="S",
                    help="simulated flight time, s at 1 Hz (default 7200: the 2 h flight)")
@@ -56,10 +56,9 @@ def _world_only(scn, seed: int, chunk: int = 300) -> float:
 def _no_bus(scn, seed: int, chunk: int = 300) -> tuple[float, float, int]:
     """(wall, tracker share, estimates) of world + messages + the fused tracker, no bus."""
     from sitl.bus import RadarMeasurement, SondeRelay
-    from sitl.app.experiments.common import component
     from sitl.app.experiments.sonde import RADAR_ID, RUN_ID, tracker_params, world
 
-    SondeTracker = component("ground_station.sonde_tracker").SondeTracker
+    from ground_station.sonde_tracker import SondeTracker
     w0 = time.perf_counter()
     _, _, _, _, track, radar, relay = world(scn, seed, [0])
     tr = SondeTracker(RUN_ID, tracker_params(scn, "fused"), radar_id=RADAR_ID)

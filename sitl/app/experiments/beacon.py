@@ -73,7 +73,7 @@ from pathlib import Path
 
 import numpy as np
 
-from sitl.app.experiments.common import (component, measurement_faults, prepare_out, progress_printer, save_figure,
+from sitl.app.experiments.common import (measurement_faults, prepare_out, progress_printer, save_figure,
                                       strict)
 
 PAPER_ERRORS_M = {"xi": 25.0, "eta": 9.0, "zeta": 15.0}
@@ -116,7 +116,7 @@ LOCATORS = {
 # ------------------------------------------------------------------ the world
 def uav_starts(n: int):
     """Geodetic geometry: (lat deg, lon deg, h m) of n UAVs: the seed's three, then a sunflower."""
-    SEED002_UAV_START = component("vehicles.uav").SEED002_UAV_START
+    from vehicles.uav import SEED002_UAV_START
 
     out = [tuple(s) for s in SEED002_UAV_START[:n]]
     golden = math.pi * (3.0 - math.sqrt(5.0))
@@ -130,7 +130,9 @@ def uav_starts(n: int):
 
 def uav_speeds(n: int):
     """Geodetic geometry: mean speeds of n UAVs: the printed 100 / 110 / 110, then spread over 100..110."""
-    speeds = list(component("vehicles.uav").SEED002_UAV_SPEED_M_S[:n])
+    from vehicles.uav import SEED002_UAV_SPEED_M_S
+
+    speeds = list(SEED002_UAV_SPEED_M_S[:n])
     g = (math.sqrt(5.0) - 1.0) / 2.0
     speeds += [100.0 + 10.0 * (((j + 1) * g) % 1.0) for j in range(n - 3)]
     return speeds[:n]
@@ -139,8 +141,8 @@ def uav_speeds(n: int):
 def beacon_prior():
     """Printed geometry: the prior (mean (6,), covariance (6, 6)) of the beacon's ECEF [B, V_B]
     at t = 0: the printed point, the printed law's velocity there, P0 (module docstring)."""
-    uav = component("vehicles.uav")
-    beacon = component("vehicles.beacon")
+    from vehicles import uav
+    from vehicles import beacon
 
     m = uav.paper_to_ecef(uav.SEED002_PRINTED_START_PAPER_M)
     v = uav.printed_velocity_ecef(0.0, m, beacon.seed002_printed_beacon_law(1))[0]
@@ -158,8 +160,8 @@ def truth_tracks(n_uavs: int, duration_s: float, geometry: str = "printed", beac
     """Truth at the epochs 0, 1, ... duration (RK4, 0.01 s): t (K,), U, V (K, N, 3), and B, VB:
     (K, 3) for one beacon shared by every trial, or (K, T, 3) for the printed geometry with
     ``beacon_starts`` (T, 3) (one beacon per trial from its own start)."""
-    beacon = component("vehicles.beacon")
-    uav = component("vehicles.uav")
+    from vehicles import beacon
+    from vehicles import uav
 
     if geometry not in GEOMETRIES:
         raise ValueError(f"geometry must be one of {GEOMETRIES}, got {geometry!r}")
@@ -198,7 +200,7 @@ def scenario(geometry: str, n_uavs: int, duration_s: float, trials: int, rng):
 def locator_config(name: str = PRODUCTION, prior=None, integrity: bool = False):
     """The LocatorConfig of a locator of LOCATORS, started from ``prior`` (mean, cov) if given;
     ``integrity``: with the integrity monitor per UAV link (beacon_locator.INTEGRITY)."""
-    bl = component("ground_station.beacon_locator")
+    from ground_station import beacon_locator as bl
     LocatorConfig = bl.LocatorConfig
     kw = dict(LOCATORS[name])
     if integrity:
@@ -213,7 +215,7 @@ def locator_config(name: str = PRODUCTION, prior=None, integrity: bool = False):
 
 def constellation_for(case: str, U0, duration_s: float):
     from sitl.gnss import orbits
-    uav_nav = component("vehicles.uav_nav")
+    from vehicles import uav_nav
 
     if case == "three_satellites":
         return uav_nav.seed002_three_satellites(U0, uav_nav.SEED002_T0_GPS_S, duration_s=duration_s)
@@ -225,7 +227,7 @@ def gnss_information(t_gps, U, V, constellation, config):
     satellites' instantaneous states and the elevation mask at the true position."""
     from sitl import geodesy
     from sitl.gnss import orbits
-    ClockFreePseudorangeDoppler = component("vehicles.uav_nav").ClockFreePseudorangeDoppler
+    from vehicles.uav_nav import ClockFreePseudorangeDoppler
 
     K, N = U.shape[:2]
     out = np.empty((K, N, 6, 6))
@@ -296,10 +298,10 @@ def run_case(case, tracks, trials, seed, locators=(PRODUCTION,), progress=None, 
     on the bus (``integrity_events``: (t since start, source, channel, event, statistic)).
     faults (world side, sitl.measfault, the same in every trial; see FAULT_DEFAULTS): a range
     step on one UAV's beacon link and a pseudorange step on one satellite of one UAV."""
-    BeaconLocator = component("ground_station.beacon_locator").BeaconLocator
+    from ground_station.beacon_locator import BeaconLocator
     from sitl.bus import BeaconMeasurement, InMemoryTransport, Truth, UavNav, key_for
     from sitl.radio import beacon_link
-    uav_nav = component("vehicles.uav_nav")
+    from vehicles import uav_nav
 
     t, U, V, B, VB = tracks
     K, N = U.shape[:2]
@@ -488,7 +490,7 @@ def world_epochs(tracks, const, trials, rng, nav_cfg, link_cfg, filter_states=Tr
     from those receiver outputs (``filter_states``), again in one call: the same numbers as
     one epoch at a time (vehicles.uav_nav.truth_geometry, filter_sat_states).  clock(name,
     t0) is told the time spent ("uav_gnss_and_nav", "beacon_link")."""
-    uav_nav = component("vehicles.uav_nav")
+    from vehicles import uav_nav
     from sitl.radio import beacon_link
 
     t, U, V, B, VB = tracks
@@ -529,9 +531,9 @@ def _bus_stats(bus) -> dict:
 def _central(loc, const, nav_cfg, t_gps, epochs, links, nav_x, nav_P, start=None):
     """Replay the centralised filter on the same data from the locator's start (module doc),
     or from ``start`` = (epoch index, ECEF x (T, 6), P (T, 6, 6)): the locator's estimate then."""
-    CentralFilter = component("ground_station.beacon_central").CentralFilter
-    LinkEpoch = component("ground_station.beacon_central").LinkEpoch
-    uav_nav = component("vehicles.uav_nav")
+    from ground_station.beacon_central import CentralFilter
+    from ground_station.beacon_central import LinkEpoch
+    from vehicles import uav_nav
 
     K, T, N = nav_x.shape[:3]
     if not loc.initialised.all() or len(set(loc.init_t_gps_s.tolist())) != 1:
@@ -552,7 +554,7 @@ def _central(loc, const, nav_cfg, t_gps, epochs, links, nav_x, nav_P, start=None
         y0.append(y)
         P0.append(Py)
         fr0.append(fr)
-    Frame = component("ground_station.beacon_locator").Frame
+    from ground_station.beacon_locator import Frame
 
     frame = Frame(*(np.concatenate([f[i] for f in fr0]) for i in range(len(Frame._fields))))
     cf = CentralFilter(N, loc.config, q_uav_m2_s3=nav_cfg.q_m2_s3).start(
@@ -633,10 +635,10 @@ def pcrb_series(tracks, const, nav_cfg, cfg, prior=None):
     trial 0's truth when each trial has its own beacon; the beacon's prior information at
     epoch 0 is the scenario's prior's (inverse covariance) when there is one, else the blind
     start's weak height and velocity priors."""
-    pcrb_central = component("ground_station.beacon_central").pcrb_central
-    _up = component("ground_station.beacon_locator")._up
+    from ground_station.beacon_central import pcrb_central
+    from ground_station.beacon_locator import _up
     from sitl.radio.beacon_link import BeaconLinkConfig
-    uav_nav = component("vehicles.uav_nav")
+    from vehicles import uav_nav
 
     t, U, V, B, VB = tracks
     if B.ndim == 3:
@@ -839,7 +841,7 @@ def plot(out: Path, cases: dict, sweep: list, meta: str, geometry: str = "printe
 
 def check_args(args):
     """Range checks beyond argparse's types; UsageError (one line) on a bad value."""
-    from sitl.app.cli import UsageError
+    from sitl.app.args import UsageError
 
     if args.uavs < 3:
         raise UsageError(f"--uavs: at least 3 UAVs are needed, got {args.uavs}")
@@ -869,8 +871,8 @@ def check_args(args):
 
 def run(args) -> dict:
     """The whole experiment; returns the result document (also written to DIR)."""
-    LocatorConfig = component("ground_station.beacon_locator").LocatorConfig
-    uav_nav = component("vehicles.uav_nav")
+    from ground_station.beacon_locator import LocatorConfig
+    from vehicles import uav_nav
 
     counts = check_args(args)
     geometry = getattr(args, "geometry", "printed")

@@ -4,7 +4,6 @@ never imports them statically: see ARCHITECTURE.md, "Dependency direction")."""
 from __future__ import annotations
 
 import dataclasses
-import importlib
 import math
 import os
 import sys
@@ -47,7 +46,7 @@ def progress_printer(quiet: bool):
 
 def prepare_out(out: Path) -> Path:
     """Create the output directory; a usage error (exit 2, one line) if it cannot be written."""
-    from sitl.app.cli import UsageError
+    from sitl.app.args import UsageError
 
     try:
         out.mkdir(parents=True, exist_ok=True)
@@ -56,11 +55,6 @@ def prepare_out(out: Path) -> Path:
     if not out.is_dir() or not os.access(out, os.W_OK | os.X_OK):
         raise UsageError(f"output directory {str(out)!r} is not writable")
     return out
-
-
-def component(module: str):
-    """A vehicles.* or ground_station.* module, loaded by name at run time."""
-    return importlib.import_module(module)
 
 
 # ------------------------------------------------------------------ network faults on the bus (issue 8)

@@ -423,7 +423,7 @@ def write(res: dict, out: Path) -> list[Path]:
 
 
 def main(args) -> int:
-    from sitl.app.cli import UsageError
+    from sitl.app.args import UsageError
 
     try:
         scn = _scenario_from_args(args)

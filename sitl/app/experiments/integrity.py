@@ -937,7 +937,7 @@ def scenario_from_args(args) -> IntegrityScenario:
 
 
 def main(args) -> int:
-    from sitl.app.cli import UsageError
+    from sitl.app.args import UsageError
 
     try:
         scn = scenario_from_args(args)

@@ -287,7 +287,7 @@ def plot(results: dict, scn, trials: int, seed: int, out: Path) -> list[Path]:
 
 
 def main(args) -> int:
-    from sitl.app.cli import UsageError
+    from sitl.app.args import UsageError
 
     # every check before any run: the scenario (incl. satellites in view) and the output
     try:

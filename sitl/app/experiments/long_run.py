@@ -86,7 +86,7 @@ from pathlib import Path
 
 import numpy as np
 
-from sitl.app.experiments.common import component, prepare_out, progress_printer, save_figure, strict
+from sitl.app.experiments.common import prepare_out, progress_printer, save_figure, strict
 
 GEOMETRIES = ("default", "north")
 LOCATORS = ("live", "inflate")
@@ -165,15 +165,16 @@ def run_trial(scn, locator: str = "live", progress=None) -> dict:
     from sitl.bus import InMemoryTransport
     from sitl.app.batch import vehicle_groups
 
-    gn = component("ground_station.node")
-    bl = component("ground_station.beacon_locator")
+    from ground_station import node as gn
+    from sitl.app.components import gs_config
+    from ground_station import beacon_locator as bl
     run = scn.run
     dt = 1.0 / run.rate_hz
     K = int(math.floor(run.duration_s * run.rate_hz + 1e-9)) + 1
     bus = InMemoryTransport(start_t_gps_s=run.t0_gps_s)
     rec = _Recorder(bus, run.id, run.t0_gps_s, run.rate_hz, K, scn.beacon.id,
                     scn.sonde.id if scn.sonde.enabled else None)
-    node = gn.GroundStationNode(bus, run.id, gn.GsConfig.from_scenario(scn))
+    node = gn.GroundStationNode(bus, run.id, gs_config(scn))
     cfg = _locator_config(node, locator)
     if cfg is not node.locator.config:  # a variant: the same locator class on the node's bus, another config
         node.locator.close()
@@ -208,8 +209,8 @@ def pcrb_sqrt_trace(trial: dict, scn) -> np.ndarray:
     trial's true tracks, with its locator's model (q) and blind-start priors."""
     from sitl.gnss import orbits
 
-    be = component("sitl.app.experiments.beacon")
-    uav_nav = component("vehicles.uav_nav")
+    from sitl.app.experiments import beacon as be
+    from vehicles import uav_nav
     if abs(scn.run.t0_gps_s - uav_nav.SEED002_T0_GPS_S) > 1e-6:
         raise ValueError("the bound is computed from the seed 002 start time (run.t0_gps_s of the default scenario)")
     if scn.run.rate_hz != 1.0:
@@ -483,7 +484,7 @@ def plot(out: Path, doc: dict) -> Path:
 
 
 def add_args(p) -> None:
-    from sitl.app.cli import nonnegative_float, nonnegative_int, output_dir, positive_float, positive_int
+    from sitl.app.args import nonnegative_float, nonnegative_int, output_dir, positive_float, positive_int
 
     p.add_argument("--duration", type=positive_float, default=21600.0, metavar="S",
                    help="simulated seconds of each run at 1 Hz (default 21600: 6 h)")
@@ -508,7 +509,7 @@ def add_args(p) -> None:
 
 
 def run(args) -> dict:
-    from sitl.app.cli import UsageError
+    from sitl.app.args import UsageError
 
     if args.duration > 10 * 86400:
         raise UsageError(f"--duration: at most {10 * 86400} s, got {args.duration:g}")

@@ -58,7 +58,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from sitl.app.experiments.common import component, prepare_out, progress_printer, save_figure, strict
+from sitl.app.experiments.common import prepare_out, progress_printer, save_figure, strict
 
 # numpy and the components are imported inside the functions: the CLI imports this module to
 # build its parser (add_args), and `skyfuse --help` must stay instant
@@ -222,7 +222,7 @@ class BeaconRunner:
 
     def __init__(self, setup: Setup, trials: int, seed: int):
         import numpy as np
-        be = component("sitl.app.experiments.beacon")
+        from sitl.app.experiments import beacon as be
         self.be, self.setup, self.trials, self.seed = be, setup, int(trials), int(seed)
         rng = np.random.default_rng([seed, 77, BEACON_UAVS, trials])  # as experiment beacon draws its starts
         self.tracks, self.prior = be.scenario("printed", BEACON_UAVS, setup.duration_s, trials, rng)
@@ -244,7 +244,7 @@ class SondeRunner:
     station's product), the seed 004 scenario cut to ``setup.duration_s``."""
 
     def __init__(self, setup: Setup, trials: int, seed: int):
-        so = component("sitl.app.experiments.sonde")
+        from sitl.app.experiments import sonde as so
         self.so, self.setup, self.trials, self.seed = so, setup, int(trials), int(seed)
         self.scn = so.SondeScenario(duration_s=setup.duration_s, white_baseline=False)
 
@@ -626,13 +626,7 @@ def plot(out: Path, summ: dict, meta: str) -> list[Path]:
 
 # ------------------------------------------------------------------ the command
 def add_args(p) -> None:
-    from sitl.app.cli import (
-        nonnegative_float,
-        nonnegative_int,
-        output_dir,
-        positive_float,
-        positive_int,
-    )
+    from sitl.app.args import nonnegative_float, nonnegative_int, output_dir, positive_float, positive_int
 
     p.add_argument("--out", type=output_dir, default=Path("out/faults"), metavar="DIR",
                    help="output directory for result.json and PNG figures (default out/faults)")
@@ -656,7 +650,7 @@ def add_args(p) -> None:
 
 
 def _config(args):
-    from sitl.app.cli import UsageError
+    from sitl.app.args import UsageError
 
     names = [s.strip() for s in str(args.scenarios).split(",") if s.strip()]
     bad = [s for s in names if s not in SCENARIOS]
@@ -705,8 +699,8 @@ def run(args) -> dict:
 
 
 def result_document(args, names, plan, setups, trials, raw, summ, wall, figs) -> dict:
-    be = component("sitl.app.experiments.beacon")
-    so = component("sitl.app.experiments.sonde")
+    from sitl.app.experiments import beacon as be
+    from sitl.app.experiments import sonde as so
     walls = {n: {"baseline": d["baseline"].wall_s, "conditions": sum(r.wall_s for _, r in d["runs"].values())}
              for n, d in raw.items()}
     doc = {

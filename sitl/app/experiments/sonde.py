@@ -68,8 +68,9 @@ from pathlib import Path
 
 import numpy as np
 
-from sitl.app.experiments.common import (component, measurement_faults, prepare_out, progress_printer, save_figure,
+from sitl.app.experiments.common import (measurement_faults, prepare_out, progress_printer, save_figure,
                                       strict)
+from sitl.scenario import SondeSection
 
 MODES = ("fused", "radar_only", "relay_only")
 WHITE_MODES = ("fused_white", "radar_only_white")
@@ -103,7 +104,7 @@ class SondeScenario:
 
     duration_s: float = 7200.0
     dt_s: float = 1.0
-    wind_scale: float = 1.15  # x the default winter jet profile (58 -> 67 m/s at 11 km)
+    wind_scale: float = SondeSection.wind_scale  # x the default winter jet profile (58 -> 67 m/s at 11 km)
     gcpp_offset_m: float = 300.0  # radar / ground receiver from the launch pad
     gcpp_bearing_deg: float = 140.0  # across the surface wind (from 230 deg)
     radar_loss_s: tuple = (30.0, 330.0)  # angular auto-tracking lost (side wind at launch)
@@ -201,16 +202,15 @@ def _trial_streams(seed: int, trials) -> list:
 
 
 def _sonde_params(scn: SondeScenario):
-    SondeParams = component("vehicles.sonde").SondeParams
+    from vehicles.sonde import SondeParams
 
-    d = SondeParams()
-    return SondeParams(wind_speed_m_s=tuple(scn.wind_scale * v for v in d.wind_speed_m_s))
+    return SondeParams.with_wind_scale(scn.wind_scale)
 
 
 def gcpp_site(scn: SondeScenario):
     """(lat, lon, h) of the GCPP: gcpp_offset_m from the launch pad at gcpp_bearing_deg."""
     from sitl.geodesy import ecef_to_geodetic, enu_to_ecef
-    sonde = component("vehicles.sonde")
+    from vehicles import sonde
     DEFAULT_LAUNCH_H_M, DEFAULT_LAUNCH_LAT_RAD, DEFAULT_LAUNCH_LON_RAD = (
         sonde.DEFAULT_LAUNCH_H_M, sonde.DEFAULT_LAUNCH_LAT_RAD, sonde.DEFAULT_LAUNCH_LON_RAD)
 
@@ -231,7 +231,7 @@ def wind_rate_statistics(sp) -> tuple:
     the burst's step itself left to the manoeuvre hypothesis), the time the 1/e point of the
     horizontal rate's autocorrelation. These are the relaxed tracker's wind-rate Gauss-Markov
     parameters: the world model's parameters, summarised, not its state."""
-    descent_speed_m_s = component("vehicles.sonde").descent_speed_m_s
+    from vehicles.sonde import descent_speed_m_s
     top = 0.5 * (sp.burst_alt_range_m[0] + sp.burst_alt_range_m[1])
     n_up = int(top / sp.ascent_rate_m_s)
     h, vz = [0.0], [sp.ascent_rate_m_s]
@@ -254,7 +254,7 @@ def wind_rate_statistics(sp) -> tuple:
 
 def tracker_params(scn: SondeScenario, label: str, backend=None):
     """The trackers' model: the world models' parameters (not their states)."""
-    SondeTrackerParams = component("ground_station.sonde_tracker").SondeTrackerParams
+    from ground_station.sonde_tracker import SondeTrackerParams
     from sitl.radio.radar import RadarParams
     from sitl.radio.relay import RelayParams
 
@@ -337,7 +337,7 @@ def world(scn: SondeScenario, seed: int, trials, *, backend=None, seeds=None):
     from sitl.gnss.orbits import DEFAULT_TOA_GPS_S, default_constellation
     from sitl.radio.radar import Radar, RadarParams
     from sitl.radio.relay import Relay, RelayParams
-    SondeFlight = component("vehicles.sonde").SondeFlight
+    from vehicles.sonde import SondeFlight
 
     trials = list(trials)
     B, T = len(trials), scn.n_epochs
@@ -378,7 +378,7 @@ def run_trials(scn: SondeScenario, seed: int, trials, *, backend=None, progress=
     """
     # the world and the ground station are imported here, not at module import: sitl must
     # not import vehicles or ground_station when it is itself imported
-    SondeTracker = component("ground_station.sonde_tracker").SondeTracker
+    from ground_station.sonde_tracker import SondeTracker
     from sitl.bus import InMemoryTransport, RadarMeasurement, SondeRelay, Truth
     from sitl.geodesy import geodetic_to_ecef
 
@@ -1155,7 +1155,7 @@ def run(scn: SondeScenario, trials: int, seed: int, *, backend=None, progress=No
 
 
 def main(args) -> int:
-    from sitl.app.cli import UsageError
+    from sitl.app.args import UsageError
 
     try:
         scn = scenario_from_args(args)

@@ -1,4 +1,4 @@
-"""One compiled version per numba kernel (filters/_nbentry.py): read-only, writable and
+"""One compiled version per numba kernel (filters/nbdispatch.py): read-only, writable and
 broadcast inputs reach the same compiled code, and the results do not depend on the flags."""
 import numpy as np
 import pytest
@@ -58,12 +58,12 @@ def test_read_only_and_writable_inputs_share_one_compiled_version(N):
 
 
 def test_a_kernel_refuses_an_argument_of_another_dtype_instead_of_compiling_it():
-    from filters import _nbentry
+    from filters import nbdispatch
     from filters import _nbkernels as k
 
     rng = np.random.default_rng(8)
     _, P, F, Q, *_ = _case(rng, 2)
-    drv = _nbentry.ready(k.predict_ser)
+    drv = nbdispatch.ready(k.predict_ser)
     with pytest.raises(TypeError):
         drv(F.astype(np.float32), P, Q)
     assert len(drv.signatures) == 1

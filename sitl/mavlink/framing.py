@@ -56,6 +56,8 @@ IFLAG_SIGNED = 0x01
 #: a new stream's timestamp may lag ours by at most one minute (10 us units)
 NEW_STREAM_MAX_LAG = 60 * 100_000
 #: signing timestamps: 10 us units (100,000 per second)
+#: unix seconds of 2015-01-01T00:00:00 UTC, the epoch of MAVLink 2 signing timestamps
+SIGNING_EPOCH_UNIX_S = 1_420_070_400.0
 SIGNING_TICKS_PER_S = 100_000
 SIGNING_STATE_FORMAT = "skyfuse.mavlink.signing/1"
 
