@@ -1,5 +1,5 @@
 """Seed 000 state-space model: single-frequency GPS+GLONASS receiver estimating the zenith
-ionospheric and tropospheric delays (MODELS.md, "Seed 000", eqs 9-38).
+ionospheric and tropospheric delays (the seed 000 paper, eqs 9-38; README "The papers").
 
 State (eq 12; eq 38 with the optional ambiguity block), n = 11 + N_amb:
 

@@ -1,4 +1,4 @@
-"""Integrity events (issue 6): a monitor epoch's Report -> bus `IntegrityEvent` messages.
+"""Integrity events: a monitor epoch's Report -> bus `IntegrityEvent` messages.
 
 Shared by the UAV onboard navigation (vehicles/) and the ground-station trackers
 (ground_station/): both import it from here (sitl imports neither of them).

@@ -1,5 +1,5 @@
 """Wall-clock pacing of step functions of simulation time: the ONLY module of the project
-that reads the wall clock or sleeps (components never do; ARCHITECTURE.md).
+that reads the wall clock or sleeps (components never do: they are step functions of simulation time).
 
 Simulation time and wall time are tied by one line, shared by every process of a run:
 

@@ -65,7 +65,7 @@ runs under filters.integrity.IntegrityMonitor with one channel per satellite (it
 and rate rows; :func:`nav_step_monitored`); OnboardNav keeps the Report and, given a
 sitl.integrity_events.IntegrityEventPublisher, publishes the events (channel
 ``<uav id>.<satellite id>``). Off by default, measured (tests/test_integrity_wiring.py and
-the report of issue 6): with the seed's three satellites there is no redundancy -- excluding
+the integrity experiment's report): with the seed's three satellites there is no redundancy -- excluding
 one satellite leaves the position unobservable (fault-free RMSE 6.0 m -> 42 m, 100 trials x 3
 UAVs, 300 s, before the rule below); :data:`RECOMMENDED_INTEGRITY` therefore has
 ``min_channels=3``: a UAV leaves a satellite (or a row) out only while three tracked

@@ -142,7 +142,7 @@ def _add_seed001_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--out", type=output_dir, default=Path("out/ekf-vs-ukf"), help="output directory for result.json and PNG figures")
     p.add_argument("--noise-reading", choices=("sigma", "variance"), default="sigma",
                    help="read the seed table's 'mean square' noise figures (100 m, 15 m/s) as standard "
-                        "deviations (default) or as variances (MODELS.md: sigma 10 m, sqrt(15) m/s)")
+                        "deviations (default) or as variances (sigma 10 m, sqrt(15) m/s)")
     p.add_argument("--sigma-prr", type=positive_float, default=None, metavar="M_S",
                    help="override the pseudo-velocity noise sigma, m/s")
     p.add_argument("--sigma-a", type=positive_float, default=None, metavar="M_S2",
@@ -289,7 +289,7 @@ def _add_beacon_args(p: argparse.ArgumentParser) -> None:
                         "start drawn about it and the locator started from that prior; geodetic: the prose's "
                         "lat/lon start points, northward flight, blind start")
     p.add_argument("--integrity", choices=("off", "on", "compare"), default="off",
-                   help="integrity monitors (issue 6): on = the production locator per UAV link and the UAVs' "
+                   help="integrity monitors: on = the production locator per UAV link and the UAVs' "
                         "onboard filters per satellite; compare = each main case again, monitored, on the same "
                         "data (default off)")
     p.add_argument("--range-step", dest="range_step_m", type=finite_float, default=0.0, metavar="M",

@@ -15,7 +15,7 @@ run / demo:
      stop it early; in both cases every worker is stopped (process groups, SIGTERM then
      SIGKILL) and every session and port closed. OUT/report.json and a printed summary.
 
-Network faults (issue 8, sitl.app.live_faults): with a [faults] table in the scenario the
+Network faults (sitl.app.live_faults): with a [faults] table in the scenario the
 launcher puts a fault proxy on every worker's Zenoh link and every vehicle's MAVLink link and
 the workers filter their own publications; ``<run>/ctl/fault`` changes any of them while the
 run goes (`skyfuse fault set`, which finds the router in OUT/run.json). report.json gets a

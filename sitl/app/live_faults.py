@@ -1,4 +1,4 @@
-"""The live launcher's network-fault wiring (issue 8): proxies, the control board, the report.
+"""The live launcher's network-fault wiring: proxies, the control board, the report.
 
 When a scenario has a [faults] table (even an empty one), `LiveFaults` starts, in the
 launcher, on one shared proxy thread (`sitl.netfault._proxyloop.ProxyLoop`):

@@ -1,5 +1,5 @@
 """Per-link statistics of what a receiver takes in: loss from sequence numbers, duplicates,
-reordering, gaps, latency and silence (issue 8).
+reordering, gaps, latency and silence.
 
 A *link* is one publisher as a receiver sees it: ``(run id, source id)`` (the run is the
 key's first chunk; the source id is the message header's). A source may publish several

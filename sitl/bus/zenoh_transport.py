@@ -36,7 +36,7 @@ same mode.
 Reliability
 -----------
 Publications are RELIABLE with congestion control BLOCK (a full transmit queue waits rather
-than silently dropping, see FAULTS_REFERENCE.md section 3) and not express (express batches
+than silently dropping: a slow subscriber slows its publisher, nothing is lost) and not express (express batches
 nothing and was measured ~10x slower in throughput); both are settable. Reliability is hop
 to hop over TCP: a sample published while a link is down (partition, router restart) is
 lost, and the sequence numbers in the payload show the gap (`SequenceTracker`).
@@ -62,7 +62,7 @@ first-declared expression that matches its key: ``stats.total`` counts each payl
 as `InMemoryTransport` does. While a subscription whose expression overlaps another one is
 being closed, a sample in flight in that instant may be missed by the other one.
 
-Fault filters at the publisher (issue 8)
+Fault filters at the publisher
 ----------------------------------------
 ``faults=[f, ...]``: `sitl.bus.transport.FaultFilter` callables ``(key, payload, t_s) ->
 [(deliver_at_s, payload), ...]`` (e.g. a `sitl.netfault.KeyFaults`), applied at publish time

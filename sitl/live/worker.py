@@ -10,7 +10,7 @@ Protocol (one JSON object per line):
       so a worker never outlives its launcher.
 SIGTERM and SIGINT stop the worker cleanly (sessions closed, logs flushed).
 
-Network faults (issue 8): when the scenario has a [faults] table, `open_bus` gives the
+Network faults: when the scenario has a [faults] table, `open_bus` gives the
 worker's session a publisher fault filter (`sitl.netfault.KeyFaults` with the scenario's
 ``bus:`` rules) and listens on ``<run>/ctl/fault`` for run-time changes of them; the status
 and done lines then carry ``"netfault"``: per rule the summed truth counters of the keys it

@@ -1,4 +1,4 @@
-"""Network fault injection (issue 8): netem-like fault models in simulation time.
+"""Network fault injection: netem-like fault models in simulation time.
 
 ``from sitl.netfault import FaultSpec, FaultSpecError, parse_spec, LinkFault, LinkTruth,
 KeyFaults`` -- see `sitl.netfault.spec` (the text grammar) and `sitl.netfault.models`

@@ -1,4 +1,4 @@
-"""Run-time control of the network faults of a live run (issue 8).
+"""Run-time control of the network faults of a live run.
 
 The control key ``<run>/ctl/fault`` carries a `sitl.bus.schema.FaultControl` (``link``,
 ``spec``). The launcher holds a `FaultBoard`: every link of the run (``mav:<sysid>``, its

@@ -1,4 +1,4 @@
-"""Vehicles as MAVLink 2 endpoints over UDP (issue 7): what QGroundControl and MAVProxy see.
+"""Vehicles as MAVLink 2 endpoints over UDP: what QGroundControl and MAVProxy see.
 
     from vehicles.mavlink import VehicleEndpoint, EndpointGroup, VehicleTelemetry, ParamStore
     ep = VehicleEndpoint(sysid=1, kind="uav", gcs=("127.0.0.1", 14550), listen=("127.0.0.1", 5760),

@@ -24,7 +24,7 @@ rare ramp event (sitl.integrity_events).
 The measurement model is rebuilt every step, as in the experiment. Rounds are interleaved (each
 round times every case back to back, in reversed order every other round) and each time figure
 is the minimum over rounds. The overhead (``monitor_overhead``, the figure held against the
-target of issue 6: the monitor adds at most 30 % to the plain step) is the median over rounds of
+target: the monitor adds at most 30 % to the plain step) is the median over rounds of
 the paired ratio monitored / plain of wall time; the same in CPU time, and the ratio of the
 minima, are given beside it. The paired median is the estimator that holds on a shared machine
 whose speed drifts: the two minima can come from different phases of it (measured here: the

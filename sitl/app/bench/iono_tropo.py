@@ -1,6 +1,6 @@
 """`skyfuse bench iono-tropo`: a whole seed-000 variant-3 run against real time.
 
-The case of issue 4: 1200 s at 10 Hz, one receiver, about 12 satellites in view
+The case: 1200 s at 10 Hz, one receiver, about 12 satellites in view
 (elevation mask 17 deg on the default trajectory gives exactly 12), variant 3 (code,
 Doppler and ambiguous carrier phase, 11 + 12 states, 36 measurements per epoch), the
 cycle-slip detector and the per-epoch scoring included: what `skyfuse experiment

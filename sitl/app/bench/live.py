@@ -1,4 +1,4 @@
-"""`skyfuse bench live`: how large a swarm the live SITL keeps at real time (issue 7).
+"""`skyfuse bench live`: how large a swarm the live SITL keeps at real time.
 
 For each swarm size N (``--uavs``), a live run of the default scenario's UAVs and beacon
 (no sonde) at ``--rate`` Hz and speed 1 for ``--duration`` simulated seconds: a Zenoh router

@@ -1,6 +1,6 @@
 """`skyfuse bench sonde`: a 2 h radiosonde flight at 1 Hz (seed 004), one sonde, against real time.
 
-The case of issue 5: the experiment's scenario (`sitl.app.experiments.sonde.SondeScenario`,
+The case: the experiment's scenario (`sitl.app.experiments.sonde.SondeScenario`,
 default 7200 s at 1 Hz, the relay's error budget, the radar loss and the GNSS outage), one
 trial. The target is the fused tracker under 10 s. Cases, all measured in the same run,
 rounds interleaved, each figure the minimum over rounds (the machine's speed drifts; the

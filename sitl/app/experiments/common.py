@@ -1,6 +1,5 @@
 """What every experiment command shares: strict JSON, figure saving, progress, the output
-directory check, and loading the vehicle / ground-station packages by module name (sitl
-never imports them statically: see ARCHITECTURE.md, "Dependency direction")."""
+directory check, network faults on a batch run's measurement keys."""
 from __future__ import annotations
 
 import dataclasses
@@ -57,7 +56,7 @@ def prepare_out(out: Path) -> Path:
     return out
 
 
-# ------------------------------------------------------------------ network faults on the bus (issue 8)
+# ------------------------------------------------------------------ network faults on the bus
 class MeasurementFaults:
     """A `sitl.bus.transport.FaultFilter` that applies network faults to the MEASUREMENT keys of
     a batch experiment only (``exprs``: key expressions); every other key (truth, the ground

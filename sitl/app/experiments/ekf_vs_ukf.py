@@ -8,7 +8,7 @@ sigma 3 m/s). Both filters run on the SAME simulated trials; the posterior Crame
 bound (Tichavsky recursion) is computed for the same model along the same true
 trajectories.
 
-How the seed's description is read (see MODELS.md, "Seed 001"):
+How the seed's description is read (the seed 001 paper, README "The papers"):
 * The truth obeys the filters' own model (Singer + clock) with the initial state drawn
   from the filters' prior: its mean is the seed's deterministic start (100 m/s east,
   5 m/s^2 along the track), so the trajectory is "a second-order polynomial plus a
@@ -16,13 +16,13 @@ How the seed's description is read (see MODELS.md, "Seed 001"):
   be chi-square consistent.
 * The seed's table gives the pseudorange error as "mean square ... , m: 100", the
   pseudo-velocity error as "mean square ..., m/s: 15" and the clock drift as "mean square
-  ..., m/s: 3". MODELS.md reads the first two as variances (sigma 10 m and sqrt(15) m/s).
+  ..., m/s: 3". The project's model notes read the first two as variances (sigma 10 m and sqrt(15) m/s).
   The units printed in the table (m and m/s, not m^2) and the seed's figure (the error
   standard deviation starting near 50 m after the first update) fit the other reading:
   "mean square deviation", i.e. the standard deviations sigma_D = 100 m and
   sigma_V = 15 m/s, like sigma_V' = 3 m/s. That is the default here
-  (``noise_reading="sigma"``); ``noise_reading="variance"`` runs MODELS.md's reading, and
-  the closing note of issue 3 compares both against the figure.
+  (``noise_reading="sigma"``); ``noise_reading="variance"`` runs that reading; both are
+  compared against the figure in the project's notes.
 * The satellites are four GPS satellites of the built-in almanac, chosen for the least
   GDOP above the mask at the start; their light-time geometry (with Earth rotation) makes
   the measurements. The filters get the satellite states from the ephemeris at the

@@ -1,4 +1,4 @@
-"""`skyfuse experiment integrity`: seed 003, the integrity layer on faulty GNSS data (issue 6).
+"""`skyfuse experiment integrity`: seed 003, the integrity layer on faulty GNSS data.
 
 World (sitl, truth): a GPS L1 receiver on a vehicle flying a great circle at constant speed
 (seed 000's trajectory style: 55 N 37 E, 1 km, 50 m/s, heading 90 deg), 10 Hz, white noise

@@ -3,7 +3,7 @@
 A single-frequency GPS+GLONASS receiver on a moving object; an EKF on the seed-000 model
 (filters.iono_tropo: x = [x, y, z, Delta, vx, vy, vz, dDelta, Delta_A, I_g, U_g]) estimates,
 among the rest, the zenith ionospheric delay I_g and the zenith tropospheric delay U_g.
-The seed reports ~500 s of observation to reach 1 m on both (MODELS.md, "Seed 000",
+The seed reports ~500 s of observation to reach 1 m on both (the seed 000 paper, README "The papers",
 variant 1).
 
 World (sitl, truth): one trajectory shared by all trials -- a great circle at constant

@@ -1,4 +1,4 @@
-"""`skyfuse experiment faults`: network faults on the measurement links (issue 8), swept on the
+"""`skyfuse experiment faults`: network faults on the measurement links, swept on the
 beacon (seed 002) and sonde (seed 004) scenarios in batch mode.
 
 Each condition is one batch run of the scenario over ``sitl.bus.InMemoryTransport`` with a
