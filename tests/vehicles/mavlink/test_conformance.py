@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 from pymavlink import mavutil
 from pymavlink.dialects.v20 import ardupilotmega as mav
-from test_mavlink_peer import T0_GPS_S, Link, Peer, of_type, telemetry
+from tests.mavlink_peer import T0_GPS_S, Link, Peer, of_type, telemetry
 
 from sitl.timescales import utc_from_gps_seconds
 from vehicles.mavlink import (CAPABILITIES, REJECT_REASONS, EndpointGroup, ParamSpec, ParamStore, VehicleEndpoint,

@@ -8,8 +8,8 @@ import dataclasses
 
 import numpy as np
 import pytest
-from test_beacon_locator import _epochs, _publish_epoch, _scene
-from test_sonde_tracker import (
+from tests.ground_station.test_beacon_locator import _epochs, _publish_epoch, _scene
+from tests.ground_station.test_sonde_tracker import (
     RADAR_KEY,
     RELAY_KEY,
     RUN,

@@ -16,10 +16,10 @@ import threading
 import time
 
 import pytest
-from procs import dead as _dead
-from procs import tcp_free as _tcp_free
-from procs import udp_base as _base_port
-from procs import udp_free as _udp_free
+from tests.procs import dead as _dead
+from tests.procs import tcp_free as _tcp_free
+from tests.procs import udp_base as _base_port
+from tests.procs import udp_free as _udp_free
 
 from sitl.app.launcher import launch, replay
 from sitl.scenario import default_scenario

@@ -14,9 +14,9 @@ import threading
 import time
 
 import pytest
-from procs import dead as _dead
-from procs import tcp_free as _tcp_free
-from procs import udp_base
+from tests.procs import dead as _dead
+from tests.procs import tcp_free as _tcp_free
+from tests.procs import udp_base
 
 from sitl.pacing import Pacer
 from sitl.app.supervisor import Supervisor

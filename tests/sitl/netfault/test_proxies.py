@@ -22,7 +22,7 @@ from sitl.netfault import FaultSpecError, LinkFault
 from sitl.netfault._proxyloop import ProxyLoop
 from sitl.netfault.tcp_proxy import TcpProxy
 from sitl.netfault.udp_proxy import UdpProxy, parse_addr
-from procs import tcp_free, udp_free
+from tests.procs import tcp_free, udp_free
 
 LO = "127.0.0.1"
 

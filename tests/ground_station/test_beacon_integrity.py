@@ -18,8 +18,8 @@ import math
 
 import numpy as np
 import pytest
-from test_beacon_locator import VAR_R, _scene
-from test_beacon_locator import _epochs as _beacon_epochs
+from tests.ground_station.test_beacon_locator import VAR_R, _scene
+from tests.ground_station.test_beacon_locator import _epochs as _beacon_epochs
 
 from filters import metrics
 from filters.integrity import IntegrityConfig, IntegrityMonitor

@@ -6,7 +6,7 @@ from __future__ import annotations
 import socket
 from pathlib import Path
 
-from procs import udp_base
+from tests.procs import udp_base
 
 from sitl.app.cli import main
 from sitl.app.preflight import OutDirLock

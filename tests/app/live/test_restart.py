@@ -13,7 +13,7 @@ import threading
 import time
 
 import pytest
-from procs import dead, udp_base
+from tests.procs import dead, udp_base
 
 from sitl.bus import decode, read_bus_log_records
 from sitl.app.launcher import launch, replay

@@ -8,7 +8,7 @@ import math
 import time
 
 import pytest
-from test_bus import beacon, nav
+from tests.sitl.bus.test_bus import beacon, nav
 
 from sitl.bus import InMemoryTransport, LinkMonitor, Router, ZenohTransport, encode, key_for, pack_sealed
 from sitl.bus.audit import PayloadAudit, key_kind

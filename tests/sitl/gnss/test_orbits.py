@@ -22,7 +22,7 @@ from sitl.gnss.orbits import (
     sat_state_ecef,
 )
 
-DATA = Path(__file__).parent / "data"
+DATA = Path(__file__).resolve().parents[2] / "data"  # tests/data
 WEEK_S = 604_800.0
 
 

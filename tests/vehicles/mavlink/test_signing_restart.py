@@ -19,7 +19,7 @@ import sys
 import time
 
 import pytest
-from procs import dead, udp_base, udp_free
+from tests.procs import dead, udp_base, udp_free
 from pymavlink.dialects.v20 import ardupilotmega as mav
 
 from vehicles.mavlink import FUTURE_WINDOW_S, SigningStateFile, VehicleEndpoint

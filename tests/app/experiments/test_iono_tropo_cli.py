@@ -7,8 +7,8 @@ import sys
 import numpy as np
 import pytest
 
-from outputs import is_png as _is_png
-from outputs import strict_json as _strict_json
+from tests.outputs import is_png as _is_png
+from tests.outputs import strict_json as _strict_json
 from sitl.app.cli import build_parser, main
 
 VARIANTS = ("code_doppler", "phase_increments", "carrier_phase")

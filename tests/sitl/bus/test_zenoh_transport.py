@@ -16,7 +16,7 @@ import time
 
 import numpy as np
 import pytest
-from test_bus import FACTORIES, nav, relay
+from tests.sitl.bus.test_bus import FACTORIES, nav, relay
 
 from sitl.bus import (
     BusDecodeError,
@@ -32,7 +32,7 @@ from sitl.bus import (
     key_matches,
 )
 
-REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+REPO = os.path.abspath(os.path.join(os.path.dirname(__file__), os.pardir, os.pardir, os.pardir))  # the checkout
 ENV = {**os.environ, "PYTHONPATH": REPO + os.pathsep + os.environ.get("PYTHONPATH", "")}
 
 

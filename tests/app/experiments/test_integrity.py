@@ -6,8 +6,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from outputs import is_png as _is_png
-from outputs import strict_json as _strict_json
+from tests.outputs import is_png as _is_png
+from tests.outputs import strict_json as _strict_json
 from sitl.app.cli import main
 from sitl.app.experiments import integrity as ex
 

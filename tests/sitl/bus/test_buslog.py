@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
-from test_bus import FACTORIES, nav
+from tests.sitl.bus.test_bus import FACTORIES, nav
 
 from sitl.bus import (
     BusLogError,
@@ -32,7 +32,7 @@ from sitl.bus import (
 )
 from sitl.bus.buslog import MAGIC
 
-REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+REPO = os.path.abspath(os.path.join(os.path.dirname(__file__), os.pardir, os.pardir, os.pardir))  # the checkout
 ENV = {**os.environ, "PYTHONPATH": REPO + os.pathsep + os.environ.get("PYTHONPATH", "")}
 FAST = settings(derandomize=True, database=None, deadline=None, max_examples=60,
                 suppress_health_check=[HealthCheck.too_slow,

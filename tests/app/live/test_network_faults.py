@@ -10,10 +10,10 @@ import time
 
 import numpy as np
 import pytest
-from procs import dead as _dead
-from procs import tcp_free as _tcp_free
-from procs import udp_base as _base_port
-from procs import udp_free as _udp_free
+from tests.procs import dead as _dead
+from tests.procs import tcp_free as _tcp_free
+from tests.procs import udp_base as _base_port
+from tests.procs import udp_free as _udp_free
 
 from sitl.scenario import parse_scenario
 
@@ -307,7 +307,7 @@ def test_worker_applies_each_bus_request_once_and_counts_bad_ones():
 
 
 def nav_msg(i):
-    from test_bus import nav
+    from tests.sitl.bus.test_bus import nav
     return nav(seq=i, t_gps_s=1.0 + i)
 
 
