@@ -28,6 +28,7 @@ from filters.ekf import ekf_predict, ekf_step, ekf_update
 from filters.kernels import resolve_backend
 from filters.ukf import SigmaPoints, ukf_predict, ukf_update
 from sitl.app.experiments.ekf_vs_ukf import Seed001Scenario, Setup
+from tests.helpers import LinearTransition, random_spd
 
 BACKENDS = ("numpy", "numba")
 N_STATE = models.SEED001_N
@@ -64,34 +65,7 @@ def rel_max(a, b):
     return float(np.max(np.abs(a - b)) / np.max(np.abs(b)))
 
 
-def random_spd(rng, n, batch=(), lo=0.2, hi=5.0):
-    """Random SPD matrices with eigenvalues in [lo, hi] (condition number <= hi/lo)."""
-    A = rng.standard_normal(batch + (n, n))
-    U, _ = np.linalg.qr(A)
-    w = rng.uniform(lo, hi, batch + (n,))
-    return (U * w[..., None, :]) @ np.swapaxes(U, -1, -2)
-
-
 # ============================================================================ 1. linear-Gaussian exactness
-
-
-class LinearTransition:
-    """x(k+1) = F x(k) + w, w ~ N(0, Q): a transition model with a shared (n, n) F."""
-
-    linear = True
-
-    def __init__(self, F, Q):
-        self._F, self._Q = np.asarray(F, float), np.asarray(Q, float)
-        self.ndim = self._F.shape[0]
-
-    def f(self, x, dt):
-        return np.asarray(x) @ self._F.T
-
-    def F(self, x, dt):
-        return self._F
-
-    def Q(self, dt):
-        return self._Q
 
 
 class BatchedFTransition(LinearTransition):

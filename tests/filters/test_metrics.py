@@ -12,11 +12,7 @@ from filters.models import (
     PseudorangeDoppler,
     seed001_transition,
 )
-
-
-def random_spd(rng, n, batch=()):
-    A = rng.normal(size=batch + (n, n))
-    return A @ np.swapaxes(A, -1, -2) + 0.5 * np.eye(n)
+from tests.helpers import random_gram_spd as random_spd
 
 
 # ----------------------------------------------------------------------------- RMSE, NEES, NIS

@@ -24,6 +24,7 @@ from hypothesis import given, settings, strategies as st
 from filters import models
 from filters.ekf import ekf_predict, ekf_step, ekf_update
 from filters.ud import UDUpdateResult, factor_q, ud_factor, ud_predict, ud_step, ud_to_cov, ud_update
+from tests.helpers import LinearTransition, random_spd
 
 BACKENDS = ("numpy", "numba")
 EPS = np.finfo(float).eps
@@ -48,32 +49,6 @@ def rel_err(x, P, x_ref, P_ref):
 def assert_close(x, P, x_ref, P_ref, rtol, what=""):
     ex, eP = rel_err(x, P, x_ref, P_ref)
     assert ex <= rtol and eP <= rtol, f"{what}: relative error x {ex:.3g}, P {eP:.3g} (tolerance {rtol:g})"
-
-
-def random_spd(rng, n, batch=(), lo=0.2, hi=5.0):
-    """Random SPD matrices with eigenvalues in [lo, hi]."""
-    Q, _ = np.linalg.qr(rng.standard_normal(batch + (n, n)))
-    w = rng.uniform(lo, hi, batch + (n,))
-    return (Q * w[..., None, :]) @ np.swapaxes(Q, -1, -2)
-
-
-class LinearTransition:
-    """x(k+1) = F x(k) + w, w ~ N(0, Q) with a shared F."""
-
-    linear = True
-
-    def __init__(self, F, Q):
-        self._F, self._Q = np.asarray(F, float), np.asarray(Q, float)
-        self.ndim = self._F.shape[0]
-
-    def f(self, x, dt):
-        return np.asarray(x) @ self._F.T
-
-    def F(self, x, dt):
-        return self._F
-
-    def Q(self, dt):
-        return self._Q
 
 
 class PerTrialF(LinearTransition):

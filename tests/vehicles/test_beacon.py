@@ -24,11 +24,7 @@ from filters import metrics
 from sitl import geodesy
 from sitl.radio import beacon_link as bl
 from vehicles import beacon, uav
-
-
-def chi2_var_bounds(n, p=0.999):
-    """Bounds on s^2 / sigma^2 for a sample of n normal draws: chi2(n-1)/(n-1)."""
-    return (scipy.stats.chi2.ppf((1 - p) / 2, n - 1) / (n - 1), scipy.stats.chi2.ppf((1 + p) / 2, n - 1) / (n - 1))
+from tests.helpers import chi2_var_bounds
 
 
 @pytest.fixture(scope="module")

@@ -21,6 +21,7 @@ from vehicles.sonde import (
     descent_speed_m_s,
     spawn_rngs,
 )
+from tests.helpers import fisher_z_ok, variance_ok
 
 # U.S. Standard Atmosphere 1976 (NOAA-S/T 76-1562), Table I, geometric altitude:
 # z (m), temperature (K), pressure (Pa), density (kg/m^3).  At 86 km the tabulated
@@ -37,20 +38,6 @@ US76_TABLE = [
     (70_000.0, 219.585, 5.2209, 8.2829e-5),
     (86_000.0, 186.946, 3.7338e-1, 6.958e-6),
 ]
-
-
-def fisher_z_ok(x, y, rho, alpha=1e-3):
-    """Is the sample correlation of paired x, y consistent with rho (Fisher z, two-sided)?"""
-    r = np.corrcoef(x, y)[0, 1]
-    z = (np.arctanh(r) - np.arctanh(rho)) * math.sqrt(x.size - 3)
-    return abs(z) < stats.norm.ppf(1 - alpha / 2)
-
-
-def variance_ok(x, var, alpha=1e-3):
-    """Is sum(x^2)/var inside the two-sided chi2(n) interval (zero-mean x)?"""
-    stat = np.sum(x**2) / var
-    lo, hi = stats.chi2.ppf([alpha / 2, 1 - alpha / 2], df=x.size)
-    return lo < stat < hi
 
 
 # ---------------------------------------------------------------------------

@@ -28,12 +28,9 @@ from filters import metrics
 from sitl.gnss import orbits, ranging
 from vehicles import uav, uav_nav
 from vehicles.uav_nav import GnssEpoch, GnssNoise, NavConfig
+from tests.helpers import chi2_var_bounds
 
 T0 = uav_nav.SEED002_T0_GPS_S
-
-
-def chi2_var_bounds(n, p=0.999):
-    return (scipy.stats.chi2.ppf((1 - p) / 2, n - 1) / (n - 1), scipy.stats.chi2.ppf((1 + p) / 2, n - 1) / (n - 1))
 
 
 @pytest.fixture(scope="module")

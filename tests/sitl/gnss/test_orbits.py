@@ -21,6 +21,7 @@ from sitl.gnss.orbits import (
     load_yuma_almanac,
     sat_state_ecef,
 )
+from tests.helpers import rot_z as _rot_z
 
 DATA = Path(__file__).resolve().parents[2] / "data"  # tests/data
 WEEK_S = 604_800.0
@@ -31,12 +32,6 @@ def _gm_we(system):
     gm = np.where(system == "G", GM_GPS_M3_S2, PZ90_11.gm_m3_s2)
     we = np.where(system == "G", OMEGA_E_GPS_RAD_S, PZ90_11.omega_rad_s)
     return gm, we
-
-
-def _rot_z(theta, v):
-    """Frame rotation R3(theta) applied to vectors v (..., 3)."""
-    c, s = np.cos(theta), np.sin(theta)
-    return np.stack([c * v[..., 0] + s * v[..., 1], -s * v[..., 0] + c * v[..., 1], v[..., 2]], axis=-1)
 
 
 def _eccentric_test_sats(toa):

@@ -8,6 +8,7 @@ import pytest
 from sitl.constants import C_M_S, WGS84, Ellipsoid
 from sitl.gnss.orbits import DEFAULT_TOA_GPS_S, default_constellation, gps_constellation, sat_state_ecef
 from sitl.gnss.ranging import Geometry, light_time_geometry, sat_state_at_reception_frame
+from tests.helpers import rot_z as _rot_z
 
 W_E = WGS84.omega_rad_s
 
@@ -24,11 +25,6 @@ def _receivers(n, seed=1):
     pos = _geodetic_to_ecef(rng.uniform(-80, 80, n), rng.uniform(-180, 180, n), rng.uniform(0, 12_000, n))
     vel = rng.normal(0.0, 150.0, (n, 3))
     return pos, vel
-
-
-def _rot_z(theta, v):
-    c, s = np.cos(theta), np.sin(theta)
-    return np.stack([c * v[..., 0] + s * v[..., 1], -s * v[..., 0] + c * v[..., 1], v[..., 2]], axis=-1)
 
 
 def _sat_at(c, t_emit):

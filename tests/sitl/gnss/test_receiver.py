@@ -6,6 +6,7 @@ from scipy import stats
 from sitl.constants import C_M_S, F_GPS_L1_HZ, glonass_l1_hz
 from sitl.gnss.atmosphere import iono_slant_delay_m, tropo_slant_delay_m
 from sitl.gnss.receiver import Observation, Receiver, ReceiverConfig
+from tests.helpers import chi2_ok
 
 K_GLO = np.array([-7, -3, 0, 6])
 IS_GPS = np.r_[np.ones(6, bool), np.zeros(K_GLO.size, bool)]
@@ -47,14 +48,6 @@ def truth_terms(o, batch, cfg, clock=(100.0, 0.3)):
     iono = iono_slant_delay_m(cfg.iono_zenith_m, el, CARRIER_HZ)
     tropo = tropo_slant_delay_m(cfg.tropo_zenith_m, el)
     return r, rr, bias, offset, iono, tropo
-
-
-def chi2_ok(resid, sigma, alpha=1e-3):
-    """Is sum(resid²)/σ² inside the two-sided 1-α interval of χ²(n)?"""
-    resid = resid[np.isfinite(resid)]
-    stat = np.sum(resid**2) / sigma**2
-    lo, hi = stats.chi2.ppf([alpha / 2, 1 - alpha / 2], df=resid.size)
-    return lo < stat < hi
 
 
 def test_noise_levels_match_sigmas_and_wrong_sigmas_fail():

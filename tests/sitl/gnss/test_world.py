@@ -23,6 +23,7 @@ from sitl.gnss.world import (
     simulate_receiver,
     visible_count,
 )
+from tests.helpers import chi2_ok
 
 CONST = default_constellation("GR")
 S = len(CONST)
@@ -32,14 +33,6 @@ W_E = WGS84.omega_rad_s
 # Inertial speed of any built-in satellite: circular speed sqrt(GM/a) (GPS 3874 m/s,
 # GLONASS 3953 m/s) times at most sqrt((1+e)/(1-e)) = 1.025 for e <= 0.0244.
 V_SAT_MAX_M_S = 4_000.0
-
-
-def chi2_ok(resid, sigma, alpha=1e-3):
-    """Is sum(resid^2)/sigma^2 inside the two-sided 1-alpha interval of chi2(n)?"""
-    resid = resid[np.isfinite(resid)]
-    stat = np.sum(resid**2) / sigma**2
-    lo, hi = stats.chi2.ppf([alpha / 2, 1 - alpha / 2], df=resid.size)
-    return lo < stat < hi
 
 
 @pytest.fixture(scope="module")

@@ -17,6 +17,7 @@ from sitl.radio.radar import (
     ecef_to_aer_jacobian,
     radar_aer_to_ecef,
 )
+from tests.helpers import fisher_z_ok, variance_ok
 
 LAT, LON, H = math.radians(55.93), math.radians(37.52), 190.0
 SITE = geodetic_to_ecef(LAT, LON, H)
@@ -29,16 +30,6 @@ def enu_point(e, n, u):
 
 def make(rng, params=None, batch_shape=None):
     return Radar(rng, site_lat_rad=LAT, site_lon_rad=LON, site_h_m=H, params=params, batch_shape=batch_shape)
-
-
-def fisher_z_ok(x, y, rho, alpha=1e-3):
-    r = np.corrcoef(x, y)[0, 1]
-    return abs((np.arctanh(r) - np.arctanh(rho)) * math.sqrt(x.size - 3)) < stats.norm.ppf(1 - alpha / 2)
-
-
-def variance_ok(x, var, alpha=1e-3):
-    lo, hi = stats.chi2.ppf([alpha / 2, 1 - alpha / 2], df=x.size)
-    return lo < np.sum(x**2) / var < hi
 
 
 def wrap(a):

@@ -35,6 +35,7 @@ from vehicles.sonde import (
     SondeParams,
     spawn_rngs,
 )
+from tests.helpers import chi2_ok
 
 CONST = default_constellation("GR")
 S = len(CONST)
@@ -44,12 +45,6 @@ G = enu_to_ecef(np.zeros(3), LAT, LON, H)
 def make(rng, params=None, batch_shape=None):
     return Relay(rng, CONST, ground_lat_rad=LAT, ground_lon_rad=LON, ground_h_m=H, params=params,
                  batch_shape=batch_shape)
-
-
-def chi2_ok(resid, sigma, alpha=1e-3):
-    resid = resid[np.isfinite(resid)]
-    lo, hi = stats.chi2.ppf([alpha / 2, 1 - alpha / 2], df=resid.size)
-    return lo < np.sum(resid**2) / sigma**2 < hi
 
 
 @pytest.fixture(scope="module")
