@@ -7,6 +7,8 @@ from pathlib import Path
 
 import pytest
 
+pytestmark = pytest.mark.live
+
 pytest.importorskip("importlinter", reason="import-linter is not installed (pip install '.[test]')")
 
 ROOT = Path(__file__).resolve().parents[1]

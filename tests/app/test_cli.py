@@ -64,6 +64,7 @@ def test_unwritable_output_directory(tmp_path, capsys):
     assert "output directory" in err and len(err.strip().splitlines()) == 1
 
 
+@pytest.mark.live
 def test_console_script_exit_code_without_traceback():
     # the installed entry point, as a user runs it
     proc = subprocess.run([sys.executable, "-m", "sitl.app.cli", "experiment", "ekf-vs-ukf", "--trials", "-1"],
@@ -72,6 +73,7 @@ def test_console_script_exit_code_without_traceback():
     assert "Traceback" not in proc.stderr and proc.stderr.count("\n") == 1
 
 
+@pytest.mark.slow
 def test_small_experiment_writes_result_and_figures(tmp_path, capsys):
     out = tmp_path / "run"
     rc = main(["experiment", "ekf-vs-ukf", "--trials", "40", "--steps", "30", "--seed", "3",

@@ -59,6 +59,7 @@ def reports(draw):
     return rep, ch
 
 
+@pytest.mark.slow
 @settings(max_examples=40, deadline=None)
 @given(reports())
 def test_one_event_per_channel_epoch_and_its_kind_follows_the_report(rc):
@@ -176,6 +177,7 @@ def _run_nav(const, eps, pos, cfg, events=None):
     return np.array(err)  # (K, trials, uavs)
 
 
+@pytest.mark.slow
 def test_uav_pseudorange_step_is_isolated_to_its_satellite(uav_world):
     pos, const, eps = uav_world
     S = len(const)
@@ -205,6 +207,7 @@ def _noninferior(e_a, e_b, margin=0.02):
     return upper <= margin * np.sqrt(np.mean(per_a**2)), upper
 
 
+@pytest.mark.slow
 def test_uav_fault_free_monitored_is_not_worse_and_the_check_can_fail(uav_world):
     pos, const, eps = uav_world
     e_plain = _run_nav(const, eps, pos, NavConfig())
@@ -278,6 +281,7 @@ def _window_rmse(raw, label, a, b):
     return float(np.sqrt(np.mean(e2[:, sel])))
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("case", ["relay_clock_step", "radar_az_step"])
 def test_sonde_fault_is_isolated_to_its_channel_and_events_arrive_on_the_bus(case):
     if case == "relay_clock_step":
@@ -305,6 +309,7 @@ def test_sonde_fault_is_isolated_to_its_channel_and_events_arrive_on_the_bus(cas
     assert r_mon < 0.5 * r_plain, (r_mon, r_plain)
 
 
+@pytest.mark.slow
 def test_sonde_fault_free_monitored_fused_track_is_not_worse():
     """Fault-free messages, the fused tracker without and with the monitor, paired over trials:
     not significantly worse (one-sided 95 %) and non-inferior within 5 %; the monitor did judge

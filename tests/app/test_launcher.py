@@ -163,6 +163,8 @@ def _wait(cond, timeout=15.0):
     return False
 
 
+@pytest.mark.slow
+@pytest.mark.live
 def test_supervisor_restarts_a_dead_worker_and_stops_everything(tmp_path):
     script = tmp_path / "dummy.py"
     script.write_text(DUMMY)
@@ -195,6 +197,7 @@ def test_supervisor_restarts_a_dead_worker_and_stops_everything(tmp_path):
     assert sup.all_finished() and not sup.alive()
 
 
+@pytest.mark.live
 def test_supervisor_kills_a_worker_that_ignores_sigterm(tmp_path):
     script = tmp_path / "dummy.py"
     script.write_text(DUMMY)
@@ -216,6 +219,7 @@ def test_supervisor_kills_a_worker_that_ignores_sigterm(tmp_path):
 # ------------------------------------------------------------------ replay = batch
 
 
+@pytest.mark.slow
 def test_replay_of_a_recorded_batch_run_gives_the_same_estimates(tmp_path):
     from sitl.app.batch import run_batch
     from sitl.app.launcher import replay
@@ -243,6 +247,7 @@ def test_replay_of_a_recorded_batch_run_gives_the_same_estimates(tmp_path):
 # ------------------------------------------------------------------ mission upload
 
 
+@pytest.mark.slow
 def test_uploaded_mission_is_flown():
     import math
 
@@ -286,6 +291,7 @@ def test_uploaded_mission_is_flown():
 # ------------------------------------------------------------------ parameters over MAVLink
 
 
+@pytest.mark.live
 def test_param_set_reaches_the_group_and_a_sonde_set_is_vetoed():
     import numpy as np
     from pymavlink import mavutil

@@ -11,6 +11,7 @@ from tests.procs import udp_base
 from sitl.app.cli import main
 from sitl.app.preflight import OutDirLock
 from sitl.app.status import format_status
+import pytest
 
 
 def _scenario(tmp_path: Path, **mavlink) -> Path:
@@ -55,6 +56,7 @@ def test_batch_runs_take_the_lock_too(tmp_path, capsys):
     assert "in use" in err
 
 
+@pytest.mark.live
 def test_a_mavlink_port_in_use_is_found_before_anything_starts(tmp_path, capsys):
     base = udp_base(4)
     out = tmp_path / "out"
@@ -65,6 +67,7 @@ def test_a_mavlink_port_in_use_is_found_before_anything_starts(tmp_path, capsys)
     _nothing_started(out)
 
 
+@pytest.mark.live
 def test_a_router_port_in_use_is_found_before_anything_starts(tmp_path, capsys):
     out = tmp_path / "out"
     with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:

@@ -102,6 +102,7 @@ def _run(uncertainty, steps=200, trials=300, seed=5):
     return float(np.mean(nees))
 
 
+@pytest.mark.slow
 def test_inflation_keeps_the_beacon_filter_consistent():
     lo = scipy.stats.chi2.ppf(0.0005, 6 * 300) / 300
     hi = scipy.stats.chi2.ppf(0.9995, 6 * 300) / 300

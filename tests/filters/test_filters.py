@@ -203,6 +203,7 @@ def run_lg(method, d, kind, N, backend):
     return np.array(xs), np.array(Ps)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("N", [LG_TRIALS, FP_TRIALS], ids=["300trials_parallel", "3trials_serial"])
 @pytest.mark.parametrize("kind", ["diag", "full"], ids=["Rdiag", "Rfull"])
 @pytest.mark.parametrize("method", LG_METHODS)
@@ -322,6 +323,7 @@ def seed_batch(seed001):
 # ============================================================================ 2. batch = loop of single runs
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("kind", ["ekf", "ukf"])
 @pytest.mark.parametrize("backend", BACKENDS)
 def test_batch_equals_loop_of_single_runs(seed001, seed_batch, backend, kind):

@@ -74,6 +74,7 @@ def _binom_ci(n, p, conf=0.999):
     return scipy.stats.binom.interval(conf, n, p)
 
 
+@pytest.mark.slow
 def test_detect_only_monitor_equals_the_plain_filter_bit_for_bit():
     cfg = IntegrityConfig(isolate=False)
     e_mon, _reps, _ = _run(cfg, 20, 60, seed=3)
@@ -81,6 +82,7 @@ def test_detect_only_monitor_equals_the_plain_filter_bit_for_bit():
     np.testing.assert_array_equal(e_mon, e_plain)
 
 
+@pytest.mark.slow
 def test_healthy_false_alarm_rates_match_the_analytic_values():
     """beta ~ N(0, 1) exactly on this linear problem: jump rate 2(1 - Phi(3)); each window
     test alpha per row-epoch (non-overlapping windows taken, so the samples are independent)."""
@@ -265,6 +267,7 @@ def test_bad_channels_are_a_clear_error():
         mon.step(ms, x, P, z, model, np.array([0, 1]))
 
 
+@pytest.mark.slow
 def test_the_monitor_wraps_the_ud_filter_and_equals_the_ekf():
     """The U-D (Bierman-Thornton) update under the monitor, through a small adapter with the EKF
     update's signature, gives the monitored EKF's numbers (a linear model: both are exact)."""
@@ -582,6 +585,8 @@ print(os.environ["OMP_WAIT_POLICY"], sorted(burn)[len(burn) // 2])
 """
 
 
+@pytest.mark.slow
+@pytest.mark.live
 @pytest.mark.skipif(not kernels.HAVE_NUMBA, reason="numba not installed")
 def test_the_kernels_worker_threads_do_not_spin_after_a_parallel_kernel():
     """filters/_nbkernels.py sets OMP_WAIT_POLICY=PASSIVE before numba loads libgomp: after a

@@ -157,6 +157,7 @@ def loewner_leq(A, B, tol=1e-9):
     return bool(np.all(w >= -tol * scale))
 
 
+@pytest.mark.slow
 def test_pcrb_with_more_measurements_is_smaller():
     rng = np.random.default_rng(3)
     m = seed001_transition()

@@ -301,6 +301,7 @@ def _pr_model(sp, sv, **kw):
     return PseudorangeDoppler(sp, sv, sigma_pr, sigma_prr, **kw)
 
 
+@pytest.mark.slow
 def test_pseudorange_doppler_values_and_sign_convention():
     X = np.array([6.4e6, 0.0, 0.0])
     sp = np.array([[2.6e7, 0.0, 0.0], [6.4e6, 2.0e7, 0.0]])
@@ -330,6 +331,7 @@ geom = st.integers(1, 8).flatmap(
 )
 
 
+@pytest.mark.slow
 @settings(max_examples=60, deadline=None, derandomize=True, database=None)
 @given(geom)
 def test_pseudorange_doppler_jacobian_matches_central_differences(g):
@@ -463,6 +465,7 @@ def _clock_free_case(rng, batch=(4,), S=5):
     return sp, sv, x
 
 
+@pytest.mark.slow
 def test_clock_free_pseudorange_doppler_is_pseudorange_doppler_without_the_clock():
     """filters.models.ClockFreePseudorangeDoppler (moved from vehicles/uav_nav.py) against
     PseudorangeDoppler on the 8-state [X, D', V, V'] with the clock states at 0: the same h and
@@ -545,6 +548,7 @@ class _FullROnlyByDiagNone(_JointOnly):  # R_diag None (a full R) but no R()
         return None
 
 
+@pytest.mark.slow
 def test_a_model_without_a_protocol_member_fails_naming_it():
     from filters.ekf import ekf_predict, ekf_step, ekf_update
     from filters.integrity import IntegrityMonitor

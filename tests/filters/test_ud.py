@@ -144,6 +144,7 @@ def linear_problem():
     return dict(F=F, Q={"rank4": Q, "diag": Q_diag}, H=H, R=R, x0=x0, P0=P0, z=np.array(zs))
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("qkind", ["rank4", "diag"])
 @pytest.mark.parametrize("per_trial_F", [False, True])
 @pytest.mark.parametrize("kind", ["diag", "full"])

@@ -265,6 +265,7 @@ def test_config_checks():
 # ---------------------------------------------------------------------------- the experiment
 
 
+@pytest.mark.slow
 def test_experiment_case_isolates_the_injected_faults_and_summarises():
     """sitl/app/experiments/beacon.py with integrity on: a 100 m range step on UAV 2's link and a
     100 m pseudorange step on one of UAV 1's satellites (GPS constellation, printed geometry):

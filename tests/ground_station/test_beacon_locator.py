@@ -134,6 +134,7 @@ def _anees(scene, xs, Ps, k0=60):
     return metrics.nees(e, Ps[k0:, :, 0:3, 0:3]).mean(axis=1)  # per epoch, averaged over trials
 
 
+@pytest.mark.slow
 def test_nees_inflate_within_chi_square_bounds(white_uav_runs):
     scene, trials, runs = white_uav_runs
     xs, Ps, loc = runs["inflate"]
@@ -144,6 +145,7 @@ def test_nees_inflate_within_chi_square_bounds(white_uav_runs):
     assert np.mean((per_epoch > lo) & (per_epoch < hi)) > 0.9
 
 
+@pytest.mark.slow
 def test_ignore_is_overconfident_when_uav_errors_dominate(white_uav_runs):
     scene, trials, runs = white_uav_runs
     lo, hi = metrics.chi2_bounds(3, trials, 0.99)
@@ -357,6 +359,7 @@ def _rows(I, m):
 # ---------------------------------------------------------------------------- the CLI
 
 
+@pytest.mark.slow
 def test_cli_tiny_run_writes_result(tmp_path, capsys):
     out = tmp_path / "b"
     rc = cli.main(["experiment", "beacon", "--duration", "110", "--trials", "2", "--sweep-trials", "1",
@@ -385,6 +388,7 @@ def test_cli_tiny_run_writes_result(tmp_path, capsys):
         assert (out / f).stat().st_size > 1000
 
 
+@pytest.mark.slow
 def test_cli_geodetic_geometry_tiny_run(tmp_path):
     out = tmp_path / "g"
     rc = cli.main(["experiment", "beacon", "--geometry", "geodetic", "--duration", "110", "--trials", "2",
@@ -500,6 +504,7 @@ def test_scores_per_paper_axis_against_a_hand_computation():
     assert sc2["errors_m"] == e
 
 
+@pytest.mark.slow
 def test_printed_sweep_trials_that_diverged_with_one_linearisation():
     """The printed geometry's by_uav_count runs (seed 1, 5 trials) in which the locator with
     one EKF linearisation per update diverged: 3 UAVs trial 0 (locked onto the reflection

@@ -78,6 +78,7 @@ def beacon_world():
     return scene, _epochs(np.random.default_rng(21), scene, trials), trials
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name", list(CONFIGS))
 def test_beacon_delay_within_window_reprocesses_to_the_undelayed_state(beacon_world, name):
     """Every beacon measurement 2 s late (window 5 s): once all have arrived the re-processed
@@ -141,6 +142,7 @@ def test_beacon_untouched_trials_rerun_to_identical_results(beacon_world):
     assert not np.array_equal(got[len(eps) - 1]["r1"].cov, got_ref[len(eps) - 1]["r1"].cov)
 
 
+@pytest.mark.slow
 def test_beacon_duplicates_discarded_and_counted_exactly(beacon_world):
     scene, eps, trials = beacon_world
     cfg = _prior_config(scene)
@@ -311,6 +313,7 @@ def test_node_publishes_link_stats_and_flags_a_partitioned_uav_stale_then_back(b
     node.close()
 
 
+@pytest.mark.slow
 def test_beacon_coasts_through_a_30_s_partition_and_reconverges_after_the_heal():
     """Every UAV link down 20-50 s: the tracks coast (mode, growing covariance), nothing of the
     returning data is gated, and the error is back near the fault-free run's within 10 s.

@@ -191,6 +191,7 @@ FAST = settings(derandomize=True, database=None, deadline=None, max_examples=10,
                 suppress_health_check=[HealthCheck.too_slow])
 
 
+@pytest.mark.slow
 def test_refused_junk_never_changes_a_published_estimate(clean, reference):
     @FAST
     @given(st.lists(junk_specs, min_size=1, max_size=12))

@@ -16,6 +16,8 @@ from pymavlink.dialects.v20 import common as m
 
 from ground_station.process import GS_SYSID, GcsLink
 
+pytestmark = pytest.mark.live
+
 KEY = bytes(range(32))
 WALL0 = 1_780_000_000.0
 
@@ -184,6 +186,7 @@ def test_adsb_skips_what_is_not_an_estimate():
 _floats = st.floats(allow_nan=True, allow_infinity=True, width=64)
 
 
+@pytest.mark.slow
 @settings(max_examples=300, deadline=None, derandomize=True)
 @given(st.lists(_floats, min_size=3, max_size=3), st.lists(_floats, min_size=3, max_size=3),
        st.sampled_from(["beacon", "sonde", "x"]), st.text(max_size=12))

@@ -62,6 +62,7 @@ def _site():
 # ---------------------------------------------------------------- consistency and accuracy
 
 
+@pytest.mark.slow
 def test_each_mode_is_consistent_and_the_naive_radar_noise_is_not(short_run):
     raw, sc = short_run
     B = len(raw["trials"])
@@ -76,6 +77,7 @@ def test_each_mode_is_consistent_and_the_naive_radar_noise_is_not(short_run):
     assert sc["anees"]["radar_only_white"]["mean"] > 3 * sc["anees"]["radar_only"]["mean"]
 
 
+@pytest.mark.slow
 def test_fused_beats_each_single_source_and_stays_continuous(short_run):
     raw, sc = short_run
     r = sc["overall_rmse_m"]
@@ -290,6 +292,7 @@ def test_measurement_model_matches_the_world_and_the_compiled_rows_match_numpy(w
         np.testing.assert_allclose(H[0, :, i], num[0], rtol=1e-4, atol=1e-7 if i < 3 else 5e-5)
 
 
+@pytest.mark.slow
 def test_trials_batched_equal_trials_one_by_one():
     scn = dataclasses.replace(SHORT, duration_s=120.0, radar_loss_s=(20.0, 60.0), gnss_outage_s=(80.0, 100.0),
                               white_baseline=False)
@@ -308,6 +311,7 @@ def test_trials_batched_equal_trials_one_by_one():
 # ---------------------------------------------------------------- command line
 
 
+@pytest.mark.slow
 def test_cli_tiny_run_writes_result_json(tmp_path, capsys):
     out = tmp_path / "sonde"
     rc = main(["experiment", "sonde", "--trials", "1", "--duration", "40", "--seed", "3", "--out", str(out),
@@ -400,6 +404,7 @@ def test_relay_error_model_compiled_matches_numpy_and_the_world_budget():
     assert SondeTrackerParams().slow_tau_s == pytest.approx(1800.0, rel=0.1)  # the ionosphere dominates
 
 
+@pytest.mark.slow
 def test_relay_only_with_the_error_budget_beats_a_tracker_that_ignores_it():
     """On budget data, the same relay-only filter without the error states (white-noise model)
     is over-confident: its NEES is far above that of the modelled one."""

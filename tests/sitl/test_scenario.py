@@ -134,6 +134,8 @@ def test_load_scenario_file_errors(tmp_path):
     assert scenario_from_dict({"run": {"speed": 2}}).run.speed == 2.0
 
 
+@pytest.mark.slow
+@pytest.mark.live
 def test_cli_usage_error_exits_2_with_one_line(tmp_path):
     p = tmp_path / "bad.toml"
     p.write_text("[uavs]\ncount = 'many'\n")

@@ -34,6 +34,7 @@ def _ring():
     return np.radians(pts[:, 0]), np.radians(pts[:, 1]), pts[:, 2], math.radians(u.center[0]), math.radians(u.center[1])
 
 
+@pytest.mark.slow
 def test_orbit_stays_on_its_circle_while_a_constant_turn_walks_off():
     lat, lon, h, lat_c, lon_c = _ring()
     law = uav.Racetrack.orbit_through(lat, lon, lat_c, lon_c, 100.0)
@@ -80,6 +81,7 @@ def test_beacon_racetrack_repeats_with_the_pattern_dimensions():
     assert math.degrees(lon_c) == pytest.approx(scn.uavs.center[1], abs=0.002)
 
 
+@pytest.mark.slow
 def test_compiled_racetrack_equals_numpy_reference():
     lat, lon, h, lat_c, lon_c = _ring()
     orbit = uav.Racetrack.orbit_through(lat, lon, lat_c, lon_c, 100.0)

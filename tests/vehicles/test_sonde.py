@@ -125,6 +125,7 @@ def test_burst_altitudes_are_uniform_in_the_range():
     assert f2.burst_alt_m.min() >= 28e3 and f2.burst_alt_m.max() <= 30e3
 
 
+@pytest.mark.slow
 def test_ascent_burst_descent_landing(batch_flight):
     f, tr = batch_flight
     ph = tr.phase
@@ -149,6 +150,7 @@ def test_ascent_burst_descent_landing(batch_flight):
     assert np.all((t[k_land] - t[k_burst] > 2000.0) & (t[k_land] - t[k_burst] < 3300.0))
 
 
+@pytest.mark.slow
 def test_descent_speed_follows_the_density(batch_flight):
     _, tr = batch_flight
     d = (tr.phase == DESCENT) & (tr.alt_m < 24_000.0)  # past the burst transient
@@ -180,6 +182,7 @@ def test_default_flight_reaches_250_km_and_is_fast():
     assert elapsed < 0.5, elapsed
 
 
+@pytest.mark.slow
 def test_ground_range_is_the_great_circle_distance(batch_flight):
     _, tr = batch_flight
     # chord between the sub-sonde point and the launch point on the sphere vs ECEF chord at h0
@@ -210,6 +213,7 @@ def test_velocity_relaxes_to_the_wind_with_time_constant_1_over_p1():
     np.testing.assert_allclose(tr.vel_enu_m_s[:, 2], 5.0, atol=1e-12)
 
 
+@pytest.mark.slow
 def test_gust_acceleration_is_the_seed_gauss_markov_process():
     p = SondeParams()
     beta = p.p1_1_s + p.p2_1_s

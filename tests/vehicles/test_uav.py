@@ -34,6 +34,7 @@ def seed_start():
 # ============================================================================ RK4 and the ODE
 
 
+@pytest.mark.slow
 def test_rk4_matches_solve_ivp_on_the_seed_law():
     law = uav.seed002_uav_law()
     st = uav.initial_state(law, *seed_start())
@@ -193,6 +194,7 @@ def _mission(speed=100.0, turn=math.radians(3.0)):
                                accept_radius_m=150.0)
 
 
+@pytest.mark.slow
 def test_waypoint_mode_reaches_waypoints_in_order_with_bounded_rates():
     law = _mission()
     lat, lon, h = seed_start()
@@ -317,6 +319,7 @@ def test_printed_velocity_is_the_printed_formula():
     assert np.allclose(uav.ecef_to_paper(got), [v_xi, v_eta, v_zeta], rtol=1e-13, atol=1e-12)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("backend", ["numba", "numpy"])
 def test_printed_rk4_matches_solve_ivp(backend):
     law = uav.PrintedLaw.from_coeffs(list(uav.SEED002_PRINTED_COEFFS.values()))  # the 3 UAVs and the beacon

@@ -199,6 +199,7 @@ def _nees_stats(track, pos, vel, first=10):
     return per_epoch, float(per_epoch[first:].mean())
 
 
+@pytest.mark.slow
 def test_nees_within_chi2_bounds_three_satellites(seed_truth):
     t, pos, vel, const = seed_truth
     trials = 100

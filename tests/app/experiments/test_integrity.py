@@ -21,6 +21,7 @@ def tiny_run(tmp_path_factory):
     return rc, out
 
 
+@pytest.mark.slow
 def test_tiny_run_writes_result_keys_and_figures(tiny_run):
     rc, out = tiny_run
     assert rc == 0
@@ -39,6 +40,7 @@ def test_tiny_run_writes_result_keys_and_figures(tiny_run):
     assert sorted(res["figures"]) == sorted(ex.FIGURES)
 
 
+@pytest.mark.slow
 def test_same_seed_same_numbers(tiny_run, tmp_path):
     _, first = tiny_run
     out = tmp_path / "again"
@@ -81,6 +83,7 @@ def test_usage_errors_exit_2_with_one_line(extra, needle, tmp_path, capsys):
     assert not (out / "result.json").exists()
 
 
+@pytest.mark.slow
 def test_fault_free_monitor_is_no_worse_than_without():
     """Paired over trials on the same fault-free data: the EKF whose model matches the world, with and
     without the monitor (the same IntegrityConfig as the experiment). "Statistically no worse": the
@@ -142,6 +145,7 @@ def test_a_clock_ramp_also_shows_in_the_pseudorange_rate():
         ex.IntegrityScenario(duration_s=150.0, ramp_kind="slow")
 
 
+@pytest.mark.slow
 def test_ramp_signature_snr_equals_the_dense_gls_on_the_whole_history():
     """The oracle's SNR (steady-state Kalman innovations, the Willsky-Jones failure signature) against
     an independent computation: the generalised-least-squares SNR s' C^-1 s of the ramp on the channel's

@@ -30,6 +30,7 @@ def mismodelled():
     return off, dyn
 
 
+@pytest.mark.slow
 def test_eq7_restores_clock_consistency(mismodelled):
     off, dyn = mismodelled
     hi = scipy.stats.chi2.ppf(0.9995, 2 * TRIALS) / TRIALS / 2  # per dof, one epoch
@@ -37,6 +38,7 @@ def test_eq7_restores_clock_consistency(mismodelled):
     assert dyn["anees_clock"] < hi, dyn["anees_clock"]
 
 
+@pytest.mark.slow
 def test_same_data_whatever_the_filter(mismodelled):
     off, dyn = mismodelled
     np.testing.assert_array_equal(off["n_visible"], dyn["n_visible"])

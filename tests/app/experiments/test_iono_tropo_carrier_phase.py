@@ -47,6 +47,7 @@ def _nees_band(trials, epochs=1):
     return scipy.stats.chi2.ppf(0.0005, 2 * n) / n, scipy.stats.chi2.ppf(0.9995, 2 * n) / n
 
 
+@pytest.mark.slow
 def test_same_data_and_practically_at_once(runs):
     v1, v3 = runs
     assert v1["variant"] == 1 and v3["variant"] == 3
@@ -60,6 +61,7 @@ def test_same_data_and_practically_at_once(runs):
     assert v3["final_error_m"]["position"] < v1["final_error_m"]["position"]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("which", ["no_slips", "slips"])
 def test_iono_tropo_block_nees_is_consistent(equator_runs, which):
     r = equator_runs[0] if which == "no_slips" else equator_runs[1]
@@ -73,6 +75,7 @@ def test_iono_tropo_block_nees_is_consistent(equator_runs, which):
     assert np.all(np.isfinite(nees))
 
 
+@pytest.mark.slow
 def test_slips_reset_k_and_are_all_seen(equator_runs, rise_set_run):
     for r in (equator_runs[1], rise_set_run):
         amb = r["ambiguity"]
@@ -83,6 +86,7 @@ def test_slips_reset_k_and_are_all_seen(equator_runs, rise_set_run):
     assert equator_runs[0]["ambiguity"]["k_resets"] == equator_runs[0]["ambiguity"]["true_slips"] == 0
 
 
+@pytest.mark.slow
 def test_state_dimension_follows_the_tracked_set(runs, rise_set_run):
     for r in (runs[1], rise_set_run):
         ns = np.asarray(r["n_state"])
@@ -116,6 +120,7 @@ def test_bad_variant_and_amb_sigma_raise():
         IonoTropoScenario(duration_s=10.0, sigma0_amb_m=0.0)
 
 
+@pytest.mark.slow
 def test_phase_of_fewer_satellites(runs):
     """phase_max_sats = N: N K states and N phase rows (the highest satellites by the filter's
     elevation). One phase pins only one combination of the position/clock change, so it helps

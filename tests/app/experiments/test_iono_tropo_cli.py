@@ -38,6 +38,7 @@ def test_help_lists_the_variants(capsys):
     assert "iono-tropo" in capsys.readouterr().out
 
 
+@pytest.mark.slow
 def test_all_variants_write_result_series_and_figures(all_run, capsys):
     rc, out = all_run
     assert rc == 0
@@ -69,6 +70,7 @@ def test_all_variants_write_result_series_and_figures(all_run, capsys):
             assert npz[f"{name}/t_s"][-1] == pytest.approx(20.0)
 
 
+@pytest.mark.slow
 def test_single_variant_writes_only_that_variant(tmp_path, capsys):
     out = tmp_path / "one"
     assert main(SHORT + ["--variant", "carrier_phase", "--out", str(out)]) == 0
@@ -83,6 +85,7 @@ def test_single_variant_writes_only_that_variant(tmp_path, capsys):
     assert "carrier_phase" in table and "practically at once" in table and "code_doppler" not in table
 
 
+@pytest.mark.slow
 def test_never_settled_is_null_not_infinity(tmp_path):
     # 1 s of code + Doppler cannot bring I_g from 0 to within 1 m of 15 m: time to 1 m is inf
     out = tmp_path / "inf"
@@ -125,6 +128,8 @@ def test_usage_errors_exit_2_with_one_line(extra, needle, tmp_path, capsys):
     assert not (out / "result.json").exists()  # the error came before any run
 
 
+@pytest.mark.slow
+@pytest.mark.live
 def test_too_few_satellites_through_a_real_process(tmp_path):
     proc = subprocess.run([sys.executable, "-m", "sitl.app.cli", "experiment", "iono-tropo", "--el-mask-deg", "80",
                            "--out", str(tmp_path / "x")], capture_output=True, text=True, timeout=60)
@@ -142,6 +147,7 @@ def _without_wall(d):
     return d
 
 
+@pytest.mark.slow
 def test_same_seed_same_numbers(all_run, tmp_path):
     _, first = all_run
     out = tmp_path / "again"

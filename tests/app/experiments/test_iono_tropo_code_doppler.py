@@ -16,6 +16,7 @@ def short_run():
     return run_code_doppler(IonoTropoScenario(duration_s=300.0), TRIALS, seed=7)
 
 
+@pytest.mark.slow
 def test_iono_tropo_errors_shrink_from_the_prior(short_run):
     r = short_run
     assert r["n_visible_min"] >= 12  # the seed's "at least 12 satellites in view"
@@ -31,6 +32,7 @@ def test_iono_tropo_errors_shrink_from_the_prior(short_run):
     assert r["final_error_m"]["tropo_zenith"] < 1.0
 
 
+@pytest.mark.slow
 def test_iono_tropo_block_nees_is_chi_square_consistent(short_run):
     """Mean over the 8 trials of the (I_g, U_g) NEES, averaged over the last 60 s, against
     the two-sided 99.9 % band of (1/8) chi2(2 * 8): about [0.44, 5.16] (per dof
@@ -47,6 +49,7 @@ def test_iono_tropo_block_nees_is_chi_square_consistent(short_run):
     assert np.all(np.asarray(short_run["nees_atmo_mean"])[t > 60.0] < 3.0 * hi)
 
 
+@pytest.mark.slow
 def test_time_to_1m_is_defined_per_trial(short_run):
     ttm = np.asarray(short_run["time_to_1m_s_per_trial"])
     assert ttm.shape == (TRIALS,)

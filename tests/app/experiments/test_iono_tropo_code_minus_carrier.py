@@ -33,6 +33,7 @@ def _nees_band():
     return (scipy.stats.chi2.ppf(0.0005, 2 * TRIALS) / TRIALS, scipy.stats.chi2.ppf(0.9995, 2 * TRIALS) / TRIALS)
 
 
+@pytest.mark.slow
 def test_same_simulated_data(runs):
     v1, v2 = runs
     assert v1["variant"] == 1 and v2["variant"] == 2
@@ -47,6 +48,7 @@ def test_same_simulated_data(runs):
                                rtol=1e-7)
 
 
+@pytest.mark.slow
 def test_increments_help_on_the_same_data(runs):
     v1, v2 = runs
     inc = v2["increments"]
@@ -56,6 +58,7 @@ def test_increments_help_on_the_same_data(runs):
     assert np.sum(np.isinf(v2["time_to_1m_s_per_trial"])) <= np.sum(np.isinf(v1["time_to_1m_s_per_trial"]))
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("which", ["no_slips", "slips"])
 def test_iono_tropo_block_nees_is_consistent(runs, slip_run, which):
     r = runs[1] if which == "no_slips" else slip_run
@@ -67,6 +70,7 @@ def test_iono_tropo_block_nees_is_consistent(runs, slip_run, which):
     assert r["final_error_m"]["iono_zenith"] < 2.0 and r["final_error_m"]["tropo_zenith"] < 1.0
 
 
+@pytest.mark.slow
 def test_increments_spanning_a_slip_are_not_used(slip_run):
     inc = slip_run["increments"]
     assert inc["detector_slips"] > 0
@@ -172,6 +176,7 @@ def test_code_noise_states_equal_batch_gls_with_the_full_noise_covariance():
     np.testing.assert_allclose(P_seq[0], P_gls, rtol=1e-6, atol=1e-10)
 
 
+@pytest.mark.slow
 def test_code_noise_states_settle_sooner_than_the_whitened_increments(runs):
     """On the same data: the exact noise model makes the increment carry the carrier-phase
     change (3 mm) instead of only 2 I_g dm against 6 m code noise."""

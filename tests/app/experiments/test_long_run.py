@@ -22,6 +22,7 @@ from sitl.app import cli
 from sitl.app.experiments import long_run as lr
 
 
+@pytest.mark.slow
 def test_a_trial_is_the_batch_demo_run():
     from sitl.app.batch import run_batch
 
@@ -68,6 +69,7 @@ def test_window_checks_on_errors_of_known_covariance():
     assert nb[0]["reference"] == "first_window" and nb[0]["rmse_pass"] and not nb[1]["rmse_pass"]
 
 
+@pytest.mark.slow
 def test_cli_short_run_on_the_default_geometry_passes(tmp_path, capsys):
     out = tmp_path / "lr"
     rc = cli.main(["experiment", "long-run", "--duration", "400", "--window", "400", "--trials", "1", "--no-sonde",
@@ -84,6 +86,7 @@ def test_cli_short_run_on_the_default_geometry_passes(tmp_path, capsys):
     assert "ALL WINDOWS PASS" in capsys.readouterr().out
 
 
+@pytest.mark.slow
 def test_old_northbound_inflate_configuration_is_flagged():
     doc = lr.long_run(1800.0, seed=1, trials=1, geometry="north", locator="inflate", with_sonde=False)
     win = doc["windows"]

@@ -227,6 +227,7 @@ def test_total_loss_leaves_truth_and_estimates_alone(beacon_runner, beacon_basel
     assert r.gs["published"] == beacon_baseline.gs["published"]
 
 
+@pytest.mark.slow
 def test_sonde_faults_are_seeded_and_apply_to_relay_and_radar():
     scn = so.SondeScenario(duration_s=60.0, white_baseline=False)
     rules = [("**", "loss=30%")]
@@ -247,6 +248,7 @@ def _parse(argv):
     return p.parse_args(argv)
 
 
+@pytest.mark.slow
 def test_result_json_on_a_tiny_run(tmp_path, monkeypatch):
     plan = fx.Plan(loss=(0.5,), burst_loss=(), delay_s=(1.0,), partition_s=(5.0,))
     monkeypatch.setattr(fx, "QUICK_PLAN", plan)

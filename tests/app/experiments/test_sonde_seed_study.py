@@ -128,6 +128,7 @@ def _coast_nees(kinematics: str, n: int = 20, outage=(150.0, 270.0)):
     return out
 
 
+@pytest.mark.slow
 def test_a_relay_only_coast_through_an_outage_is_consistent_with_the_relaxed_model_and_not_with_singer():
     n = 20
     lo, hi = chi2.ppf([0.005, 0.995], 3 * n) / n  # the mean NEES of n independent sondes at one epoch
@@ -153,6 +154,7 @@ def short_study():
 
 
 @pytest.mark.slow
+@pytest.mark.slow
 def test_seed_study_short_variant_fused_is_no_worse_than_the_source_left_in_each_outage(short_study):
     d = short_study
     assert d["seeds"] == list(range(1, 13)) and len(d["per_seed"]) == 12
@@ -166,6 +168,7 @@ def test_seed_study_short_variant_fused_is_no_worse_than_the_source_left_in_each
     assert d["checks"]["gnss_outage_no_worse_than_radar_only"] and d["checks"]["radar_loss_no_worse_than_relay_only"]
 
 
+@pytest.mark.slow
 @pytest.mark.slow
 def test_seed_study_short_variant_the_issue_seed_is_fixed(short_study):
     """Seed 1, the issue's reproduction: fused below relay-only now; with the tracker's model before
@@ -226,6 +229,7 @@ def _landing_run(landing: bool):
     return tr, trk, err
 
 
+@pytest.mark.slow
 def test_a_coasting_descending_sonde_lands_and_its_error_stays_bounded():
     from sitl.geodesy import ecef_to_geodetic
 

@@ -24,6 +24,8 @@ from tests.procs import udp_free as _udp_free
 from sitl.app.launcher import launch, replay
 from sitl.scenario import default_scenario
 
+pytestmark = [pytest.mark.live, pytest.mark.slow]
+
 
 class GcsPeer(threading.Thread):
     """pymavlink listening where the GCS would: who sends HEARTBEAT, which ADSB callsigns."""

@@ -25,6 +25,7 @@ def _threads(prefix: str) -> list[str]:
 # ------------------------------------------------------------------ MAVLink: front + proxies
 
 
+@pytest.mark.live
 def test_mavlink_front_takes_each_vehicle_through_its_own_proxy_both_ways():
     """Three vehicle endpoints (pymavlink, sysids 1-3, sending from base_port + 10 i to the
     front: what the vehicle workers' specs name as their GCS) and a GCS peer. Vehicle 2's
@@ -181,6 +182,7 @@ def control_server(tmp_path):
     router.close()
 
 
+@pytest.mark.live
 def test_fault_set_is_applied_acknowledged_and_listed(control_server, capsys):
     from sitl.netfault import parse_spec
     from sitl.app.fault_cli import main
@@ -204,6 +206,7 @@ def test_fault_set_is_applied_acknowledged_and_listed(control_server, capsys):
     assert [h["by"] for h in hist] == ["control"] and hist[0]["t_s"] == 12.5
 
 
+@pytest.mark.live
 @pytest.mark.parametrize("argv, expect", [
     (["set", "mav:1", "loss=120%"], "loss=120%"),          # bad spec: refused here, nothing sent
     (["set", "mav:7", "loss=1%"], "unknown link 'mav:7'"),  # not in run.json's links
@@ -218,6 +221,7 @@ def test_fault_set_refuses_bad_input_with_exit_2_and_one_line(control_server, ca
     assert cs["applied"] == []
 
 
+@pytest.mark.live
 def test_launcher_refuses_and_counts_what_it_cannot_apply_and_goes_on(control_server, capsys):
     """Requests that pass the CLI's checks but not the launcher's (a link missing from this
     run, a TCP link given packet loss): exit 2 with the launcher's one-line reason, counted;
@@ -243,6 +247,7 @@ def test_launcher_refuses_and_counts_what_it_cannot_apply_and_goes_on(control_se
     assert time.monotonic() - t0 < 1.0
 
 
+@pytest.mark.live
 def test_a_run_without_faults_refuses_changes_and_loads_no_fault_models(tmp_path, capsys):
     """A launcher whose scenario has no [faults] answers every change with one line (exit 2),
     counts it, and its control side does not import sitl.netfault (numpy/scipy models)."""
@@ -273,6 +278,7 @@ def test_a_run_without_faults_refuses_changes_and_loads_no_fault_models(tmp_path
     assert board.report()["bad_requests"] == {"no faults in this run": 1}
 
 
+@pytest.mark.live
 def test_worker_applies_each_bus_request_once_and_counts_bad_ones():
     """A worker's side of the control key (subscribe_async: no drain): a bus rule is applied
     once however often the CLI repeats the request; a bad key expression or spec is counted,
@@ -314,6 +320,8 @@ def nav_msg(i):
 # ------------------------------------------------------------------ a short live run
 
 
+@pytest.mark.slow
+@pytest.mark.live
 def test_live_run_gs_partition_recovers_without_restart_and_fault_set_changes_a_link(tmp_path):
     """3 UAVs, no MAVLink, x10, 44 s simulated, lease 500 ms; the GS's Zenoh link is silently
     partitioned from 18 to 30 s (1.2 wall s: its session is lost) and a bus rule drops

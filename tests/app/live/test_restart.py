@@ -21,6 +21,8 @@ from sitl.scenario import default_scenario
 
 pytestmark = [pytest.mark.live, pytest.mark.slow]
 
+pytestmark = [pytest.mark.live, pytest.mark.slow]
+
 SPEED = 8.0
 KILL_AT_S = 40.0  # simulated seconds into the run: both estimates have converged
 

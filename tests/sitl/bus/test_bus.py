@@ -277,6 +277,7 @@ messages = st.one_of(
 )
 
 
+@pytest.mark.slow
 @FAST
 @given(messages)
 def test_round_trip_property(m):
@@ -301,6 +302,7 @@ def decode_or_reject(payload: bytes) -> Message | None:
     return m
 
 
+@pytest.mark.slow
 @settings(FAST, max_examples=1000)
 @given(st.binary(max_size=3000))
 def test_fuzz_random_bytes(payload):
@@ -324,6 +326,7 @@ def test_every_truncation_of_each_kind_rejected():
                 decode(b[:cut])
 
 
+@pytest.mark.slow
 @settings(FAST, max_examples=150)
 @given(messages, st.data())
 def test_fuzz_bit_flips(m, data):
@@ -383,6 +386,7 @@ msgpack_values = st.recursive(
     max_leaves=12)
 
 
+@pytest.mark.slow
 @settings(FAST, max_examples=120)
 @given(messages, st.data())
 def test_fuzz_field_values(m, data):

@@ -253,6 +253,8 @@ def _kill_writer(path, when):
     return t_kill, n_idle
 
 
+@pytest.mark.slow
+@pytest.mark.live
 @pytest.mark.parametrize("when", ["busy", "idle"])
 def test_kill_9_loses_at_most_the_last_second_and_the_file_reads(tmp_path, when):
     """A real SIGKILL of a writing process: the log reads, holds records 0..k in order, and
@@ -297,6 +299,7 @@ def test_recorder_on_in_memory_bus_records_the_wire_bytes_and_replays(tmp_path):
                                zip(read_bus_log(path), sent, strict=True))
 
 
+@pytest.mark.live
 def test_recorder_on_zenoh_records_malformed_payloads_too(tmp_path):
     from sitl.bus import Router, ZenohTransport
 

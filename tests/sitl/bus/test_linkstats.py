@@ -95,6 +95,7 @@ def test_stats_equal_the_injected_truth(spec):
     assert truth.dropped + truth.duplicated + truth.reordered + (truth.delay_s_max > 0) > 0
 
 
+@pytest.mark.slow
 @settings(derandomize=True, database=None, deadline=None, max_examples=15,
           suppress_health_check=[HealthCheck.too_slow])
 @given(loss=st.sampled_from([0, 3, 30]), dup=st.sampled_from([0, 10, 60]), delay_ms=st.sampled_from([0, 50, 400]),

@@ -108,6 +108,7 @@ def _wire(m):
     return msgpack.unpackb(encode(m), raw=False)
 
 
+@pytest.mark.live
 def test_the_audit_on_a_live_bus_counts_keys_no_component_decodes():
     """The issue's case: malformed payloads on uav/N/nav (which the ground station never
     subscribes to) were counted by nobody."""

@@ -32,6 +32,8 @@ from sitl.bus import (
     key_matches,
 )
 
+pytestmark = pytest.mark.live
+
 REPO = os.path.abspath(os.path.join(os.path.dirname(__file__), os.pardir, os.pardir, os.pardir))  # the checkout
 ENV = {**os.environ, "PYTHONPATH": REPO + os.pathsep + os.environ.get("PYTHONPATH", "")}
 
@@ -322,6 +324,7 @@ PUBLISHER = """
 """
 
 
+@pytest.mark.slow
 def test_burst_into_a_stalled_receiver_loses_nothing_with_block(router, tmp_path):
     """3000 messages of 5.3 kB (16 MB, more than the socket buffers hold) as fast as another
     process can publish, into a receiver that stops draining for 0.5 s and whose queue holds

@@ -50,6 +50,7 @@ def lost_mask(lf: LinkFault) -> np.ndarray:
 # loss
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("p", [0.05, 0.3])
 def test_random_loss_in_binomial_ci(p):
     lf, outs = run(FaultSpec(loss=p))
@@ -120,6 +121,7 @@ def test_crandom_block_is_netems_recursion():
     assert abs(u.var() / ((1 - rho) / (1 + rho) / 12) - 1) < 0.03
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("p,rho", [(0.2, 0.25), (0.3, 0.5)])
 def test_correlated_loss_matches_crandom_chain(p, rho):
     p1, p11 = _crandom_stationary(p, rho)
@@ -150,6 +152,7 @@ def _runs(mask: np.ndarray, value: bool) -> np.ndarray:
     return np.flatnonzero(d == -1) - np.flatnonzero(d == 1)  # ends - starts
 
 
+@pytest.mark.slow
 def test_gilbert_loss_burst_and_gap_lengths():
     p, r = 0.05, 0.3
     lf, _ = run(f"gemodel={p * 100}%,{r * 100}%", seed=5)  # 1-h = 100 %, 1-k = 0 %
@@ -165,6 +168,7 @@ def test_gilbert_loss_burst_and_gap_lengths():
         assert abs(runs.mean() - mean_exp) < Z999 * sd / math.sqrt(runs.size), (runs.mean(), mean_exp)
 
 
+@pytest.mark.slow
 def test_gilbert_elliott_stationary_loss():
     p, r, one_h, one_k = 0.02, 0.25, 0.7, 0.01
     lf, _ = run(FaultSpec(ge=(p, r, one_h, one_k)), seed=6)
@@ -185,6 +189,7 @@ def delays(outs, dt=1e-3, t0=0.0):
     return np.array([o[0][0] - (t0 + i * dt) for i, o in enumerate(outs)])
 
 
+@pytest.mark.slow
 def test_normal_delay_mean_sd_and_ks():
     mu, sigma = 1.0, 0.1
     lf, outs = run(f"delay={mu}s~{sigma}s distribution=normal", seed=8)
@@ -198,6 +203,7 @@ def test_normal_delay_mean_sd_and_ks():
     assert lf.truth.reordered > 0  # jitter 100 ms on 1 ms spacing reorders, as netem
 
 
+@pytest.mark.slow
 def test_uniform_delay_bounds_and_correlation():
     mu, sigma, rho = 0.5, 0.2, 0.5
     _, outs = run(f"delay={mu}s~{sigma}s,{rho * 100}%", seed=9)
@@ -212,6 +218,7 @@ def test_uniform_delay_bounds_and_correlation():
     assert stats.kstest(delays(outs), stats.uniform(mu - sigma, 2 * sigma).cdf).pvalue > 1e-3
 
 
+@pytest.mark.slow
 def test_pareto_delay_tail_ks():
     """netem's pareto table: t = 4/3 (X - 1.5), X ~ Pareto(a=3), clipped at 32767/8192."""
     mu, sigma = 1.0, 0.1
@@ -263,6 +270,7 @@ def test_negative_delays_are_clipped():
 # reorder, duplicate, corrupt
 
 
+@pytest.mark.slow
 def test_reorder_fraction_and_truth():
     lf, outs = run("delay=10ms reorder=25%", seed=14)
     k = lf.truth.sent_at_once
@@ -284,6 +292,7 @@ def test_reorder_fraction_and_truth():
     assert lf.truth.reordered > 0.5 * (N - k)
 
 
+@pytest.mark.slow
 def test_reorder_gap_rule():
     # reorder 100% gap 5: packets 5, 10, 15, ... (1-based) are sent at once, as netem
     _, outs = run("delay=10ms reorder=100% gap=5", n=1000)
@@ -298,6 +307,7 @@ def test_reorder_gap_rule():
     assert abs(extra.mean() - 1.0) < Z999 * math.sqrt(2) / math.sqrt(extra.size)
 
 
+@pytest.mark.slow
 def test_duplicate_fraction_and_netem_loss_arithmetic():
     lf, outs = run("duplicate=10%", seed=16)
     two = [i for i, o in enumerate(outs) if len(o) == 2]
@@ -317,6 +327,7 @@ def test_duplicate_fraction_and_netem_loss_arithmetic():
     assert lf.truth.dropped_loss == n0 and lf.truth.duplicated == n2
 
 
+@pytest.mark.slow
 def test_corrupt_one_bit():
     payload = bytes(range(32))
     lf, outs = run("corrupt=10%", seed=18, payload=payload)

@@ -24,6 +24,8 @@ from sitl.netfault.tcp_proxy import TcpProxy
 from sitl.netfault.udp_proxy import UdpProxy, parse_addr
 from tests.procs import tcp_free, udp_free
 
+pytestmark = pytest.mark.live
+
 LO = "127.0.0.1"
 
 
@@ -552,6 +554,7 @@ def test_tcp_reset_partition_from_spec_window_then_new_connections_work():
         srv.close()
 
 
+@pytest.mark.slow
 def test_zenoh_session_through_proxy_loses_link_in_silent_partition_and_recovers_by_itself():
     """A client session (lease 1 s, router lease 1 s) publishing through the proxy; a subscriber
     connected to the router directly. A 2 s silent partition: the session is lost (its router

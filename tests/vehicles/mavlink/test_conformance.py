@@ -21,6 +21,8 @@ from sitl.timescales import utc_from_gps_seconds
 from vehicles.mavlink import (CAPABILITIES, REJECT_REASONS, EndpointGroup, ParamSpec, ParamStore, VehicleEndpoint,
                               sonde_param_specs, uav_param_specs)
 
+pytestmark = pytest.mark.live
+
 KEY = bytes(range(32))
 
 

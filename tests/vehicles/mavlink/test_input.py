@@ -24,6 +24,8 @@ from vehicles.mavlink import DATAGRAM_REJECT_REASONS, EndpointGroup, VehicleEndp
 from sitl.mavlink.framing import SIGNING_EPOCH_UNIX_S
 from vehicles.mavlink.telemetry import unix_s_from_gps
 
+pytestmark = pytest.mark.live
+
 QUIET = {k: 0 for k in (0, 1, 2, 24, 30, 33)}
 T0_GPS_S = 1_400_000_000.0
 KEY = bytes(range(32))

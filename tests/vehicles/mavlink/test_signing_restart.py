@@ -25,6 +25,8 @@ from pymavlink.dialects.v20 import ardupilotmega as mav
 from vehicles.mavlink import FUTURE_WINDOW_S, SigningStateFile, VehicleEndpoint
 from sitl.mavlink.framing import SIGNING_EPOCH_UNIX_S
 
+pytestmark = pytest.mark.live
+
 KEY = bytes(range(32))
 QUIET = {k: 0 for k in (0, 1, 2, 24, 30, 33)}  # no streams: only what a test asks for is sent
 HEARTBEAT_ONLY = {**QUIET, 0: 1.0}
@@ -396,6 +398,7 @@ class _Worker:
         self.p.stdout.close()
 
 
+@pytest.mark.slow
 @pytest.mark.live
 def test_replay_after_a_sigkilled_worker_restart_is_rejected(tmp_path):
     """A process on the real wall clock, killed with SIGKILL (no close, no final save) and
