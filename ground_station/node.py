@@ -45,23 +45,26 @@ from dataclasses import dataclass
 
 from sitl.bus import Estimate, LinkMonitor, key_matches
 from sitl.bus.timeguard import TimeGuard
+from sitl.scenario import BeaconSection, GroundStationSection, RunSection, SondeSection
 
 
 @dataclass(frozen=True)
 class GsConfig:
-    beacon_id: str = "b1"
-    beacon_init_epochs: int = 3
-    sonde: bool = True
-    radar_id: str | None = "arls1"
-    sonde_dt_s: float = 1.0
-    gcpp_offset_m: float = 300.0
-    gcpp_bearing_deg: float = 140.0
-    sonde_integrity: bool = False
-    stale_after_s: float = 3.0  # a link silent this long (simulation time) is flagged stale
-    link_stats_every_s: float = 10.0  # LinkStats of every link this often (and on stale / back)
-    lag_window_s: float = 5.0  # late (out-of-sequence) measurements this old are re-processed (0: dropped)
-    max_ahead_s: float = 2.0  # an input further ahead of the node's clock than this is refused (future)
-    hold_s: float = 1.0  # the longest an epoch waits for its inputs (simulated s): the guard's window behind
+    """The node's settings; the defaults are the scenario's (sitl.scenario's declarations), once."""
+
+    beacon_id: str = BeaconSection.id
+    beacon_init_epochs: int = GroundStationSection.beacon_init_epochs
+    sonde: bool = SondeSection.enabled
+    radar_id: str | None = SondeSection.radar_id
+    sonde_dt_s: float = 1.0 / RunSection.rate_hz
+    gcpp_offset_m: float = SondeSection.gcpp_offset_m
+    gcpp_bearing_deg: float = SondeSection.gcpp_bearing_deg
+    sonde_integrity: bool = GroundStationSection.integrity
+    stale_after_s: float = GroundStationSection.stale_after_s  # a link silent this long (simulation time) is flagged stale
+    link_stats_every_s: float = GroundStationSection.link_stats_every_s  # LinkStats of every link this often
+    lag_window_s: float = GroundStationSection.lag_window_s  # late measurements this old are re-processed (0: dropped)
+    max_ahead_s: float = GroundStationSection.max_ahead_s  # an input further ahead of the node's clock is refused
+    hold_s: float = GroundStationSection.hold_wall_s * RunSection.speed  # the longest an epoch waits (simulated s)
     # the sonde tracker's parameters (SondeTrackerParams; required with ``sonde``): the composition
     # root derives them from the world's models (sitl.app.components.sonde_tracker_params); the
     # node applies its own lag window to them
