@@ -1,8 +1,8 @@
 """The locator's per-epoch filter step: predict, then the measurement update of the epoch's ranges
-and Dopplers -- EKF (a gated, whitened sequential Joseph update), iterated EKF or, with
-observer_uncertainty="consider", the Schmidt update with the UAVs' navigation errors as consider
-states.  Batched over trials; absent or rejected observers have zero rows (gain exactly 0), so
-every trial may have its own N.
+and Dopplers -- EKF (a gated, whitened sequential Joseph update), iterated EKF
+(filters.iekf.iterated_update) or, with observer_uncertainty="consider", the Schmidt update
+(filters.schmidt) with the UAVs' navigation errors as consider states.  Batched over trials;
+absent or rejected observers have zero rows (gain exactly 0), so every trial may have its own N.
 """
 from __future__ import annotations
 
@@ -11,6 +11,8 @@ import math
 import numpy as np
 
 from filters import kernels
+from filters.iekf import iterated_update, relinearized_innovation
+from filters.schmidt import schmidt_innovation, schmidt_update
 
 from .config import LocatorConfig
 from .frame import Frame, cyl_to_ecef, ecef_to_cyl, formation_frame
@@ -37,20 +39,37 @@ def _m2ll(yw, Hw, P, logdet_r):
     return np.sum(w * w, axis=-1) + 2.0 * np.sum(np.log(np.diagonal(L, axis1=-2, axis2=-1)), axis=-1) + logdet_r
 
 
-_IEKF_TOL = 1e-3  # m, m/s: iterated updates stop once no row's ECEF iterate moved by more
+# the iterated update's stopping rules (filters.iekf.iterated_update; LocatorConfig.update_iterations)
+_STEP_TOL = 1e-3  # m, m/s: stop once no row's ECEF iterate moved by this much or more (a further
+#                   update would relinearise at the same point)
+_INNOVATION_TOL = 1e-3  # stop once relinearising changed no used innovation by this fraction of its
+#                         noise sigma or more (the next update would repeat the last one)
 
 
-def _converged(x, x_last) -> bool:
-    """The iterated update has converged: no row's ECEF [B, V] moved by _IEKF_TOL or more since
-    the last relinearisation (a further one would relinearise at the same point)."""
-    return bool(np.max(np.abs(x - x_last)) < _IEKF_TOL)
+def _iterate(y, y1, fr, xp, nu_prior, R, used, obs: ObserverEpoch, kappa: float, update, iterations: int):
+    """The iterations of an iterated EKF update after the first one (filters.iekf.iterated_update):
+    the epoch's ranges and Dopplers relinearised at each iterate's ECEF state (R kept at the
+    prediction's, the used set the first update's), the prior (y, P) updated again by
+    ``update(nu, (H wrt y, H wrt ECEF))``; stopped by the step (in ECEF, from the prediction xp)
+    or by the innovation of the used rows (from nu_prior, in units of sqrt(diag R))."""
+    z = np.stack([obs.range_m, obs.range_rate_m_s], axis=-1)
+    at = {}
 
+    def point(yi):  # the iterate in ECEF, with the Jacobian linearize needs at the same point
+        at["y"] = yi
+        at["x"], at["G"] = cyl_to_ecef(yi, fr, jacobian=True)
+        return at["x"]
 
-def _same_innovation(nu, nu_last, sigma, used) -> bool:
-    """Relinearising changed no used innovation by 1e-3 of its noise sigma or more: the next
-    update would repeat the last one (the measurements are linear enough over the step)."""
-    d = np.abs(nu - nu_last) / sigma
-    return bool(np.max(np.where(used[..., None], d, 0.0), initial=0.0) < 1e-3)
+    def linearize(yi):
+        if at.get("y") is not yi:
+            point(yi)
+        zh, He, _ = range_doppler_blocks(at["x"], obs, kappa)
+        Hy = He @ at["G"][:, None]
+        return relinearized_innovation(z, zh, Hy, y[:, None], yi[:, None]), (Hy, He)
+
+    return iterated_update(y, y1, linearize, update, iterations, step_tol=_STEP_TOL, point=point, point_prior=xp,
+                           innovation_tol=_INNOVATION_TOL, nu_prior=nu_prior,
+                           sigma=np.sqrt(np.diagonal(R, axis1=-2, axis2=-1)), innovation_rows=used[..., None])
 
 
 def cyl_step(y, P, fr: Frame, obs: ObserverEpoch, config: LocatorConfig, dt_s: float, loglik: bool = False,
@@ -100,23 +119,10 @@ def cyl_step(y, P, fr: Frame, obs: ObserverEpoch, config: LocatorConfig, dt_s: f
         R_score = R0 + (R - R0) / kappa
     out = gated_update(y, P, nu, H, R, obs.mask, config, loglik, R_score, judge)
     if config.update_iterations > 1:  # iterated EKF: relinearise at the updated state
-        z = np.stack([obs.range_m, obs.range_rate_m_s], axis=-1)
-        used0, yi = out[3], out[0]
-        x_last, it, nu_last = xp, None, nu
-        sr = np.sqrt(np.diagonal(R, axis1=-2, axis2=-1))
-        for _ in range(int(config.update_iterations) - 1):
-            xi, Gi_ = cyl_to_ecef(yi, fr, jacobian=True)
-            if _converged(xi, x_last):
-                break
-            x_last = xi
-            zh, Hi, _ = range_doppler_blocks(xi, obs, kappa)  # (R kept at the prediction's)
-            Hi = Hi @ Gi_[:, None]
-            nui = z - zh - np.einsum("tnai,ti->tna", Hi, y - yi)
-            if _same_innovation(nui, nu_last, sr, used0):
-                break
-            nu_last = nui
-            it = gated_update(y, P, nui, Hi, R, used0, config, False)
-            yi = it[0]
+        used0 = out[3]
+        it = _iterate(y, out[0], fr, xp, nu, R, used0, obs, kappa,
+                      lambda nui, Hi: gated_update(y, P, nui, Hi[0], R, used0, config, False),
+                      config.update_iterations).result
         if it is not None:
             out = (it[0], it[1], it[2], it[3], (out[3] | out[4]) & ~it[3], out[5])  # (judged mask: used | gated)
     return out + (fr,)
@@ -175,22 +181,11 @@ def consider_step(y, P, C, fr, xp, F, obs, config, dt_s, loglik, Pu_prev=None, j
     out = consider_update(y, P, C, z - zhat, Hy, J, obs.cov, R0, obs.mask, config, False, None, judge)
     present = out[3] | out[4]  # obs.mask less the links the integrity monitor left out (judge)
     if config.update_iterations > 1:
-        used0, yi = out[3], out[0]
-        x_last, it, nu_last = xp, None, z - zhat
-        sr = np.sqrt(np.diagonal(R0, axis1=-2, axis2=-1))
-        for _ in range(int(config.update_iterations) - 1):
-            xi, Gi_ = cyl_to_ecef(yi, fr, jacobian=True)
-            if _converged(xi, x_last):
-                break
-            x_last = xi
-            zh, Hi, _ = range_doppler_blocks(xi, obs, 0.0)
-            Hyi = Hi @ Gi_[:, None]
-            nui = z - zh - np.einsum("tnai,ti->tna", Hyi, y - yi)
-            if _same_innovation(nui, nu_last, sr, used0):
-                break
-            nu_last = nui
-            it = consider_update(y, P, C, nui, Hyi, -Hi, obs.cov, R0, obs.mask, config, False, used0)
-            yi = it[0]
+        used0 = out[3]
+        it = _iterate(y, out[0], fr, xp, z - zhat, R0, used0, obs, 0.0,
+                      lambda nui, Hi: consider_update(y, P, C, nui, Hi[0], -Hi[1], obs.cov, R0, obs.mask, config,
+                                                      False, used0),
+                      config.update_iterations).result
         if it is not None:
             out = (it[0], it[1], it[2], it[3], present & ~it[3], out[5], it[6])
     y1, P1, nis, used, gated, _, C1 = out
@@ -213,20 +208,15 @@ def consider_step(y, P, C, fr, xp, F, obs, config, dt_s, loglik, Pu_prev=None, j
 
 
 def consider_update(y, P, C, nu, Hy, J, Pe, R0, mask, config, loglik, used_fixed=None, judge=None):
-    """The batched Schmidt update of consider_step; returns (y, P, nis, used, gated, m2ll, C)."""
+    """The batched Schmidt update of consider_step (filters.schmidt, per observer 2 rows and its
+    UAV's 6 consider states), gated per observer on its own block of S (the used set
+    ``used_fixed`` when given: the iterations keep the first update's); -2 log-likelihood
+    (``loglik``) of every present observer under the Schmidt S.  Returns (y, P, nis, used,
+    gated, m2ll, C)."""
     T, N = mask.shape
-    n = y.shape[-1]
     m = 2 * N
-    X = np.einsum("tnia,tnba->tinb", C, J).reshape(T, n, m)  # C_i J_i'
-    Hs = Hy.reshape(T, m, n)
-    D = np.einsum("tnai,tnij,tnbj->tnab", J, Pe, J) + R0
-    S = Hs @ P @ np.swapaxes(Hs, -1, -2) + Hs @ X
-    S = np.ascontiguousarray(S + np.swapaxes(Hs @ X, -1, -2))
-    idx = np.arange(N)
-    Sb = S.reshape(T, N, 2, N, 2)
-    Sb[:, idx, :, idx, :] += np.moveaxis(D, 1, 0)
-    Sjj = Sb[:, idx, :, idx, :]  # (N, T, 2, 2)
-    Sjj = np.moveaxis(Sjj, 0, 1)
+    inn = schmidt_innovation(P, C, Hy, J, Pe, R0)
+    S, Sjj = inn.S, inn.S_blocks
     if judge is not None and used_fixed is None:
         mask = judge(nu, np.stack([Sjj[..., 0, 0], Sjj[..., 1, 1]], axis=-1), mask)
     # absent slots (a lost message) keep their cross-covariances with the state, and their
@@ -248,22 +238,8 @@ def consider_update(y, P, C, nu, Hy, J, Pe, R0, mask, config, loglik, used_fixed
         L = np.linalg.cholesky(Sm)
         wv = np.linalg.solve(L, num[..., None])[..., 0]
         m2ll = np.sum(wv * wv, axis=-1) + 2.0 * np.sum(np.log(np.diagonal(L, axis1=-2, axis2=-1)), axis=-1)
-    u = np.repeat(used, 2, axis=1).astype(float)
-    Su = S * u[:, :, None] * u[:, None, :] + np.eye(m) * (1.0 - u)[:, None, :]
-    M = (P @ np.swapaxes(Hs, -1, -2) + X) * u[:, None, :]
-    nuu = nu.reshape(T, m) * u
-    Si_nu = np.linalg.solve(Su, nuu[..., None])[..., 0]
-    K = np.swapaxes(np.linalg.solve(Su, np.swapaxes(M, -1, -2)), -1, -2)  # M S^-1 (S symmetric)
-    y1 = y + np.einsum("tij,tj->ti", M, Si_nu)
-    P1 = P - K @ np.swapaxes(M, -1, -2)
-    P1 = 0.5 * (P1 + np.swapaxes(P1, -1, -2))
-    # Cov(nu, eps_i) (T, N, m, 6): H C_i, plus J_i P_i in observer i's own rows; used rows only
-    G = np.ascontiguousarray(np.einsum("tmk,tnkb->tnmb", Hs * u[..., None], C))
-    Gb = G.reshape(T, N, N, 2, 6)
-    Gb[:, idx, idx] += np.einsum("tnai,tnib->tnab", J, Pe) * used[..., None, None]
-    C1 = C - np.einsum("tkm,tnmb->tnkb", K, G)
-    nis = np.where(used.any(axis=-1), np.sum(nuu * Si_nu, axis=-1), np.nan)
-    return y1, P1, nis, used, gated, m2ll, C1
+    up = schmidt_update(y, P, C, nu, Hy, J, Pe, inn, used)
+    return up.x, up.P, up.nis, used, gated, m2ll, up.C
 
 
 def gated_update(y, P, nu, H, R, mask, config, loglik, R_score=None, judge=None):
