@@ -43,11 +43,11 @@ def _nonneg(name, v):
 
 @dataclass(frozen=True)
 class LocatorConfig:
-    """Settings of the beacon locator (package docstring).
+    """Settings of the beacon locator (ground_station.beacon).
 
     q_m2_s3: acceleration PSD of the beacon's constant-velocity model, m^2/s^3.
     observer_uncertainty: "inflate" (R + kappa J P_i J'), "ignore" (R only) or "consider" (the
-        UAVs' errors as Schmidt states, motion "cv" only; package docstring).
+        UAVs' errors as Schmidt states, motion "cv" only; ground_station.beacon).
     uav_error_corr_s: correlation time tau of the UAVs' navigation errors; kappa = 1 + 2 tau / dt
         ("consider": of their position errors).
     uav_vel_error_corr_s: "consider" only: correlation time of the UAVs' velocity errors.
@@ -78,9 +78,9 @@ class LocatorConfig:
         UAVs), where one linearisation at the prediction is poor.  At most this many: the
         iterations stop once no row's ECEF iterate moves by 1 mm (mm/s) or more, or once
         relinearising changes no used innovation by 1e-3 of its noise sigma.
-    acquire_s: "consider" only: a track's first acquire_s run as "inflate" (package docstring).
+    acquire_s: "consider" only: a track's first acquire_s run as "inflate" (ground_station.beacon).
     min_formation_sigmas: an epoch whose >= 3 UAVs span less than this many times their RMS
-        position sigma gives no beacon measurement (0: off; package docstring).
+        position sigma gives no beacon measurement (0: off; ground_station.beacon).
     integrity: the integrity monitor (filters.integrity) on each UAV link's range and Doppler
         (ground_station.beacon.integrity); None: off.
     integrity_max_links: monitor channels (UAV ids beyond this many are used unjudged, counted).
@@ -90,7 +90,7 @@ class LocatorConfig:
         many of its present links stay in (3: ranges and Dopplers of 3 UAVs fix the 6 states with
         no redundancy; below that an exclusion makes the track unobservable and the monitor
         detect-only for that trial and epoch).
-    lag_window_s: out-of-sequence measurements (package docstring, "late measurements"): a
+    lag_window_s: out-of-sequence measurements (ground_station.beacon.locator): a
         measurement for an epoch already processed and at most this old (simulation time)
         is used by re-processing from that epoch; older ones are dropped (``too_late``).
         0: the old behaviour (no history kept; a late measurement is dropped as ``stale``).

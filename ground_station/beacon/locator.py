@@ -8,7 +8,7 @@ limits, a UAV position off the Earth's neighbourhood, a UAV sigma above ``max_ua
 ``max_uav_vel_sigma_m_s``, one older than the lag window (``too_late``); copies ((source,
 incarnation, seq) seen before) count once as ``duplicate``.  Modes: "fused" (>= 3 observers
 used), "degraded" (1-2), "coast" (0), "lost" after ``max_coast_s`` without 3.  Late measurements
-(``lag_window_s``): the epoch they complete is re-run with the later ones (package docstring).
+(``lag_window_s``): the epoch they complete is re-run with the later ones (ground_station.beacon).
 """
 from __future__ import annotations
 
@@ -499,7 +499,7 @@ class BeaconLocator:
         if self.config.motion == "position":
             return x[0:3].copy(), P[0:3, 0:3].copy(), None
         fr = formation_frame(ob.pos, ob.mask, x[None, 0:3], None, self.config.axis_ratio)
-        if self.config.init == "prior":  # plain ECEF (package docstring)
+        if self.config.init == "prior":  # plain ECEF (ground_station.beacon)
             fr = fr._replace(cart=np.ones(1, bool))
         y, Gi, _ = ecef_to_cyl(x[None], fr, jacobian=True)
         Py = Gi[0] @ P @ Gi[0].T
