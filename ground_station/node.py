@@ -1,7 +1,7 @@
 """The ground-station node: the batch ground-station components on any bus, stepped by epoch.
 
 ``GroundStationNode(transport, run_id, config)`` runs the SAME objects as batch mode -- the
-beacon locator (ground_station.beacon_locator.BeaconLocator) and the fused sonde tracker
+beacon locator (ground_station.beacon.BeaconLocator) and the fused sonde tracker
 (ground_station.sonde_tracker.SondeTracker, parameters from the sonde experiment) -- and
 publishes their Estimates on ``<run>/gs/estimate/{beacon,sonde}/<id>``.
 
@@ -151,11 +151,11 @@ class _DeferredBus:
 def beacon_locator_config(c: GsConfig):
     """The live ground station's beacon locator: "consider" (the UAVs' navigation errors as
     Schmidt states, per UAV slot, after a 50 s "inflate" acquisition; ground_station/
-    beacon_locator.py), the locator `skyfuse experiment beacon` scores, with a blind
+    beacon/), the locator `skyfuse experiment beacon` scores, with a blind
     (multilateration) start of beacon_init_epochs epochs.  Checked against "inflate" on this
     scenario's geometry, old and new, and on the seed's geodetic blind start (issue 19; numbers in
     sitl/app/experiments/long_run.py's docstring)."""
-    from ground_station.beacon_locator import LocatorConfig
+    from ground_station.beacon import LocatorConfig
 
     return LocatorConfig(observer_uncertainty="consider", init_epochs=c.beacon_init_epochs,
                          lag_window_s=c.lag_window_s)
@@ -169,7 +169,7 @@ class GroundStationNode:
     on what it publishes. ``estimates``: the latest Estimate per (kind, id)."""
 
     def __init__(self, transport, run_id: str, config: GsConfig | None = None, incarnation: int = 0):
-        from ground_station.beacon_locator import BeaconLocator
+        from ground_station.beacon import BeaconLocator
         from ground_station.sonde_tracker import SondeTracker
 
         self.config = c = config or GsConfig()

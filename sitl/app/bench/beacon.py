@@ -79,7 +79,7 @@ def _direct_trial(case, tracks, seed, prior=None):
 
     from sitl.app.experiments import beacon as ex
     from vehicles import uav_nav
-    from ground_station import beacon_locator as bl
+    from ground_station import beacon as bl
     from sitl.radio import beacon_link
 
     t0 = time.perf_counter()

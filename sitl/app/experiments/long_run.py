@@ -10,7 +10,7 @@ same with or without it).  What the ground station publishes (``<run>/gs/estimat
 the truth are taken off the bus each epoch; nothing is fed back.
 
 The bound: the posterior Cramér-Rao bound of the beacon's position for the centralised model
-(ground_station.beacon_central.pcrb_central through sitl.app.experiments.beacon.pcrb_series, at the
+(ground_station.beacon.pcrb_central through sitl.app.experiments.beacon.pcrb_series, at the
 true UAV and beacon tracks -- deterministic, the same in every trial -- with the blind start's
 weak height and velocity priors): it counts the UAVs' GNSS information and their own navigation
 uncertainty, so no decomposed locator can beat it on average.
@@ -167,7 +167,7 @@ def run_trial(scn, locator: str = "live", progress=None) -> dict:
 
     from ground_station import node as gn
     from sitl.app.components import gs_config
-    from ground_station import beacon_locator as bl
+    from ground_station import beacon as bl
     run = scn.run
     dt = 1.0 / run.rate_hz
     K = int(math.floor(run.duration_s * run.rate_hz + 1e-9)) + 1
