@@ -28,7 +28,7 @@ Restarts: a restarted publisher sends with a new ``incarnation`` (bus schema 3);
 are a new stream for the link statistics and the components' duplicate checks. The node's
 own output goes out with its ``incarnation``.
 
-Link statistics (issue 8): every input message is counted per link ((run, source id)) by a
+Link statistics: every input message is counted per link ((run, source id)) by a
 `sitl.bus.LinkMonitor` -- received, missing from sequence numbers, duplicates, out of order,
 gaps, latency (arrival minus ``t_gps_s``; the arrival clock is ``now_s`` given to `advance`,
 else its ``t_until``) -- and a link silent for more than ``stale_after_s`` is flagged stale.
@@ -153,7 +153,7 @@ def beacon_locator_config(c: GsConfig):
     Schmidt states, per UAV slot, after a 50 s "inflate" acquisition; ground_station/
     beacon/), the locator `skyfuse experiment beacon` scores, with a blind
     (multilateration) start of beacon_init_epochs epochs.  Checked against "inflate" on this
-    scenario's geometry, old and new, and on the seed's geodetic blind start (issue 19; numbers in
+    scenario's geometry, old and new, and on the seed's geodetic blind start (numbers in
     sitl/app/experiments/long_run.py's docstring)."""
     from ground_station.beacon import LocatorConfig
 

@@ -1,6 +1,6 @@
 """`skyfuse bench beacon`: one trial of the seed 002 beacon experiment against real time.
 
-The case of issue 5: the beacon experiment's paper case (``three_satellites``; or
+The case: the beacon experiment's paper case (``three_satellites``; or
 ``--case constellation``), 3 UAVs, 1000 s at 1 s epochs, one Monte Carlo trial, run as
 `skyfuse experiment beacon` runs it (its default, printed geometry: the beacon's start drawn
 about the printed point, the locator started from that prior): the truth (RK4, 0.01 s), the UAVs' receivers and

@@ -1,6 +1,6 @@
 """`skyfuse experiment beacon`: seed 002, a (moving) radio beacon located from >= 3 UAVs.
 
-Batch mode of the SITL (docs: ARCHITECTURE.md "Two ways to run"): the same components a
+Batch mode of the SITL: the same components a
 live run has, stepped in simulation time over one ``sitl.bus.InMemoryTransport``, drained
 every epoch (1 s):
 
@@ -285,7 +285,7 @@ def run_case(case, tracks, trials, seed, locators=(PRODUCTION,), progress=None, 
              bus_faults=None, fault_seed: int | None = None) -> dict:
     """One case through the bus (module docstring).  Returns the raw series and counters.
 
-    bus_faults (issue 8): network faults on the MEASUREMENT links only, the UAVs' beacon
+    bus_faults: network faults on the MEASUREMENT links only, the UAVs' beacon
     measurements (keys MEASUREMENT_KEYS), never the truth or the estimates the ground station
     publishes: a list of FaultFilters (``sitl.netfault.KeyFaults``, ``LinkFault``) and/or
     KeyFaults rules ``(key_expr, spec)`` seeded with ``fault_seed`` (default: from ``seed``);
