@@ -18,7 +18,6 @@ import numpy as np
 import pytest
 from scipy.stats import chi2
 
-from filters.metrics import nees
 from ground_station.sonde_tracker import SondeTracker, SondeTrackerParams
 from sitl.bus import SondeRelay
 from sitl.app.experiments import sonde as E
