@@ -1,7 +1,7 @@
 """The ground-station node: the batch ground-station components on any bus, stepped by epoch.
 
 ``GroundStationNode(transport, run_id, config)`` runs the SAME objects as batch mode -- the
-beacon locator (ground_station.beacon_locator.BeaconLocator) and the fused sonde tracker
+beacon locator (ground_station.beacon.BeaconLocator) and the fused sonde tracker
 (ground_station.sonde_tracker.SondeTracker, parameters from the sonde experiment) -- and
 publishes their Estimates on ``<run>/gs/estimate/{beacon,sonde}/<id>``.
 
@@ -28,7 +28,7 @@ Restarts: a restarted publisher sends with a new ``incarnation`` (bus schema 3);
 are a new stream for the link statistics and the components' duplicate checks. The node's
 own output goes out with its ``incarnation``.
 
-Link statistics (issue 8): every input message is counted per link ((run, source id)) by a
+Link statistics: every input message is counted per link ((run, source id)) by a
 `sitl.bus.LinkMonitor` -- received, missing from sequence numbers, duplicates, out of order,
 gaps, latency (arrival minus ``t_gps_s``; the arrival clock is ``now_s`` given to `advance`,
 else its ``t_until``) -- and a link silent for more than ``stale_after_s`` is flagged stale.
@@ -45,23 +45,26 @@ from dataclasses import dataclass
 
 from sitl.bus import Estimate, LinkMonitor, key_matches
 from sitl.bus.timeguard import TimeGuard
+from sitl.scenario import BeaconSection, GroundStationSection, RunSection, SondeSection
 
 
 @dataclass(frozen=True)
 class GsConfig:
-    beacon_id: str = "b1"
-    beacon_init_epochs: int = 3
-    sonde: bool = True
-    radar_id: str | None = "arls1"
-    sonde_dt_s: float = 1.0
-    gcpp_offset_m: float = 300.0
-    gcpp_bearing_deg: float = 140.0
-    sonde_integrity: bool = False
-    stale_after_s: float = 3.0  # a link silent this long (simulation time) is flagged stale
-    link_stats_every_s: float = 10.0  # LinkStats of every link this often (and on stale / back)
-    lag_window_s: float = 5.0  # late (out-of-sequence) measurements this old are re-processed (0: dropped)
-    max_ahead_s: float = 2.0  # an input further ahead of the node's clock than this is refused (future)
-    hold_s: float = 1.0  # the longest an epoch waits for its inputs (simulated s): the guard's window behind
+    """The node's settings; the defaults are the scenario's (sitl.scenario's declarations), once."""
+
+    beacon_id: str = BeaconSection.id
+    beacon_init_epochs: int = GroundStationSection.beacon_init_epochs
+    sonde: bool = SondeSection.enabled
+    radar_id: str | None = SondeSection.radar_id
+    sonde_dt_s: float = 1.0 / RunSection.rate_hz
+    gcpp_offset_m: float = SondeSection.gcpp_offset_m
+    gcpp_bearing_deg: float = SondeSection.gcpp_bearing_deg
+    sonde_integrity: bool = GroundStationSection.integrity
+    stale_after_s: float = GroundStationSection.stale_after_s  # a link silent this long (simulation time) is flagged stale
+    link_stats_every_s: float = GroundStationSection.link_stats_every_s  # LinkStats of every link this often
+    lag_window_s: float = GroundStationSection.lag_window_s  # late measurements this old are re-processed (0: dropped)
+    max_ahead_s: float = GroundStationSection.max_ahead_s  # an input further ahead of the node's clock is refused
+    hold_s: float = GroundStationSection.hold_wall_s * RunSection.speed  # the longest an epoch waits (simulated s)
     # the sonde tracker's parameters (SondeTrackerParams; required with ``sonde``): the composition
     # root derives them from the world's models (sitl.app.components.sonde_tracker_params); the
     # node applies its own lag window to them
@@ -148,11 +151,11 @@ class _DeferredBus:
 def beacon_locator_config(c: GsConfig):
     """The live ground station's beacon locator: "consider" (the UAVs' navigation errors as
     Schmidt states, per UAV slot, after a 50 s "inflate" acquisition; ground_station/
-    beacon_locator.py), the locator `skyfuse experiment beacon` scores, with a blind
+    beacon/), the locator `skyfuse experiment beacon` scores, with a blind
     (multilateration) start of beacon_init_epochs epochs.  Checked against "inflate" on this
-    scenario's geometry, old and new, and on the seed's geodetic blind start (issue 19; numbers in
+    scenario's geometry, old and new, and on the seed's geodetic blind start (numbers in
     sitl/app/experiments/long_run.py's docstring)."""
-    from ground_station.beacon_locator import LocatorConfig
+    from ground_station.beacon import LocatorConfig
 
     return LocatorConfig(observer_uncertainty="consider", init_epochs=c.beacon_init_epochs,
                          lag_window_s=c.lag_window_s)
@@ -166,7 +169,7 @@ class GroundStationNode:
     on what it publishes. ``estimates``: the latest Estimate per (kind, id)."""
 
     def __init__(self, transport, run_id: str, config: GsConfig | None = None, incarnation: int = 0):
-        from ground_station.beacon_locator import BeaconLocator
+        from ground_station.beacon import BeaconLocator
         from ground_station.sonde_tracker import SondeTracker
 
         self.config = c = config or GsConfig()

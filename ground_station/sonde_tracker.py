@@ -21,7 +21,7 @@ index                 meaning                                                mod
 9-11 wind_ecef_m_s    the wind the sonde meets, u: the velocity it relaxes    all
                       to (vertically its target speed: + ascent rate, or      (relaxed)
                       - the parachute's terminal speed)
-12-14 wind_rate       du/dt, Gauss-Markov (the profile's shear x climb rate)
+12-14 wind_shear      du/dh, Gauss-Markov in height (the wind changes at it x climb rate)
 dd   delta_d_m        the lumped path offset dd of eq 22 (relay delay         fused,
                       c tau_ret + GCPP clock offset): constant (eq 21), here   relay_only
                       a random walk of PSD ``delta_d_rw_psd_m2_s`` (tiny)
@@ -53,12 +53,15 @@ Dynamics ("the filter may know the model's parameters, not the truth's state")
     ``kinematics="relaxed"`` (default): the sonde model's own structure (vehicles.sonde), per
     ENU axis at the GCPP (R its rotation; k = p1 horizontally, k_v vertically)
         p' = V,  V' = k (u - V) + a_g,  a_g' = -(p1 + p2) a_g + sqrt(2 (p1 + p2)) sigma_a n,
-        u' = s,  s' = -s / tau_s + sqrt(2 / tau_s) sigma_s n_s
+        u' = w s,  s' = -(|w| / L) s + sqrt(2 |w| / L) sigma_s n_s      (w the vertical speed)
     -- the velocity relaxes to the wind it meets, driven by eq 20's gust; the wind u (the mean
-    wind at the sonde's height, which the tracker does not know) is a state and changes at a
-    Gauss-Markov rate s whose std and correlation time summarise the wind profile along a
-    nominal flight (sitl.experiments.sonde.wind_rate_statistics). Exact discretisation
-    (relaxed_axis_discretisation: expm and Van Loan), rotated to ECEF block by block.
+    wind at the sonde's height, which the tracker does not know) is a state and changes as the
+    sonde crosses the profile, at the shear s = du/dh times its vertical speed, the shear
+    Gauss-Markov in height with the std and correlation height of the wind profile
+    (sitl.app.experiments.sonde.wind_shear_statistics; in time the old Gauss-Markov rate, tuned on the
+    5 m/s ascent, was ~3x too confident in the descent). Per sonde, in the local ENU frame at its
+    estimate (SondeTransition.kinematic), exact discretisation (relaxed_axis_discretisation: expm
+    and Van Loan) at its vertical speed.
     ``kinematics="singer"``: eq 20 as printed, p' = V, V' = a, a' = -(p1 + p2) a + w, i.e.
     Singer's model (filters.models.Singer) with the stationary acceleration covariance
     Sigma_a = R' diag(s_h^2, s_h^2, s_v^2) R, Q = kron(Q_singer_unit(p1 + p2, T), Sigma_a).
@@ -169,7 +172,7 @@ handle) nor a track within ``integrity_warmup_s`` of its (re)initialisation or o
 from ``<source_id>.integrity``, channel ``<sonde>.relay.<sat>`` or ``<sonde>.<radar>.<axis>``.
 The monitor's batch is a cohort of sondes that joined together (its window position is common
 to the batch); every cohort is stepped at every processed epoch, absent sondes as missing.
-Measured (issue 6's report; sitl/experiments/sonde.py ``integrity="compare"``: the same messages
+Measured (issue 6's report; sitl/app/experiments/sonde.py ``integrity="compare"``: the same messages
 through a plain and a monitored tracker): fault-free, fused and relay-only are no worse (the 2 h
 flight with the burst, 2 trials: fused 12.579 -> 12.580 m, ANEES 4.91 -> 4.92; 700 s, 6 trials:
 9.738 -> 9.737 m); a 60 m clock step on one relayed satellite, a radar azimuth outlier burst or a
@@ -195,7 +198,7 @@ step and re-runs it and the later ones (only the new step's Estimates are publis
 out at t is what had arrived by t). Counters ``late_accepted``, ``reprocess_runs``,
 ``reprocessed_epochs``; older ones ``too_late``; ``lag_window_s = 0``: dropped as ``stale`` (the
 behaviour before). Duplicates are discarded by (key, source id, seq), per stream. Measured
-(``sitl.experiments.faults``' sonde runs: fused tracker, 8 trials, 600 s, relay and radar links
+(``sitl.app.experiments.faults``' sonde runs: fused tracker, 8 trials, 600 s, relay and radar links
 down from 360 s): after a 30 s or a 60 s partition the 10 s RMSE is within 2x the fault-free
 run's from the heal on (per epoch after 3 s; 9 s with the window ending at the time), nothing
 gated, no re-acquisition; delay 1 / 2 s (+-20 % jitter): RMSE 1.84 / 2.19 m against 1.73 m
@@ -322,13 +325,16 @@ class SondeTrackerParams:
     sigma_acc_vertical_m_s2: float = 0.10
     velocity_relax_rate_horizontal_1_s: float = 0.1  # relaxed: p1, the velocity relaxes to the wind in 1/p1
     velocity_relax_rate_vertical_1_s: float = 0.2  # relaxed: k_v, the vertical speed to its target
-    # relaxed: the rate of change of the wind the sonde meets (vertically: of its target vertical speed,
-    # the descent slowing with the density), Gauss-Markov: its stationary std and correlation time; the
-    # defaults are sitl.experiments.sonde.wind_rate_statistics of the experiment's sonde (the default
-    # jet profile x 1.15, along its nominal flight)
-    wind_rate_sigma_horizontal_m_s2: float = 0.020
-    wind_rate_sigma_vertical_m_s2: float = 0.014
-    wind_rate_tau_s: float = 530.0
+    # relaxed: the wind the sonde meets is the wind profile at its height, so it changes at the shear
+    # du/dh times the sonde's vertical speed: the shear is a state, Gauss-Markov in height, with a
+    # stationary std per horizontal axis and a correlation height; vertically, the shear of the target
+    # vertical speed left once the descent law (descent_rate_sl_m_s) is applied. The defaults are
+    # sitl.app.experiments.sonde.wind_shear_statistics of the experiment's sonde (the default jet profile
+    # x 1.15 between the launch and the burst height); its target vertical speed is the constant ascent
+    # rate, then the descent law itself: no vertical residual
+    wind_shear_sigma_horizontal_1_s: float = 2.93e-3
+    wind_shear_sigma_vertical_1_s: float = 0.0
+    wind_shear_corr_height_m: float = 4430.0
     delta_d_rw_psd_m2_s: float = 1e-6  # dd random walk (eq 21: constant; tiny slack)
     osc_gamma_1_s: float = _RELAY_DEFAULT.osc_gamma_1_s
     osc_sigma_m_s: float = _RELAY_DEFAULT.osc_sigma_hz * _RELAY_DEFAULT.osc_doppler_scale_m_s_per_rad_s * TWO_PI
@@ -345,6 +351,10 @@ class SondeTrackerParams:
     # and stays there (vehicles.sonde's LANDED phase): a descending track whose height reaches it is
     # landed -- at rest from then on, until a re-initialisation. False: the track coasts on
     landing: bool = True
+    # a track with no accepted measurement (a relay or radar block that passed the gate, or a fix that
+    # (re)initialised it) for longer than this is lost: its Estimate is no longer published (counted
+    # ``lost``) and the next measurement initialises it again, as at its acquisition. None: never lost
+    max_coast_s: float | None = 300.0
     manoeuvre_window: int | None = 10  # epochs of the sliding-window NIS test (None: off)
     reacquire_after: int | None = 5  # re-initialise after this many rejected blocks in a row
     prior_sigma_vel_m_s: float = 20.0
@@ -373,13 +383,17 @@ class SondeTrackerParams:
         _finite("auto_ukf_ratio", self.auto_ukf_ratio, 0.0, lo_open=True)
         for name in ("accel_rate_1_s", "osc_gamma_1_s", "osc_sigma_m_s", "prior_sigma_vel_m_s",
                      "prior_sigma_delta_d_m", "velocity_relax_rate_horizontal_1_s", "velocity_relax_rate_vertical_1_s",
-                     "wind_rate_tau_s"):
+                     "wind_shear_corr_height_m"):
             _finite(name, getattr(self, name), 0.0, lo_open=True)
         if self.descent_rate_sl_m_s is not None:
             _finite("descent_rate_sl_m_s", self.descent_rate_sl_m_s, 0.0, lo_open=True)
+        if self.max_coast_s is not None:
+            if isinstance(self.max_coast_s, bool):
+                raise ValueError(f"max_coast_s must be a finite number > 0 or None, got {self.max_coast_s!r}")
+            _finite("max_coast_s", self.max_coast_s, 0.0, lo_open=True)
         for name in ("sigma_acc_horizontal_m_s2", "sigma_acc_vertical_m_s2", "delta_d_rw_psd_m2_s",
-                     "manoeuvre_sigma_acc_m_s2", "manoeuvre_sigma_wind_m_s", "wind_rate_sigma_horizontal_m_s2",
-                     "wind_rate_sigma_vertical_m_s2", "prior_sigma_wind_offset_m_s"):
+                     "manoeuvre_sigma_acc_m_s2", "manoeuvre_sigma_wind_m_s", "wind_shear_sigma_horizontal_1_s",
+                     "wind_shear_sigma_vertical_1_s", "prior_sigma_wind_offset_m_s"):
             _finite(name, getattr(self, name), 0.0)
         _finite("radar_white_fraction", self.radar_white_fraction, 0.0, lo_open=True)
         for name in ("radar_sigma", "radar_gamma_1_s"):
@@ -456,7 +470,7 @@ class Layout(NamedTuple):
     bias: int | None = None  # first of the per-satellite relay error states
     nb: int = 0  # how many
     wind: int | None = None  # relaxed kinematics: first of the 3 wind states (their rates follow at wind + 3)
-    n_kin: int = 9  # kinematic states (position, velocity, acceleration [, wind, wind rate])
+    n_kin: int = 9  # kinematic states (position, velocity, acceleration [, wind, wind shear])
 
 
 def layout_for(mode: str, radar_noise: str = "colored", bias_slots: int = 0, kinematics: str = "relaxed") -> Layout:
@@ -484,24 +498,30 @@ def layout_for(mode: str, radar_noise: str = "colored", bias_slots: int = 0, kin
 
 
 def relaxed_axis_discretisation(relax_rate_1_s: float, gust_rate_1_s: float, sigma_gust_m_s2: float,
-                                sigma_wind_rate_m_s2: float, wind_rate_tau_s: float, dt_s: float):
-    """Exact discretisation (F, Q), 5 x 5, of one axis of the relaxed sonde model over
-    [position p, velocity v, gust acceleration g, wind u, wind rate s]:
+                                sigma_shear_1_s: float, shear_corr_height_m: float, vertical_speed_m_s: float,
+                                dt_s: float):
+    """Exact discretisation (F, Q), 5 x 5, of one local axis of the relaxed sonde model over
+    [position p, velocity v, gust acceleration g, wind u, wind shear s = du/dh], for a sonde whose
+    height changes at the vertical speed w over the step:
 
         p' = v,  v' = k (u - v) + g,  g' = -beta g + sqrt(2 beta) sigma_g n_g,
-        u' = s,  s' = -s / tau + sqrt(2 / tau) sigma_s n_s
+        u' = w s,  s' = -(|w| / L) s + sqrt(2 |w| / L) sigma_s n_s
 
-    (vehicles.sonde's axis, dv/dt = k (w(h) - v) + a_g, with the wind w met by the sonde -- the
-    mean wind at its height, or the target vertical speed -- unknown: a state, changing at a
-    Gauss-Markov rate). F = expm(A dt), Q by Van Loan's method."""
-    k, beta, tau = float(relax_rate_1_s), float(gust_rate_1_s), float(wind_rate_tau_s)
+    (vehicles.sonde's axis, dv/dt = k (w(h) - v) + a_g, with the wind met by the sonde -- the mean
+    wind at its height, or the target vertical speed -- unknown: a state that changes as the sonde
+    crosses the profile, du/dt = (du/dh) dh/dt, the shear du/dh Gauss-Markov in height with std
+    sigma_s and correlation height L). At w = 0 the wind does not change. F = expm(A dt), Q by Van
+    Loan's method."""
+    k, beta = float(relax_rate_1_s), float(gust_rate_1_s)
+    w = float(vertical_speed_m_s)
+    lam = abs(w) / float(shear_corr_height_m)
     a = np.zeros((5, 5))
     a[0, 1] = 1.0
     a[1, 1], a[1, 2], a[1, 3] = -k, 1.0, k
     a[2, 2] = -beta
-    a[3, 4] = 1.0
-    a[4, 4] = -1.0 / tau
-    qc = np.diag([0.0, 0.0, 2.0 * beta * sigma_gust_m_s2**2, 0.0, 2.0 * sigma_wind_rate_m_s2**2 / tau])
+    a[3, 4] = w
+    a[4, 4] = -lam
+    qc = np.diag([0.0, 0.0, 2.0 * beta * sigma_gust_m_s2**2, 0.0, 2.0 * lam * sigma_shear_1_s**2])
     m = np.zeros((10, 10))
     m[:5, :5], m[:5, 5:], m[5:, 5:] = -a, qc, a.T
     e = scipy.linalg.expm(m * dt_s)
@@ -510,12 +530,83 @@ def relaxed_axis_discretisation(relax_rate_1_s: float, gust_rate_1_s: float, sig
     return F, 0.5 * (Q + Q.T)
 
 
+#: the vertical speed is rounded to this relative step (and to 0 below 1 cm/s) for the memo of the
+#: per-axis discretisation (relaxed): its noise and decay scale with |w|, so a 0.5 % step is a 0.5 %
+#: change of the shear's variance per step at most
+VERTICAL_SPEED_REL_STEP = 0.005
+#: the vertical shear's std is at least this (keeps P positive definite for the UKF's Cholesky when the
+#: model has no vertical residual: over a 30 km descent it moves the target vertical speed by ~0.02 m/s)
+SHEAR_SIGMA_FLOOR_1_S = 1e-6
+_E2 = WGS84.f * (2.0 - WGS84.f)
+_NORMAL_SCALE = np.array([1.0, 1.0, 1.0 / (1.0 - _E2)])  # grad of x^2 + y^2 + z^2 / (1 - e^2): the ellipsoid's normal
+
+
+def _quantised_speed(w):
+    """w (N,) rounded on the relative grid VERTICAL_SPEED_REL_STEP (0 below 1 cm/s)."""
+    a = np.abs(w)
+    k = np.round(np.log(np.maximum(a, 0.01) / 0.01) / VERTICAL_SPEED_REL_STEP)
+    return np.where(a < 0.01, 0.0, np.sign(w) * 0.01 * np.exp(k * VERTICAL_SPEED_REL_STEP))
+
+
+def _enu_rotations(lat, lon):
+    """enu_rotation for (N,) latitudes and longitudes, (N, 3, 3), without the general broadcasting."""
+    sp, cp, sl, cl = np.sin(lat), np.cos(lat), np.sin(lon), np.cos(lon)
+    r = np.empty((lat.shape[0], 3, 3))
+    r[:, 0, 0], r[:, 0, 1], r[:, 0, 2] = -sl, cl, 0.0
+    r[:, 1, 0], r[:, 1, 1], r[:, 1, 2] = -sp * cl, -sp * sl, cp
+    r[:, 2, 0], r[:, 2, 1], r[:, 2, 2] = cp * cl, cp * sl, sp
+    return r
+
+
+def _step_geodetic(lat, lon, h, d_enu):
+    """(lat, lon, h) after a small local displacement d_enu (N, 3) from (lat, lon, h) (N,): the
+    meridian and prime-vertical radii of curvature (a 50 m step: ~1e-10 rad, 0.2 mm off the exact
+    transform)."""
+    s2 = np.sin(lat) ** 2
+    w = np.sqrt(1.0 - _E2 * s2)
+    Nr = WGS84.a_m / w
+    Mr = WGS84.a_m * (1.0 - _E2) / (w * w * w)
+    return (lat + d_enu[:, 1] / (Mr + h), lon + d_enu[:, 0] / ((Nr + h) * np.cos(lat)), h + d_enu[:, 2])
+
+
+def _descent_speed_slope(h_m, v_sl_m_s):
+    """d v_d / dh (1/s, > 0: the descent slows as the air thickens) of _descent_speed, central
+    difference over +-1 m."""
+    h = np.asarray(h_m, dtype=float)
+    return 0.5 * (_descent_speed(h + 1.0, v_sl_m_s) - _descent_speed(h - 1.0, v_sl_m_s))
+
+
+def _curvature_drop_cov(pos_ecef_m, pos_cov) -> np.ndarray:
+    """The ground curves away under a wide horizontal spread: a sonde d away horizontally at the
+    estimate's height lies |d|^2 / 2R below the estimate's tangent plane, which a Gaussian in ECEF
+    cannot follow. This is the vertical second moment of that drop over the horizontal part of
+    pos_cov (E |d|^4 / 4R^2 = (tr C^2 + 2 tr C C) / 4R^2, C the covariance in the tangent plane):
+    ~90 m at a 20 km sigma per axis, 1e-10 m at a kilometre -- the published covariance gets it
+    (not the filter's state, whose updates are linear anyway), as does a landed track's."""
+    p = np.asarray(pos_ecef_m, dtype=float)
+    n = p * _NORMAL_SCALE  # the vertical: the normal of the ellipsoid through p (~1e-6 rad off the geodetic
+    n /= math.sqrt(float(n @ n))  # one at 10 km: nothing for this term, and no ecef_to_geodetic per Estimate)
+    T = np.eye(3) - np.outer(n, n)
+    C = T @ pos_cov @ T
+    return ((np.trace(C) ** 2 + 2.0 * np.trace(C @ C)) / (4.0 * float(p @ p))) * np.outer(n, n)
+
+
 class SondeTransition:
-    """x(k+1) = F x(k) + w: the sonde kinematics (``relaxed``: per ENU axis at the site,
-    relaxed_axis_discretisation with p1 horizontally and k_v vertically; ``singer``: Singer's model
-    with rate p1 + p2 and covariance Sigma_a), dd random walk, oscillator and radar errors
-    first-order Gauss-Markov. Linear; F and Q memoised per dt. ``enu_rot``: the ENU rotation at
-    the site (the horizontal / vertical split)."""
+    """x(k+1) = F x(k) + w: the sonde kinematics, dd random walk, oscillator and radar errors
+    first-order Gauss-Markov.
+
+    ``relaxed``: per sonde and step, in the local east-north-up frame at the sonde's estimated
+    position (vehicles.sonde's frame: the wind is horizontal there, the descent is along its
+    vertical), relaxed_axis_discretisation with p1 horizontally and k_v vertically at the
+    estimate's vertical speed; the velocity-like states (velocity, gust, wind, shear) keep their
+    local components from one step's frame to the next (the frame turns by ~|v| dt / R_E as the
+    sonde moves); a descending sonde's target vertical speed follows the descent law as an input,
+    with its Jacobian. Beyond a few km from the site this matters: at 300 km the site's vertical is
+    2.7 deg off the sonde's (a 30 km descent along the site's vertical lands 1.4 km off, and a
+    65 m/s wind "horizontal" at the site climbs 3 m/s at the sonde). ``kinematic`` gives these
+    per-sonde blocks; the other states' transition is shared and diagonal (``rest``).
+    ``singer``: Singer's model with rate p1 + p2 and covariance Sigma_a at the site, shared (F, Q).
+    ``enu_rot``: the ENU rotation at the site (singer's split)."""
 
     linear = True
 
@@ -525,11 +616,32 @@ class SondeTransition:
         self.params = params
         p = params
         self.enu_rot = np.array(enu_rot, dtype=float)
-        r = self.enu_rot
-        self.acc_cov_ecef = r.T @ np.diag([p.sigma_acc_horizontal_m_s2**2, p.sigma_acc_horizontal_m_s2**2,
-                                           p.sigma_acc_vertical_m_s2**2]) @ r
+        self.acc_cov_ecef = self.acc_cov_at(None)
         self._unit = Singer(params.accel_rate_1_s, 1.0, ndim_pos=1)
         self._memo: dict = {}
+        self._axis_memo: dict = {}
+        self._shear_sigma_v = max(p.wind_shear_sigma_vertical_1_s, SHEAR_SIGMA_FLOOR_1_S)
+
+    def _local(self, pos_ecef):
+        """The ENU rotation at pos (3,) (None: the site's)."""
+        if pos_ecef is None:
+            return self.enu_rot
+        lat, lon, _ = ecef_to_geodetic(np.asarray(pos_ecef, dtype=float))
+        return enu_rotation(float(lat), float(lon))
+
+    def acc_cov_at(self, pos_ecef) -> np.ndarray:
+        """Stationary covariance of the gust (relaxed) / acceleration (singer) in ECEF, split at pos
+        (relaxed; None or singer: at the site)."""
+        p = self.params
+        r = self.enu_rot if self.layout.wind is None else self._local(pos_ecef)
+        return r.T @ np.diag([p.sigma_acc_horizontal_m_s2**2, p.sigma_acc_horizontal_m_s2**2,
+                              p.sigma_acc_vertical_m_s2**2]) @ r
+
+    def shear_cov_at(self, pos_ecef) -> np.ndarray:
+        """Stationary covariance of the wind-shear states (relaxed) in ECEF, split at pos."""
+        p, r = self.params, self._local(pos_ecef)
+        return r.T @ np.diag([p.wind_shear_sigma_horizontal_1_s**2, p.wind_shear_sigma_horizontal_1_s**2,
+                              self._shear_sigma_v**2]) @ r
 
     def _axes_to_ecef(self, per_axis):
         """(3, q, q) per-ENU-axis blocks [e, n, u] over q quantities -> (3q, 3q) in ECEF,
@@ -539,19 +651,12 @@ class SondeTransition:
         return np.einsum("ca,cij,cb->iajb", r, per_axis, r).reshape(3 * q, 3 * q)
 
     def _build(self, dt: float):
+        """The shared (F, Q): singer's kinematics and every other state; relaxed: the kinematic
+        block is left zero (it is per sonde: ``kinematic``)."""
         L, p = self.layout, self.params
         n = L.n
         F, Q = np.zeros((n, n)), np.zeros((n, n))
-        if L.wind is not None:
-            h = relaxed_axis_discretisation(p.velocity_relax_rate_horizontal_1_s, p.accel_rate_1_s,
-                                            p.sigma_acc_horizontal_m_s2, p.wind_rate_sigma_horizontal_m_s2,
-                                            p.wind_rate_tau_s, dt)
-            v = relaxed_axis_discretisation(p.velocity_relax_rate_vertical_1_s, p.accel_rate_1_s,
-                                            p.sigma_acc_vertical_m_s2, p.wind_rate_sigma_vertical_m_s2,
-                                            p.wind_rate_tau_s, dt)
-            F[:15, :15] = self._axes_to_ecef(np.stack([h[0], h[0], v[0]]))
-            Q[:15, :15] = self._axes_to_ecef(np.stack([h[1], h[1], v[1]]))
-        else:
+        if L.wind is None:
             F[:9, :9] = np.kron(self._unit.F(None, dt), np.eye(3))
             Q[:9, :9] = np.kron(self._unit.Q(dt), self.acc_cov_ecef)
         if L.dd is not None:
@@ -576,12 +681,6 @@ class SondeTransition:
         F.flags.writeable = Q.flags.writeable = False
         return F, Q
 
-    def wind_rate_cov_ecef(self) -> np.ndarray:
-        """Stationary covariance of the wind-rate states (relaxed), ECEF."""
-        p, r = self.params, self.enu_rot
-        return r.T @ np.diag([p.wind_rate_sigma_horizontal_m_s2**2, p.wind_rate_sigma_horizontal_m_s2**2,
-                              p.wind_rate_sigma_vertical_m_s2**2]) @ r
-
     def _get(self, dt):
         key = float(dt)
         out = self._memo.get(key)
@@ -591,12 +690,125 @@ class SondeTransition:
             out = self._memo[key] = self._build(key)
         return out
 
+    def rest(self, dt):
+        """(f, q): the diagonal transition and noise of the states after the kinematic block (relaxed)."""
+        key = ("rest", float(dt))
+        out = self._memo.get(key)
+        if out is None:
+            F, Q = self._get(dt)
+            k = self.layout.n_kin
+            out = self._memo[key] = (np.diag(F)[k:].copy(), np.diag(Q)[k:].copy())
+        return out
+
+    def _axes(self, dt: float, w: float):
+        """Per-axis (F, Q) 5 x 5, horizontal and vertical, at vertical speed w (memoised)."""
+        key = (dt, w)
+        out = self._axis_memo.get(key)
+        if out is None:
+            p = self.params
+            if len(self._axis_memo) > 8192:
+                self._axis_memo.clear()
+            h = relaxed_axis_discretisation(p.velocity_relax_rate_horizontal_1_s, p.accel_rate_1_s,
+                                            p.sigma_acc_horizontal_m_s2, p.wind_shear_sigma_horizontal_1_s,
+                                            p.wind_shear_corr_height_m, w, dt)
+            v = relaxed_axis_discretisation(p.velocity_relax_rate_vertical_1_s, p.accel_rate_1_s,
+                                            p.sigma_acc_vertical_m_s2, self._shear_sigma_v,
+                                            p.wind_shear_corr_height_m, w, dt)
+            out = self._axis_memo[key] = (h[0], h[1], v[0], v[1])
+        return out
+
+    def kinematic(self, xk, dt: float):
+        """Relaxed kinematics of N sondes over dt: xk (N, 15) = [p, v, a_g, u, s] (ECEF) ->
+        (the predicted means (N, 15), F (N, 15, 15), Q (N, 15, 15)).
+
+        In the local ENU frame R0 at each estimate: the per-axis models at its vertical speed w
+        (rounded on the grid of VERTICAL_SPEED_REL_STEP); the position goes back to ECEF through R0, the
+        velocity-like quantities through the frame R1 at the predicted position (they keep their
+        local components), and so do the errors, the position's included (F's position block is the
+        frame's turn R1' R0, not I). A descending sonde's (target vertical speed below 0) target follows the
+        parachute's law, + v_d(h0) - v_d(h1) along the vertical, with its Jacobian in F (the target
+        changes by -v_d'(h) per metre of descent); and F has the Jacobian of the bilinear u' = w s
+        in the vertical speed (ds/dw: s dt). The mean uses the law itself (not its linearisation)."""
+        p = self.params
+        xk = np.asarray(xk, dtype=float)
+        N = xk.shape[0]
+        X = xk.reshape(N, 5, 3)
+        lat0, lon0, h0 = (np.atleast_1d(v) for v in ecef_to_geodetic(X[:, 0]))
+        R0 = _enu_rotations(lat0, lon0)
+        Y = np.einsum("nca,nia->nci", R0, X)  # (N, axis, quantity): local components
+        w = Y[:, 2, 1]
+        wq = _quantised_speed(w)
+        Phi = np.empty((N, 3, 5, 5))
+        Qa = np.empty((N, 3, 5, 5))
+        for val in np.unique(wq):
+            sel = wq == val
+            Fh, Qh, Fv, Qv = self._axes(float(dt), float(val))
+            Phi[sel, 0], Phi[sel, 1], Phi[sel, 2] = Fh, Fh, Fv
+            Qa[sel, 0], Qa[sel, 1], Qa[sel, 2] = Qh, Qh, Qv
+        Y1 = np.einsum("ncij,ncj->nci", Phi, Y)
+        p1 = np.einsum("nca,nc->na", R0, Y1[:, :, 0])
+        lat1, lon1, h1 = _step_geodetic(lat0, lon0, h0, Y1[:, :, 0] - Y[:, :, 0])
+        R1 = _enu_rotations(lat1, lon1)
+        # the local matrix, quantity-major (N, quantity, axis, quantity, axis)
+        M = np.zeros((N, 5, 3, 5, 3))
+        for c in range(3):
+            M[:, :, c, :, c] = Phi[:, c]
+        lam_dt = np.abs(wq) * (float(dt) / p.wind_shear_corr_height_m)
+        M[:, 3, :, 1, 2] += Y[:, :, 4] * (float(dt) * np.exp(-lam_dt))[:, None]  # d(w s (1 - e^-lam dt)/lam)/dw
+        v_sl = p.descent_rate_sl_m_s
+        if v_sl is not None:
+            down = np.flatnonzero(Y[:, 2, 3] < 0.0)
+            if down.size:
+                hd0, hd1 = h0[down], h1[down]
+                Y1[down, 2, 3] += _descent_speed(hd0, v_sl) - _descent_speed(hd1, v_sl)
+                # d(target)/d(state) = -v_d'(h1) d(h1 - h0)/d(state), h1 - h0 the local vertical displacement
+                dh = Phi[down, 2, 0, :].copy()
+                dh[:, 0] -= 1.0
+                M[down, 3, 2, :, 2] += -_descent_speed_slope(hd1, v_sl)[:, None] * dh
+        x1 = np.empty((N, 5, 3))
+        x1[:, 0] = p1
+        x1[:, 1:] = np.einsum("nca,nci->nia", R1, Y1[:, :, 1:])
+        x1 = x1.reshape(N, 15)
+        # the errors turn with the frame, the position's too: the sonde and its estimate both move on the
+        # curved Earth (a rotation about its centre, R1' R0 over the step), so a horizontal position error
+        # stays horizontal at the estimate (kept fixed in ECEF it would tilt up by the distance / R_E)
+        R1T = np.swapaxes(R1, -1, -2)[:, None, None]
+        F = (R1T @ M.transpose(0, 1, 3, 2, 4) @ R0[:, None, None]).transpose(0, 1, 3, 2, 4).reshape(N, 15, 15)
+        Qf = np.zeros((N, 5, 3, 5, 3))
+        for c in range(3):
+            Qf[:, :, c, :, c] = Qa[:, c]
+        Q = (R1T @ Qf.transpose(0, 1, 3, 2, 4) @ R1[:, None, None]).transpose(0, 1, 3, 2, 4).reshape(N, 15, 15)
+        return x1, F, 0.5 * (Q + np.swapaxes(Q, -1, -2))
+
     def F(self, x, dt, landed: bool = False):
-        return self._get_landed(dt)[0] if landed else self._get(dt)[0]
+        """The transition matrix: shared (n, n) for singer or a landed sonde; relaxed in flight,
+        per sonde at the states x (N, n) or (n,): (N, n, n) or (n, n)."""
+        if landed:
+            return self._get_landed(dt)[0]
+        if self.layout.wind is None:
+            return self._get(dt)[0]
+        return self._full(x, dt)[1]
+
+    def _full(self, x, dt):
+        """Relaxed, in flight: (means, F, Q) over the whole state for x (N, n) or (n,)."""
+        x = np.asarray(x, dtype=float)
+        one = x.ndim == 1
+        xx = x[None] if one else x
+        k = self.layout.n_kin
+        xk, Fk, Qk = self.kinematic(xx[:, :k], dt)
+        f, q = self.rest(dt)
+        N, n = xx.shape
+        F = np.zeros((N, n, n))
+        Q = np.zeros((N, n, n))
+        F[:, :k, :k], Q[:, :k, :k] = Fk, Qk
+        r = np.arange(k, n)
+        F[:, r, r], Q[:, r, r] = f, q
+        xp = np.concatenate([xk, xx[:, k:] * f], axis=1)
+        return (xp[0], F[0], Q[0]) if one else (xp, F, Q)
 
     def _get_landed(self, dt):
         """(F, Q) of a landed sonde (relaxed): at rest -- position held, velocity, gust, wind and
-        wind rate zero (their Q a numerical floor, 1e-8 in SI, keeping P positive definite); the
+        shear zero (their Q a numerical floor, 1e-8 in SI, keeping P positive definite); the
         other states as in flight."""
         key = ("landed", float(dt))
         out = self._memo.get(key)
@@ -630,11 +842,42 @@ class SondeTransition:
             self._memo[key] = out
         return out
 
-    def Q(self, dt, landed: bool = False):
-        return self._get_landed(dt)[1] if landed else self._get(dt)[1]
+    def Q(self, dt, landed: bool = False, x=None):
+        """The process noise: shared for singer or a landed sonde; relaxed in flight, per sonde at x."""
+        if landed:
+            return self._get_landed(dt)[1]
+        if self.layout.wind is None:
+            return self._get(dt)[1]
+        if x is None:
+            raise ValueError("relaxed kinematics: Q depends on the state (its vertical speed and frame); pass x")
+        return self._full(x, dt)[2]
+
+    def predict(self, x, P, dt, landed: bool = False, backend=None):
+        """(x-, P-) of N sondes (x (N, n), P (N, n, n)) over dt. Relaxed in flight: the per-sonde
+        kinematic block and the shared diagonal rest, block by block (the rest's F is diagonal and
+        the kinematic block is not coupled to it)."""
+        x = np.asarray(x, dtype=float)
+        if landed or self.layout.wind is None:
+            F, Q = self.F(None, dt, landed), self.Q(dt, landed)
+            return x @ F.T, kernels.cov_predict(F, P, Q, backend=backend)
+        k = self.layout.n_kin
+        xk, Fk, Qk = self.kinematic(x[:, :k], dt)
+        f, q = self.rest(dt)
+        Pp = np.empty_like(P)
+        FkT = np.swapaxes(Fk, -1, -2)
+        Pp[:, :k, :k] = Fk @ P[:, :k, :k] @ FkT + Qk
+        kr = (Fk @ P[:, :k, k:]) * f
+        Pp[:, :k, k:] = kr
+        Pp[:, k:, :k] = np.swapaxes(kr, -1, -2)
+        Pp[:, k:, k:] = P[:, k:, k:] * (f[:, None] * f[None, :]) + np.diag(q)
+        Pp = 0.5 * (Pp + np.swapaxes(Pp, -1, -2))
+        return np.concatenate([xk, x[:, k:] * f], axis=1), Pp
 
     def f(self, x, dt):
-        return np.asarray(x, dtype=float) @ self._get(dt)[0].T
+        x = np.asarray(x, dtype=float)
+        if self.layout.wind is None:
+            return x @ self._get(dt)[0].T
+        return self._full(x, dt)[0]
 
 
 # ---------------------------------------------------------------------------
@@ -1062,6 +1305,7 @@ class TrackerCounters:
     init_waiting: int = 0  # epochs of a sonde that could not initialise it
     reacquired: int = 0  # tracks re-initialised after reacquire_after rejections in a row
     landings: int = 0  # tracks that reached the ground descending (relaxed kinematics, landing): at rest since
+    lost: int = 0  # tracks declared lost: no accepted measurement for max_coast_s (no Estimate until re-initialised)
     window_manoeuvre: int = 0  # manoeuvres found by the sliding-window NIS test
     ukf_updates: int = 0  # sonde-epochs updated by the UKF (filter "ukf", or "auto" when needed)
     bias_assigned: int = 0  # satellites given a (fresh) error state
@@ -1131,7 +1375,13 @@ class SondeTracker:
         self._P = np.zeros((0, n, n))
         self._t = np.zeros(0)  # filter time per sonde (NaN before initialisation)
         self._t_init = np.zeros(0)  # time of the track's last (re)initialisation
+        self._t_meas = np.zeros(0)  # time of the track's last accepted measurement (params.max_coast_s)
         self._landed = np.zeros(0, dtype=bool)  # the track has landed (relaxed kinematics, params.landing)
+        # the landing's uncertain time (_land): when, the direction back up the trajectory a = V / V_up, the
+        # covariance of the position with its height b = P n, the height's variance and the descent speed
+        self._land_t = np.zeros(0)
+        self._land_a, self._land_b = np.zeros((0, 3)), np.zeros((0, 3))
+        self._land_var, self._land_v = np.zeros(0), np.zeros(0)
         self._ground_h_m = None  # the ground's height (the site's), for the landing
         self._nis = np.zeros(0)  # summed block NIS of the last processed epoch
         self._rejects = np.zeros((0, 2), dtype=np.int64)  # consecutive rejections [relay, radar]
@@ -1271,41 +1521,104 @@ class SondeTracker:
             self._predict(live, t)
             self._nis[live] = np.nan
         self._land()
+        mc = self.params.max_coast_s
+        if mc is not None:
+            gone = np.flatnonzero(np.isfinite(self._t) & (t - self._t_meas > mc))
+            if gone.size:
+                self._lose(gone)
+
+    def _lose(self, slots) -> None:
+        """Tracks with no accepted measurement for longer than ``max_coast_s``: lost. They are
+        uninitialised again (no Estimate is published; the next relay or radar epoch that can fix
+        the sonde initialises it as at its acquisition), their bookkeeping reset. Counted ``lost``."""
+        for slot in slots:
+            self._t[slot] = self._t_init[slot] = self._t_meas[slot] = np.nan
+            self._nis[slot] = np.nan
+            self._landed[slot] = False
+            self._land_t[slot] = np.nan
+            self._rejects[slot] = 0
+            self._win_nis[slot], self._win_m[slot], self._win_k[slot] = 0.0, 0, 0
+            self._win_S[slot], self._win_M[slot] = 0.0, 0
+            if self.layout.nb:
+                self._bias_clear(slot)
+        self.counters.lost += len(slots)
 
     def _land(self) -> None:
-        """Relaxed kinematics with ``landing``: a descending track (its wind state's vertical
-        component -- the target vertical speed -- below 0) whose height has reached the ground's
-        (the site's: flat terrain, as in the sonde model) has landed: its height is set to the
-        ground's, a perfect constraint (P projected onto the ground's tangent plane, a 1 m^2 floor
-        vertically), and it is at rest from then on (velocity, gust, wind and rate zero; the landed
-        transition). Counted ``landings``; a re-initialisation (reacquire) takes it up again."""
+        """Relaxed kinematics with ``landing``: a descending track (its target vertical speed -- the
+        wind state's component along the local vertical -- below 0) whose height has reached the
+        ground's (the site's: flat terrain, as in the sonde model) has landed and is at rest from then
+        on (velocity, gust, wind and shear zero; the landed transition), counted ``landings``; a
+        re-initialisation takes it up again.
+
+        The landing keeps what the track does not know. The estimate reaches the ground when its
+        height does; the sonde, dh higher or lower (the height's uncertainty), lands dh / |V_up|
+        later or earlier, carried on along its trajectory meanwhile. So the landing point is the
+        estimate moved along its velocity V to the ground, and its error is the position error
+        projected onto the ground along V: J = I - a n' with a = V / (V . n), n the local vertical --
+        the height's uncertainty becomes horizontal uncertainty (V_h / |V_up| per metre), it is not
+        dropped. The landed covariance adds, vertically, the second moment of the ground's drop
+        below the tangent plane over that horizontal spread (|d|^2 / 2R: at a 30 km sigma ~70 m)
+        and a 1 m^2 floor. Until the sonde has surely come down (its remaining height
+        max(dh - |V_up| tau, 0) after tau) the published covariance also carries its possible
+        remaining descent (``_landing_spread``)."""
         w = self.layout.wind
         if w is None or not self.params.landing or self._ground_h_m is None or not self._landed.size:
             return
-        up = self._transition.enu_rot[2]
         cand = np.flatnonzero(np.isfinite(self._t) & ~self._landed)
         if not cand.size:
             return
-        cand = cand[(self._x[cand, w:w + 3] @ up) < 0.0]
+        pos = self._x[cand, 0:3]  # (a first cut: descending along the geocentric vertical, within 1 km of the ground)
+        r = np.sqrt(np.einsum("ij,ij->i", pos, pos))
+        near = (np.einsum("ij,ij->i", self._x[cand, w:w + 3], pos) < 0.0) & (r < WGS84.a_m + self._ground_h_m + 1000.0)
+        cand = cand[near]
         if not cand.size:
             return
-        lat, lon, h = ecef_to_geodetic(self._x[cand, 0:3])
-        hit = h <= self._ground_h_m
+        lat, lon, h = (np.atleast_1d(v) for v in ecef_to_geodetic(self._x[cand, 0:3]))
+        up = _enu_rotations(lat, lon)[:, 2]  # the local vertical at each estimate
+        hit = (np.einsum("ij,ij->i", self._x[cand, w:w + 3], up) < 0.0) & (h <= self._ground_h_m)
         k = self.layout.n_kin
         n = self.layout.n
-        for slot, la, lo in zip(cand[hit], np.atleast_1d(lat)[hit], np.atleast_1d(lon)[hit]):
-            nrm = enu_rotation(float(la), float(lo))[2]  # the local vertical
-            self._x[slot, 0:3] = geodetic_to_ecef(float(la), float(lo), self._ground_h_m)
-            self._x[slot, 3:k] = 0.0
+        for i in np.flatnonzero(hit):
+            slot, nrm = cand[i], up[i]
+            x, P0 = self._x[slot], self._P[slot].copy()  # (P0: the pre-landing covariance, kept below)
+            v_up = float(x[3:6] @ nrm)
+            a = x[3:6] / v_up if v_up < -0.1 else nrm  # back up the trajectory, 1 m per metre of height
+            pos = x[0:3] - a * (h[i] - self._ground_h_m)  # to the ground along the trajectory
+            la, lo, _ = ecef_to_geodetic(pos)
+            x[0:3] = geodetic_to_ecef(float(la), float(lo), self._ground_h_m)
+            x[3:k] = 0.0
             T = np.eye(n)
-            T[0:3, 0:3] -= np.outer(nrm, nrm)
+            T[0:3, 0:3] -= np.outer(a, nrm)
             T[3:k, 3:k] = 0.0
-            P = T @ self._P[slot] @ T.T
-            P[0:3, 0:3] += np.outer(nrm, nrm)
+            P = T @ P0 @ T.T
+            P[0:3, 0:3] += _curvature_drop_cov(x[0:3], P[0:3, 0:3]) + np.outer(nrm, nrm)  # and a 1 m^2 floor
             P[3:k, 3:k] += 1e-8 * np.eye(k - 3)
             self._P[slot] = 0.5 * (P + P.T)
             self._landed[slot] = True
+            self._land_t[slot] = self._t[slot] if v_up < -0.1 else np.nan
+            self._land_a[slot], self._land_b[slot] = a, P0[0:3, 0:3] @ nrm
+            self._land_var[slot], self._land_v[slot] = float(nrm @ P0[0:3, 0:3] @ nrm), -v_up
             self.counters.landings += 1
+
+    def _landing_spread(self, slot: int, t: float):
+        """The published position covariance's excess over the landed state's while the sonde may
+        still be coming down (None once negligible): with dh ~ N(0, s^2) its height above the
+        estimate at the landing, the error at tau after it is e - a g, g = min(dh, |V_up| tau) (lower:
+        landed earlier, at its own landing point; higher: still descending towards it), whose second
+        moment is P - Phi(z) (a b' + b a') + a a' s^2 (Phi(z) - z phi(z) + z^2 (1 - Phi(z))),
+        z = |V_up| tau / s; at tau -> oo this is the landed J P J'. The excess over that."""
+        t0, var = self._land_t[slot], self._land_var[slot]
+        if not (math.isfinite(t0) and var > 0.0):
+            return None
+        s = math.sqrt(var)
+        z = self._land_v[slot] * (t - t0) / s
+        if z > 8.0:
+            return None
+        q = 0.5 * math.erfc(z / math.sqrt(2.0))  # 1 - Phi(z)
+        phi = math.exp(-0.5 * z * z) / math.sqrt(2.0 * math.pi)
+        a, b = self._land_a[slot], self._land_b[slot]
+        ab = np.outer(a, b)
+        return q * (ab + ab.T) - var * (q * (1.0 - z * z) + z * phi) * np.outer(a, a)
 
     def _run_step(self, t: float, epochs: dict) -> None:
         """One step's filtering (no output); with a lag window, recorded in the history."""
@@ -1347,8 +1660,8 @@ class SondeTracker:
             c.reprocess_runs += 1
             c.reprocessed_epochs += n
 
-    _SNAP_ARRAYS = ("_x", "_P", "_t", "_t_init", "_landed", "_nis", "_rejects", "_win_nis", "_win_m", "_win_k", "_win_S",
-                    "_win_M", "_bias_last")
+    _SNAP_ARRAYS = ("_x", "_P", "_t", "_t_init", "_t_meas", "_landed", "_land_t", "_land_a", "_land_b", "_land_var",
+                    "_land_v", "_nis", "_rejects", "_win_nis", "_win_m", "_win_k", "_win_S", "_win_M", "_bias_last")
 
     def _snapshot(self) -> dict:
         """Copies of what a step writes (the per-sonde arrays, the sondes' satellite error-state
@@ -1371,6 +1684,14 @@ class SondeTracker:
     def _estimate(self, slot: int, t: float) -> Estimate:
         x, P = self._x[slot], self._P[slot]
         cov = P[:6, :6]
+        if self._landed[slot]:
+            extra = self._landing_spread(slot, t)
+            if extra is not None:
+                cov = cov.copy()
+                cov[0:3, 0:3] += extra
+        elif self.layout.wind is not None and P[0, 0] + P[1, 1] + P[2, 2] > 1e6:  # a long coast (> 1 km)
+            cov = cov.copy()
+            cov[0:3, 0:3] += _curvature_drop_cov(x[0:3], cov[0:3, 0:3])
         est = Estimate(t_gps_s=t, source_id=self.source_id, seq=self._seq, kind="sonde", pos_ecef_m=x[0:3],
                        vel_ecef_m_s=x[3:6], cov=0.5 * (cov + cov.T), nis=float(self._nis[slot]), mode=self.label)
         self._seq += 1
@@ -1405,7 +1726,13 @@ class SondeTracker:
             self._P = np.concatenate([self._P, np.zeros((1, n, n))])
             self._t = np.append(self._t, np.nan)
             self._t_init = np.append(self._t_init, np.nan)
+            self._t_meas = np.append(self._t_meas, np.nan)
             self._landed = np.append(self._landed, False)
+            self._land_t = np.append(self._land_t, np.nan)
+            self._land_a = np.concatenate([self._land_a, np.zeros((1, 3))])
+            self._land_b = np.concatenate([self._land_b, np.zeros((1, 3))])
+            self._land_var = np.append(self._land_var, 0.0)
+            self._land_v = np.append(self._land_v, 0.0)
             self._nis = np.append(self._nis, np.nan)
             self._rejects = np.concatenate([self._rejects, np.zeros((1, 2), dtype=np.int64)])
             W = self.params.manoeuvre_window or 1
@@ -1533,7 +1860,7 @@ class SondeTracker:
         return out
 
     def _predict(self, slots: np.ndarray, t: float) -> None:
-        """x- = F x, P- = F P F' + Q for the sondes in slots, to time t."""
+        """x- = f(x), P- = F P F' + Q for the sondes in slots, to time t."""
         dts = t - self._t[slots]
         for dt in (dts[:1] if np.all(dts == dts[0]) else np.unique(dts)):
             sel = slots if dts.size == 1 or np.all(dts == dt) else slots[dts == dt]
@@ -1542,31 +1869,13 @@ class SondeTracker:
                 ss = sel if not landed.any() else sel[landed == lnd]
                 if not ss.size:
                     continue
-                F, Q = self._transition.F(None, dt, lnd), self._transition.Q(dt, lnd)
-                self._x[ss] = self._advance(self._x[ss], dt, lnd)
-                self._P[ss] = kernels.cov_predict(F, self._P[ss], Q, backend=self.params.backend)
+                self._x[ss], self._P[ss] = self._propagate(ss, float(dt), lnd)
         self._t[slots] = t
 
-    def _advance(self, x, dt: float, landed: bool = False):
-        """The predicted means F x of states x (N, n) over dt, plus (relaxed kinematics, descending
-        sondes: the wind state's vertical component below 0) the change of the parachute's target
-        vertical speed -v_d(h) between the heights before and after the step, along the site's up:
-        the descent slows as the air thickens (0.13 m/s^2 at 30 km), a known function of the height
-        (an input evaluated at the estimate; its Jacobian, ~dt v_d'(h) in the wind row, is left out)."""
-        tr = self._transition
-        xp = x @ tr.F(None, dt, landed).T
-        w, v_sl = self.layout.wind, self.params.descent_rate_sl_m_s
-        if w is None or v_sl is None or landed:
-            return xp
-        up = tr.enu_rot[2]
-        down = (x[:, w:w + 3] @ up) < 0.0
-        if not down.any():
-            return xp
-        h0 = ecef_to_geodetic(x[down, 0:3])[2]
-        h1 = ecef_to_geodetic(xp[down, 0:3])[2]
-        dv = _descent_speed(h0, v_sl) - _descent_speed(h1, v_sl)  # the target -v_d(h): d(-v_d) = v_d(h0) - v_d(h1)
-        xp[np.ix_(np.flatnonzero(down), np.arange(w, w + 3))] += dv[:, None] * up
-        return xp
+    def _propagate(self, slots, dt: float, landed: bool):
+        """(x-, P-) of the sondes in slots over dt (SondeTransition.predict: relaxed kinematics per
+        sonde in its local frame with the descent law as an input; shared F for singer or landed)."""
+        return self._transition.predict(self._x[slots], self._P[slots], dt, landed, backend=self.params.backend)
 
     def _update(self, x, P, z, model, filt: str):
         if filt == "ukf":
@@ -1618,10 +1927,13 @@ class SondeTracker:
     def _with_wind(self, x, P):
         """Relaxed kinematics: the wind states of a new track, set once the rest of (x, P) is --
         the wind is the velocity plus an offset d ~ N(0, prior_sigma_wind_offset^2 I) independent
-        of everything else (so its rows are the velocity's), and its rate is at its stationary prior."""
+        of everything else (so its rows are the velocity's), and its shear is at its stationary prior;
+        the gust's and the shear's priors split horizontal / vertical at the new track's position."""
         w = self.layout.wind
         if w is None:
             return x, P
+        tr = self._transition
+        P[6:9, 6:9] = tr.acc_cov_at(x[0:3])  # (the prior's gust block is independent of the rest)
         x[w:w + 3] = x[3:6]
         x[w + 3:w + 6] = 0.0
         P[w:w + 6, :] = 0.0
@@ -1629,7 +1941,7 @@ class SondeTracker:
         P[w:w + 3, :] = P[3:6, :]
         P[:, w:w + 3] = P[:, 3:6]
         P[w:w + 3, w:w + 3] = P[3:6, 3:6] + self.params.prior_sigma_wind_offset_m_s**2 * np.eye(3)
-        P[w + 3:w + 6, w + 3:w + 6] = self._transition.wind_rate_cov_ecef()
+        P[w + 3:w + 6, w + 3:w + 6] = tr.shear_cov_at(x[0:3])
         return x, P
 
     def _init_from_radar(self, slot: int, m: RadarMeasurement, count: bool = True) -> bool:
@@ -1727,6 +2039,7 @@ class SondeTracker:
                     continue
                 self._t[slot] = t
                 self._t_init[slot] = t
+                self._t_meas[slot] = t
                 self._nis[slot] = np.nan
             if rel is not None and rel.n == 0:
                 c.relay_empty += 1
@@ -1897,16 +2210,25 @@ class SondeTracker:
         c.radar_updates += n_rad
         c.range_only_updates += sum(g[3] is not None and not g[3].angles_valid for g in group)
         lnd = bool(self._landed[slots[0]])
-        F, Q = self._transition.F(None, dt, lnd), self._transition.Q(dt, lnd)
+        tr = self._transition
+        shared = lnd or self.layout.wind is None  # one (F, Q) for the group: the fused predict + update kernel
         x, P = self._x[slots], self._P[slots]
-        x_pred = self._advance(x, dt, lnd)
+        if shared:
+            F, Q = tr.F(None, dt, lnd), tr.Q(dt, lnd)
+            x_pred, P_pred = x @ F.T, None
+        else:
+            x_pred, P_pred = self._propagate(slots, dt, lnd)
         if filt == "ekf":
             h, H = model.h_and_H(x_pred)
-            xo, Po, nis = kernels.predict_joseph_update(F, Q, x_pred, P, model.z - h, H, model.R_diag(),
-                                                        backend=p.backend)
-            P_pred = None
+            if shared:
+                xo, Po, nis = kernels.predict_joseph_update(F, Q, x_pred, P, model.z - h, H, model.R_diag(),
+                                                            backend=p.backend)
+            else:
+                xo, Po, nis = kernels.joseph_update(x_pred, P_pred, model.z - h, H, r_diag=model.R_diag(),
+                                                    backend=p.backend)
         else:
-            P_pred = kernels.cov_predict(F, P, Q, backend=p.backend)
+            if P_pred is None:
+                P_pred = kernels.cov_predict(F, P, Q, backend=p.backend)
             xo, Po, _, nis = ukf_update(x_pred, P_pred, model.z, model, points=self._points, backend=p.backend)
         gate = self._gate(model.m_eff)
         bad = np.flatnonzero(~(np.asarray(nis) <= gate))
@@ -1915,11 +2237,13 @@ class SondeTracker:
         self._nis[slots] = nis
         if not bad.size:
             self._rejects[slots] = 0
+            self._t_meas[slots[model.m_eff > 0]] = t  # an accepted measurement (rows left: not all masked out)
             self._window_test(slots, np.asarray(nis, dtype=float), model.m_eff, dt)
             return
         good = np.ones(slots.size, dtype=bool)
         good[bad] = False
         self._rejects[slots[good]] = 0
+        self._t_meas[slots[good & (model.m_eff > 0)]] = t
         # block by block for the sondes that failed the joint gate
         bs = slots[bad]
         if P_pred is None:
@@ -1942,6 +2266,7 @@ class SondeTracker:
             used[has] |= np.isfinite(v)
             m_used[has] += np.where(np.isfinite(v), sub.m_eff, 0)
         self._nis[bs] = np.where(used, total, np.nan)
+        self._t_meas[bs[used & (m_used > 0)]] = t  # a block accepted (possibly under the manoeuvre hypothesis)
         m_all = model.m_eff.copy()
         m_all[bad] = m_used
         nis_all = np.asarray(nis, dtype=float).copy()
@@ -2005,9 +2330,7 @@ class SondeTracker:
             for lnd in (False, True):  # after _measurement: a new satellite's error state is reset
                 ss = slots[self._landed[slots] == lnd]
                 if ss.size:
-                    F, Q = self._transition.F(None, dt, lnd), self._transition.Q(dt, lnd)
-                    X[ss] = self._advance(self._x[ss], dt, lnd)
-                    P[ss] = kernels.cov_predict(F, self._P[ss], Q, backend=self.params.backend)
+                    X[ss], P[ss] = self._propagate(ss, dt, lnd)
             for grp, model in models:
                 sl = np.array([g[1] for g in grp])
                 h, H = model.h_and_H(X[sl])
@@ -2177,7 +2500,7 @@ class SondeTracker:
             if ok:
                 self.counters.reacquired += 1
                 self._rejects[slot] = 0
-                self._t_init[slot] = self._t[slot]
+                self._t_init[slot] = self._t_meas[slot] = self._t[slot]
 
 
 class _Prepared:

@@ -8,38 +8,11 @@ Every validation error is a `ScenarioError` whose message is ONE line naming the
 e.g. ``uavs.count``) and saying what was expected; the CLI turns it into exit status 2.
 Unknown keys are errors too (a typo must not be silently ignored).
 
-Layout of a scenario (every key optional; the defaults are those of `DEFAULT_SCENARIO_TOML`):
+Layout of a scenario: the sections [run], [bus], [mavlink], [uavs], [beacon], [sonde] and
+[ground_station], every key optional, each declared once below with its default, its check and
+its doc (sitl.params.param); `skyfuse scenario` prints them all as the documented default
+(DEFAULT_SCENARIO_TOML, generated from the declarations). And:
 
-    [run]          id, seed, duration_s (simulated), speed (x real time), rate_hz (epochs / s of
-                   simulated time), t0_gps_s (start, GPS seconds)
-    [bus]          zenoh (list of external router endpoints; empty: an embedded router),
-                   listen (the embedded router's endpoint), log (record the bus), lease_ms
-    [mavlink]      enabled, gcs ("HOST:PORT"), base_port (vehicle i listens on base_port + 10 i),
-                   signing_key_file, tlog
-    [uavs]         count, per_process, center (lat deg, lon deg), radius_m, alt_m, alt_step_m, speed_m_s, nav_rate_hz,
-                   starts (optional list of [lat deg, lon deg, h m], one per UAV; default: a ring of
-                   radius_m about center at heights alt_m + 0 / 1 / 2 x alt_step_m in turn),
-                   pattern: how they fly from there at speed_m_s --
-                     "orbit" (default): level clockwise circles about center, each through its start
-                       (radius its distance from center; at least speed_m_s / 3 deg/s), held by
-                       guidance, for ever (vehicles.uav.Racetrack);
-                     "north": the seed 002 sinusoidal law heading north (speed_m_s +- 10 m/s, climb
-                       15 cos(0.01 t) m/s): the formation leaves the area at ~100 m/s
-    [beacon]       id, start ([lat deg, lon deg, h m]: where it is at the run's start),
-                   mode: "racetrack" (default: a clockwise holding pattern at 115 m/s, 200 s legs north
-                     and south, 180 deg turns at 1.5 deg/s, first leg north from start, centre 11.5 km
-                     north and 4.39 km east of start), "legs" (8 straight 200 s legs and 90 deg turns
-                     at 1.5 deg/s, alternately right and left, first north, then straight on east),
-                     "seed" (seed 002's geodetic law: north at 115 +- 10 m/s) or "static"
-                   (vehicles/beacon.py)
-    [sonde]        enabled, id, radar_id, launch ([lat deg, lon deg, h m]), gcpp_offset_m,
-                   gcpp_bearing_deg, radar_loss_s ([start, end] after launch), gnss_outage_s
-    [ground_station] hold_wall_s (the longest the GS waits for an epoch's messages after
-                   its time, wall seconds; it goes on as soon as every source has delivered it), beacon_init_epochs, integrity (the sonde tracker's
-                   integrity monitor; its events go out as STATUSTEXT too), lag_window_s (late measurements this
-                   old are re-processed), stale_after_s (a silent link is flagged stale), link_stats_every_s,
-                   max_ahead_s (an input further ahead of the GS's clock than this is refused as
-                   "future"; one older than the hold plus the lag window as "stale")
     [faults]       network faults, a table LINK = "SPEC" (sitl.netfault's netem-like text), e.g.
                    "mav:1" = "loss=10% delay=100ms~20ms"    (MAVLink of system id 1, both ways;
                                                               "mav:1:up" vehicle->GCS, "mav:1:down")
@@ -58,6 +31,8 @@ from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
 from typing import Any
 
+from sitl.params import checks, param, toml_table
+
 # GPS time of the built-in almanac's epoch + 1 h (the seed 002 start; vehicles.uav_nav
 # .SEED002_T0_GPS_S, which sitl may not import)
 from sitl.constants import MAX_MAVLINK_VEHICLES  # noqa: F401  (system ids 1..249; checked here)
@@ -70,63 +45,6 @@ BEACON_MODES = ("seed", "legs", "static", "racetrack")  # [beacon].mode (vehicle
 # "orbit": the UAVs' guidance turns at most this fast (vehicles.uav.Racetrack's max_turn_rate_rad_s)
 ORBIT_MAX_TURN_RATE_RAD_S = math.radians(3.0)
 
-DEFAULT_SCENARIO_TOML = """\
-# skyfuse built-in default scenario: 3 UAVs orbiting (15 km, clockwise) the area where a moving
-# radio beacon flies its racetrack (centred on theirs), one radiosonde tracked by its relayed GNSS
-# and an aerological radar.
-[run]
-id = "demo"
-seed = 1
-duration_s = 600.0
-speed = 1.0
-rate_hz = 1.0
-
-[bus]
-zenoh = []
-listen = "tcp/127.0.0.1:0"
-log = true
-
-[mavlink]
-enabled = true
-gcs = "127.0.0.1:14550"
-base_port = 5760
-signing_key_file = ""
-tlog = true
-
-[uavs]
-count = 3
-per_process = 100
-center = [45.15, 30.15]
-radius_m = 15000.0
-alt_m = 2000.0
-alt_step_m = 2000.0
-speed_m_s = 100.0
-nav_rate_hz = 1.0
-pattern = "orbit"
-
-[beacon]
-id = "b1"
-mode = "racetrack"
-start = [45.0466, 30.094, 300.0]
-
-[sonde]
-enabled = true
-id = "s0000"
-radar_id = "arls1"
-launch = [55.93, 37.52, 190.0]
-gcpp_offset_m = 300.0
-gcpp_bearing_deg = 140.0
-radar_loss_s = [30.0, 330.0]
-gnss_outage_s = [3600.0, 3720.0]
-
-[ground_station]
-hold_wall_s = 1.0
-integrity = false
-lag_window_s = 5.0
-stale_after_s = 3.0
-link_stats_every_s = 10.0
-max_ahead_s = 2.0
-"""
 
 
 class ScenarioError(ValueError):
@@ -230,47 +148,77 @@ def zenoh_endpoint(key, v) -> str:
 
 
 # ---------------------------------------------------------------- the dataclasses
+# Every key is declared once, here: its default, its check and its doc (sitl.params.param). The
+# validation table, the built-in default scenario (DEFAULT_SCENARIO_TOML) and `skyfuse scenario`
+# come from these declarations.
+
+
+def _n(**kw):
+    return lambda k, v: _number(k, v, **kw)
+
+
+def _i(**kw):
+    return lambda k, v: _int(k, v, **kw)
+
+
+def _ident(k, v):
+    return _str(k, v, ident=True)
 
 
 @dataclass(frozen=True)
 class RunSection:
-    id: str = "demo"
-    seed: int = 1
-    duration_s: float = 600.0
-    speed: float = 1.0
-    rate_hz: float = 1.0
-    t0_gps_s: float = DEFAULT_T0_GPS_S
+    """The run: what it is called, its seed, its simulated duration and pace."""
+
+    id: str = param("demo", check=_ident, doc="the run's id: the first part of every bus key (1..64 of [A-Za-z0-9_.-])")
+    seed: int = param(1, check=_i(lo=0, hi=2**63 - 1), doc="seed of every random draw of the run")
+    duration_s: float = param(600.0, check=_n(lo=0, lo_open=True, hi=10 * 86400), doc="simulated seconds the run lasts")
+    speed: float = param(1.0, check=_n(lo=0, lo_open=True, hi=1000), doc="x real time (a live run's pace)")
+    rate_hz: float = param(1.0, check=_n(lo=0, lo_open=True, hi=100), doc="epochs per second of simulated time")
+    t0_gps_s: float = param(DEFAULT_T0_GPS_S, check=_n(lo=0), doc="the run's start, GPS seconds")
 
 
 @dataclass(frozen=True)
 class BusSection:
-    zenoh: tuple = ()
-    listen: str = "tcp/127.0.0.1:0"
-    log: bool = True
-    lease_ms: int = 10000
+    """The Zenoh bus."""
+
+    zenoh: tuple = param((), check=lambda k, v: tuple(zenoh_endpoint(f"{k}[{i}]", e) for i, e in enumerate(_list(k, v))),
+                         doc='external Zenoh router endpoints ["tcp/HOST:PORT", ...]; empty: an embedded router')
+    listen: str = param("tcp/127.0.0.1:0", check=zenoh_endpoint, doc="the embedded router's listen endpoint (port 0: any free)")
+    log: bool = param(True, check=_bool, doc="record the bus traffic to OUT/bus.log (what `skyfuse replay` reads)")
+    lease_ms: int = param(10000, check=_i(lo=100, hi=600000), doc="Zenoh session lease, ms (a dead peer is dropped after it)")
 
 
 @dataclass(frozen=True)
 class MavlinkSection:
-    enabled: bool = True
-    gcs: str = "127.0.0.1:14550"
-    base_port: int = 5760
-    signing_key_file: str = ""
-    tlog: bool = True
+    """The vehicles as MAVLink 2 endpoints over UDP."""
+
+    enabled: bool = param(True, check=_bool, doc="vehicles speak MAVLink 2 over UDP")
+    gcs: str = param("127.0.0.1:14550", check=_hostport, doc='the ground-control station\'s address "HOST:PORT"')
+    base_port: int = param(5760, check=_i(lo=1024, hi=65000), doc="vehicle i listens on base_port + 10 i")
+    signing_key_file: str = param("", check=_str, doc="a MAVLink 2 signing key file (32 raw bytes, 64 hex digits or a passphrase); empty: unsigned")
+    tlog: bool = param(True, check=_bool, doc="write .tlog files of the MAVLink traffic (MAVProxy's format)")
 
 
 @dataclass(frozen=True)
 class UavSection:
-    count: int = 3
-    per_process: int = 100
-    center: tuple = (45.15, 30.15)
-    radius_m: float = 15000.0
-    alt_m: float = 2000.0
-    alt_step_m: float = 2000.0
-    speed_m_s: float = 100.0
-    nav_rate_hz: float = 1.0  # UavNav messages per simulated second (beacon measurements carry the nav anyway)
-    starts: tuple = ()  # ((lat deg, lon deg, h m), ...) or () for a ring about center
-    pattern: str = "orbit"  # UAV_PATTERNS: "orbit" (circles about center) or "north" (seed 002 law)
+    """The UAV swarm."""
+
+    count: int = param(3, check=_i(lo=0, hi=100000), doc="number of UAVs")
+    per_process: int = param(100, check=_i(lo=1, hi=100000), doc="UAVs per vehicle worker process")
+    center: tuple = param((45.15, 30.15), check=lambda k, v: _geo(k, v, 2), doc="centre of the formation [lat deg, lon deg]")
+    radius_m: float = param(15000.0, check=_n(lo=0, hi=2e6), doc="radius of the ring of starts about center, m")
+    alt_m: float = param(2000.0, check=_n(lo=-500, hi=100000), doc="height of the lowest UAVs, m")
+    alt_step_m: float = param(2000.0, check=_n(lo=0, hi=20000),
+                              doc="the ring's heights are alt_m + 0 / 1 / 2 x alt_step_m in turn (a tilted formation)")
+    speed_m_s: float = param(100.0, check=_n(lo=0, hi=2000), doc="the UAVs' airspeed, m/s")
+    nav_rate_hz: float = param(1.0, check=_n(lo=0, lo_open=True, hi=100),
+                               doc="UavNav messages per simulated second (beacon measurements carry the nav anyway)")
+    starts: tuple = param((), check=lambda k, v: tuple(_geo(f"{k}[{i}]", s) for i, s in enumerate(_list(k, v))),
+                          doc="[[lat deg, lon deg, h m], ...], one per UAV; empty: a ring of radius_m about center")
+    pattern: str = param("orbit", check=lambda k, v: _str(k, v, choices=UAV_PATTERNS),
+                         doc='how they fly from their starts at speed_m_s: "orbit" (level clockwise circles about '
+                             'center, each through its start, held by guidance, for ever) or "north" (the seed 002 '
+                             'sinusoidal law heading north: the formation leaves the area at ~100 m/s)')
 
     def start_points(self) -> list[tuple]:
         """(lat deg, lon deg, h m) of every UAV: ``starts``, or a ring of radius_m about center
@@ -291,35 +239,55 @@ class UavSection:
 
 @dataclass(frozen=True)
 class BeaconSection:
-    id: str = "b1"
-    mode: str = "racetrack"
-    start: tuple = (45.0466, 30.094, 300.0)
+    """The moving radio beacon the ground station locates."""
+
+    id: str = param("b1", check=_ident, doc="the beacon's id")
+    mode: str = param("racetrack", check=lambda k, v: _str(k, v, choices=BEACON_MODES),
+                      doc='"racetrack" (a clockwise holding pattern at 115 m/s, 200 s legs north and south, 180 deg '
+                          'turns at 1.5 deg/s, first leg north from start), "legs" (8 straight 200 s legs and 90 deg '
+                          'turns, alternately right and left, first north, then straight on east), "seed" (the seed '
+                          '002 geodetic law: north at 115 +- 10 m/s) or "static"')
+    start: tuple = param((45.0466, 30.094, 300.0), check=_geo, doc="where it is at the run's start [lat deg, lon deg, h m]")
 
 
 @dataclass(frozen=True)
 class SondeSection:
-    enabled: bool = True
-    id: str = "s0000"
-    radar_id: str = "arls1"
-    launch: tuple = (55.93, 37.52, 190.0)
-    gcpp_offset_m: float = 300.0
-    gcpp_bearing_deg: float = 140.0
-    radar_loss_s: tuple = (30.0, 330.0)
-    gnss_outage_s: tuple = (3600.0, 3720.0)
-    wind_scale: float = 1.15  # the sonde model's wind profile x this (the default winter jet: 58 -> 67 m/s at 11 km)
+    """The radiosonde, its relayed GNSS and the aerological radar."""
+
+    enabled: bool = param(True, check=_bool, doc="fly and track a radiosonde")
+    id: str = param("s0000", check=_ident, doc="the sonde's id")
+    radar_id: str = param("arls1", check=_ident, doc="the aerological radar's id")
+    launch: tuple = param((55.93, 37.52, 190.0), check=_geo, doc="the launch pad [lat deg, lon deg, h m]")
+    gcpp_offset_m: float = param(300.0, check=_n(lo=0, lo_open=True, hi=1e5),
+                                 doc="the radar and ground receiver from the launch pad, m")
+    gcpp_bearing_deg: float = param(140.0, check=_n(lo=0, hi=360), doc="their bearing from the launch pad, deg")
+    radar_loss_s: tuple = param((30.0, 330.0), check=_interval,
+                                doc="[start, end] after launch, s: the radar's angle tracking is lost")
+    gnss_outage_s: tuple = param((3600.0, 3720.0), check=_interval,
+                                 doc="[start, end] after launch, s: the relay delivers nothing")
+    wind_scale: float = param(1.15, check=_n(lo=0, hi=10),
+                              doc="the sonde model's wind profile x this (the default winter jet x 1.15: 58 -> 67 m/s at 11 km)")
 
 
 @dataclass(frozen=True)
 class GroundStationSection:
-    hold_wall_s: float = 1.0
-    beacon_init_epochs: int = 3
-    integrity: bool = False  # the sonde tracker's integrity monitor (its events: bus + STATUSTEXT)
-    lag_window_s: float = 5.0  # late (out-of-sequence) measurements this old are re-processed (0: dropped)
-    stale_after_s: float = 3.0  # a source silent this long (simulated s) is flagged stale
-    link_stats_every_s: float = 10.0  # LinkStats of every link this often (and on stale / back)
-    # the time guard: an input more than this ahead of the GS's clock is refused ("future"); one
-    # older than hold_wall_s x speed + lag_window_s behind it is refused ("stale")
-    max_ahead_s: float = 2.0
+    """The fusing ground station."""
+
+    hold_wall_s: float = param(1.0, check=_n(lo=0, hi=60),
+                               doc="the longest the GS waits for an epoch's messages after its time, wall seconds "
+                                   "(it goes on as soon as every source has delivered it)")
+    beacon_init_epochs: int = param(3, check=_i(lo=1, hi=100), doc="epochs of the beacon's blind (multilateration) start")
+    integrity: bool = param(False, check=_bool,
+                            doc="the sonde tracker's integrity monitor (its events go out on the bus and as STATUSTEXT)")
+    lag_window_s: float = param(5.0, check=_n(lo=0, hi=600),
+                                doc="late (out-of-sequence) measurements this old are re-processed (0: dropped)")
+    stale_after_s: float = param(3.0, check=_n(lo=0, lo_open=True, hi=3600),
+                                 doc="a source silent this long (simulated s) is flagged stale")
+    link_stats_every_s: float = param(10.0, check=_n(lo=0, lo_open=True, hi=3600),
+                                      doc="LinkStats of every link this often, simulated s (and on stale / back)")
+    max_ahead_s: float = param(2.0, check=_n(lo=0, hi=3600),
+                               doc='the time guard: an input further ahead of the GS\'s clock than this is refused '
+                                   '("future"); one older than hold_wall_s x speed + lag_window_s behind it ("stale")')
 
 
 def _fault_link(key: str, link) -> str:
@@ -429,67 +397,30 @@ class Scenario:
         return [f"vehicles{g}" for g in range(self.n_uav_processes)] + ["gs"]
 
 
-# per section: key -> checker(key, value) -> stored value
+_DEFAULT_HEADER = """\
+# skyfuse built-in default scenario: 3 UAVs orbiting (15 km, clockwise) the area where a moving
+# radio beacon flies its racetrack (centred on theirs), one radiosonde tracked by its relayed GNSS
+# and an aerological radar.
+# Every key is optional; each is shown here with its default and what it means.
+"""
+
+
+def default_scenario_toml() -> str:
+    """The built-in default scenario as documented TOML: every section and key with its default,
+    each key preceded by its doc (from the declarations)."""
+    s = Scenario()
+    return _DEFAULT_HEADER + "\n" + "\n\n".join(toml_table(name, getattr(s, name)) for name in _SECTIONS) + "\n"
+
+
+# per section: its dataclass and {key: check(key, value) -> stored value}, from the declarations
 _SECTIONS: dict[str, tuple[type, dict]] = {
-    "run": (RunSection, {
-        "id": lambda k, v: _str(k, v, ident=True),
-        "seed": lambda k, v: _int(k, v, lo=0, hi=2**63 - 1),
-        "duration_s": lambda k, v: _number(k, v, lo=0, lo_open=True, hi=10 * 86400),
-        "speed": lambda k, v: _number(k, v, lo=0, lo_open=True, hi=1000),
-        "rate_hz": lambda k, v: _number(k, v, lo=0, lo_open=True, hi=100),
-        "t0_gps_s": lambda k, v: _number(k, v, lo=0),
-    }),
-    "bus": (BusSection, {
-        "zenoh": lambda k, v: tuple(zenoh_endpoint(f"{k}[{i}]", e) for i, e in enumerate(_list(k, v))),
-        "listen": zenoh_endpoint,
-        "log": _bool,
-        "lease_ms": lambda k, v: _int(k, v, lo=100, hi=600000),
-    }),
-    "mavlink": (MavlinkSection, {
-        "enabled": _bool,
-        "gcs": _hostport,
-        "base_port": lambda k, v: _int(k, v, lo=1024, hi=65000),
-        "signing_key_file": _str,
-        "tlog": _bool,
-    }),
-    "uavs": (UavSection, {
-        "count": lambda k, v: _int(k, v, lo=0, hi=100000),
-        "per_process": lambda k, v: _int(k, v, lo=1, hi=100000),
-        "center": lambda k, v: _geo(k, v, 2),
-        "radius_m": lambda k, v: _number(k, v, lo=0, hi=2e6),
-        "alt_m": lambda k, v: _number(k, v, lo=-500, hi=100000),
-        "alt_step_m": lambda k, v: _number(k, v, lo=0, hi=20000),
-        "speed_m_s": lambda k, v: _number(k, v, lo=0, hi=2000),
-        "nav_rate_hz": lambda k, v: _number(k, v, lo=0, lo_open=True, hi=100),
-        "starts": lambda k, v: tuple(_geo(f"{k}[{i}]", s) for i, s in enumerate(_list(k, v))),
-        "pattern": lambda k, v: _str(k, v, choices=UAV_PATTERNS),
-    }),
-    "beacon": (BeaconSection, {
-        "id": lambda k, v: _str(k, v, ident=True),
-        "mode": lambda k, v: _str(k, v, choices=BEACON_MODES),
-        "start": _geo,
-    }),
-    "sonde": (SondeSection, {
-        "enabled": _bool,
-        "id": lambda k, v: _str(k, v, ident=True),
-        "radar_id": lambda k, v: _str(k, v, ident=True),
-        "launch": _geo,
-        "gcpp_offset_m": lambda k, v: _number(k, v, lo=0, lo_open=True, hi=1e5),
-        "gcpp_bearing_deg": lambda k, v: _number(k, v, lo=0, hi=360),
-        "radar_loss_s": _interval,
-        "gnss_outage_s": _interval,
-        "wind_scale": lambda k, v: _number(k, v, lo=0, hi=10),
-    }),
-    "ground_station": (GroundStationSection, {
-        "hold_wall_s": lambda k, v: _number(k, v, lo=0, hi=60),
-        "beacon_init_epochs": lambda k, v: _int(k, v, lo=1, hi=100),
-        "integrity": _bool,
-        "lag_window_s": lambda k, v: _number(k, v, lo=0, hi=600),
-        "stale_after_s": lambda k, v: _number(k, v, lo=0, lo_open=True, hi=3600),
-        "link_stats_every_s": lambda k, v: _number(k, v, lo=0, lo_open=True, hi=3600),
-        "max_ahead_s": lambda k, v: _number(k, v, lo=0, hi=3600),
-    }),
+    name: (cls, checks(cls)) for name, cls in (
+        ("run", RunSection), ("bus", BusSection), ("mavlink", MavlinkSection), ("uavs", UavSection),
+        ("beacon", BeaconSection), ("sonde", SondeSection), ("ground_station", GroundStationSection))
 }
+
+
+DEFAULT_SCENARIO_TOML = default_scenario_toml()
 
 
 def _list(key, v) -> list:

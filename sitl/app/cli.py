@@ -360,6 +360,11 @@ def build_parser() -> argparse.ArgumentParser:
         "fault", help="change or list a running live run's network faults (set LINK SPEC..., list)",
         description="Change or list the network faults of a running live run through its control key."))
 
+    sc = sub.add_parser("scenario", help="print the built-in default scenario: every key, its default and what it means",
+                        description="Print the built-in default scenario as TOML, every section and key with its default "
+                                    "and its doc (a starting point for `skyfuse run FILE`).")
+    sc.add_argument("--out", type=output_file, default=None, metavar="FILE", help="write it to FILE instead of stdout")
+
     exp = sub.add_parser("experiment", help="run a reproducible experiment of a seed paper",
                          description="Run an experiment; each writes DIR/result.json and PNG figures.")
     exp_sub = exp.add_subparsers(dest="experiment", metavar="EXPERIMENT", parser_class=Parser)
@@ -424,6 +429,15 @@ def _run(args: argparse.Namespace) -> int:
         from sitl.app import launcher as live
 
         return {"demo": live.demo_main, "run": live.run_main, "replay": live.replay_main}[args.command](args)
+    if args.command == "scenario":
+        from sitl.scenario import DEFAULT_SCENARIO_TOML
+
+        if args.out is None:
+            sys.stdout.write(DEFAULT_SCENARIO_TOML)
+        else:
+            Path(args.out).write_text(DEFAULT_SCENARIO_TOML, encoding="utf-8")
+            print(f"wrote {args.out}")
+        return 0
     if args.command == "fault":
         from sitl.app.fault_cli import fault_main
 

@@ -23,13 +23,9 @@ from tests.ground_station.test_beacon_locator import _epochs as _beacon_epochs
 
 from filters import metrics
 from filters.integrity import IntegrityConfig, IntegrityMonitor
-from ground_station.beacon_locator import (
-    INTEGRITY,
-    BeaconLocator,
-    LocatorConfig,
-    _mon_merge,
-    _mon_take,
-)
+from ground_station.beacon import INTEGRITY, BeaconLocator, LocatorConfig
+from ground_station.beacon.integrity import merge_monitor_rows as _mon_merge
+from ground_station.beacon.integrity import take_monitor_rows as _mon_take
 from sitl.bus import InMemoryTransport, IntegrityEvent, parse_key
 
 SIG_P, SIG_V = 10.0, 0.1  # the UAVs' navigation errors (white), per axis

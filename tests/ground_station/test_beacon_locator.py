@@ -27,8 +27,7 @@ from hypothesis import strategies as st
 
 from filters import metrics
 from filters.models import Composite, ConstantVelocity
-from ground_station.beacon_central import link_information, pcrb_central
-from ground_station.beacon_locator import (
+from ground_station.beacon import (
     BeaconLocator,
     LocatorConfig,
     ObserverEpoch,
@@ -36,6 +35,8 @@ from ground_station.beacon_locator import (
     ecef_to_cyl,
     formation_frame,
     init_fix,
+    link_information,
+    pcrb_central,
 )
 from sitl.app import cli
 from sitl.bus import BeaconMeasurement, InMemoryTransport, encode, key_for, pack_sealed
@@ -160,7 +161,7 @@ def test_range_doppler_blocks_are_the_observer_model():
     """The locator's inline range/Doppler blocks equal filters.beacon.ObserverRangeDoppler
     (h_and_H, and R with "inflate" for kappa = 1) bit for bit, and refuse non-finite input."""
     from filters.beacon import ObserverRangeDoppler
-    from ground_station.beacon_locator import range_doppler_blocks
+    from ground_station.beacon import range_doppler_blocks
 
     rng = np.random.default_rng(3)
     T, N = 4, 5
@@ -574,7 +575,7 @@ def test_uav_error_transition_keeps_the_sent_covariance(seed, shrink, rho_p, rho
     L_now (I - rho^2) L_now' >= 0 whatever the change (the UAV's filter may shrink its
     covariance by any factor); a plain eps' = rho eps + w needs Cov(w) = P_now - rho P_prev rho,
     which is not a covariance once P_now shrinks faster than rho^2."""
-    from ground_station.beacon_locator import uav_error_transition
+    from ground_station.beacon import uav_error_transition
 
     rng = np.random.default_rng(seed)
     M = rng.standard_normal((6, 6)) * np.r_[[30.0] * 3, [0.3] * 3]

@@ -18,7 +18,7 @@ from tests.ground_station.test_sonde_tracker import (
     relay_msg,
 )
 
-from ground_station.beacon_locator import BeaconLocator, LocatorConfig
+from ground_station.beacon import BeaconLocator, LocatorConfig
 from ground_station.sonde_tracker import SondeTracker, SondeTrackerParams
 from sitl.bus import InMemoryTransport
 from sitl.netfault import KeyFaults

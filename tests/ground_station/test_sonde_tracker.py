@@ -248,7 +248,7 @@ def test_relay_only_initialises_from_a_least_squares_fix(world):
         est = trk.step(float(rt.t_gps_s[j]))
     assert trk.counters.init_relay == 1 and trk.counters.relay_updates == 29
     assert np.linalg.norm(est[0].pos_ecef_m - tr.pos_ecef_m[k + 29, 0]) < 5.0
-    # 15 kinematic states (position, velocity, gust acceleration, wind, wind rate), dd, osc, one error state per satellite slot
+    # 15 kinematic states (position, velocity, gust acceleration, wind, wind shear), dd, osc, one error state per satellite slot
     assert trk.layout.n == 17 + 24 and trk.state("s1")[1].size == 41
 
 

@@ -1,6 +1,7 @@
 """Scenario files: validation (one line naming the key), the default, worker specs."""
 from __future__ import annotations
 
+import json
 import math
 import subprocess
 import sys
@@ -10,6 +11,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from sitl.scenario import (
+    SPEC_VERSION,
     DEFAULT_SCENARIO_TOML,
     Scenario,
     ScenarioError,
@@ -96,7 +98,7 @@ def test_round_trip_through_the_spec(tmp_path):
 
 def test_spec_with_unknown_keys_is_refused(tmp_path):
     p = tmp_path / "s.json"
-    p.write_text('{"spec_version": 1, "name": "x", "surprise": 1}')
+    p.write_text(json.dumps({"spec_version": SPEC_VERSION, "name": "x", "surprise": 1}))
     with pytest.raises(ValueError, match="surprise"):
         WorkerSpec.read(p)
 

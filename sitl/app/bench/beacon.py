@@ -1,6 +1,6 @@
 """`skyfuse bench beacon`: one trial of the seed 002 beacon experiment against real time.
 
-The case of issue 5: the beacon experiment's paper case (``three_satellites``; or
+The case: the beacon experiment's paper case (``three_satellites``; or
 ``--case constellation``), 3 UAVs, 1000 s at 1 s epochs, one Monte Carlo trial, run as
 `skyfuse experiment beacon` runs it (its default, printed geometry: the beacon's start drawn
 about the printed point, the locator started from that prior): the truth (RK4, 0.01 s), the UAVs' receivers and
@@ -79,7 +79,7 @@ def _direct_trial(case, tracks, seed, prior=None):
 
     from sitl.app.experiments import beacon as ex
     from vehicles import uav_nav
-    from ground_station import beacon_locator as bl
+    from ground_station import beacon as bl
     from sitl.radio import beacon_link
 
     t0 = time.perf_counter()

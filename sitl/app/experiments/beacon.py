@@ -1,24 +1,24 @@
 """`skyfuse experiment beacon`: seed 002, a (moving) radio beacon located from >= 3 UAVs.
 
-Batch mode of the SITL (docs: ARCHITECTURE.md "Two ways to run"): the same components a
+Batch mode of the SITL: the same components a
 live run has, stepped in simulation time over one ``sitl.bus.InMemoryTransport``, drained
 every epoch (1 s):
 
     UAV swarm (RK4, 0.01 s) -> GNSS receivers -> onboard EKFs    -> bus uav/<i>/nav (UavNav)
     beacon (RK4) -> range / Doppler at each UAV + the UAV's nav  -> bus uav/<i>/beacon/b1
     truth                                                        -> bus truth/{beacon,uav}/...
-    ground station: ground_station.beacon_locator.BeaconLocator  -> bus gs/estimate/beacon/b1
+    ground station: ground_station.beacon.BeaconLocator  -> bus gs/estimate/beacon/b1
     scoring: subscribes to truth and gs/estimate only
 
 Each Monte Carlo trial is one run id (``<base>-t<k>``) on the shared bus; the UAVs' filters
 and the locator run all trials as one batch.  The production locator (PRODUCTION,
 "consider": the UAVs' navigation errors as Schmidt states after an "inflate" acquisition,
-ground_station/beacon_locator.py) publishes its Estimates on the bus and is scored from
+ground_station/beacon/) publishes its Estimates on the bus and is scored from
 there; the comparison locators on the same messages ("inflate": R + kappa J P_i J', kappa =
 101; "inflate" with white UAV errors, kappa = 1; "ignore": the UAVs taken as exact; the
 seed's position-only filter) are scored from their states (result.json
 ``inflate_vs_ignore``: every locator of LOCATORS, accounting for the UAVs' uncertainty
-against ignoring it).  The centralised filter (ground_station.beacon_central) is then
+against ignoring it).  The centralised filter (ground_station.beacon.central) is then
 replayed on the same receiver outputs and links, and the PCRB computed at the truth.
 
 Geometry (``--geometry``; vehicles/uav.py says how the seed's laws are read):
@@ -39,7 +39,7 @@ Geometry (``--geometry``; vehicles/uav.py says how the seed's laws are read):
   / 45.3, lon 30 / 30.1 / 30.3, h 3000 / 3100 / 3500 m; beacon lat 47.3, lon 31, 3200 m), every
   vehicle heading north at its printed v0 (100 / 110 / 110; 115) + 10 sin(0.02 t) m/s with
   climb 15 cos(0.01 t); the beacon is ~250 km from the UAVs and the locator starts blind
-  (multilateration, ground_station/beacon_locator.py).
+  (multilateration, ground_station/beacon/multilateration.py).
 
 Cases: ``three_satellites`` (the paper's: three satellites on unperturbed Keplerian orbits,
 vehicles.uav_nav.seed002_three_satellites) and ``constellation`` (the GPS almanac, every
@@ -199,8 +199,8 @@ def scenario(geometry: str, n_uavs: int, duration_s: float, trials: int, rng):
 
 def locator_config(name: str = PRODUCTION, prior=None, integrity: bool = False):
     """The LocatorConfig of a locator of LOCATORS, started from ``prior`` (mean, cov) if given;
-    ``integrity``: with the integrity monitor per UAV link (beacon_locator.INTEGRITY)."""
-    from ground_station import beacon_locator as bl
+    ``integrity``: with the integrity monitor per UAV link (ground_station.beacon.INTEGRITY)."""
+    from ground_station import beacon as bl
     LocatorConfig = bl.LocatorConfig
     kw = dict(LOCATORS[name])
     if integrity:
@@ -285,7 +285,7 @@ def run_case(case, tracks, trials, seed, locators=(PRODUCTION,), progress=None, 
              bus_faults=None, fault_seed: int | None = None) -> dict:
     """One case through the bus (module docstring).  Returns the raw series and counters.
 
-    bus_faults (issue 8): network faults on the MEASUREMENT links only, the UAVs' beacon
+    bus_faults: network faults on the MEASUREMENT links only, the UAVs' beacon
     measurements (keys MEASUREMENT_KEYS), never the truth or the estimates the ground station
     publishes: a list of FaultFilters (``sitl.netfault.KeyFaults``, ``LinkFault``) and/or
     KeyFaults rules ``(key_expr, spec)`` seeded with ``fault_seed`` (default: from ``seed``);
@@ -298,7 +298,7 @@ def run_case(case, tracks, trials, seed, locators=(PRODUCTION,), progress=None, 
     on the bus (``integrity_events``: (t since start, source, channel, event, statistic)).
     faults (world side, sitl.measfault, the same in every trial; see FAULT_DEFAULTS): a range
     step on one UAV's beacon link and a pseudorange step on one satellite of one UAV."""
-    from ground_station.beacon_locator import BeaconLocator
+    from ground_station.beacon import BeaconLocator
     from sitl.bus import BeaconMeasurement, InMemoryTransport, Truth, UavNav, key_for
     from sitl.radio import beacon_link
     from vehicles import uav_nav
@@ -531,8 +531,7 @@ def _bus_stats(bus) -> dict:
 def _central(loc, const, nav_cfg, t_gps, epochs, links, nav_x, nav_P, start=None):
     """Replay the centralised filter on the same data from the locator's start (module doc),
     or from ``start`` = (epoch index, ECEF x (T, 6), P (T, 6, 6)): the locator's estimate then."""
-    from ground_station.beacon_central import CentralFilter
-    from ground_station.beacon_central import LinkEpoch
+    from ground_station.beacon import CentralFilter, LinkEpoch
     from vehicles import uav_nav
 
     K, T, N = nav_x.shape[:3]
@@ -550,11 +549,11 @@ def _central(loc, const, nav_cfg, t_gps, epochs, links, nav_x, nav_P, start=None
         if start is not None:
             x, P = start[1][j], start[2][j]
         ob = loc.init_window_last[j]
-        y, Py, fr = loc._to_state(x, P, ob)
+        y, Py, fr = loc.to_state(x, P, ob)
         y0.append(y)
         P0.append(Py)
         fr0.append(fr)
-    from ground_station.beacon_locator import Frame
+    from ground_station.beacon import Frame
 
     frame = Frame(*(np.concatenate([f[i] for f in fr0]) for i in range(len(Frame._fields))))
     cf = CentralFilter(N, loc.config, q_uav_m2_s3=nav_cfg.q_m2_s3).start(
@@ -635,8 +634,7 @@ def pcrb_series(tracks, const, nav_cfg, cfg, prior=None):
     trial 0's truth when each trial has its own beacon; the beacon's prior information at
     epoch 0 is the scenario's prior's (inverse covariance) when there is one, else the blind
     start's weak height and velocity priors."""
-    from ground_station.beacon_central import pcrb_central
-    from ground_station.beacon_locator import _up
+    from ground_station.beacon import local_up, pcrb_central
     from sitl.radio.beacon_link import BeaconLinkConfig
     from vehicles import uav_nav
 
@@ -648,7 +646,7 @@ def pcrb_series(tracks, const, nav_cfg, cfg, prior=None):
     if prior is not None:
         J0 = np.linalg.inv(np.asarray(prior[1], float))
     else:
-        up, _ = _up(B[0])
+        up, _ = local_up(B[0])
         J0 = np.zeros((6, 6))
         J0[0:3, 0:3] = np.outer(up, up) / cfg.init_height_sigma_m ** 2 + np.eye(3) / 1e5 ** 2
         J0[3:6, 3:6] = np.eye(3) / cfg.init_vel_sigma_m_s ** 2
@@ -871,7 +869,7 @@ def check_args(args):
 
 def run(args) -> dict:
     """The whole experiment; returns the result document (also written to DIR)."""
-    from ground_station.beacon_locator import LocatorConfig
+    from ground_station.beacon import LocatorConfig
     from vehicles import uav_nav
 
     counts = check_args(args)

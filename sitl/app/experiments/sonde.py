@@ -25,8 +25,8 @@ depend on which other trials run beside it.
 Trackers: the tracker's model is the world models' parameters (not their states): the sonde
 model's kinematics (``kinematics="relaxed"``: the velocity relaxes with p1, k_v vertically, to a
 wind the tracker estimates, driven by the gust a_g of eq 20 with rate p1 + p2 and std sigma_a; the
-wind's rate of change Gauss-Markov with the std and correlation time of ``wind_rate_statistics``,
-the wind profile along a nominal flight), or ``kinematics="singer"`` (eq 20 as printed, the model
+wind changing at the shear x the vertical speed, the shear Gauss-Markov in height with the std and
+correlation height of ``wind_shear_statistics``, the wind profile between launch and burst), or ``kinematics="singer"`` (eq 20 as printed, the model
 before issue 19: Singer with the rate p1 + p2 and the stationary acceleration std of the sonde
 model, sigma_a sqrt((p1 + p2) / (2 p1 + p2))), the relay's oscillator, the radar's AR(1) errors. ``filter="auto"``: the EKF, and the UKF for a sonde-epoch whose position
 uncertainty is large against its distance to the radar (the radar-only track's range-only
@@ -222,34 +222,29 @@ def gcpp_site(scn: SondeScenario):
 
 
 @functools.lru_cache(maxsize=8)
-def wind_rate_statistics(sp) -> tuple:
-    """(horizontal std, vertical std, correlation time) of the rate at which the wind a sonde of
-    SondeParams ``sp`` meets changes, along its nominal flight (ascent at the ascent rate to the
-    middle of the burst range, parachute descent to the launch height, 1 s steps): the horizontal
-    rate is d w(h(t)) / dt of the mean wind profile (rms over the flight and both axes), the vertical
-    one that of the target vertical speed (0 in the ascent, the descent slowing with the density;
-    the burst's step itself left to the manoeuvre hypothesis), the time the 1/e point of the
-    horizontal rate's autocorrelation. These are the relaxed tracker's wind-rate Gauss-Markov
-    parameters: the world model's parameters, summarised, not its state."""
-    from vehicles.sonde import descent_speed_m_s
+def wind_shear_statistics(sp) -> tuple:
+    """(horizontal std (1/s), correlation height (m), vertical std (1/s)) of the shear of the wind a
+    sonde of SondeParams ``sp`` meets, over the heights it flies through (the launch height to the
+    middle of the burst range, 1 m steps, each height alike: it crosses each one on the way up and
+    on the way down): the horizontal shear is d w(h) / dh of the mean wind profile (rms over the
+    heights and both axes), its correlation height the 1/e point of its autocorrelation in height;
+    vertically, the shear of the target vertical speed that the descent law (the tracker's known
+    input) leaves: none in the sonde model (the target is the constant ascent rate, then the law
+    itself; the burst's step is left to the manoeuvre hypothesis). These are the relaxed tracker's
+    wind-shear Gauss-Markov parameters (in height: the wind then changes at shear x vertical speed,
+    ~3x faster per second in the descent than in the 5 m/s ascent): the world model's parameters,
+    summarised, not its state."""
+    from vehicles import sonde
+
     top = 0.5 * (sp.burst_alt_range_m[0] + sp.burst_alt_range_m[1])
-    n_up = int(top / sp.ascent_rate_m_s)
-    h, vz = [0.0], [sp.ascent_rate_m_s]
-    for _ in range(n_up):
-        h.append(h[-1] + sp.ascent_rate_m_s)
-        vz.append(sp.ascent_rate_m_s)
-    while h[-1] > 0.0:
-        vz.append(-float(descent_speed_m_s(h[-1], sp.descent_rate_sl_m_s)))
-        h.append(h[-1] + vz[-1])
-    rate_h = np.diff(sp.wind_enu_m_s(np.array(h)), axis=0)  # (n, 2), per 1 s step
-    rate_v = np.diff(np.array(vz))
-    rate_v[n_up] = 0.0  # the burst
-    n = rate_h.shape[0]
-    f = np.fft.rfft(rate_h, 2 * n, axis=0)
+    h = np.arange(sonde.DEFAULT_LAUNCH_H_M, top + 1.0, 1.0)
+    shear = np.diff(sp.wind_enu_m_s(h), axis=0)  # (n, 2), per 1 m
+    n = shear.shape[0]
+    f = np.fft.rfft(shear, 2 * n, axis=0)
     ac = np.fft.irfft(np.sum(f * np.conj(f), axis=1), 2 * n)[:n]
-    below = np.flatnonzero(ac < math.exp(-1.0) * ac[0]) if ac[0] > 0.0 else np.array([n])  # (a constant wind: no rate)
-    tau = float(below[0]) if below.size else float(n)
-    return float(np.sqrt(np.mean(rate_h**2))), float(np.sqrt(np.mean(rate_v**2))), max(tau, 1.0)
+    below = np.flatnonzero(ac < math.exp(-1.0) * ac[0]) if ac[0] > 0.0 else np.array([n])  # (a constant wind: no shear)
+    corr = float(below[0]) if below.size else float(n)
+    return float(np.sqrt(np.mean(shear**2))), max(corr, 1.0), 0.0
 
 
 def tracker_params(scn: SondeScenario, label: str, backend=None):
@@ -262,7 +257,7 @@ def tracker_params(scn: SondeScenario, label: str, backend=None):
     monitored = label.endswith(MONITORED) or scn.integrity == "on"
     white = label.removesuffix(MONITORED).endswith("_white")
     beta = sp.p1_1_s + sp.p2_1_s
-    w_h, w_v, w_tau = wind_rate_statistics(sp)
+    g_h, g_len, g_v = wind_shear_statistics(sp)
     if scn.kinematics == "relaxed":  # the sonde model's own structure: its gust a_g, relaxation rates p1 and k_v
         s_h, s_v = sp.sigma_a_m_s2, sp.sigma_a_vertical_m_s2
     else:
@@ -274,8 +269,8 @@ def tracker_params(scn: SondeScenario, label: str, backend=None):
     return SondeTrackerParams(
         mode=label.removesuffix(MONITORED).removesuffix("_white"), radar_noise="white" if white else "colored", filter=scn.filter_for(label),
         kinematics=scn.kinematics, velocity_relax_rate_horizontal_1_s=sp.p1_1_s,
-        velocity_relax_rate_vertical_1_s=sp.vertical_relax_rate_1_s, wind_rate_sigma_horizontal_m_s2=w_h,
-        wind_rate_sigma_vertical_m_s2=w_v, wind_rate_tau_s=w_tau, descent_rate_sl_m_s=sp.descent_rate_sl_m_s,
+        velocity_relax_rate_vertical_1_s=sp.vertical_relax_rate_1_s, wind_shear_sigma_horizontal_1_s=g_h,
+        wind_shear_sigma_vertical_1_s=g_v, wind_shear_corr_height_m=g_len, descent_rate_sl_m_s=sp.descent_rate_sl_m_s,
         accel_rate_1_s=beta, sigma_acc_horizontal_m_s2=s_h, sigma_acc_vertical_m_s2=s_v, osc_gamma_1_s=gp.osc_gamma_1_s,
         osc_sigma_m_s=2.0 * math.pi * gp.osc_sigma_hz * gp.osc_doppler_scale_m_s_per_rad_s,
         radar_sigma=tuple(rp.sigma), radar_gamma_1_s=tuple(rp.gamma_1_s), label=label,

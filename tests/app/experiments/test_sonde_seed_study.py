@@ -36,49 +36,125 @@ T0 = DEFAULT_TOA_GPS_S
 # ---------------------------------------------------------------- the model
 
 
-@pytest.mark.parametrize("k, sigma_g, sigma_s, tau, dt", [(0.1, 0.15, 0.02, 530.0, 1.0), (0.2, 0.1, 0.0, 900.0, 2.5)])
-def test_relaxed_axis_is_the_sonde_models_axis_with_a_gauss_markov_wind_rate(k, sigma_g, sigma_s, tau, dt):
+def _relaxed_axis_reference(k, beta, sigma_g, sigma_s, L, w, dt):
+    """(F, Q) of the continuous relaxed axis [p, v, g, u, s] over dt by a fine-step numerical
+    integration of the moment equations Phi' = A Phi, P' = A P + P A' + Qc (RK, tight tolerances):
+    independent of the matrix exponentials (expm, Van Loan) of relaxed_axis_discretisation."""
+    lam = abs(w) / L
+    A = np.zeros((5, 5))
+    A[0, 1] = 1.0  # p' = v
+    A[1, 1], A[1, 2], A[1, 3] = -k, 1.0, k  # v' = k (u - v) + g
+    A[2, 2] = -beta  # g' = -beta g + noise
+    A[3, 4] = w  # u' = (du/dh) (dh/dt) = s w
+    A[4, 4] = -lam  # the shear, Gauss-Markov in height: ds/dh = -s / L + noise
+    Qc = np.diag([0.0, 0.0, 2.0 * beta * sigma_g**2, 0.0, 2.0 * lam * sigma_s**2])
+
+    def rhs(_, y):
+        Phi, P = y[:25].reshape(5, 5), y[25:].reshape(5, 5)
+        return np.concatenate([(A @ Phi).ravel(), (A @ P + P @ A.T + Qc).ravel()])
+
+    sol = integrate.solve_ivp(rhs, (0.0, dt), np.concatenate([np.eye(5).ravel(), np.zeros(25)]), method="DOP853",
+                              rtol=1e-12, atol=1e-16, max_step=dt / 50.0)
+    y = sol.y[:, -1]
+    return y[:25].reshape(5, 5), y[25:].reshape(5, 5)
+
+
+@pytest.mark.parametrize("k, sigma_g, sigma_s, L, w, dt", [(0.1, 0.15, 2.9e-3, 4430.0, 5.0, 1.0),
+                                                           (0.1, 0.15, 2.9e-3, 4430.0, -40.0, 1.0),
+                                                           (0.2, 0.1, 0.0, 900.0, -15.0, 2.5),
+                                                           (0.2, 0.1, 1e-3, 900.0, 0.0, 2.5)])
+def test_relaxed_axis_is_the_sonde_models_axis_with_a_gauss_markov_shear_in_height(k, sigma_g, sigma_s, L, w, dt):
     beta = 0.12
-    F, Q = relaxed_axis_discretisation(k, beta, sigma_g, sigma_s, tau, dt)
+    F, Q = relaxed_axis_discretisation(k, beta, sigma_g, sigma_s, L, w, dt)
+    # an independent reference: the continuous system integrated numerically
+    F_ref, Q_ref = _relaxed_axis_reference(k, beta, sigma_g, sigma_s, L, w, dt)
+    np.testing.assert_allclose(F, F_ref, rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(Q, Q_ref, rtol=1e-7, atol=1e-12 * max(np.max(np.abs(Q_ref)), 1e-12))
     # [p, v, g] with the wind u held over the step: the world's own discretisation (its input column is u)
     phi, gam, q, _ = axis_discretisation(k, beta, sigma_g, dt)
     np.testing.assert_allclose(F[:3, :3], phi, rtol=1e-12, atol=1e-15)
     np.testing.assert_allclose(F[:3, 3], gam, rtol=1e-12, atol=1e-15)
-    # the wind rate is Gauss-Markov: u' = s, s' = -s / tau + noise (closed forms)
-    e = math.exp(-dt / tau)
+    # the shear is Gauss-Markov in height: u' = w s, s' = -(|w| / L) s + noise (closed forms)
+    e = math.exp(-abs(w) * dt / L)
     assert F[4, 4] == pytest.approx(e, rel=1e-12)
-    assert F[3, 4] == pytest.approx(tau * (1.0 - e), rel=1e-12)
-    assert Q[4, 4] == pytest.approx(sigma_s**2 * (1.0 - e * e), rel=1e-10, abs=1e-30)
-    if sigma_s == 0.0:
-        np.testing.assert_allclose(Q[:3, :3], q, rtol=1e-10, atol=1e-18)  # no wind-rate noise: the world's Q
-        assert np.all(Q[3:, :] == 0.0)
+    assert F[3, 4] == pytest.approx(math.copysign(L, w) * (1.0 - e) if w else 0.0, rel=1e-9, abs=1e-15)
+    assert Q[4, 4] == pytest.approx(sigma_s**2 * (1.0 - e * e), rel=1e-9, abs=1e-30)
+    if sigma_s == 0.0 or w == 0.0:
+        np.testing.assert_allclose(Q[:3, :3], q, rtol=1e-10, atol=1e-18)  # no shear noise: the world's Q
+        # and none on the wind and shear (exactly at w = 0; rounding of the expm otherwise)
+        assert np.all(Q[3:, :] == 0.0) if w == 0.0 else np.max(np.abs(Q[3:, :])) <= 1e-14 * np.max(np.abs(q))
     else:
         assert np.all(np.linalg.eigvalsh(Q) > -1e-15)
-    L = layout_for("fused")
-    assert (L.n_kin, L.wind, L.dd, L.osc, L.err) == (15, 9, 15, 16, 17)
+    if w == 0.0:  # at rest vertically the wind does not change: u and s are held exactly
+        np.testing.assert_array_equal(F[3:, :], np.eye(5)[3:])
+    else:  # what the wind does depends on the height crossed, w dt, not on w and dt apart
+        F2, Q2 = relaxed_axis_discretisation(k, beta, sigma_g, sigma_s, L, 2.0 * w, 0.5 * dt)
+        np.testing.assert_allclose(F2[3:, 3:], F[3:, 3:], rtol=1e-10, atol=1e-15)
+        np.testing.assert_allclose(Q2[3:, 3:], Q[3:, 3:], rtol=1e-8, atol=1e-30)
+        # and not on the direction: the sign of the wind's change flips with w, its spread does not
+        F3, Q3 = relaxed_axis_discretisation(k, beta, sigma_g, sigma_s, L, -w, dt)
+        assert F3[3, 4] == pytest.approx(-F[3, 4], rel=1e-12)
+        np.testing.assert_allclose(np.diag(Q3), np.diag(Q), rtol=1e-9, atol=1e-30)
+    L_ = layout_for("fused")
+    assert (L_.n_kin, L_.wind, L_.dd, L_.osc, L_.err) == (15, 9, 15, 16, 17)
     assert layout_for("fused", kinematics="singer")[:4] == (9 + 2 + 3, 9, 10, 11)  # the model before the fix
 
 
-def test_wind_rate_statistics_of_a_linear_profile_match_the_integrals():
+def test_relaxed_axis_moments_match_an_euler_maruyama_simulation():
+    """A seeded Euler-Maruyama simulation of the continuous axis (0.01 s steps) from a known start:
+    its sample mean and covariance after dt agree with (F x0, Q) inside their sampling error."""
+    k, beta, sigma_g, sigma_s, L, w, dt = 0.1, 0.12, 0.15, 3e-3, 4430.0, -40.0, 2.0
+    F, Q = relaxed_axis_discretisation(k, beta, sigma_g, sigma_s, L, w, dt)
+    rng = np.random.default_rng(20260)
+    n, h = 20_000, 0.01
+    x0 = np.array([0.0, 10.0, 0.05, 12.0, 2e-3])
+    X = np.tile(x0, (n, 1))
+    lam = abs(w) / L
+    for _ in range(round(dt / h)):
+        dW = rng.standard_normal((n, 2)) * math.sqrt(h)
+        p, v, g, u, s = X.T
+        X = np.column_stack([p + v * h, v + (k * (u - v) + g) * h, g - beta * g * h + math.sqrt(2 * beta) * sigma_g * dW[:, 0],
+                             u + w * s * h, s - lam * s * h + math.sqrt(2 * lam) * sigma_s * dW[:, 1]])
+    m, C = X.mean(axis=0), np.cov(X.T)
+    sd = np.sqrt(np.diag(Q))
+    np.testing.assert_allclose(m, F @ x0, atol=5.0 * float(np.max(sd)) / math.sqrt(n) + 1e-9)
+    for i in range(5):  # each variance within 5 of its standard errors (sqrt(2 / n) relative)
+        if Q[i, i] > 0.0:
+            assert C[i, i] == pytest.approx(Q[i, i], rel=5.0 * math.sqrt(2.0 / n) + 2e-3), (i, C[i, i], Q[i, i])
+
+
+def test_wind_shear_statistics_of_profiles_match_the_integrals():
     a = 2e-3  # wind speed grows 2 m/s per km, from the west, at every height
     alt = (0.0, 50_000.0)
     sp = SondeParams(wind_alt_m=alt, wind_speed_m_s=(0.0, a * alt[1]), wind_from_rad=math.radians(270.0))
-    h_rms, v_rms, tau = E.wind_rate_statistics(sp)
+    h_rms, corr_h, v_rms = E.wind_shear_statistics(sp)
+    # a constant shear a on the east axis, 0 on the north: the rms over both axes is a / sqrt(2)
+    assert h_rms == pytest.approx(a / math.sqrt(2.0), rel=1e-6)
     top = 0.5 * sum(sp.burst_alt_range_m)
-    up = top / sp.ascent_rate_m_s  # ascent time
-    vd = lambda h: float(descent_speed_m_s(h, sp.descent_rate_sl_m_s))  # noqa: E731
-    down = integrate.quad(lambda h: 1.0 / vd(h), 0.0, top, limit=200)[0]  # descent time, int dh / v
-    # east rate a dh/dt: (a v)^2 over time is a^2 v dh in the descent; the north axis is 0
-    e2 = a * a * (sp.ascent_rate_m_s**2 * up + integrate.quad(vd, 0.0, top, limit=200)[0])
-    assert h_rms == pytest.approx(math.sqrt(e2 / (2.0 * (up + down))), rel=0.02)
-    # the target vertical speed: constant in the ascent, -v_d(h) in the descent, rate v_d'(h) v_d
-    hh = np.linspace(0.0, top, 20_001)
-    v = descent_speed_m_s(hh, sp.descent_rate_sl_m_s)
-    v2 = integrate.trapezoid(np.gradient(v, hh) ** 2 * v, hh)
-    assert v_rms == pytest.approx(math.sqrt(v2 / (up + down)), rel=0.03)
-    assert 1.0 <= tau <= up + down
+    assert 1.0 <= corr_h <= top
+    # the target vertical speed has no residual shear: the descent law is the tracker's input, the
+    # world's own (vehicles.sonde.descent_speed_m_s; ground_station has its own copy of it)
+    assert v_rms == 0.0
+    from ground_station.sonde_tracker import _descent_speed
+    hh = np.linspace(0.0, top, 2001)
+    np.testing.assert_allclose(_descent_speed(hh, sp.descent_rate_sl_m_s), descent_speed_m_s(hh, sp.descent_rate_sl_m_s),
+                               rtol=1e-6)
     const = SondeParams(wind_alt_m=alt, wind_speed_m_s=(10.0, 10.0), wind_from_rad=math.radians(270.0))
-    assert E.wind_rate_statistics(const)[0] == 0.0
+    assert E.wind_shear_statistics(const)[0] == 0.0
+    # the default jet profile (x 1.15, the experiment's): piecewise linear, so its shear is constant
+    # between knots; the rms from the knots, weighted by each layer's depth between the launch height
+    # and the middle of the burst range
+    jet = E._sonde_params(E.SondeScenario())
+    knots = np.asarray(jet.wind_alt_m, float)
+    uv = jet.wind_enu_m_s(knots)
+    lo, hi = 190.0, 0.5 * sum(jet.burst_alt_range_m)
+    acc = 0.0
+    for i in range(knots.size - 1):
+        depth = max(0.0, min(hi, knots[i + 1]) - max(lo, knots[i]))
+        acc += depth * float(np.sum(((uv[i + 1] - uv[i]) / (knots[i + 1] - knots[i])) ** 2))
+    assert E.wind_shear_statistics(jet)[0] == pytest.approx(math.sqrt(acc / (2.0 * (hi - lo))), rel=2e-3)
+    assert E.wind_shear_statistics(jet)[0] == pytest.approx(SondeTrackerParams().wind_shear_sigma_horizontal_1_s, rel=2e-3)
+    assert E.wind_shear_statistics(jet)[1] == pytest.approx(SondeTrackerParams().wind_shear_corr_height_m, rel=2e-3)
 
 
 # ---------------------------------------------------------------- the cause: a coast's covariance
@@ -102,7 +178,7 @@ def _coast_nees(kinematics: str, n: int = 20, outage=(150.0, 270.0)):
                                     velocity_relax_rate_vertical_1_s=sp.vertical_relax_rate_1_s, accel_rate_1_s=beta,
                                     sigma_acc_horizontal_m_s2=sp.sigma_a_m_s2,
                                     sigma_acc_vertical_m_s2=sp.sigma_a_vertical_m_s2,
-                                    wind_rate_sigma_horizontal_m_s2=0.0, wind_rate_sigma_vertical_m_s2=0.0)
+                                    wind_shear_sigma_horizontal_1_s=0.0, wind_shear_sigma_vertical_1_s=0.0)
     else:  # the tracker before the fix: Singer with the stationary acceleration variance of the sonde model
         params = SondeTrackerParams(mode="relay_only", kinematics="singer", accel_rate_1_s=beta,
                                     sigma_acc_horizontal_m_s2=sp.sigma_a_m_s2 * math.sqrt(beta / (beta + sp.p1_1_s)),
@@ -212,7 +288,8 @@ def _landing_run(landing: bool):
     tr = SondeFlight([streams[0][0]], params=sp, t0_gps_s=T0).simulate(1500)
     rt = Relay([streams[0][2]], default_constellation("GR"), ground_lat_rad=lat, ground_lon_rad=lon, ground_h_m=h,
                batch_shape=(1,)).track(tr.t_gps_s[:601], tr.pos_ecef_m[:601], tr.vel_ecef_m_s[:601])
-    trk = SondeTracker("t19", dataclasses.replace(E.tracker_params(E.SondeScenario(), "relay_only"), landing=landing))
+    trk = SondeTracker("t19", dataclasses.replace(E.tracker_params(E.SondeScenario(), "relay_only"), landing=landing,
+                                                  max_coast_s=None))  # (the landing itself: never lost here)
     err = np.full(tr.t_gps_s.size, np.nan)
     for k in range(tr.t_gps_s.size):
         t = float(tr.t_gps_s[k])

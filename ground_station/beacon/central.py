@@ -1,7 +1,8 @@
-"""Seed 002 yardstick: one centralised filter on the beacon and every UAV, and the PCRB.
+"""The yardstick of the decomposition (seed 002): one centralised filter on the beacon and every
+UAV, and the PCRB.
 
 The seed requires the decomposition (each UAV navigates on board; the ground computer
-locates the beacon from their estimates: ``ground_station.beacon_locator``).  This module is
+locates the beacon from their estimates: ``ground_station.beacon.locator``).  This module is
 what the decomposition gives up, measured on the same data:
 
 ``CentralFilter``: one EKF whose state holds the beacon (in the locator's formation-
@@ -52,16 +53,10 @@ from filters import kernels
 from filters.beacon import ObserverRangeDoppler
 from filters.iekf import iterated_update, relinearized_innovation
 
-from .beacon_locator import (
-    Frame,
-    LocatorConfig,
-    _cv_matrices,
-    cyl_to_ecef,
-    ecef_to_cyl,
-    formation_frame,
-    second_order_var,
-    ut_to_ecef,
-)
+from .config import LocatorConfig
+from .frame import Frame, cyl_to_ecef, ecef_to_cyl, formation_frame, ut_to_ecef
+from .measurements import second_order_var
+from .motion import cv_matrices
 
 __all__ = ["CentralFilter", "LinkEpoch", "pcrb_central", "link_information"]
 
@@ -120,8 +115,8 @@ class CentralFilter:
         c = self.config
         T, N, n = self.y.shape[0], self.N, self.n
         x, G = cyl_to_ecef(self.y[:, 0:6], self.frame, jacobian=True)
-        F6, Qb = _cv_matrices(float(c.q_m2_s3), float(dt))
-        _, Qu = _cv_matrices(self.q_uav, float(dt))
+        F6, Qb = cv_matrices(float(c.q_m2_s3), float(dt))
+        _, Qu = cv_matrices(self.q_uav, float(dt))
         xp = x @ F6.T
         U = self.uav_states() @ F6.T
         mask = np.ones((T, N), bool)
@@ -278,8 +273,8 @@ def pcrb_central(t_s, B, VB, U, V, gnss_info, var_range_m2, var_range_rate_m2_s2
             Jk = J + I
         else:
             dt = t[k] - t[k - 1]
-            F6, Qb = _cv_matrices(float(q_beacon_m2_s3), float(dt))
-            _, Qu = _cv_matrices(float(q_uav_m2_s3), float(dt))
+            F6, Qb = cv_matrices(float(q_beacon_m2_s3), float(dt))
+            _, Qu = cv_matrices(float(q_uav_m2_s3), float(dt))
             F = np.zeros((n, n))
             Q = np.zeros((n, n))
             F[0:6, 0:6], Q[0:6, 0:6] = F6, Qb
