@@ -49,19 +49,19 @@ __all__ = [
     "ClockGaussMarkov",
     "ClockRandomWalk",
     "Composite",
-    "seed001_transition",
+    "singer_clock_transition",
     "Measurement",
     "JointMeasurement",
     "LinearGaussian",
     "PseudorangeDoppler",
     "ClockFreePseudorangeDoppler",
-    "SEED001_N",
-    "SEED001_POS",
-    "SEED001_BIAS",
-    "SEED001_VEL",
-    "SEED001_DRIFT",
-    "SEED001_ACC",
-    "SEED001_ORDER",
+    "SINGER_CLOCK_N",
+    "SINGER_CLOCK_POS",
+    "SINGER_CLOCK_BIAS",
+    "SINGER_CLOCK_VEL",
+    "SINGER_CLOCK_DRIFT",
+    "SINGER_CLOCK_ACC",
+    "SINGER_CLOCK_ORDER",
     "C_M_S",
 ]
 
@@ -468,17 +468,17 @@ class Composite:
 
 
 # Seed 001 state order: lambda = [X, Y, Z, D', Vx, Vy, Vz, V', Ax, Ay, Az].
-SEED001_N = 11
-SEED001_POS = slice(0, 3)
-SEED001_BIAS = 3
-SEED001_VEL = slice(4, 7)
-SEED001_DRIFT = 7
-SEED001_ACC = slice(8, 11)
-# x = s[SEED001_ORDER] with s = [Singer p(3) v(3) a(3), clock D' V'].
-SEED001_ORDER = (0, 1, 2, 9, 3, 4, 5, 10, 6, 7, 8)
+SINGER_CLOCK_N = 11
+SINGER_CLOCK_POS = slice(0, 3)
+SINGER_CLOCK_BIAS = 3
+SINGER_CLOCK_VEL = slice(4, 7)
+SINGER_CLOCK_DRIFT = 7
+SINGER_CLOCK_ACC = slice(8, 11)
+# x = s[SINGER_CLOCK_ORDER] with s = [Singer p(3) v(3) a(3), clock D' V'].
+SINGER_CLOCK_ORDER = (0, 1, 2, 9, 3, 4, 5, 10, 6, 7, 8)
 
 
-def seed001_transition(
+def singer_clock_transition(
     alpha_1_s: float = 0.2,
     sigma_a_m_s2: float = 5.0,
     mu_1_s: float = 0.1,
@@ -495,7 +495,7 @@ def seed001_transition(
             Singer(alpha_1_s, sigma_a_m_s2, 3),
             ClockGaussMarkov(mu_1_s, sigma_clock_drift_m_s, exact_clock_bias),
         ),
-        SEED001_ORDER,
+        SINGER_CLOCK_ORDER,
     )
 
 

@@ -5,7 +5,7 @@ Scaled sigma points (Julier 2002; Wan & van der Merwe 2000):
   X_0 = x,  X_i = x + c L_i,  X_{n+i} = x - c L_i,   L L' = P (Cholesky)
   Wm_0 = lambda/(n+lambda),  Wc_0 = Wm_0 + 1 - alpha^2 + beta,  W_i = 1/(2(n+lambda))
 The seed 001 choice is alpha = 1, beta = 0, kappa = 3 - n ("kappa + n = 3"), which gives
-the seed's weights W_0 = kappa/(n+kappa), W_i = 1/(2(n+kappa)): ``SigmaPoints.seed001(n)``.
+the seed's weights W_0 = kappa/(n+kappa), W_i = 1/(2(n+kappa)): ``SigmaPoints.julier(n)``.
 
 Predict:  X = sigma(x, P);  x- = sum Wm f(X);  P- = sum Wc (f(X) - x-)(f(X) - x-)' + Q
 Update:   X = sigma(x-, P-) (redrawn, so that Q reaches the measurement statistics)
@@ -53,7 +53,7 @@ class SigmaPoints:
             raise ValueError(f"n + lambda must be > 0 (n={self.n}, alpha={self.alpha}, kappa={self.kappa})")
 
     @classmethod
-    def seed001(cls, n: int) -> "SigmaPoints":
+    def julier(cls, n: int) -> "SigmaPoints":
         """The seed 001 rule kappa + n = 3 (alpha = 1, beta = 0)."""
         return cls(n=n, alpha=1.0, beta=0.0, kappa=3.0 - n)
 

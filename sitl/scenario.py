@@ -34,7 +34,7 @@ from typing import Any
 from sitl.params import checks, param, toml_table
 
 # GPS time of the built-in almanac's epoch + 1 h (the seed 002 start; vehicles.uav_nav
-# .SEED002_T0_GPS_S, which sitl may not import)
+# .EXAMPLE_T0_GPS_S, which sitl may not import)
 from sitl.constants import MAX_MAVLINK_VEHICLES  # noqa: F401  (system ids 1..249; checked here)
 from sitl.gnss.orbits import DEFAULT_TOA_GPS_S
 

@@ -2,7 +2,7 @@
 
 Modes (see vehicles/uav.py for how the seed's laws are read):
 
-* ``mode="printed"`` -- :func:`seed002_printed_beacon`: the beacon's velocity law exactly as
+* ``mode="printed"`` -- :func:`printed_beacon`: the beacon's velocity law exactly as
   printed (V_xi_p, V_eta_p, V_zeta_p: a = 12, b = 8.5, v0 = 115, d = 25, e = 17,
   w' = w_r = 0.02), a :class:`vehicles.uav.PrintedSwarm` integrated by RK4 at 0.01 s from
   the printed start point (the same as the UAVs') or from given ECEF start points (one
@@ -10,7 +10,7 @@ Modes (see vehicles/uav.py for how the seed's laws are read):
   point, see sitl/app/experiments/beacon.py).
 * ``mode="seed"`` -- the geodetic reading: start lat 47.3, lon 31, h 3200 m (the OCR:
   longitude 31, latitude 47.3), heading north at 115 + 10 sin(0.02 t) m/s with climb
-  15 cos(0.01 t) (:func:`seed002_beacon_law`), a :class:`vehicles.uav.KinematicSwarm`.
+  15 cos(0.01 t) (:func:`example_beacon_law`), a :class:`vehicles.uav.KinematicSwarm`.
 * ``mode="legs"`` -- straight legs and constant-rate turns at 115 m/s
   (:func:`legs_and_turns`), level flight, first leg north.
 * ``mode="racetrack"`` -- a holding pattern at 115 m/s (:func:`racetrack`): straight legs of
@@ -30,8 +30,8 @@ import numpy as np
 from sitl.constants import ellipsoid
 
 from vehicles.uav import (
-    SEED002_PRINTED_COEFFS,
-    SEED002_PRINTED_START_PAPER_M,
+    PRINTED_COEFFS,
+    PRINTED_START_PAPER_M,
     Hold,
     KinematicSwarm,
     LegsAndTurns,
@@ -42,13 +42,13 @@ from vehicles.uav import (
     paper_to_ecef,
 )
 
-__all__ = ["SEED002_BEACON_START", "SEED002_BEACON_SPEED_M_S", "BeaconSwarm", "seed002_beacon_law",
-           "seed002_printed_beacon_law", "seed002_printed_beacon", "legs_and_turns", "racetrack", "seed002_beacon"]
+__all__ = ["EXAMPLE_BEACON_START", "EXAMPLE_BEACON_SPEED_M_S", "BeaconSwarm", "example_beacon_law",
+           "printed_beacon_law", "printed_beacon", "legs_and_turns", "racetrack", "example_beacon"]
 
 #: Seed 002 beacon start, geodetic reading: (lat deg, lon deg, h m) (OCR: longitude 31, latitude 47.3).
-SEED002_BEACON_START = (47.3, 31.0, 3200.0)
+EXAMPLE_BEACON_START = (47.3, 31.0, 3200.0)
 #: Mean speed v0 of the printed V_eta_p law, m/s.
-SEED002_BEACON_SPEED_M_S = 115.0
+EXAMPLE_BEACON_SPEED_M_S = 115.0
 
 _MODES = ("printed", "seed", "legs", "racetrack", "static")
 _WGS84 = ellipsoid(None)
@@ -58,26 +58,26 @@ class BeaconSwarm(KinematicSwarm):
     """One or more beacons stepped together (a :class:`KinematicSwarm`)."""
 
 
-def seed002_beacon_law() -> SinusoidalLaw:
+def example_beacon_law() -> SinusoidalLaw:
     """Geodetic reading: heading north, 3-D speed 115 + 10 sin(0.02 t), climb 15 cos(0.01 t)."""
-    return SinusoidalLaw(speed_mean_m_s=SEED002_BEACON_SPEED_M_S, speed_amp_m_s=10.0, speed_omega_rad_s=0.02,
+    return SinusoidalLaw(speed_mean_m_s=EXAMPLE_BEACON_SPEED_M_S, speed_amp_m_s=10.0, speed_omega_rad_s=0.02,
                          heading0_rad=0.0, climb_amp_m_s=15.0, climb_omega_rad_s=0.01)
 
 
-def seed002_printed_beacon_law(n: int = 1) -> PrintedLaw:
+def printed_beacon_law(n: int = 1) -> PrintedLaw:
     """The beacon's printed law, batch shape (n,) (one per trial)."""
-    return PrintedLaw.from_coeffs([SEED002_PRINTED_COEFFS["beacon"]]).repeat(n)
+    return PrintedLaw.from_coeffs([PRINTED_COEFFS["beacon"]]).repeat(n)
 
 
-def seed002_printed_beacon(pos0_ecef_m=None, dt_s: float = 0.01, t0_s: float = 0.0) -> PrintedSwarm:
+def printed_beacon(pos0_ecef_m=None, dt_s: float = 0.01, t0_s: float = 0.0) -> PrintedSwarm:
     """Beacons under the printed law from pos0_ecef_m (n, 3) (default: one, at the printed
     start point), RK4 step dt_s."""
     if pos0_ecef_m is None:
-        pos0_ecef_m = paper_to_ecef(SEED002_PRINTED_START_PAPER_M)[None]
+        pos0_ecef_m = paper_to_ecef(PRINTED_START_PAPER_M)[None]
     p = np.asarray(pos0_ecef_m, dtype=float)
     if p.ndim != 2 or p.shape[-1] != 3:
         raise ValueError(f"pos0_ecef_m must have shape (n, 3), got {p.shape}")
-    return PrintedSwarm(seed002_printed_beacon_law(p.shape[0]), p, t0_s=t0_s, dt_s=dt_s)
+    return PrintedSwarm(printed_beacon_law(p.shape[0]), p, t0_s=t0_s, dt_s=dt_s)
 
 
 def legs_and_turns(heading0_rad, speed_m_s: float = 115.0, leg_s: float = 200.0, turn_rad: float = math.pi / 2,
@@ -105,7 +105,7 @@ def legs_and_turns(heading0_rad, speed_m_s: float = 115.0, leg_s: float = 200.0,
     return LegsAndTurns(speed_m_s, heading0_rad, np.array(switches), np.array(rates))
 
 
-def racetrack(start, heading0_rad: float = 0.0, speed_m_s: float = SEED002_BEACON_SPEED_M_S, leg_s: float = 200.0,
+def racetrack(start, heading0_rad: float = 0.0, speed_m_s: float = EXAMPLE_BEACON_SPEED_M_S, leg_s: float = 200.0,
               turn_rate_rad_s: float = math.radians(1.5)) -> Racetrack:
     """A clockwise holding pattern (:class:`vehicles.uav.Racetrack`) entered at ``start`` (lat
     deg, lon deg, h m) at the beginning of its first leg, heading heading0_rad: legs of leg_s
@@ -127,16 +127,16 @@ def racetrack(start, heading0_rad: float = 0.0, speed_m_s: float = SEED002_BEACO
                      half_length_m=half, max_turn_rate_rad_s=2.0 * turn_rate_rad_s)
 
 
-def seed002_beacon(mode: str = "seed", dt_s: float = 0.01, t0_s: float = 0.0, start=SEED002_BEACON_START):
+def example_beacon(mode: str = "seed", dt_s: float = 0.01, t0_s: float = 0.0, start=EXAMPLE_BEACON_START):
     """The seed 002 beacon (batch shape ()) in the given mode, RK4 step dt_s.  ``start`` is the
     geodetic start of the geodetic modes; "printed" starts at the printed point (batch (1,))."""
     if mode not in _MODES:
         raise ValueError(f"mode must be one of {_MODES}, got {mode!r}")
     if mode == "printed":
-        return seed002_printed_beacon(dt_s=dt_s, t0_s=t0_s)
+        return printed_beacon(dt_s=dt_s, t0_s=t0_s)
     lat, lon, h = math.radians(start[0]), math.radians(start[1]), float(start[2])
     if mode == "seed":
-        law = seed002_beacon_law()
+        law = example_beacon_law()
     elif mode == "legs":
         law = legs_and_turns(0.0)
     elif mode == "racetrack":

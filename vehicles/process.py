@@ -156,7 +156,7 @@ class VehicleGroup:
             self._uav_nav = uav_nav
             self.link_cfg = beacon_link.BeaconLinkConfig()
         b = scn.beacon
-        self.beacon = beacon_mod.seed002_beacon(b.mode, start=b.start)
+        self.beacon = beacon_mod.example_beacon(b.mode, start=b.start)
         self.k_nav = [key_for(run, UavNav, uav=i + 1) for i in self.idx]
         self.k_bm = [key_for(run, BeaconMeasurement, uav=i + 1, beacon=self.b_id) for i in self.idx]
         self.k_tu = [key_for(run, Truth, kind="uav", id=i + 1) for i in self.idx]

@@ -47,7 +47,7 @@ c = sqrt(1 - eta^2 / r^2)):
 
 with (a, b, v0, d, e, w', w_r) = UAV-1 (5, 7.5, 100, 10, 15, 0.01, 0.01), UAV-2 (10, 5.5,
 110, 10, 15, 0.01, 0.01), UAV-3 (15, 6.5, 110, 20, 19, 0.01, 0.01), beacon (12, 8.5, 115,
-25, 17, 0.02, 0.02) (:data:`SEED002_PRINTED_COEFFS`; the OCR's 5.5, 6.5 and 19 are damaged
+25, 17, 0.02, 0.02) (:data:`PRINTED_COEFFS`; the OCR's 5.5, 6.5 and 19 are damaged
 digits).  The printed start point (xi0, eta0, zeta0) = (2253549, 4507098, 3903261) m is the
 SAME for the three UAVs and the beacon; it is r (cos45 sin30, sin45, cos45 cos30) with
 r = 6371 km + 3000 m, i.e. latitude 45, longitude 30 on a sphere, so that
@@ -64,7 +64,7 @@ Two readings are provided:
   all four vehicles (beacon included) leave the same point; some digits are damaged.
   It is what is printed, and the only reading under which the paper's metre-level errors
   are possible (every reading with separate start points leaves the beacon ~250 km away).
-* "geodetic" (:func:`seed002_uav_law`, :data:`SEED002_UAV_START`): the prose's geodetic
+* "geodetic" (:func:`example_uav_law`, :data:`EXAMPLE_UAV_START`): the prose's geodetic
   start points (the OCR says longitude 30 / 30.1 / 30.3, latitude 45 / 45.1 / 45.3,
   heights 3000 / 3100 / 3500 m) and the laws' physical content: the V_eta law is exactly
   the polar component of a northward flight at speed v0 + 10 sin(0.02 t) with climb
@@ -109,32 +109,32 @@ __all__ = [
     "initial_state",
     "truth",
     "eta_axis_heading_rad",
-    "seed002_uav_law",
-    "seed002_uav_swarm",
-    "SEED002_UAV_START",
-    "SEED002_UAV_SPEED_M_S",
-    "SEED002_PRINTED_START_PAPER_M",
-    "SEED002_PRINTED_COEFFS",
+    "example_uav_law",
+    "example_uav_swarm",
+    "EXAMPLE_UAV_START",
+    "EXAMPLE_UAV_SPEED_M_S",
+    "PRINTED_START_PAPER_M",
+    "PRINTED_COEFFS",
     "PrintedLaw",
     "PrintedSwarm",
     "paper_to_ecef",
     "ecef_to_paper",
     "printed_velocity_ecef",
     "propagate_printed",
-    "seed002_printed_uav_law",
-    "seed002_printed_uav_swarm",
+    "printed_uav_law",
+    "printed_uav_swarm",
     "wrap_pi",
 ]
 
 #: Seed 002 start points of UAV-1..3: (lat deg, lon deg, h m) -- the paper's geodetic values
 #: (the OCR: longitude 30 / 30.1 / 30.3, latitude 45 / 45.1 / 45.3).
-SEED002_UAV_START = ((45.0, 30.0, 3000.0), (45.1, 30.1, 3100.0), (45.3, 30.3, 3500.0))
+EXAMPLE_UAV_START = ((45.0, 30.0, 3000.0), (45.1, 30.1, 3100.0), (45.3, 30.3, 3500.0))
 #: Mean speeds v0 of UAV-1..3 in the printed V_eta laws, m/s.
-SEED002_UAV_SPEED_M_S = (100.0, 110.0, 110.0)
+EXAMPLE_UAV_SPEED_M_S = (100.0, 110.0, 110.0)
 #: The printed start point (xi0, eta0, zeta0), m: the same for UAV-1..3 and the beacon.
-SEED002_PRINTED_START_PAPER_M = (2253549.0, 4507098.0, 3903261.0)
+PRINTED_START_PAPER_M = (2253549.0, 4507098.0, 3903261.0)
 #: Printed law coefficients (a, b, v0, d, e, w', w_r) (module docstring).
-SEED002_PRINTED_COEFFS = {
+PRINTED_COEFFS = {
     "uav1": (5.0, 7.5, 100.0, 10.0, 15.0, 0.01, 0.01),
     "uav2": (10.0, 5.5, 110.0, 10.0, 15.0, 0.01, 0.01),
     "uav3": (15.0, 6.5, 110.0, 20.0, 19.0, 0.01, 0.01),
@@ -989,23 +989,23 @@ class KinematicSwarm:
 
 
 class UavSwarm(KinematicSwarm):
-    """A swarm of UAVs (a :class:`KinematicSwarm`); see :func:`seed002_uav_swarm`."""
+    """A swarm of UAVs (a :class:`KinematicSwarm`); see :func:`example_uav_swarm`."""
 
 
-def seed002_uav_law() -> SinusoidalLaw:
+def example_uav_law() -> SinusoidalLaw:
     """The three UAVs of the seed 002 example, geodetic reading (module docstring).
 
     Heading north (0), 3-D speed v0_i + 10 sin(0.02 t) with v0 = 100 / 110 / 110 m/s (the
     printed V_eta laws), climb 15 cos(0.01 t) (altitude h0 + 1500 sin(0.01 t), the printed
     r(t)).  Each UAV keeps its own speed law: the formation is not a rigid line."""
-    return SinusoidalLaw(speed_mean_m_s=np.array(SEED002_UAV_SPEED_M_S), speed_amp_m_s=10.0,
+    return SinusoidalLaw(speed_mean_m_s=np.array(EXAMPLE_UAV_SPEED_M_S), speed_amp_m_s=10.0,
                          speed_omega_rad_s=0.02, heading0_rad=0.0, climb_amp_m_s=15.0, climb_omega_rad_s=0.01)
 
 
-def seed002_uav_swarm(dt_s: float = 0.01, t0_s: float = 0.0) -> UavSwarm:
+def example_uav_swarm(dt_s: float = 0.01, t0_s: float = 0.0) -> UavSwarm:
     """The seed 002 UAV-1..3 at their geodetic start points, RK4 step dt_s (seed: 0.01 s)."""
-    s = np.array(SEED002_UAV_START)
-    return UavSwarm(seed002_uav_law(), np.radians(s[:, 0]), np.radians(s[:, 1]), s[:, 2], t0_s=t0_s, dt_s=dt_s)
+    s = np.array(EXAMPLE_UAV_START)
+    return UavSwarm(example_uav_law(), np.radians(s[:, 0]), np.radians(s[:, 1]), s[:, 2], t0_s=t0_s, dt_s=dt_s)
 
 
 # --------------------------------------------------------------------------- the printed laws
@@ -1048,7 +1048,7 @@ class PrintedLaw:
 
     @classmethod
     def from_coeffs(cls, rows) -> "PrintedLaw":
-        """From rows (a, b, v0, d, e, w', w_r) (:data:`SEED002_PRINTED_COEFFS`' values)."""
+        """From rows (a, b, v0, d, e, w', w_r) (:data:`PRINTED_COEFFS`' values)."""
         c = _finite_array("rows", rows)
         if c.ndim != 2 or c.shape[1] != 7:
             raise ValueError(f"rows must have shape (n, 7) (a, b, v0, d, e, w', w_r), got {c.shape}")
@@ -1226,13 +1226,13 @@ if nb is not None:
             y[i, 0], y[i, 1], y[i, 2] = x0, x1, x2
 
 
-def seed002_printed_uav_law(n: int = 3) -> PrintedLaw:
+def printed_uav_law(n: int = 3) -> PrintedLaw:
     """UAV-1..3's printed laws; for n > 3 further UAVs whose coefficients are spread over the
     printed ranges by a low-discrepancy (golden-ratio) sequence: a in [5, 15], b in [5.5, 7.5],
     v0 in [100, 110], d in [10, 20], e in [15, 19], w' = w_r = 0.01 (an extension, not the paper)."""
     if isinstance(n, bool) or int(n) != n or n < 1:
         raise ValueError(f"n must be an integer >= 1, got {n!r}")
-    rows = [SEED002_PRINTED_COEFFS[f"uav{i + 1}"] for i in range(min(int(n), 3))]
+    rows = [PRINTED_COEFFS[f"uav{i + 1}"] for i in range(min(int(n), 3))]
     g = (math.sqrt(5.0) - 1.0) / 2.0
     for j in range(int(n) - 3):
         f1, f2, f3 = ((j + 1) * g) % 1.0, ((j + 1) * g * g * 1.7) % 1.0, ((j + 1) * 0.7548776662) % 1.0
@@ -1240,7 +1240,7 @@ def seed002_printed_uav_law(n: int = 3) -> PrintedLaw:
     return PrintedLaw.from_coeffs(rows)
 
 
-def seed002_printed_uav_swarm(n: int = 3, dt_s: float = 0.01, t0_s: float = 0.0) -> PrintedSwarm:
+def printed_uav_swarm(n: int = 3, dt_s: float = 0.01, t0_s: float = 0.0) -> PrintedSwarm:
     """n UAVs under the printed laws, all from the printed start point (ECEF)."""
-    return PrintedSwarm(seed002_printed_uav_law(n), paper_to_ecef(SEED002_PRINTED_START_PAPER_M), t0_s=t0_s,
+    return PrintedSwarm(printed_uav_law(n), paper_to_ecef(PRINTED_START_PAPER_M), t0_s=t0_s,
                         dt_s=dt_s)

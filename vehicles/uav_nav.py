@@ -28,7 +28,7 @@ equations literally).
 
 Satellites:
   (a) the seed's case -- three satellites on unperturbed Keplerian orbits
-      (:func:`seed002_three_satellites`).  The seed's printed initial state vectors lost
+      (:func:`example_three_satellites`).  The seed's printed initial state vectors lost
       their exponents in the OCR; read digit for digit, two of the three give hyperbolic
       orbits (|V| above the escape speed), so they cannot be used.  The three satellites are
       instead three GPS satellites of the built-in almanac (least clock-free PDOP, above the
@@ -102,9 +102,9 @@ from sitl.gnss.orbits import Constellation
 from sitl.radio.beacon_link import psd_to_variance
 
 __all__ = [
-    "SEED002_PSD_PR_M2_S",
-    "SEED002_PSD_PRR_M2_S",
-    "SEED002_T0_GPS_S",
+    "DEFAULT_PSD_PR_M2_S",
+    "DEFAULT_PSD_PRR_M2_S",
+    "EXAMPLE_T0_GPS_S",
     "RECOMMENDED_INTEGRITY",
     "GnssNoise",
     "NavConfig",
@@ -113,7 +113,7 @@ __all__ = [
     "NavTrack",
     "unperturbed",
     "pdop_clock_free",
-    "seed002_three_satellites",
+    "example_three_satellites",
     "TruthGeometry",
     "truth_geometry",
     "gnss_measure",
@@ -129,14 +129,14 @@ __all__ = [
 ]
 
 #: Seed 002 GNSS noise intensities (two-sided PSDs): range (30 m)^2 s, Doppler (0.2 m/s)^2 s.
-SEED002_PSD_PR_M2_S = 30.0**2
-SEED002_PSD_PRR_M2_S = 0.2**2
+DEFAULT_PSD_PR_M2_S = 30.0**2
+DEFAULT_PSD_PRR_M2_S = 0.2**2
 #: The integrity monitor's settings for the onboard EKF (module docstring): jumps at 3.5 sigma, the
 #: mean-square window test over 30 epochs at 1e-4, no bias test, isolation only while three tracked
 #: satellites stay in (the clock-free fix needs three; below that, detect only).
 RECOMMENDED_INTEGRITY = IntegrityConfig(jump_sigma=3.5, window=30, window_alpha=1e-4, bias_alpha=None, min_channels=3)
 #: Start of the seed 002 run in GPS time: one hour after the built-in almanac's epoch.
-SEED002_T0_GPS_S = orbits.DEFAULT_TOA_GPS_S + 3600.0
+EXAMPLE_T0_GPS_S = orbits.DEFAULT_TOA_GPS_S + 3600.0
 
 _EARTH_RADIUS_M = 6_371_000.0
 _N = 6
@@ -160,8 +160,8 @@ class GnssNoise:
     dt_s: interval over which a reported measurement averages the noise, s (default 1).
     """
 
-    psd_pr_m2_s: float = SEED002_PSD_PR_M2_S
-    psd_prr_m2_s: float = SEED002_PSD_PRR_M2_S
+    psd_pr_m2_s: float = DEFAULT_PSD_PR_M2_S
+    psd_prr_m2_s: float = DEFAULT_PSD_PRR_M2_S
     dt_s: float = 1.0
 
     def __post_init__(self):
@@ -281,7 +281,7 @@ def pdop_clock_free(rx_pos_ecef_m, sat_pos_ecef_m) -> np.ndarray:
     return np.sqrt(np.trace(np.linalg.inv(G), axis1=-2, axis2=-1))
 
 
-def seed002_three_satellites(rx_pos_ecef_m, t0_gps_s: float = SEED002_T0_GPS_S, duration_s: float = 1000.0,
+def example_three_satellites(rx_pos_ecef_m, t0_gps_s: float = EXAMPLE_T0_GPS_S, duration_s: float = 1000.0,
                              el_min_rad: float = math.radians(15.0),
                              constellation: Constellation | None = None) -> Constellation:
     """Three satellites on unperturbed Keplerian orbits for the seed's case (module docstring).

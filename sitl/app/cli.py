@@ -135,7 +135,7 @@ BENCHES = {
 }
 
 
-def _add_seed001_args(p: argparse.ArgumentParser) -> None:
+def _add_ekf_vs_ukf_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--trials", type=positive_int, default=1000, help="Monte Carlo trials (default 1000)")
     p.add_argument("--steps", type=positive_int, default=600, help="update steps per trial (default 600, as in the seed)")
     p.add_argument("--seed", type=nonnegative_int, default=1, help="seed of the numpy Generator (default 1)")
@@ -372,7 +372,7 @@ def build_parser() -> argparse.ArgumentParser:
     for name, (_, doc) in EXPERIMENTS.items():
         p = exp_sub.add_parser(name, help=doc, description=doc)
         if name == "ekf-vs-ukf":
-            _add_seed001_args(p)
+            _add_ekf_vs_ukf_args(p)
         elif name == "iono-tropo":
             _add_iono_tropo_args(p)
         elif name == "sonde":

@@ -44,13 +44,13 @@ __all__ = [
     "measure",
     "MultilaterationFix",
     "multilaterate",
-    "SEED002_PSD_RANGE_M2_S",
-    "SEED002_PSD_RANGE_RATE_M2_S",
+    "DEFAULT_PSD_RANGE_M2_S",
+    "DEFAULT_PSD_RANGE_RATE_M2_S",
 ]
 
 #: Seed 002 beacon-link noise intensities (two-sided PSDs): range (5 m)^2 s, Doppler (0.1 m/s)^2 s.
-SEED002_PSD_RANGE_M2_S = 5.0**2
-SEED002_PSD_RANGE_RATE_M2_S = 0.1**2
+DEFAULT_PSD_RANGE_M2_S = 5.0**2
+DEFAULT_PSD_RANGE_RATE_M2_S = 0.1**2
 
 
 def psd_to_variance(psd_two_sided, dt_s):
@@ -87,8 +87,8 @@ class BeaconLinkConfig:
     dt_s: measurement interval over which the noise is averaged, s (default 1).
     """
 
-    psd_range_m2_s: float = SEED002_PSD_RANGE_M2_S
-    psd_range_rate_m2_s: float = SEED002_PSD_RANGE_RATE_M2_S
+    psd_range_m2_s: float = DEFAULT_PSD_RANGE_M2_S
+    psd_range_rate_m2_s: float = DEFAULT_PSD_RANGE_RATE_M2_S
     dt_s: float = 1.0
 
     def __post_init__(self):
@@ -190,7 +190,7 @@ def _gauss_newton(x, p, r, w, iterations):
         x = x + np.linalg.solve(A, g[..., None])[..., 0]
 
 
-def multilaterate(range_m, anchors_pos_ecef_m, var_range_m2: Any = SEED002_PSD_RANGE_M2_S, *,
+def multilaterate(range_m, anchors_pos_ecef_m, var_range_m2: Any = DEFAULT_PSD_RANGE_M2_S, *,
                   prior_h_m=None, prior_sigma_h_m: float = 1000.0, gauss_newton_iterations: int = 1,
                   ell: Ellipsoid | str | None = None) -> MultilaterationFix:
     """Closed-form beacon position from ranges at N >= 3 anchors, refined by Gauss-Newton.

@@ -95,24 +95,24 @@ def test_small_experiment_writes_result_and_figures(tmp_path, capsys):
 
 
 def test_experiment_is_deterministic_for_a_seed(tmp_path):
-    from sitl.app.experiments.ekf_vs_ukf import Seed001Scenario, run
+    from sitl.app.experiments.ekf_vs_ukf import EkfVsUkfScenario, run
 
-    a = run(Seed001Scenario(steps=10), 20, seed=5)
-    b = run(Seed001Scenario(steps=10), 20, seed=5)
-    c = run(Seed001Scenario(steps=10), 20, seed=6)
+    a = run(EkfVsUkfScenario(steps=10), 20, seed=5)
+    b = run(EkfVsUkfScenario(steps=10), 20, seed=5)
+    c = run(EkfVsUkfScenario(steps=10), 20, seed=6)
     assert a["ekf"]["rmse_position_m"] == b["ekf"]["rmse_position_m"]
     assert a["ekf"]["rmse_position_m"] != c["ekf"]["rmse_position_m"]
 
 
 def test_bad_scenario_values_are_clear():
-    from sitl.app.experiments.ekf_vs_ukf import Seed001Scenario
+    from sitl.app.experiments.ekf_vs_ukf import EkfVsUkfScenario
 
     with pytest.raises(ValueError, match="n_sats must be >= 4"):
-        Seed001Scenario(n_sats=3)
+        EkfVsUkfScenario(n_sats=3)
     with pytest.raises(ValueError, match="sigma_pr_m"):
-        Seed001Scenario(sigma_pr_m=-1.0)
+        EkfVsUkfScenario(sigma_pr_m=-1.0)
     with pytest.raises(ValueError, match="noise reading"):
-        Seed001Scenario.with_noise_reading("cubits")
+        EkfVsUkfScenario.with_noise_reading("cubits")
 
 
 def test_bench_iono_tropo_runs_and_reports_ratios(tmp_path, capsys):

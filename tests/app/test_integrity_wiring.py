@@ -136,14 +136,14 @@ def test_a_step_on_one_channel_gives_step_then_readmit_on_that_channel_over_the_
 
 # ---------------------------------------------------------------- UAV onboard navigation
 
-T0 = uav_nav.SEED002_T0_GPS_S
+T0 = uav_nav.EXAMPLE_T0_GPS_S
 UAV_CFG = uav_nav.RECOMMENDED_INTEGRITY
 
 
 @pytest.fixture(scope="module")
 def uav_world():
     K = 120
-    sw = uav.seed002_uav_swarm()
+    sw = uav.example_uav_swarm()
     trs = [sw.step(float(k)) for k in range(K)]
     pos = np.array([tr.pos_ecef_m for tr in trs])
     vel = np.array([tr.vel_ecef_m_s for tr in trs])
@@ -227,7 +227,7 @@ def test_uav_three_satellites_the_monitor_detects_only_and_is_the_plain_filter(u
     estimate stays the plain one's."""
     pos, _, _ = uav_world
     K = 60
-    const = uav_nav.seed002_three_satellites(pos[0, 0])
+    const = uav_nav.example_three_satellites(pos[0, 0])
     rng = np.random.default_rng(29)
     t = T0 + np.arange(K, dtype=float)
     vel = np.gradient(pos[:K], axis=0)

@@ -27,11 +27,11 @@ from filters import kernels, metrics, models
 from filters.ekf import ekf_predict, ekf_step, ekf_update
 from filters.kernels import resolve_backend
 from filters.ukf import SigmaPoints, ukf_predict, ukf_update
-from sitl.app.experiments.ekf_vs_ukf import Seed001Scenario, Setup
+from sitl.app.experiments.ekf_vs_ukf import EkfVsUkfScenario, Setup
 from tests.helpers import LinearTransition, random_spd
 
 BACKENDS = ("numpy", "numba")
-N_STATE = models.SEED001_N
+N_STATE = models.SINGER_CLOCK_N
 
 
 # ============================================================================ helpers
@@ -184,7 +184,7 @@ def run_lg(method, d, kind, N, backend):
     meas = models.LinearGaussian(d.H, d.R[kind])
     assert (meas.R_diag() is None) == (kind == "full")
     trans = (BatchedFTransition if method == "ekf_batchedF" else LinearTransition)(d.F, d.Q)
-    points = SigmaPoints.seed001(n) if "seed001" in method else SigmaPoints(n, alpha=1.0, beta=2.0, kappa=0.0)
+    points = SigmaPoints.julier(n) if "seed001" in method else SigmaPoints(n, alpha=1.0, beta=2.0, kappa=0.0)
     x, P = d.x0[:N].copy(), d.P0[:N].copy()
     xs, Ps = [], []
     for z in d.z[kind][:, :N]:
@@ -250,7 +250,7 @@ def test_predicted_step_with_a_known_input(lg, lg_ref, backend, kind):
 
 # ============================================================================ seed 001 data
 
-SEED_TRIALS, SEED_STEPS, SEED_DT = 300, 50, Seed001Scenario().dt_s
+SEED_TRIALS, SEED_STEPS, SEED_DT = 300, 50, EkfVsUkfScenario().dt_s
 
 
 # The measurement noise is pinned rather than taken from the scenario's defaults. The UKF
@@ -264,7 +264,7 @@ SEED_NOISE = dict(sigma_pr_m=100.0, sigma_prr_m_s=15.0)
 @pytest.fixture(scope="module")
 def seed001():
     """300 trials x 50 steps of the seed 001 scenario: truth, measurements, satellite states."""
-    scn = Seed001Scenario(steps=SEED_STEPS, **SEED_NOISE)
+    scn = EkfVsUkfScenario(steps=SEED_STEPS, **SEED_NOISE)
     setup = Setup.make(scn)
     stream = setup.stream(SEED_TRIALS, np.random.default_rng(1))
     next(stream)
@@ -287,7 +287,7 @@ def seed_meas(d, k, sl=slice(None)):
 def seed_filter_step(kind, x, P, z, trans, meas, backend, points=None):
     if kind == "ekf":
         return ekf_step(x, P, z, trans, meas, SEED_DT, backend=backend)
-    points = points or SigmaPoints.seed001(N_STATE)
+    points = points or SigmaPoints.julier(N_STATE)
     xp, Pp = ukf_predict(x, P, trans, SEED_DT, points=points, backend=backend)
     return ukf_update(xp, Pp, z, meas, points=points, backend=backend)
 
@@ -331,7 +331,7 @@ def test_batch_equals_loop_of_single_runs(seed001, seed_batch, backend, kind):
     even trials with batch shape () and odd ones with batch shape (1,)."""
     d = seed001
     xb, Pb, nisb = seed_batch(kind, backend, (SEED_TRIALS,))
-    points = SigmaPoints.seed001(N_STATE)
+    points = SigmaPoints.julier(N_STATE)
     errs = []  # per trial: relative error of x, P, nis
     for t in range(SEED_TRIALS):
         sl = slice(t, t + 1) if t % 2 else t  # batch shape (1,) or ()
@@ -398,7 +398,7 @@ def test_numba_equals_numpy_kernels_seed001(seed001, seed_batch, N):
         o["joseph_diag"] = kernels.joseph_update(x, P, y, H, r_diag=r, backend=be)
         o["joseph_full"] = kernels.joseph_update(x, P, y, H, R=Rfull, backend=be)
         o["fused"] = kernels.predict_joseph_update(F, Q, x @ F.T, P, y, H, r, backend=be)
-        sp = SigmaPoints.seed001(N_STATE)
+        sp = SigmaPoints.julier(N_STATE)
         X = kernels.sigma_points(x, P, sp.c, backend=be)
         o["sigma"] = X
         o["moments"] = kernels.ut_moments(X, sp.Wm, sp.Wc, Q, backend=be)
@@ -444,7 +444,7 @@ def _filterpy_seed001_ekf(d, steps, t=0):
 def _filterpy_seed001_ukf(d, steps, t=0):
     from filterpy.kalman import MerweScaledSigmaPoints, UnscentedKalmanFilter
 
-    points = MerweScaledSigmaPoints(N_STATE, alpha=1.0, beta=0.0, kappa=-8.0)  # = SigmaPoints.seed001(11)
+    points = MerweScaledSigmaPoints(N_STATE, alpha=1.0, beta=0.0, kappa=-8.0)  # = SigmaPoints.julier(11)
     ukf = UnscentedKalmanFilter(dim_x=N_STATE, dim_z=8, dt=SEED_DT, hx=None,
                                 fx=lambda x, dt: d.trans.f(x, dt), points=points)
     ukf.Q = np.array(d.trans.Q(SEED_DT))
@@ -673,7 +673,7 @@ def _consistent(nees_steps, nis_steps, trials, last):
 
 @pytest.fixture(scope="module")
 def consistency_matched():
-    scn = Seed001Scenario(steps=CONS_STEPS, **SEED_NOISE)
+    scn = EkfVsUkfScenario(steps=CONS_STEPS, **SEED_NOISE)
     return _consistency_run(scn, scn, CONS_TRIALS, CONS_STEPS, seed=11)
 
 
@@ -681,8 +681,8 @@ def consistency_matched():
 def consistency_mismatched():
     # truth with 100 x the Singer sigma_a^2 (sigma_a 10 m/s^2, in its Q and in the prior its
     # initial state is drawn from); the filter keeps sigma_a = 1 m/s^2 in its Q and prior
-    truth = Seed001Scenario(steps=MIS_STEPS, sigma_a_m_s2=10.0, **SEED_NOISE)
-    filt = Seed001Scenario(steps=MIS_STEPS, **SEED_NOISE)
+    truth = EkfVsUkfScenario(steps=MIS_STEPS, sigma_a_m_s2=10.0, **SEED_NOISE)
+    filt = EkfVsUkfScenario(steps=MIS_STEPS, **SEED_NOISE)
     return _consistency_run(truth, filt, MIS_TRIALS, MIS_STEPS, seed=12)
 
 
@@ -715,7 +715,7 @@ def test_covariance_stays_symmetric_positive_definite(backend, seed, steps, filt
     N = int(rng.integers(1, 5))
     x = rng.standard_normal((N, n)) * 10.0
     P = random_spd(rng, n, (N,), lo=0.1, hi=100.0)
-    sp = {"seed001": SigmaPoints.seed001(n), "merwe": SigmaPoints(n, 1.0, 2.0, 0.0), "default": SigmaPoints(n)}[points]
+    sp = {"seed001": SigmaPoints.julier(n), "merwe": SigmaPoints(n, 1.0, 2.0, 0.0), "default": SigmaPoints(n)}[points]
     for _ in range(steps):
         if predict:
             trans = LinearTransition(np.eye(n) + 0.3 * rng.standard_normal((n, n)) / math.sqrt(n),
@@ -804,7 +804,7 @@ def test_compiled_pseudorange_doppler_equals_numpy(seed001):
 
     # sigma-point layout (K, N, n) against satellites (N, S, 3): compiled (K N >= 256) vs
     # numpy in chunks of 10 trials (K * 10 = 230 < 256) vs the formula per sigma point
-    sig = SigmaPoints.seed001(N_STATE)
+    sig = SigmaPoints.julier(N_STATE)
     X = kernels.sigma_points(x, np.broadcast_to(d.P0, (N, 11, 11)).copy(), sig.c, backend="numpy")
     Z_c = meas.h(X)
     Z_np = np.concatenate([seed_meas(d, k, slice(a, a + 10)).h(X[:, a:a + 10]) for a in range(0, N, 10)], axis=1)

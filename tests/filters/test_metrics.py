@@ -6,11 +6,11 @@ import scipy.stats
 
 from filters.metrics import anees, anis, chi2_bounds, nees, nis, pcrb, rmse
 from filters.models import (
-    SEED001_POS,
-    SEED001_VEL,
+    SINGER_CLOCK_POS,
+    SINGER_CLOCK_VEL,
     ConstantVelocity,
     PseudorangeDoppler,
-    seed001_transition,
+    singer_clock_transition,
 )
 from tests.helpers import random_gram_spd as random_spd
 
@@ -126,18 +126,18 @@ def seed001_geometry(rng, steps, n_mc, n_sats, dt=0.01):
     sp = 2.66e7 * sat_dir
     sv = rng.normal(size=(n_sats, 3)) * 3e3
     x0 = np.zeros((n_mc, 11))
-    x0[:, SEED001_POS] = np.array([r_e, 0.0, 0.0]) + rng.normal(size=(n_mc, 3)) * 50.0
-    x0[:, SEED001_VEL] = np.array([0.0, 100.0, 0.0]) + rng.normal(size=(n_mc, 3))
+    x0[:, SINGER_CLOCK_POS] = np.array([r_e, 0.0, 0.0]) + rng.normal(size=(n_mc, 3)) * 50.0
+    x0[:, SINGER_CLOCK_VEL] = np.array([0.0, 100.0, 0.0]) + rng.normal(size=(n_mc, 3))
     t = dt * np.arange(1, steps + 1)
     xs = np.repeat(x0[None], steps, axis=0)
-    xs[..., SEED001_POS] += t[:, None, None] * x0[None, :, SEED001_VEL]
+    xs[..., SINGER_CLOCK_POS] += t[:, None, None] * x0[None, :, SINGER_CLOCK_VEL]
     return sp, sv, xs
 
 
 def test_pcrb_seed001_deterministic_geometry_matches_riccati_despite_singular_q():
     # seed 001 model: Q is singular (paper clock) and badly scaled (T = 0.01)
     rng = np.random.default_rng(11)
-    m = seed001_transition()
+    m = singer_clock_transition()
     dt, steps = 0.01, 200
     sp, sv, xs = seed001_geometry(rng, steps, 1, 4)
     Hs = PseudorangeDoppler(sp, sv, 10.0, np.sqrt(15.0)).H(xs[:, 0])
@@ -160,7 +160,7 @@ def loewner_leq(A, B, tol=1e-9):
 @pytest.mark.slow
 def test_pcrb_with_more_measurements_is_smaller():
     rng = np.random.default_rng(3)
-    m = seed001_transition()
+    m = singer_clock_transition()
     dt, steps, n_mc = 0.01, 100, 500
     sp, sv, xs = seed001_geometry(rng, steps, n_mc, 6)
     H6 = PseudorangeDoppler(sp, sv, 10.0, np.sqrt(15.0)).H(xs)  # (steps, n_mc, 12, 11)
@@ -256,7 +256,7 @@ def test_pcrb_rejects_bad_inputs():
     with pytest.raises(ValueError, match="F_samples"):
         pcrb(np.eye(3), _RandomJacobianModel(np.eye(3)), 0.1, 5, np.ones((5, 1, 3)), R)
     # the seed 001 clock Q is singular: a varying F needs Q^-1
-    s = seed001_transition()
+    s = singer_clock_transition()
     Fs = s.F(None, 0.01) + np.random.default_rng(0).normal(size=(3, 4, 11, 11)) * 1e-3
     with pytest.raises(ValueError, match="singular"):
         pcrb(np.eye(11), s, 0.01, 3, np.ones((3, 1, 11)), R, F_samples=Fs)

@@ -10,12 +10,12 @@ from hypothesis.extra import numpy as hnp
 from scipy.integrate import quad_vec
 
 from filters.models import (
-    SEED001_ACC,
-    SEED001_BIAS,
-    SEED001_DRIFT,
-    SEED001_N,
-    SEED001_POS,
-    SEED001_VEL,
+    SINGER_CLOCK_ACC,
+    SINGER_CLOCK_BIAS,
+    SINGER_CLOCK_DRIFT,
+    SINGER_CLOCK_N,
+    SINGER_CLOCK_POS,
+    SINGER_CLOCK_VEL,
     ClockGaussMarkov,
     ClockRandomWalk,
     Composite,
@@ -24,7 +24,7 @@ from filters.models import (
     LinearGaussian,
     PseudorangeDoppler,
     Singer,
-    seed001_transition,
+    singer_clock_transition,
 )
 
 I3 = np.eye(3)
@@ -143,7 +143,7 @@ def test_singer_steady_acceleration_variance_is_sigma_a_squared():
 def test_zero_step_is_identity_with_no_noise():
     for m in (Singer(0.2, 5.0), ConstantVelocity(q=1.0), ConstantAcceleration(q=1.0),
               ClockGaussMarkov(0.1, 3.0), ClockGaussMarkov(0.1, 3.0, exact_bias=True),
-              ClockRandomWalk(1e-20), seed001_transition()):
+              ClockRandomWalk(1e-20), singer_clock_transition()):
         np.testing.assert_array_equal(m.F(None, 0.0), np.eye(m.ndim))
         np.testing.assert_array_equal(m.Q(0.0), np.zeros((m.ndim, m.ndim)))
 
@@ -169,7 +169,7 @@ def test_cv_and_ca_q_equal_van_loan(T):
 
 def test_linear_f_is_batched_matrix_product():
     rng = np.random.default_rng(0)
-    for m in (ConstantVelocity(3, q=1.0), Singer(0.2, 5.0), seed001_transition()):
+    for m in (ConstantVelocity(3, q=1.0), Singer(0.2, 5.0), singer_clock_transition()):
         x = rng.normal(size=(4, 5, m.ndim))
         np.testing.assert_allclose(m.f(x, 0.3), np.einsum("ij,abj->abi", m.F(None, 0.3), x),
                                    rtol=1e-14, atol=1e-14)
@@ -220,17 +220,17 @@ def test_clock_random_walk_seed000():
 
 def test_seed001_blocks_land_at_the_seed_indices():
     alpha, sa, mu, sd, T = 0.2, 5.0, 0.1, 3.0, 0.01
-    m = seed001_transition(alpha, sa, mu, sd)
-    assert m.ndim == SEED001_N == 11 and m.linear
+    m = singer_clock_transition(alpha, sa, mu, sd)
+    assert m.ndim == SINGER_CLOCK_N == 11 and m.linear
     F, Q = m.F(None, T), m.Q(T)
     F1, Q1 = Singer(alpha, sa, 1).F(None, T), Singer(alpha, sa, 1).Q(T)
     Fc, Qc = ClockGaussMarkov(mu, sd).F(None, T), ClockGaussMarkov(mu, sd).Q(T)
-    kin = [SEED001_POS, SEED001_VEL, SEED001_ACC]
+    kin = [SINGER_CLOCK_POS, SINGER_CLOCK_VEL, SINGER_CLOCK_ACC]
     for i, a in enumerate(kin):
         for j, b in enumerate(kin):
             np.testing.assert_array_equal(F[a, b], F1[i, j] * I3)
             np.testing.assert_array_equal(Q[a, b], Q1[i, j] * I3)
-    clk = [SEED001_BIAS, SEED001_DRIFT]
+    clk = [SINGER_CLOCK_BIAS, SINGER_CLOCK_DRIFT]
     np.testing.assert_array_equal(F[np.ix_(clk, clk)], Fc)
     np.testing.assert_array_equal(Q[np.ix_(clk, clk)], Qc)
     kin_idx = np.r_[0:3, 4:7, 8:11]
@@ -242,7 +242,7 @@ def test_seed001_blocks_land_at_the_seed_indices():
 
 
 def test_composite_f_permutes_consistently_with_F():
-    m = seed001_transition()
+    m = singer_clock_transition()
     x = np.arange(11.0) + 1.0
     np.testing.assert_allclose(m.f(x, 0.01), m.F(None, 0.01) @ x, rtol=1e-15)
     # x[3] is the bias, x[7] the drift: bias moves by T * drift
@@ -307,9 +307,9 @@ def test_pseudorange_doppler_values_and_sign_convention():
     sp = np.array([[2.6e7, 0.0, 0.0], [6.4e6, 2.0e7, 0.0]])
     sv = np.array([[100.0, 3000.0, 0.0], [0.0, 50.0, 0.0]])
     x = np.zeros(11)
-    x[SEED001_POS] = X
-    x[SEED001_VEL] = [10.0, 0.0, 0.0]
-    x[SEED001_BIAS], x[SEED001_DRIFT] = 123.0, -4.0
+    x[SINGER_CLOCK_POS] = X
+    x[SINGER_CLOCK_VEL] = [10.0, 0.0, 0.0]
+    x[SINGER_CLOCK_BIAS], x[SINGER_CLOCK_DRIFT] = 123.0, -4.0
     z = _pr_model(sp, sv).h(x)
     # stacked: [pr_1, pr_2, prr_1, prr_2]
     expect = [1.96e7 + 123.0, 2.0e7 + 123.0, 90.0 - 4.0, 50.0 - 4.0]
@@ -339,9 +339,9 @@ def test_pseudorange_doppler_jacobian_matches_central_differences(g):
     sp = X + dirs / np.linalg.norm(dirs, axis=1)[:, None] * radius[:, None]
     m = _pr_model(sp, sv)
     x = np.zeros(11)
-    x[SEED001_POS], x[SEED001_VEL] = X, V
-    x[SEED001_BIAS], x[SEED001_DRIFT] = bias, drift
-    x[SEED001_ACC] = [1.0, 2.0, 3.0]
+    x[SINGER_CLOCK_POS], x[SINGER_CLOCK_VEL] = X, V
+    x[SINGER_CLOCK_BIAS], x[SINGER_CLOCK_DRIFT] = bias, drift
+    x[SINGER_CLOCK_ACC] = [1.0, 2.0, 3.0]
     H = m.H(x)
     assert H.shape == (2 * len(sp), 11)
     # h is linear in all but the position, where its curvature is ~1/|S - X| ~ 1e-7 /m:
@@ -361,7 +361,7 @@ def test_pseudorange_doppler_jacobian_matches_central_differences(g):
     u = r / rho[:, None]
     for i in range(len(sp)):
         expect = -(sv[i] - V) @ (np.eye(3) - np.outer(u[i], u[i])) / rho[i]
-        np.testing.assert_allclose(H[len(sp) + i, SEED001_POS], expect, rtol=1e-12, atol=1e-18)
+        np.testing.assert_allclose(H[len(sp) + i, SINGER_CLOCK_POS], expect, rtol=1e-12, atol=1e-18)
 
 
 def test_pseudorange_doppler_batches_like_the_ukf_calls_it():
@@ -432,7 +432,7 @@ def test_linear_gaussian():
         (lambda: ClockGaussMarkov(0.1, -3.0), "sigma_drift_m_s"),
         (lambda: ClockRandomWalk(-1e-20), "psd_1_s"),
         (lambda: ClockRandomWalk(1e-20, c=0.0), "c"),
-        (lambda: seed001_transition(alpha_1_s=-1.0), "alpha_1_s"),
+        (lambda: singer_clock_transition(alpha_1_s=-1.0), "alpha_1_s"),
         (lambda: Composite((Singer(0.2, 1.0), ClockRandomWalk(0.0)), order=(0, 1)), "order"),
         (lambda: Composite((Singer(0.2, 1.0), object())), "blocks"),
         (lambda: Singer(0.2, 5.0).Q(-0.01), "dt"),
@@ -501,7 +501,7 @@ def test_every_filters_model_is_a_protocol_model():
     rng = np.random.default_rng(4)
     sp, sv, _ = _clock_free_case(rng)
     transitions = [ConstantVelocity(3, q=1.0), ConstantAcceleration(3, q=1.0), Singer(0.2, 5.0),
-                   ClockGaussMarkov(0.1, 3.0), ClockRandomWalk(1e-20), seed001_transition(),
+                   ClockGaussMarkov(0.1, 3.0), ClockRandomWalk(1e-20), singer_clock_transition(),
                    IonoTropoTransition()]
     measurements = [LinearGaussian(np.eye(2), np.eye(2)), PseudorangeDoppler(sp, sv, 30.0, 0.2),
                     ClockFreePseudorangeDoppler(sp, sv, 900.0, 0.04),

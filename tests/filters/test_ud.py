@@ -203,9 +203,9 @@ SEED_TRIALS, SEED_STEPS = 40, 30
 @pytest.fixture(scope="module")
 def seed001():
     """40 trials x 30 steps of the seed 001 scenario (11 states, 4 satellites, m = 8)."""
-    from sitl.app.experiments.ekf_vs_ukf import Seed001Scenario, Setup
+    from sitl.app.experiments.ekf_vs_ukf import EkfVsUkfScenario, Setup
 
-    scn = Seed001Scenario(steps=SEED_STEPS)
+    scn = EkfVsUkfScenario(steps=SEED_STEPS)
     setup = Setup.make(scn)
     stream = setup.stream(SEED_TRIALS, np.random.default_rng(3))
     next(stream)
@@ -225,7 +225,7 @@ def seed_meas(d, k, shape=(SEED_TRIALS,)):
 
 def run_ud_seed001(d, backend, shape=(SEED_TRIALS,), steps=SEED_STEPS):
     """A U-D run on batch shape `shape`; returns per-step (x, P, nis) with a flat trial axis."""
-    n = models.SEED001_N
+    n = models.SINGER_CLOCK_N
     x = np.broadcast_to(d["x0"], shape + (n,)).copy()
     U, dd = ud_factor(np.broadcast_to(d["P0"], shape + (n, n)))
     xs, Ps, nis = [], [], []
@@ -246,7 +246,7 @@ def test_seed001_equals_joseph_ekf(seed001, backend):
     equals the Joseph EKF (ekf_step, numpy) to 1e-8 at every step, NIS included."""
     d = seed001
     xs, Ps, nis = run_ud_seed001(d, backend)
-    n = models.SEED001_N
+    n = models.SINGER_CLOCK_N
     x = np.broadcast_to(d["x0"], (SEED_TRIALS, n)).copy()
     P = np.broadcast_to(d["P0"], (SEED_TRIALS, n, n)).copy()
     for k in range(SEED_STEPS):
@@ -277,7 +277,7 @@ def test_seed001_batch_equals_loop_and_multi_axis(seed001):
 def test_numba_equals_numpy_kernels(seed001):
     """The compiled MWGS and Bierman kernels give the numpy kernels' U and d to rounding."""
     d = seed001
-    n = models.SEED001_N
+    n = models.SINGER_CLOCK_N
     rng = np.random.default_rng(9)
     x = d["x0"] + rng.standard_normal((SEED_TRIALS, n))
     U, dd = ud_factor(random_spd(rng, n, (SEED_TRIALS,), lo=0.1, hi=100.0))

@@ -305,7 +305,7 @@ def test_multilateration_init_seed_geometry_keeps_both_sides():
     prior's sigma), the other its mirror, 2 x the distance from the axis away."""
     from vehicles import beacon, uav
 
-    sw, bc = uav.seed002_uav_swarm(), beacon.seed002_beacon("seed")
+    sw, bc = uav.example_uav_swarm(), beacon.example_beacon("seed")
     rng = np.random.default_rng(4)
     eps, B = [], None
     for k in range(3):

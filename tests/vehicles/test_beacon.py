@@ -30,7 +30,7 @@ from tests.helpers import chi2_var_bounds
 @pytest.fixture(scope="module")
 def seed_truth():
     """UAVs and the beacon of the seed example every second over 1000 s (RK4, 0.01 s)."""
-    u, b = uav.seed002_uav_swarm(), beacon.seed002_beacon("seed")
+    u, b = uav.example_uav_swarm(), beacon.example_beacon("seed")
     out = []
     for t in range(0, 1001):
         out.append((u.step(float(t)), b.step(float(t))))
@@ -46,19 +46,19 @@ def test_beacon_start_speed_and_modes(seed_truth):
     speed = np.array([np.linalg.norm(bt.vel_ecef_m_s) for _, bt in seed_truth])
     assert 105.0 - 1e-9 <= speed.min() < 105.01 and 124.99 < speed.max() <= 125.0 + 1e-9  # 115 +- 10
     assert max(abs(uav.wrap_pi(bt.heading_rad)) for _, bt in seed_truth) < 1e-9  # north
-    legs = beacon.seed002_beacon("legs", dt_s=0.05)
+    legs = beacon.example_beacon("legs", dt_s=0.05)
     psi0 = legs.truth().heading_rad
     tr = legs.step(200.0)
     assert abs(uav.wrap_pi(tr.heading_rad - psi0)) < 1e-9 and abs(tr.speed_m_s - 115.0) < 1e-12
     tr = legs.step(200.0 + 60.0)  # a 90 deg turn at 1.5 deg/s takes 60 s
     assert abs(uav.wrap_pi(tr.heading_rad - psi0 - math.pi / 2)) < 1e-9
-    static = beacon.seed002_beacon("static")
+    static = beacon.example_beacon("static")
     p0 = static.truth().pos_ecef_m
     assert np.array_equal(static.step(500.0).pos_ecef_m, p0)
 
 
 def test_beacon_batched_equals_single():
-    law = beacon.seed002_beacon_law()
+    law = beacon.example_beacon_law()
     lat, lon = math.radians(47.3), math.radians(31.0)
     law2 = uav.SinusoidalLaw(**{f: np.full(2, float(getattr(law, f))) for f in law._FIELDS})
     both = uav.KinematicSwarm(law2, [lat, lat + 0.01], [lon, lon], [3200.0, 3300.0])
@@ -67,13 +67,13 @@ def test_beacon_batched_equals_single():
 
 
 def test_printed_beacon_law_start_and_one_per_trial():
-    m = uav.paper_to_ecef(uav.SEED002_PRINTED_START_PAPER_M)
-    one = beacon.seed002_beacon("printed")
+    m = uav.paper_to_ecef(uav.PRINTED_START_PAPER_M)
+    one = beacon.example_beacon("printed")
     assert np.array_equal(one.truth().pos_ecef_m[0], m)  # the UAVs' printed start point
-    law = beacon.seed002_printed_beacon_law(1)
-    assert np.allclose(law.params()[0], uav.SEED002_PRINTED_COEFFS["beacon"])
+    law = beacon.printed_beacon_law(1)
+    assert np.allclose(law.params()[0], uav.PRINTED_COEFFS["beacon"])
     starts = m + np.array([[0.0, 0.0, 0.0], [30.0, -20.0, 50.0]])
-    two = beacon.seed002_printed_beacon(starts)
+    two = beacon.printed_beacon(starts)
     a = two.track([0.0, 100.0, 400.0])
     b = one.track([0.0, 100.0, 400.0])
     assert np.allclose(a.pos_ecef_m[:, 0], b.pos_ecef_m[:, 0], rtol=0, atol=1e-9)
@@ -87,7 +87,7 @@ def test_printed_beacon_law_start_and_one_per_trial():
 
 
 def test_range_rate_sign_and_values_against_finite_differences(seed_truth):
-    u, b = uav.seed002_uav_swarm(), beacon.seed002_beacon("seed")
+    u, b = uav.example_uav_swarm(), beacon.example_beacon("seed")
     h = 0.05
     for t in (10.0, 333.0, 777.0):
         ua, ba = u.step(t - h), b.step(t - h)
@@ -217,8 +217,8 @@ def test_multilateration_noisy_within_three_sigma_of_its_covariance(anchors):
     (lambda: bl.multilaterate([1e4, 1e4, 1e4], _enu_points(ANCHORS3), 0.0), "var_range_m2"),
     (lambda: bl.multilaterate([1e4, 1e4, 1e4], _enu_points(ANCHORS3), gauss_newton_iterations=-1),
      "gauss_newton_iterations"),
-    (lambda: beacon.seed002_beacon("orbit"), "mode"),
-    (lambda: beacon.seed002_printed_beacon(np.zeros(3)), "pos0_ecef_m"),
+    (lambda: beacon.example_beacon("orbit"), "mode"),
+    (lambda: beacon.printed_beacon(np.zeros(3)), "pos0_ecef_m"),
     (lambda: beacon.legs_and_turns(0.0, leg_s=0.0), "leg_s"),
 ])
 def test_bad_parameters_raise_value_error_naming_them(make, name):

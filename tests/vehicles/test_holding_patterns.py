@@ -57,7 +57,7 @@ def test_orbit_stays_on_its_circle_while_a_constant_turn_walks_off():
 
 def test_beacon_racetrack_repeats_with_the_pattern_dimensions():
     scn = default_scenario()
-    b = beacon.seed002_beacon("racetrack", start=scn.beacon.start)
+    b = beacon.example_beacon("racetrack", start=scn.beacon.start)
     law = b.guidance
     r, L = 115.0 / math.radians(1.5), 0.5 * 200.0 * 115.0
     assert law.radius_m == pytest.approx(r) and law.half_length_m == pytest.approx(L)

@@ -27,7 +27,7 @@ from vehicles import uav
 
 
 def seed_start():
-    s = np.array(uav.SEED002_UAV_START)
+    s = np.array(uav.EXAMPLE_UAV_START)
     return np.radians(s[:, 0]), np.radians(s[:, 1]), s[:, 2]
 
 
@@ -36,7 +36,7 @@ def seed_start():
 
 @pytest.mark.slow
 def test_rk4_matches_solve_ivp_on_the_seed_law():
-    law = uav.seed002_uav_law()
+    law = uav.example_uav_law()
     st = uav.initial_state(law, *seed_start())
     t1 = 300.0
     out = uav.propagate(st, t1, law, dt_s=0.01)
@@ -69,7 +69,7 @@ def test_rk4_is_fourth_order():
 def test_compiled_integrator_equals_numpy_reference(kind):
     lat, lon, h = seed_start()
     if kind == "sinusoid":
-        law = uav.seed002_uav_law()
+        law = uav.example_uav_law()
     elif kind == "waypoints":
         wps = [np.array([[lat[i] + 0.05, lon[i] + 0.02, 3500.0], [lat[i] + 0.05, lon[i] + 0.12, 3000.0]])
                for i in range(3)]
@@ -86,7 +86,7 @@ def test_compiled_integrator_equals_numpy_reference(kind):
 
 
 def test_propagate_in_pieces_equals_one_call():
-    law = uav.seed002_uav_law()
+    law = uav.example_uav_law()
     st = uav.initial_state(law, *seed_start())
     one = uav.propagate(st, 10.0, law, 0.01)
     piece = st
@@ -101,7 +101,7 @@ def test_track_equals_stepping_epoch_by_epoch(kind):
     """KinematicSwarm.track (one compiled call, batched truth) gives step()'s numbers bitwise."""
     lat, lon, h = seed_start()
     if kind == "sinusoid":
-        law = uav.seed002_uav_law()
+        law = uav.example_uav_law()
     elif kind == "waypoints":
         wps = [np.array([[lat[i] + 0.0002, lon[i] + 0.0002, 3200.0], [lat[i] + 0.02, lon[i] + 0.03, 3000.0]])
                for i in range(3)]
@@ -132,7 +132,7 @@ def test_track_equals_stepping_epoch_by_epoch(kind):
 @pytest.fixture(scope="module")
 def seed_run():
     """The seed's three UAVs over 1000 s at the seed's RK4 step (0.01 s), sampled every 1 s."""
-    sw = uav.seed002_uav_swarm(dt_s=0.01)
+    sw = uav.example_uav_swarm(dt_s=0.01)
     return [sw.step(float(t)) for t in range(0, 1001)]
 
 
@@ -150,7 +150,7 @@ def test_seed_start_points_are_the_geodetic_values(seed_run):
 def test_seed_speed_range_and_sinusoidal_variation(seed_run):
     t = np.array([tr.t_s for tr in seed_run])
     v = np.array([np.linalg.norm(tr.vel_ecef_m_s, axis=-1) for tr in seed_run])  # (T, 3)
-    v0 = np.array(uav.SEED002_UAV_SPEED_M_S)
+    v0 = np.array(uav.EXAMPLE_UAV_SPEED_M_S)
     assert np.all(v.min(axis=0) >= v0 - 10.0 - 1e-9) and np.all(v.max(axis=0) <= v0 + 10.0 + 1e-9)
     assert np.all(v.min(axis=0) < v0 - 9.99) and np.all(v.max(axis=0) > v0 + 9.99)  # the whole band
     # least-squares fit a + b sin(0.02 t) + c cos(0.02 t): b = 10, c = 0, a = v0, no residual
@@ -165,14 +165,14 @@ def test_seed_speed_range_and_sinusoidal_variation(seed_run):
 def test_seed_altitude_and_heading_laws(seed_run):
     t = np.array([tr.t_s for tr in seed_run])
     h = np.array([tr.h_m for tr in seed_run])
-    h0 = np.array(uav.SEED002_UAV_START)[:, 2]
+    h0 = np.array(uav.EXAMPLE_UAV_START)[:, 2]
     assert np.max(np.abs(h - (h0 + 1500.0 * np.sin(0.01 * t)[:, None]))) < 1e-6
     psi = np.array([tr.heading_rad for tr in seed_run])
     assert np.max(np.abs(uav.wrap_pi(psi))) < 1e-9  # north all along
 
 
 def test_ecef_velocity_is_the_derivative_of_ecef_position():
-    sw = uav.seed002_uav_swarm(dt_s=0.01)
+    sw = uav.example_uav_swarm(dt_s=0.01)
     a = sw.step(499.99).pos_ecef_m
     mid = sw.step(500.0)
     b = sw.step(500.01).pos_ecef_m
@@ -267,16 +267,16 @@ def test_legs_and_turns_and_hold():
     (lambda: uav.WaypointMission([np.array([[30.0, 45.0, 100.0]])], 100.0), "waypoints_rad_m[0]"),
     (lambda: uav.WaypointMission([np.array([[0.5, 0.5, 100.0]])], 10.0, max_climb_m_s=20.0), "max_climb_m_s"),
     (lambda: uav.LegsAndTurns(100.0, 0.0, [10.0, 5.0], [0.0, 0.1, 0.0]), "switch_times_s"),
-    (lambda: uav.UavSwarm(uav.seed002_uav_law(), *seed_start(), dt_s=0.0), "dt_s"),
-    (lambda: uav.UavSwarm(uav.seed002_uav_law(), 45.0, 30.0, 3000.0), "lat0_rad"),
+    (lambda: uav.UavSwarm(uav.example_uav_law(), *seed_start(), dt_s=0.0), "dt_s"),
+    (lambda: uav.UavSwarm(uav.example_uav_law(), 45.0, 30.0, 3000.0), "lat0_rad"),
     (lambda: uav.PrintedLaw.from_coeffs([[1.0, 2.0, 3.0]]), "rows"),
-    (lambda: uav.PrintedSwarm(uav.seed002_printed_uav_law(), np.zeros((2, 3))), "pos0_ecef_m"),
-    (lambda: uav.propagate_printed(np.zeros(3), 10.0, 5.0, uav.seed002_printed_uav_law(1)), "t1_s"),
-    (lambda: uav.seed002_printed_uav_law(0), "n"),
-    (lambda: uav.seed002_uav_swarm().step(-1.0), "t1_s"),
+    (lambda: uav.PrintedSwarm(uav.printed_uav_law(), np.zeros((2, 3))), "pos0_ecef_m"),
+    (lambda: uav.propagate_printed(np.zeros(3), 10.0, 5.0, uav.printed_uav_law(1)), "t1_s"),
+    (lambda: uav.printed_uav_law(0), "n"),
+    (lambda: uav.example_uav_swarm().step(-1.0), "t1_s"),
     (lambda: uav.propagate(uav.initial_state(uav.Hold(1), 0.1, 0.1, 0.0), 1.0, uav.Hold(1), backend="gpu"),
      "backend"),
-    (lambda: uav.seed002_uav_swarm().upload_mission(0, np.array([[0.5, 0.8, 100.0]])), "guidance"),
+    (lambda: uav.example_uav_swarm().upload_mission(0, np.array([[0.5, 0.8, 100.0]])), "guidance"),
 ])
 def test_bad_parameters_raise_value_error_naming_them(make, name):
     with pytest.raises(ValueError, match=name.replace("[", r"\[").replace("]", r"\]")):
@@ -286,7 +286,7 @@ def test_bad_parameters_raise_value_error_naming_them(make, name):
 # ============================================================================ the printed laws
 
 
-PRINTED_M_ECEF = uav.paper_to_ecef(uav.SEED002_PRINTED_START_PAPER_M)
+PRINTED_M_ECEF = uav.paper_to_ecef(uav.PRINTED_START_PAPER_M)
 
 
 def test_paper_axes_mapping_against_a_hand_computation():
@@ -295,7 +295,7 @@ def test_paper_axes_mapping_against_a_hand_computation():
     r = 6371e3 + 3000.0
     xi, eta, zeta = r * math.cos(math.radians(45)) * math.sin(math.radians(30)), r * math.sin(math.radians(45)), \
         r * math.cos(math.radians(45)) * math.cos(math.radians(30))
-    assert np.allclose(uav.SEED002_PRINTED_START_PAPER_M, [xi, eta, zeta], atol=1.0)  # printed to the metre
+    assert np.allclose(uav.PRINTED_START_PAPER_M, [xi, eta, zeta], atol=1.0)  # printed to the metre
     x_sphere = r * np.array([math.cos(math.radians(45)) * math.cos(math.radians(30)),
                              math.cos(math.radians(45)) * math.sin(math.radians(30)), math.sin(math.radians(45))])
     assert np.allclose(PRINTED_M_ECEF, x_sphere, atol=1.0)
@@ -307,7 +307,7 @@ def test_paper_axes_mapping_against_a_hand_computation():
 
 def test_printed_velocity_is_the_printed_formula():
     """UAV-1's law evaluated by hand from the printed formulas, in the paper's axes."""
-    law = uav.seed002_printed_uav_law(1)
+    law = uav.printed_uav_law(1)
     t = 123.4
     xi, eta, zeta = 2.25e6, 4.52e6, 3.9e6
     r = 6.374e6 + 1500.0 * math.sin(0.01 * t)
@@ -322,7 +322,7 @@ def test_printed_velocity_is_the_printed_formula():
 @pytest.mark.slow
 @pytest.mark.parametrize("backend", ["numba", "numpy"])
 def test_printed_rk4_matches_solve_ivp(backend):
-    law = uav.PrintedLaw.from_coeffs(list(uav.SEED002_PRINTED_COEFFS.values()))  # the 3 UAVs and the beacon
+    law = uav.PrintedLaw.from_coeffs(list(uav.PRINTED_COEFFS.values()))  # the 3 UAVs and the beacon
     x0 = np.broadcast_to(PRINTED_M_ECEF, (4, 3))
     t1 = 300.0 if backend == "numba" else 60.0
     out = uav.propagate_printed(x0, 0.0, t1, law, dt_s=0.01, backend=backend)
@@ -340,14 +340,14 @@ def test_printed_rk4_is_fourth_order_and_compiled_equals_numpy():
             for dt in (4.0, 2.0, 1.0)]
     ratios = errs[0] / errs[1], errs[1] / errs[2]
     assert all(12.0 < r < 20.0 for r in ratios), (errs, ratios)
-    law3 = uav.seed002_printed_uav_law(5)
+    law3 = uav.printed_uav_law(5)
     a = uav.propagate_printed(PRINTED_M_ECEF, 0.0, 25.0, law3, backend="numba")
     b = uav.propagate_printed(PRINTED_M_ECEF, 0.0, 25.0, law3, backend="numpy")
     assert np.max(np.abs(a - b)) < 1e-6
 
 
 def test_printed_swarm_track_equals_step_and_reads_as_printed():
-    a, b = uav.seed002_printed_uav_swarm(3), uav.seed002_printed_uav_swarm(3)
+    a, b = uav.printed_uav_swarm(3), uav.printed_uav_swarm(3)
     times = [0.0, 1.0, 2.5, 10.0, 10.005, 31.0]
     tr = a.track(times)
     for k, t in enumerate(times):
@@ -356,7 +356,7 @@ def test_printed_swarm_track_equals_step_and_reads_as_printed():
         assert np.allclose(tr.vel_ecef_m_s[k], s.vel_ecef_m_s, rtol=0, atol=1e-10)
     assert np.array_equal(tr.pos_ecef_m[0], np.broadcast_to(PRINTED_M_ECEF, (3, 3)))  # one start for all
     # velocity = derivative of position (central difference along the RK4 track)
-    c = uav.seed002_printed_uav_swarm(3)
+    c = uav.printed_uav_swarm(3)
     p1 = c.step(499.99).pos_ecef_m
     mid = c.step(500.0)
     p2 = c.step(500.01).pos_ecef_m

@@ -30,17 +30,17 @@ from vehicles import uav, uav_nav
 from vehicles.uav_nav import GnssEpoch, GnssNoise, NavConfig
 from tests.helpers import chi2_var_bounds
 
-T0 = uav_nav.SEED002_T0_GPS_S
+T0 = uav_nav.EXAMPLE_T0_GPS_S
 
 
 @pytest.fixture(scope="module")
 def seed_truth():
     """The seed's three UAVs (RK4, 0.01 s) at 1 s epochs for 200 s, and the three satellites."""
-    sw = uav.seed002_uav_swarm()
+    sw = uav.example_uav_swarm()
     trs = [sw.step(float(k)) for k in range(200)]
     pos = np.array([tr.pos_ecef_m for tr in trs])
     vel = np.array([tr.vel_ecef_m_s for tr in trs])
-    const3 = uav_nav.seed002_three_satellites(pos[0, 0], T0, duration_s=1000.0)
+    const3 = uav_nav.example_three_satellites(pos[0, 0], T0, duration_s=1000.0)
     return T0 + np.arange(200.0), pos, vel, const3
 
 
@@ -113,9 +113,9 @@ def test_kepler_propagation_equals_two_body_ode(seed_truth, duration_s):
 
 
 def test_three_satellites_stay_tracked_for_the_whole_run():
-    sw = uav.seed002_uav_swarm(dt_s=0.05)
+    sw = uav.example_uav_swarm(dt_s=0.05)
     start = sw.truth().pos_ecef_m
-    const = uav_nav.seed002_three_satellites(start[0], T0, 1000.0)
+    const = uav_nav.example_three_satellites(start[0], T0, 1000.0)
     assert len(const) == 3 and np.all(const.OmegaDot_rad_s == 0.0)
     cfg = NavConfig(el_mask_rad=math.radians(10.0))
     for t in (0.0, 500.0, 1000.0):
@@ -311,9 +311,9 @@ def test_many_epochs_at_once_equal_one_epoch_at_a_time(seed_truth, case):
     (lambda: NavConfig(el_mask_rad=2.0), "el_mask_rad"),
     (lambda: NavConfig(ls_iterations=0), "ls_iterations"),
     (lambda: NavConfig(noise=900.0), "noise"),
-    (lambda: uav_nav.seed002_three_satellites(np.array([3.9e6, 3.9e6, 3.2e6]), el_min_rad=math.radians(80.0)),
+    (lambda: uav_nav.example_three_satellites(np.array([3.9e6, 3.9e6, 3.2e6]), el_min_rad=math.radians(80.0)),
      "el_min_rad"),
-    (lambda: uav_nav.seed002_three_satellites(np.zeros(2)), "rx_pos_ecef_m"),
+    (lambda: uav_nav.example_three_satellites(np.zeros(2)), "rx_pos_ecef_m"),
     (lambda: uav_nav.unperturbed("GPS"), "constellation"),
     (lambda: uav_nav.gnss_measure(np.random, T0, np.zeros(3), np.zeros(3), orbits.gps_constellation()), "rng"),
     (lambda: uav_nav.ClockFreePseudorangeDoppler(np.ones((3, 3)) * 2e7, np.zeros((3, 3)), 0.0, 1.0), "var_pr_m2"),

@@ -88,7 +88,7 @@ def _direct_trial(case, tracks, seed, prior=None):
     const = ex.constellation_for(case, U[0, 0], t[-1])
     nav_cfg = uav_nav.NavConfig()
     link_cfg = beacon_link.BeaconLinkConfig()
-    t_gps = uav_nav.SEED002_T0_GPS_S + t
+    t_gps = uav_nav.EXAMPLE_T0_GPS_S + t
     rng = np.random.default_rng([seed, ex.CASES.index(case) if case in ex.CASES else 7, N])
     loc = bl.BeaconLocator(None, run_ids=["direct"], beacon_id=ex.BEACON_ID, config=ex.locator_config(ex.PRODUCTION, prior))
     nav = uav_nav.OnboardNav(const, nav_cfg)

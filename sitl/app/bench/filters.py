@@ -24,9 +24,9 @@ from filters.ukf import SigmaPoints, ukf_predict, ukf_update
 
 def _scenario_data(n_trials, n_steps, seed=7):
     """Measurements and filter-side satellite states of the seed 001 scenario."""
-    from sitl.app.experiments.ekf_vs_ukf import Seed001Scenario, Setup
+    from sitl.app.experiments.ekf_vs_ukf import EkfVsUkfScenario, Setup
 
-    setup = Setup.make(Seed001Scenario(steps=n_steps))
+    setup = Setup.make(EkfVsUkfScenario(steps=n_steps))
     zs, sps, svs = [], [], []
     for k, _, _, z, meas, _ in setup.stream(n_trials, np.random.default_rng(seed)):
         if k:
@@ -37,7 +37,7 @@ def _scenario_data(n_trials, n_steps, seed=7):
 
 
 def _time_skyfuse(kind, backend, scn, trans, x0, P0, zs, sps, svs, n_trials):
-    points = SigmaPoints.seed001(11)
+    points = SigmaPoints.julier(11)
     x = np.broadcast_to(x0, (n_trials, 11)).copy()
     P = np.broadcast_to(P0, (n_trials, 11, 11)).copy()
 

@@ -42,10 +42,10 @@ Geometry (``--geometry``; vehicles/uav.py says how the seed's laws are read):
   (multilateration, ground_station/beacon/multilateration.py).
 
 Cases: ``three_satellites`` (the paper's: three satellites on unperturbed Keplerian orbits,
-vehicles.uav_nav.seed002_three_satellites) and ``constellation`` (the GPS almanac, every
+vehicles.uav_nav.example_three_satellites) and ``constellation`` (the GPS almanac, every
 satellite above 10 deg), both with --uavs UAVs; ``by_uav_count``: the constellation case
 with 3, 5, 10 and 30 UAVs.  Printed geometry: the further UAVs fly printed-style laws with
-coefficients spread over the printed ranges (vehicles.uav.seed002_printed_uav_law), from the
+coefficients spread over the printed ranges (vehicles.uav.printed_uav_law), from the
 same start point.  Geodetic: the first three at the seed's start points, the others on a
 sunflower pattern (golden-angle spiral) of radius 0.35 deg about (45.15 N, 30.15 E) at
 3000-3500 m, heading north at 100-110 m/s.
@@ -116,9 +116,9 @@ LOCATORS = {
 # ------------------------------------------------------------------ the world
 def uav_starts(n: int):
     """Geodetic geometry: (lat deg, lon deg, h m) of n UAVs: the seed's three, then a sunflower."""
-    from vehicles.uav import SEED002_UAV_START
+    from vehicles.uav import EXAMPLE_UAV_START
 
-    out = [tuple(s) for s in SEED002_UAV_START[:n]]
+    out = [tuple(s) for s in EXAMPLE_UAV_START[:n]]
     golden = math.pi * (3.0 - math.sqrt(5.0))
     m = n - 3
     for j in range(m):
@@ -130,9 +130,9 @@ def uav_starts(n: int):
 
 def uav_speeds(n: int):
     """Geodetic geometry: mean speeds of n UAVs: the printed 100 / 110 / 110, then spread over 100..110."""
-    from vehicles.uav import SEED002_UAV_SPEED_M_S
+    from vehicles.uav import EXAMPLE_UAV_SPEED_M_S
 
-    speeds = list(SEED002_UAV_SPEED_M_S[:n])
+    speeds = list(EXAMPLE_UAV_SPEED_M_S[:n])
     g = (math.sqrt(5.0) - 1.0) / 2.0
     speeds += [100.0 + 10.0 * (((j + 1) * g) % 1.0) for j in range(n - 3)]
     return speeds[:n]
@@ -144,8 +144,8 @@ def beacon_prior():
     from vehicles import uav
     from vehicles import beacon
 
-    m = uav.paper_to_ecef(uav.SEED002_PRINTED_START_PAPER_M)
-    v = uav.printed_velocity_ecef(0.0, m, beacon.seed002_printed_beacon_law(1))[0]
+    m = uav.paper_to_ecef(uav.PRINTED_START_PAPER_M)
+    v = uav.printed_velocity_ecef(0.0, m, beacon.printed_beacon_law(1))[0]
     cov = np.diag([PRIOR_POS_SIGMA_M ** 2] * 3 + [PRIOR_VEL_SIGMA_M_S ** 2] * 3)
     return np.concatenate([m, v]), cov
 
@@ -167,8 +167,8 @@ def truth_tracks(n_uavs: int, duration_s: float, geometry: str = "printed", beac
         raise ValueError(f"geometry must be one of {GEOMETRIES}, got {geometry!r}")
     t = np.arange(0.0, float(duration_s) + 1e-9, DT_S)
     if geometry == "printed":
-        sw = uav.seed002_printed_uav_swarm(n_uavs)
-        bc = beacon.seed002_printed_beacon(beacon_starts)
+        sw = uav.printed_uav_swarm(n_uavs)
+        bc = beacon.printed_beacon(beacon_starts)
         tu, tb = sw.track(t), bc.track(t)
         B, VB = tb.pos_ecef_m, tb.vel_ecef_m_s
         if beacon_starts is None:
@@ -177,14 +177,14 @@ def truth_tracks(n_uavs: int, duration_s: float, geometry: str = "printed", beac
     if beacon_starts is not None:
         raise ValueError("beacon_starts: the geodetic geometry has one beacon start")
     if n_uavs == 3:
-        sw = uav.seed002_uav_swarm()
+        sw = uav.example_uav_swarm()
     else:
         s = np.array(uav_starts(n_uavs))
         lat, lon = np.radians(s[:, 0]), np.radians(s[:, 1])
         law = uav.SinusoidalLaw(speed_mean_m_s=np.array(uav_speeds(n_uavs)), speed_amp_m_s=10.0,
                                 speed_omega_rad_s=0.02, heading0_rad=0.0, climb_amp_m_s=15.0, climb_omega_rad_s=0.01)
         sw = uav.UavSwarm(law, lat, lon, s[:, 2])
-    bc = beacon.seed002_beacon("seed")
+    bc = beacon.example_beacon("seed")
     tu, tb = sw.track(t), bc.track(t)  # = step(t) epoch by epoch, in one compiled call each
     return t, tu.pos_ecef_m, tu.vel_ecef_m_s, tb.pos_ecef_m, tb.vel_ecef_m_s
 
@@ -218,7 +218,7 @@ def constellation_for(case: str, U0, duration_s: float):
     from vehicles import uav_nav
 
     if case == "three_satellites":
-        return uav_nav.seed002_three_satellites(U0, uav_nav.SEED002_T0_GPS_S, duration_s=duration_s)
+        return uav_nav.example_three_satellites(U0, uav_nav.EXAMPLE_T0_GPS_S, duration_s=duration_s)
     return orbits.gps_constellation()
 
 
@@ -328,7 +328,7 @@ def run_case(case, tracks, trials, seed, locators=(PRODUCTION,), progress=None, 
         # RMSE from 24 to 172 m fault-free, 6 trials, 300 s), per UAV and epoch
         nav_cfg_run = uav_nav.NavConfig(integrity=uav_nav.RECOMMENDED_INTEGRITY)
     link_cfg = beacon_link.BeaconLinkConfig()
-    t_gps = uav_nav.SEED002_T0_GPS_S + t
+    t_gps = uav_nav.EXAMPLE_T0_GPS_S + t
     clock("setup", t0)
     rng = np.random.default_rng([seed, CASES.index(case) if case in CASES else 7, N])
     base = f"beacon-{case[:5]}-n{N}-s{seed}"
@@ -495,7 +495,7 @@ def world_epochs(tracks, const, trials, rng, nav_cfg, link_cfg, filter_states=Tr
 
     t, U, V, B, VB = tracks
     K, N = U.shape[:2]
-    t_gps = uav_nav.SEED002_T0_GPS_S + t
+    t_gps = uav_nav.EXAMPLE_T0_GPS_S + t
     tick = clock or (lambda name, t0: None)
     # epochs per block: up to _BLOCK, fewer for large trials x UAVs batches so that a block's
     # arrays stay small (<= _BLOCK_ROWS receivers x satellites x 3 doubles each)
@@ -641,7 +641,7 @@ def pcrb_series(tracks, const, nav_cfg, cfg, prior=None):
     t, U, V, B, VB = tracks
     if B.ndim == 3:
         B, VB = B[:, 0], VB[:, 0]
-    t_gps = uav_nav.SEED002_T0_GPS_S + t
+    t_gps = uav_nav.EXAMPLE_T0_GPS_S + t
     info = gnss_information(t_gps, U, V, const, nav_cfg)
     if prior is not None:
         J0 = np.linalg.inv(np.asarray(prior[1], float))

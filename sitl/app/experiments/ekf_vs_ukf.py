@@ -53,7 +53,7 @@ POS = [0, 1, 2]
 
 
 @dataclass(frozen=True)
-class Seed001Scenario:
+class EkfVsUkfScenario:
     """Parameters of the seed 001 simulation table (defaults are the seed's)."""
 
     steps: int = 600
@@ -80,7 +80,7 @@ class Seed001Scenario:
     NOISE_READINGS = {"sigma": (100.0, 15.0), "variance": (10.0, math.sqrt(15.0))}
 
     @classmethod
-    def with_noise_reading(cls, reading: str, **kw) -> "Seed001Scenario":
+    def with_noise_reading(cls, reading: str, **kw) -> "EkfVsUkfScenario":
         """The scenario with the table's noise figures read as deviations or as variances."""
         try:
             pr, prr = cls.NOISE_READINGS[reading]
@@ -105,7 +105,7 @@ class Seed001Scenario:
 
     # ------------------------------------------------------------------ the model
     def transition(self):
-        return models.seed001_transition(alpha_1_s=self.alpha_1_s, sigma_a_m_s2=self.sigma_a_m_s2,
+        return models.singer_clock_transition(alpha_1_s=self.alpha_1_s, sigma_a_m_s2=self.sigma_a_m_s2,
                                          mu_1_s=self.mu_1_s, sigma_clock_drift_m_s=self.sigma_clock_drift_m_s)
 
     def prior(self):
@@ -185,7 +185,7 @@ class _Stats:
 class Setup:
     """Everything fixed for a run: satellites, model, prior, noise."""
 
-    scn: Seed001Scenario
+    scn: EkfVsUkfScenario
     const: object
     gdop: float
     transition: object
@@ -194,7 +194,7 @@ class Setup:
     sigmas: np.ndarray  # (m,) measurement standard deviations, pseudoranges first
 
     @classmethod
-    def make(cls, scn: Seed001Scenario) -> "Setup":
+    def make(cls, scn: EkfVsUkfScenario) -> "Setup":
         const_all = orbits.gps_constellation()
         x0, P0 = scn.prior()
         sats, gdop = choose_satellites(const_all, x0[0:3], scn.t0_gps_s, scn.n_sats, math.radians(scn.el_mask_deg))
@@ -227,14 +227,14 @@ class Setup:
             yield k, t_rx, x_true, z, self.measurement_model(sat_pos, sat_vel), geo
 
 
-def run(scn: Seed001Scenario, trials: int, seed: int, backend=None, progress=None):
+def run(scn: EkfVsUkfScenario, trials: int, seed: int, backend=None, progress=None):
     """Run the experiment; returns the result dictionary (the content of result.json)."""
     t_wall = time.perf_counter()
     rng = np.random.default_rng(seed)
     setup = Setup.make(scn)
     x0, P0, trans = setup.x0, setup.P0, setup.transition
     m = 2 * scn.n_sats
-    points = SigmaPoints.seed001(N_STATE)
+    points = SigmaPoints.julier(N_STATE)
     stream = setup.stream(trials, rng)
     _, _, x_true, _, _, _ = next(stream)
 
@@ -401,13 +401,13 @@ def plot(res: dict, out: Path) -> list[Path]:
     return files
 
 
-def _scenario_from_args(args) -> Seed001Scenario:
+def _scenario_from_args(args) -> EkfVsUkfScenario:
     kw = {"steps": getattr(args, "steps", 600)}
     if getattr(args, "sigma_prr", None) is not None:
         kw["sigma_prr_m_s"] = args.sigma_prr
     if getattr(args, "sigma_a", None) is not None:
         kw["sigma_a_m_s2"] = args.sigma_a
-    return Seed001Scenario.with_noise_reading(getattr(args, "noise_reading", "sigma"), **kw)
+    return EkfVsUkfScenario.with_noise_reading(getattr(args, "noise_reading", "sigma"), **kw)
 
 
 def _progress(quiet):

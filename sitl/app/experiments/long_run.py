@@ -213,7 +213,7 @@ def pcrb_sqrt_trace(trial: dict, scn) -> np.ndarray:
 
     from sitl.app.experiments import beacon as be
     from vehicles import uav_nav
-    if abs(scn.run.t0_gps_s - uav_nav.SEED002_T0_GPS_S) > 1e-6:
+    if abs(scn.run.t0_gps_s - uav_nav.EXAMPLE_T0_GPS_S) > 1e-6:
         raise ValueError("the bound is computed from the seed 002 start time (run.t0_gps_s of the default scenario)")
     if scn.run.rate_hz != 1.0:
         raise ValueError("the bound is computed at the beacon experiment's 1 s epochs (run.rate_hz = 1)")
