@@ -8,6 +8,8 @@ import argparse
 import os
 from pathlib import Path
 
+from sitl.params import cli_type, from_text, integer, number
+
 EXIT_USAGE = 2
 
 
@@ -16,47 +18,48 @@ class UsageError(Exception):
 
 
 class Parser(argparse.ArgumentParser):
+    """argparse's parser, with a usage error of one line, and flags added when first needed:
+    Parser(flags=add) calls add(parser) before the parser parses or prints its help (a
+    subcommand's flags come from its module, imported only when that subcommand is used)."""
+
+    def __init__(self, *args, flags=None, **kwargs):
+        self._deferred_flags = flags
+        super().__init__(*args, **kwargs)
+
+    def _add_deferred_flags(self) -> None:
+        add, self._deferred_flags = self._deferred_flags, None
+        if add is not None:
+            add(self)
+
+    def parse_known_args(self, args=None, namespace=None):
+        self._add_deferred_flags()
+        return super().parse_known_args(args, namespace)
+
+    def format_help(self):
+        self._add_deferred_flags()
+        return super().format_help()
+
+    def format_usage(self):
+        self._add_deferred_flags()
+        return super().format_usage()
+
     def error(self, message: str):  # argparse's default prints the whole usage block
         raise UsageError(f"{self.prog}: {message}")
 
 
 # --- argument types: each rejects bad values with a one-line reason ----------------------
+# Each is a declared check of sitl.params (the one definition: the options' dataclasses declare
+# their fields with the same checks) read as an argparse type.
 
 def int_at_least(lowest: int, what: str):
-    def parse(text: str) -> int:
-        try:
-            value = int(text)
-        except ValueError:
-            raise argparse.ArgumentTypeError(f"expected {what}, got {text!r}") from None
-        if value < lowest:
-            raise argparse.ArgumentTypeError(f"expected {what}, got {value}")
-        return value
-
-    return parse
+    return cli_type(integer(lo=lowest, what=what))
 
 
-positive_int = int_at_least(1, "a positive integer")
-nonnegative_int = int_at_least(0, "an integer >= 0")
-
-
-def positive_float(text: str) -> float:
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a positive number, got {text!r}") from None
-    if not value > 0 or value != value or value == float("inf"):
-        raise argparse.ArgumentTypeError(f"expected a positive finite number, got {text}")
-    return value
-
-
-def nonnegative_float(text: str) -> float:
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a number >= 0, got {text!r}") from None
-    if not value >= 0 or value == float("inf"):
-        raise argparse.ArgumentTypeError(f"expected a finite number >= 0, got {text}")
-    return value
+positive_int = cli_type(integer(lo=1))
+nonnegative_int = cli_type(integer(lo=0))
+positive_float = cli_type(number(0, lo_open=True))
+nonnegative_float = cli_type(number(0))
+finite_float = cli_type(number())
 
 
 def output_dir(text: str) -> Path:
@@ -81,3 +84,8 @@ def output_file(text: str) -> Path:
     if not os.access(parent, os.W_OK | os.X_OK):
         raise argparse.ArgumentTypeError(f"directory of {text!r} is not writable")
     return path
+
+
+# the checks of the options' declarations (sitl.params.param) that the command line reads
+OUTPUT_DIR = from_text(output_dir)
+OUTPUT_FILE = from_text(output_file)

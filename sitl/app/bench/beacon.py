@@ -27,31 +27,37 @@ from __future__ import annotations
 import json
 import sys
 import time
+from dataclasses import dataclass
+from pathlib import Path
+
+from sitl.app.args import OUTPUT_FILE
+from sitl.params import add_flags, choice, integer, number, optional, param, switch, validate
 
 # numpy and the components are imported inside the functions: the CLI imports this module
 # to build its parser (add_args), and `skyfuse --help` must stay instant
 CASES = ("three_satellites", "constellation")
 
 
-def add_args(p) -> None:
-    from sitl.app.args import (
-        int_at_least as _int_at_least,
-        nonnegative_int,
-        output_file,
-        positive_float,
-        positive_int,
-    )
+@dataclass(frozen=True)
+class BeaconBenchOptions:
+    """`skyfuse bench beacon`'s options, declared once (sitl.params)."""
 
-    p.add_argument("--duration", type=positive_float, default=1000.0, metavar="S",
-                   help="simulated time, s at 1 Hz (default 1000, as in the seed); at most 36000")
-    p.add_argument("--uavs", type=_int_at_least(3, "an integer >= 3 (three UAVs at least)"), default=3,
-                   help="UAVs (default 3, as in the seed); at most 100")
-    p.add_argument("--case", choices=CASES, default="three_satellites",
-                   help="satellites: the paper's three (default) or the GPS constellation")
-    p.add_argument("--rounds", type=positive_int, default=3, help="interleaved rounds, minimum taken (default 3)")
-    p.add_argument("--seed", type=nonnegative_int, default=1, help="seed of the numpy Generators (default 1)")
-    p.add_argument("--json", type=output_file, default=None, metavar="FILE", help="also write the result as JSON")
-    p.add_argument("--quiet", action="store_true", help="no progress lines")
+    duration: float = param(1000.0, check=number(0, lo_open=True), metavar="S", doc="simulated time, s at 1 Hz",
+                            note=", as in the seed; at most 36000")
+    uavs: int = param(3, check=integer(lo=3, what="an integer >= 3 (three UAVs at least)"), doc="UAVs",
+                      note=", as in the seed; at most 100")
+    case: str = param("three_satellites", check=choice(*CASES),
+                      doc="satellites: the paper's three or the GPS constellation")
+    rounds: int = param(3, check=integer(lo=1), doc="interleaved rounds, minimum taken")
+    seed: int = param(1, check=integer(lo=0), doc="seed of the numpy Generators")
+    json: Path | None = param(None, check=optional(OUTPUT_FILE), metavar="FILE", doc="also write the result as JSON")
+    quiet: bool = param(False, check=switch(), doc="no progress lines")
+
+    __post_init__ = validate
+
+
+def add_args(p) -> None:
+    add_flags(p, BeaconBenchOptions)
 
 
 # ------------------------------------------------------------------ the runs

@@ -14,8 +14,13 @@ from __future__ import annotations
 import json
 import sys
 import time
+from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
+
+from sitl.app.args import OUTPUT_FILE
+from sitl.params import add_flags, choice, integer, optional, param, several, validate
 
 from filters import kernels, models
 from filters.ekf import ekf_step
@@ -149,6 +154,23 @@ def table(rows, backends) -> str:
                f"{rows[0]['rounds']} interleaved rounds per side; "
                f"numba threads: {kernels.numba_threads()}")
     return "\n".join(out)
+
+
+@dataclass(frozen=True)
+class FiltersBenchOptions:
+    """`skyfuse bench filters`'s options, declared once (sitl.params)."""
+
+    trials: list = param(default_factory=lambda: [1, 100, 10_000], check=several(integer(lo=1), "+"), doc="batch sizes to time")
+    steps: int | None = param(None, check=optional(integer(lo=1)), doc="steps per timing",
+                              default_help="default: enough for ~1 s per case")
+    json: Path | None = param(None, check=optional(OUTPUT_FILE), metavar="FILE", doc="also write the table as JSON")
+    backend: str = param("numba", check=choice("numba", "numpy"), doc="skyfuse kernels to time")
+
+    __post_init__ = validate
+
+
+def add_args(p) -> None:
+    add_flags(p, FiltersBenchOptions)
 
 
 def main(args) -> int:

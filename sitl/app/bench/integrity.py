@@ -36,19 +36,31 @@ import json
 import os
 import sys
 import time
+from dataclasses import dataclass
+from pathlib import Path
+
+from sitl.app.args import OUTPUT_FILE
+from sitl.params import add_flags, choice, integer, optional, param, switch, validate
+
+
+@dataclass(frozen=True)
+class IntegrityBenchOptions:
+    """`skyfuse bench integrity`'s options, declared once (sitl.params)."""
+
+    trials: int = param(10_000, check=integer(lo=1), doc="trials stepped together")
+    steps: int = param(5, check=integer(lo=1), doc="steps per timing")
+    rounds: int = param(30, check=integer(lo=1),
+                        doc="interleaved rounds: median of the paired ratios, minimum of the times")
+    seed: int = param(0, check=integer(lo=0), doc="random seed")
+    backend: str = param("numba", check=choice("numba", "numpy"), doc="filter kernels")
+    json: Path | None = param(None, check=optional(OUTPUT_FILE), metavar="FILE", doc="also write the result as JSON")
+    quiet: bool = param(False, check=switch(), doc="no progress lines")
+
+    __post_init__ = validate
 
 
 def add_args(p) -> None:
-    from sitl.app.args import nonnegative_int, output_file, positive_int
-
-    p.add_argument("--trials", type=positive_int, default=10_000, help="trials stepped together (default 10000)")
-    p.add_argument("--steps", type=positive_int, default=5, help="steps per timing (default 5)")
-    p.add_argument("--rounds", type=positive_int, default=30,
-                   help="interleaved rounds: median of the paired ratios, minimum of the times (default 30)")
-    p.add_argument("--seed", type=nonnegative_int, default=0, help="random seed (default 0)")
-    p.add_argument("--backend", choices=("numba", "numpy"), default="numba", help="filter kernels (default numba)")
-    p.add_argument("--json", type=output_file, default=None, metavar="FILE", help="also write the result as JSON")
-    p.add_argument("--quiet", action="store_true", help="no progress lines")
+    add_flags(p, IntegrityBenchOptions)
 
 
 Z_POOL = 64  # (prior, measurement) sets the steps cycle through: more than the window (50), so a window never sees one twice

@@ -19,8 +19,13 @@ from __future__ import annotations
 import json
 import sys
 import time
+from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
+
+from sitl.app.args import OUTPUT_FILE
+from sitl.params import add_flags, choice, integer, number, optional, param, switch, validate
 
 BENCH_MASK_DEG = 17.0  # 12 satellites in view all along the default 1200 s trajectory
 
@@ -98,6 +103,28 @@ def table(res: dict) -> str:
                      f"{r['ratio_to_main']:7.2f}")
     lines.append("target: a 1200 s run in under 30 s (>= 40x real time)")
     return "\n".join(lines)
+
+
+@dataclass(frozen=True)
+class IonoTropoBenchOptions:
+    """`skyfuse bench iono-tropo`'s options, declared once (sitl.params)."""
+
+    duration: float = param(1200.0, check=number(0, lo_open=True), metavar="S", doc="simulated seconds at 10 Hz")
+    trials: int = param(1, check=integer(lo=1), doc="trials stepped together")
+    rounds: int = param(2, check=integer(lo=1), doc="interleaved rounds; each figure is the minimum")
+    el_mask_deg: float = param(17.0, check=number(0, lo_open=True), metavar="DEG", doc="elevation mask",
+                               note=": 12 satellites on the default trajectory")
+    seed: int = param(0, check=integer(lo=0), doc="random seed")
+    backend: str = param("numba", check=choice("numba", "numpy"), doc="main kernels (numba: also times numpy as the peer)")
+    adaptive_q: str = param("dynamic", check=choice("off", "all", "dynamic"), doc="eq 7 scope, as in experiment iono-tropo")
+    json: Path | None = param(None, check=optional(OUTPUT_FILE), metavar="FILE", doc="also write the result as JSON")
+    quiet: bool = param(False, check=switch(), doc="no progress lines")
+
+    __post_init__ = validate
+
+
+def add_args(p) -> None:
+    add_flags(p, IonoTropoBenchOptions)
 
 
 def main(args) -> int:

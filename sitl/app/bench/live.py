@@ -32,7 +32,11 @@ import os
 import socket
 import sys
 import threading
+from dataclasses import dataclass
 from pathlib import Path
+
+from sitl.app.args import OUTPUT_FILE
+from sitl.params import add_flags, from_text, integer, number, optional, param, switch, validate
 
 
 def _sizes(text: str) -> list[int]:
@@ -46,18 +50,25 @@ def _sizes(text: str) -> list[int]:
     return sorted(set(out))
 
 
+@dataclass(frozen=True)
+class LiveBenchOptions:
+    """`skyfuse bench live`'s options, declared once (sitl.params)."""
+
+    uavs: list = param(default_factory=lambda: [50, 100, 200, 300], check=from_text(_sizes, show=lambda v: ",".join(map(str, v))),
+                        metavar="N,N,...", doc="swarm sizes to try")
+    rate: float = param(10.0, check=number(0, lo_open=True), doc="epochs per second")
+    duration: float = param(20.0, check=number(0, lo_open=True), metavar="S", doc="simulated (= wall) seconds per size")
+    per_process: int = param(1000, check=integer(lo=1), metavar="N", doc="UAVs per vehicle worker",
+                             note=": one vehicle process")
+    no_mavlink: bool = param(False, check=switch(), doc="no MAVLink endpoints")
+    out: Path = param(Path("out/bench_live"), check=from_text(Path), metavar="DIR", doc="runs' outputs")
+    json: Path | None = param(None, check=optional(OUTPUT_FILE), metavar="FILE", doc="also write the result as JSON")
+
+    __post_init__ = validate
+
+
 def add_args(p) -> None:
-    from sitl.app.args import output_file, positive_float, positive_int
-    p.add_argument("--uavs", type=_sizes, default=_sizes("50,100,200,300"), metavar="N,N,...",
-                   help="swarm sizes to try (default 50,100,200,300)")
-    p.add_argument("--rate", type=positive_float, default=10.0, help="epochs per second (default 10)")
-    p.add_argument("--duration", type=positive_float, default=20.0, metavar="S",
-                   help="simulated (= wall) seconds per size (default 20)")
-    p.add_argument("--per-process", type=positive_int, default=1000, metavar="N",
-                   help="UAVs per vehicle worker (default 1000: one vehicle process)")
-    p.add_argument("--no-mavlink", action="store_true", help="no MAVLink endpoints")
-    p.add_argument("--out", type=Path, default=Path("out/bench_live"), metavar="DIR", help="runs' outputs")
-    p.add_argument("--json", type=output_file, default=None, metavar="FILE", help="also write the result as JSON")
+    add_flags(p, LiveBenchOptions)
 
 
 class _Sink(threading.Thread):

@@ -25,20 +25,32 @@ from __future__ import annotations
 import json
 import sys
 import time
+from dataclasses import dataclass
+from pathlib import Path
+
+from sitl.app.args import OUTPUT_FILE
+from sitl.params import add_flags, integer, number, optional, param, switch, validate
 
 TARGET_S = 10.0
 
 
-def add_args(p) -> None:
-    from sitl.app.args import nonnegative_int, output_file, positive_float, positive_int
+@dataclass(frozen=True)
+class SondeBenchOptions:
+    """`skyfuse bench sonde`'s options, declared once (sitl.params)."""
 
-    p.add_argument("--duration", type=positive_float, default=7200.0, metavar="S",
-                   help="simulated flight time, s at 1 Hz (default 7200: the 2 h flight)")
-    p.add_argument("--rounds", type=positive_int, default=2, help="interleaved rounds; each figure is the minimum (default 2)")
-    p.add_argument("--seed", type=nonnegative_int, default=4, help="random seed (default 4, as the experiment)")
-    p.add_argument("--no-trio", action="store_true", help="skip the three-tracker case")
-    p.add_argument("--json", type=output_file, default=None, metavar="FILE", help="also write the result as JSON")
-    p.add_argument("--quiet", action="store_true", help="no progress lines")
+    duration: float = param(7200.0, check=number(0, lo_open=True), metavar="S", doc="simulated flight time, s at 1 Hz",
+                            note=": the 2 h flight")
+    rounds: int = param(2, check=integer(lo=1), doc="interleaved rounds; each figure is the minimum")
+    seed: int = param(4, check=integer(lo=0), doc="random seed", note=", as the experiment")
+    no_trio: bool = param(False, check=switch(), doc="skip the three-tracker case")
+    json: Path | None = param(None, check=optional(OUTPUT_FILE), metavar="FILE", doc="also write the result as JSON")
+    quiet: bool = param(False, check=switch(), doc="no progress lines")
+
+    __post_init__ = validate
+
+
+def add_args(p) -> None:
+    add_flags(p, SondeBenchOptions)
 
 
 def _world_only(scn, seed: int, chunk: int = 300) -> float:

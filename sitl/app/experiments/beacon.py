@@ -65,6 +65,7 @@ Writes DIR/result.json (strict JSON) and PNG figures.  Progress on stderr.
 """
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import time
@@ -73,6 +74,8 @@ from pathlib import Path
 
 import numpy as np
 
+from sitl.app.args import OUTPUT_DIR
+from sitl.params import add_flags, choice, default_of, from_text, integer, number, param, switch, validate
 from sitl.app.experiments.common import (measurement_faults, prepare_out, progress_printer, save_figure,
                                       strict)
 
@@ -90,10 +93,63 @@ PRIOR_UPDATE_ITERATIONS = 5  # iterated EKF updates of the locators (and the cen
 # solution at ~6 s, err 137 m vs sigma 20 m); 5 Gauss-Newton relinearisations: none (max error 136 m, then < 12 m)
 CASES = ("three_satellites", "constellation")
 INTEGRITY_MODES = ("off", "on", "compare")
+def _uav_counts(text: str) -> list[int]:
+    import argparse
+
+    try:
+        values = [int(v) for v in text.split(",") if v.strip()]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected comma-separated integers, got {text!r}") from None
+    if not values or any(v < 3 for v in values):
+        raise argparse.ArgumentTypeError(f"expected comma-separated integers >= 3, got {text!r}")
+    return values
+
+
+@dataclasses.dataclass(frozen=True)
+class BeaconOptions:
+    """`skyfuse experiment beacon`'s options, declared once (sitl.params); run_case's fault
+    defaults (FAULT_DEFAULTS) are read from here."""
+
+    uavs: int = param(3, check=integer(lo=3, what="an integer >= 3 (three UAVs at least)"),
+                      doc="UAVs of the two main cases", note=", as in the seed")
+    duration: float = param(1000.0, check=number(0, lo_open=True), metavar="S",
+                            doc="simulated time, s at 1 Hz; > 105 (errors are scored after the first 100 s)")
+    seed: int = param(1, check=integer(lo=0), doc="seed of the numpy Generators")
+    out: Path = param(Path("out/beacon"), check=OUTPUT_DIR, metavar="DIR", doc="output directory for result.json and PNG figures")
+    trials: int = param(20, check=integer(lo=1), doc="Monte Carlo trials of the main cases")
+    sweep_trials: int = param(5, check=integer(lo=1), doc="Monte Carlo trials of each by_uav_count run")
+    uav_counts: list = param(default_factory=lambda: [3, 5, 10, 30], check=from_text(_uav_counts, show=lambda v: ",".join(map(str, v))),
+                              metavar="N,N,...", doc="UAV counts of by_uav_count, GPS constellation")
+    geometry: str = param("printed", check=choice(*GEOMETRIES),
+                          doc="printed: the paper's laws and common start point as printed, the beacon's start drawn "
+                              "about it and the locator started from that prior; geodetic: the prose's lat/lon start "
+                              "points, northward flight, blind start")
+    integrity: str = param("off", check=choice(*INTEGRITY_MODES),
+                           doc="integrity monitors: on = the production locator per UAV link and the UAVs' onboard "
+                               "filters per satellite; compare = each main case again, monitored, on the same data")
+    range_step_m: float = param(0.0, check=number(), flag="--range-step", metavar="M",
+                                doc="fault: a range step of M m on one UAV's beacon link from --fault-at",
+                                note=": none")
+    range_step_uav: int = param(2, check=integer(lo=1), metavar="I", doc="UAV number (1..--uavs) of the range step")
+    pr_step_m: float = param(0.0, check=number(), flag="--pr-step", metavar="M",
+                             doc="fault: a pseudorange step of M m on the first satellite UAV --pr-step-uav tracks at "
+                                 "--fault-at", note=": none")
+    pr_step_uav: int = param(1, check=integer(lo=1), metavar="I", doc="UAV number of the pseudorange step")
+    fault_at_s: float = param(150.0, check=number(0), flag="--fault-at", metavar="S",
+                              doc="start of the injected faults, s since the run's start")
+    quiet: bool = param(False, check=switch(), doc="no progress lines")
+
+    __post_init__ = validate
+
+
+def add_args(p) -> None:
+    add_flags(p, BeaconOptions)
+
+
 # measurement faults of run_case (0: none): a range step on one UAV's beacon link, a
 # pseudorange step on one satellite (the first the UAV tracks at the fault's start) of one UAV
-FAULT_DEFAULTS = {"range_step_m": 0.0, "range_step_uav": 2, "pr_step_m": 0.0, "pr_step_uav": 1,
-                  "fault_at_s": 150.0}
+FAULT_DEFAULTS = {k: default_of(BeaconOptions, k) for k in ("range_step_m", "range_step_uav", "pr_step_m",
+                                                             "pr_step_uav", "fault_at_s")}
 SETTLE_S = 100.0
 DT_S = 1.0
 BEACON_ID = "b1"

@@ -47,6 +47,8 @@ from filters.ukf import SigmaPoints, ukf_predict, ukf_update
 from sitl import geodesy
 from sitl.constants import C_M_S
 from sitl.gnss import orbits, ranging
+from sitl.app.args import OUTPUT_DIR
+from sitl.params import add_flags, choice, default_of, integer, number, optional, param, switch, validate
 
 N_STATE = 11
 POS = [0, 1, 2]
@@ -399,6 +401,36 @@ def plot(res: dict, out: Path) -> list[Path]:
     ax.legend()
     files.append(_save(fig, out / "nees.png"))
     return files
+
+
+# ------------------------------------------------------------------ the command's options
+@dataclass(frozen=True)
+class EkfVsUkfOptions:
+    """`skyfuse experiment ekf-vs-ukf`'s options, declared once (sitl.params): the flags, their
+    --help texts, defaults and checks come from here."""
+
+    trials: int = param(1000, check=integer(lo=1), doc="Monte Carlo trials")
+    steps: int = param(default_of(EkfVsUkfScenario, "steps"), check=integer(lo=1), doc="update steps per trial",
+                       note=", as in the seed")
+    seed: int = param(1, check=integer(lo=0), doc="seed of the numpy Generator")
+    out: Path = param(Path("out/ekf-vs-ukf"), check=OUTPUT_DIR, doc="output directory for result.json and PNG figures")
+    noise_reading: str = param("sigma", check=choice(*EkfVsUkfScenario.NOISE_READINGS),
+                               doc="read the seed table's 'mean square' noise figures (100 m, 15 m/s) as standard "
+                                   "deviations (sigma) or as variances (variance: sigma 10 m, sqrt(15) m/s)")
+    sigma_prr: float | None = param(None, check=optional(number(0, lo_open=True)), metavar="M_S",
+                                    doc="override the pseudo-velocity noise sigma, m/s")
+    sigma_a: float | None = param(None, check=optional(number(0, lo_open=True)), metavar="M_S2",
+                                  doc="Singer manoeuvre sigma, m/s^2", note="; the seed gives none",
+                                  shown=lambda: default_of(EkfVsUkfScenario, "sigma_a_m_s2"))
+    backend: str = param("auto", check=choice("auto", "numba", "numpy"),
+                         doc="covariance kernels: compiled (numba) or plain numpy")
+    quiet: bool = param(False, check=switch(), doc="no progress lines")
+
+    __post_init__ = validate
+
+
+def add_args(p) -> None:
+    add_flags(p, EkfVsUkfOptions)
 
 
 def _scenario_from_args(args) -> EkfVsUkfScenario:

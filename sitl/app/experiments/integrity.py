@@ -91,6 +91,8 @@ from sitl.gnss.clock import ClockModel
 from sitl.gnss.receiver import Receiver, ReceiverConfig
 from sitl.gnss.world import elevation_grid, ephemeris_for_filter, geometry_track
 from sitl.measfault import FAULT_KINDS, Fault, FaultInjector, GaussMarkov
+from sitl.app.args import OUTPUT_DIR
+from sitl.params import add_flags, choice, default_of, integer, number, optional, param, switch, validate
 
 __all__ = ["IntegrityScenario", "run", "FILTERS", "MIN_CHANNELS", "main"]
 
@@ -917,6 +919,61 @@ def summary(res: dict) -> str:
 
 
 # ------------------------------------------------------------------ the command
+# ------------------------------------------------------------------ the command's options
+def _scn(name):
+    return lambda: default_of(IntegrityScenario, name)  # the default a None option stands for
+
+
+@dataclass(frozen=True)
+class IntegrityOptions:
+    """`skyfuse experiment integrity`'s options, declared once (sitl.params). A None option keeps
+    IntegrityScenario's default (shown in --help); the scenario's checks are usage errors before
+    any run."""
+
+    trials: int = param(200, check=integer(lo=1), doc="Monte Carlo trials")
+    seed: int = param(3, check=integer(lo=0), doc="seed of the numpy SeedSequence")
+    out: Path = param(Path("out/integrity"), check=OUTPUT_DIR, metavar="DIR",
+                      doc="output directory for result.json and PNG figures")
+    duration: float = param(default_of(IntegrityScenario, "duration_s"), check=number(0, lo_open=True), metavar="S",
+                            doc="simulated time, s at 10 Hz; faults start between 60 s and 0.7 x this")
+    sigma_pr: float | None = param(None, check=optional(number(0, lo_open=True)), metavar="M",
+                                   doc="pseudorange white noise", shown=_scn("sigma_pr_m"))
+    sigma_prr: float | None = param(None, check=optional(number(0, lo_open=True)), metavar="M_S", doc="rate noise",
+                                    shown=_scn("sigma_prr_m_s"))
+    el_mask_deg: float | None = param(None, check=optional(number()), metavar="DEG",
+                                      doc="elevation mask in [5, 90); >= 7 satellites must stay in view",
+                                      shown=_scn("el_mask_deg"))
+    gm_sigma: float | None = param(None, check=optional(number(0)), metavar="M",
+                                   doc="Gauss-Markov pseudorange error sigma per satellite", shown=_scn("gm_sigma_m"))
+    gm_tau: float | None = param(None, check=optional(number(0, lo_open=True)), metavar="S",
+                                 doc="its correlation time", shown=_scn("gm_tau_s"))
+    jump_sigma: float | None = param(None, check=optional(number(0, lo_open=True)), metavar="X",
+                                     doc="jump test threshold on |beta|", shown=_scn("jump_sigma"))
+    window: int | None = param(None, check=optional(integer(lo=1)), doc="window of the drift tests, epochs",
+                               shown=_scn("window"))
+    window_alpha: float | None = param(None, check=optional(number(0, lo_open=True)), metavar="A",
+                                       doc="mean-square test alpha", shown=_scn("window_alpha"))
+    bias_alpha: float | None = param(None, check=optional(number(0, lo_open=True)), metavar="A",
+                                     doc="bias test alpha", shown=_scn("bias_alpha"))
+    huber_c: float | None = param(None, check=optional(number(0, lo_open=True)), metavar="X",
+                                  doc="Huber threshold on |beta|", shown=_scn("huber_c"))
+    outlier_prob: float | None = param(None, check=optional(number(0)), metavar="P",
+                                       doc="outlier probability per pseudorange-epoch", shown=_scn("outlier_prob"))
+    ramp_kind: str | None = param(None, check=optional(choice("code", "clock")),
+                                  doc="code: the pseudorange alone drifts (no Doppler trace); clock: a satellite clock "
+                                      "frequency fault, the pseudorange rate carries the ramp's rate too",
+                                  shown=_scn("ramp_kind"))
+    no_faults: bool = param(False, check=switch(), doc="the same world with no faults injected")
+    backend: str = param("auto", check=choice("auto", "numba", "numpy"), doc="filter kernels")
+    quiet: bool = param(False, check=switch(), doc="no progress lines")
+
+    __post_init__ = validate
+
+
+def add_args(p) -> None:
+    add_flags(p, IntegrityOptions)
+
+
 def scenario_from_args(args) -> IntegrityScenario:
     kw = {"duration_s": args.duration}
     for flag, field in (("sigma_pr", "sigma_pr_m"), ("sigma_prr", "sigma_prr_m_s"), ("el_mask_deg", "el_mask_deg"),

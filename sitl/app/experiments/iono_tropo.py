@@ -26,6 +26,8 @@ import numpy as np
 from sitl.app.experiments.common import prepare_out, progress_printer, save_figure, strict
 
 from sitl.app.experiments import iono_tropo_filters
+from sitl.app.args import OUTPUT_DIR
+from sitl.params import add_flags, choice, default_of, integer, number, optional, param, switch, validate
 
 VARIANTS = {"code_doppler": 1, "phase_increments": 2, "carrier_phase": 3}  # name -> seed000 variant
 LABELS = {
@@ -54,6 +56,74 @@ FLAGS = {"duration_s": "--duration", "dt_s": "--duration", "sigma_pr_m": "--sigm
 
 
 # ------------------------------------------------------------------ scenario and runs
+# ------------------------------------------------------------------ the command's options
+_SCN = iono_tropo_filters.IonoTropoScenario
+
+
+@dataclasses.dataclass(frozen=True)
+class IonoTropoOptions:
+    """`skyfuse experiment iono-tropo`'s options, declared once (sitl.params). The defaults are the
+    seed's, read from IonoTropoScenario; range checks beyond these are the scenario's, reported as
+    usage errors before any run."""
+
+    variant: str = param("all", check=choice("all", *VARIANTS),
+                         doc="code_doppler = variant 1 (pseudorange + rate), phase_increments = variant 2 (plus "
+                             "code-minus-carrier increments), carrier_phase = variant 3 (plus ambiguous carrier "
+                             "phase); all three on the same simulated data")
+    trials: int = param(20, check=integer(lo=1), doc="Monte Carlo trials")
+    seed: int = param(0, check=integer(lo=0), doc="seed of the numpy Generator")
+    duration: float = param(default_of(_SCN, "duration_s"), check=number(0, lo_open=True), metavar="S",
+                            doc="observation time, s", note="; 10 epochs/s")
+    out: Path = param(Path("out/iono-tropo"), check=OUTPUT_DIR, metavar="DIR",
+                      doc="output directory for result.json, series.npz and PNG figures")
+    sigma_pr: float = param(default_of(_SCN, "sigma_pr_m"), check=number(0, lo_open=True), metavar="M",
+                            doc="pseudorange noise sigma, m")
+    sigma_prr: float = param(default_of(_SCN, "sigma_prr_m_s"), check=number(0, lo_open=True), metavar="M_S",
+                             doc="pseudorange-rate noise sigma, m/s")
+    sigma_phase: float = param(default_of(_SCN, "sigma_phase_m"), check=number(0, lo_open=True), metavar="M",
+                               doc="carrier-phase noise sigma, m")
+    el_mask_deg: float = param(default_of(_SCN, "el_mask_deg"), check=number(), metavar="DEG",
+                               doc="elevation mask, deg, in [5, 90); >= 4 satellites must stay in view")
+    adaptive_q: str = param("dynamic", check=choice("off", "all", "dynamic"),
+                            doc="adaptive process noise of the seed's eq 7: off; all (every state, as in the seed: "
+                                "the paper's filter); dynamic (position, velocity and clock only: Delta_A, I_g, U_g "
+                                "and the ambiguities are constants)")
+    adaptive_q_decay: float | None = param(None, check=optional(number()), metavar="X", doc="adaptive Q decay, in [0, 1)",
+                                           shown=lambda: default_of(_SCN, "adaptive_q_decay"))
+    adaptive_q_gain: float | None = param(None, check=optional(number()), metavar="X", doc="adaptive Q gain, >= 0",
+                                          shown=lambda: default_of(_SCN, "adaptive_q_gain"))
+    slip_rate: float = param(default_of(_SCN, "cycle_slip_rate_hz"), check=number(0), metavar="HZ",
+                             doc="random cycle slips per tracked satellite per second in the simulated receiver",
+                             note=": the seed's 40 dB-Hz case, slips unlikely")
+    cmc_noise: str = param(default_of(_SCN, "cmc_noise"), check=choice("states", "whitened"),
+                           doc="variant 2, the code noise in the increments E_j = B_j(t) - B_j(t - 90 s): states = "
+                               "exact (the code noise at the window start is a filter state, so E_j carries the "
+                               "carrier-phase change); whitened = decorrelated from the same epoch's pseudorange only, "
+                               "close to the seed's treatment")
+    phase_sats: int = param(default_of(_SCN, "phase_max_sats"), check=integer(lo=0), metavar="N",
+                            doc="variant 3: use the carrier phase of at most N satellites, the highest by the "
+                                "filter's elevation (the seed: 'even with a single phase measurement')", note=": all")
+    truth_clock_psd_scale: float = param(default_of(_SCN, "truth_clock_psd_scale"), check=number(0, lo_open=True),
+                                         metavar="X", doc="simulated clock PSD / the filter's",
+                                         note=": correctly modelled")
+    study: str = param("none", check=choice("none", "adaptive-q", "ordering"),
+                       doc="instead of one run: adaptive-q = variants 1 and 2 with eq 7 off / on all states / on "
+                           "the dynamic states, each with a right and a mismodelled clock (--clock-scale); "
+                           "ordering = the three variants over --seeds seeds")
+    seeds: int = param(20, check=integer(lo=1), doc="ordering study: seeds --seed, --seed + 1, ...")
+    clock_scale: float = param(1e3, check=number(0, lo_open=True), metavar="X",
+                               doc="adaptive-q study: the mismodelled clock's PSD / the filter's")
+    backend: str = param("auto", check=choice("auto", "numba", "numpy"),
+                         doc="covariance kernels: compiled (numba) or plain numpy")
+    quiet: bool = param(False, check=switch(), doc="no progress lines")
+
+    __post_init__ = validate
+
+
+def add_args(p) -> None:
+    add_flags(p, IonoTropoOptions)
+
+
 def scenario_from_args(args) -> iono_tropo_filters.IonoTropoScenario:
     """The scenario of the command line; ValueError (naming the flag) on a bad value."""
     kw = {"duration_s": args.duration, "sigma_pr_m": args.sigma_pr, "sigma_prr_m_s": args.sigma_prr,

@@ -88,6 +88,8 @@ from pathlib import Path
 
 import numpy as np
 
+from sitl.app.args import OUTPUT_DIR
+from sitl.params import add_flags, choice, integer, number, param, switch, validate
 from sitl.app.experiments.common import prepare_out, progress_printer, save_figure, strict
 
 GEOMETRIES = ("default", "north")
@@ -485,29 +487,33 @@ def plot(out: Path, doc: dict) -> Path:
     return save_figure(fig, out / FIGURE)
 
 
-def add_args(p) -> None:
-    from sitl.app.args import nonnegative_float, nonnegative_int, output_dir, positive_float, positive_int
+@dataclasses.dataclass(frozen=True)
+class LongRunOptions:
+    """`skyfuse experiment long-run`'s options, declared once (sitl.params)."""
 
-    p.add_argument("--duration", type=positive_float, default=21600.0, metavar="S",
-                   help="simulated seconds of each run at 1 Hz (default 21600: 6 h)")
-    p.add_argument("--seed", type=nonnegative_int, default=1,
-                   help="seed of trial 0 (= skyfuse demo --batch --seed S); trial j uses S + j (default 1)")
-    p.add_argument("--trials", type=positive_int, default=4,
-                   help="Monte Carlo trials (runs with seeds S, S+1, ...; default 4); the sonde flies in trial 0")
-    p.add_argument("--out", type=output_dir, default=Path("out/long-run"), metavar="DIR",
-                   help="output directory for result.json and long_run.png (default out/long-run)")
-    p.add_argument("--window", type=positive_float, default=WINDOW_S, metavar="S",
-                   help=f"scoring window, s (default {WINDOW_S:g})")
-    p.add_argument("--settle", type=nonnegative_float, default=SETTLE_S, metavar="S",
-                   help=f"seconds not scored at the start (default {SETTLE_S:g})")
-    p.add_argument("--geometry", choices=GEOMETRIES, default="default",
-                   help="default: the built-in scenario; north: its old northbound geometry (for comparison)")
-    p.add_argument("--locator", choices=LOCATORS, default="live",
-                   help="live: the ground station's locator; inflate: its old one (for comparison)")
-    p.add_argument("--no-pcrb", action="store_true",
-                   help="skip the bound: judge each window against 2x the first window's RMSE")
-    p.add_argument("--no-sonde", action="store_true", help="no sonde in trial 0 (faster)")
-    p.add_argument("--quiet", action="store_true", help="no progress lines")
+    duration: float = param(21600.0, check=number(0, lo_open=True), metavar="S",
+                            doc="simulated seconds of each run at 1 Hz", note=": 6 h")
+    seed: int = param(1, check=integer(lo=0),
+                      doc="seed of trial 0 (= skyfuse demo --batch --seed S); trial j uses S + j")
+    trials: int = param(4, check=integer(lo=1),
+                        doc="Monte Carlo trials (runs with seeds S, S+1, ...); the sonde flies in trial 0")
+    out: Path = param(Path("out/long-run"), check=OUTPUT_DIR, metavar="DIR",
+                      doc="output directory for result.json and long_run.png")
+    window: float = param(WINDOW_S, check=number(0, lo_open=True), metavar="S", doc="scoring window, s")
+    settle: float = param(SETTLE_S, check=number(0), metavar="S", doc="seconds not scored at the start")
+    geometry: str = param("default", check=choice(*GEOMETRIES),
+                          doc="default: the built-in scenario; north: its old northbound geometry (for comparison)")
+    locator: str = param("live", check=choice(*LOCATORS),
+                         doc="live: the ground station's locator; inflate: its old one (for comparison)")
+    no_pcrb: bool = param(False, check=switch(), doc="skip the bound: judge each window against 2x the first window's RMSE")
+    no_sonde: bool = param(False, check=switch(), doc="no sonde in trial 0 (faster)")
+    quiet: bool = param(False, check=switch(), doc="no progress lines")
+
+    __post_init__ = validate
+
+
+def add_args(p) -> None:
+    add_flags(p, LongRunOptions)
 
 
 def run(args) -> dict:

@@ -58,6 +58,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+from sitl.app.args import OUTPUT_DIR
+from sitl.params import add_flags, default_of, integer, number, optional, param, string, switch, validate
 from sitl.app.experiments.common import prepare_out, progress_printer, save_figure, strict
 
 # numpy and the components are imported inside the functions: the CLI imports this module to
@@ -625,28 +627,41 @@ def plot(out: Path, summ: dict, meta: str) -> list[Path]:
 
 
 # ------------------------------------------------------------------ the command
-def add_args(p) -> None:
-    from sitl.app.args import nonnegative_float, nonnegative_int, output_dir, positive_float, positive_int
+TRIALS, QUICK_TRIALS = 8, 3  # Monte Carlo trials per condition, without and with --quick
 
-    p.add_argument("--out", type=output_dir, default=Path("out/faults"), metavar="DIR",
-                   help="output directory for result.json and PNG figures (default out/faults)")
-    p.add_argument("--trials", type=positive_int, default=None,
-                   help="Monte Carlo trials per condition (default 8; --quick 3)")
-    p.add_argument("--seed", type=nonnegative_int, default=1, help="seed of the world and the faults (default 1)")
-    p.add_argument("--duration", type=positive_float, default=None, metavar="S",
-                   help="simulated time of every run, s at 1 Hz (default: beacon 300, sonde 600; --quick 250 / 460); "
-                        "must leave 60 s after the longest partition heals")
-    p.add_argument("--scenarios", default="beacon,sonde", metavar="NAMES",
-                   help="comma-separated scenarios: beacon, sonde (default both)")
-    p.add_argument("--quick", action="store_true",
-                   help="fewer levels (loss 20, 50 %%; burst 20 %%; delay 1 s; partitions 10, 30 s), 3 trials "
-                        "unless --trials, shorter runs")
-    p.add_argument("--faults-from", type=nonnegative_float, default=0.0, metavar="S",
-                   help="loss, burst loss and delay act on measurements sent from S s on (default 0: from the first "
-                        "epoch, the tracks' acquisition included); partitions keep their own times")
-    p.add_argument("--burst-len", type=positive_float, default=DEFAULT_PLAN.burst_len, metavar="N",
-                   help=f"mean Gilbert-Elliott burst length, packets (default {DEFAULT_PLAN.burst_len:g})")
-    p.add_argument("--quiet", action="store_true", help="no progress lines")
+
+@dataclass(frozen=True)
+class FaultsOptions:
+    """`skyfuse experiment faults`'s options, declared once (sitl.params). The burst length and the
+    faults' start default to the plan's (Plan); the durations to SETUPS / QUICK_SETUPS."""
+
+    out: Path = param(Path("out/faults"), check=OUTPUT_DIR, metavar="DIR",
+                      doc="output directory for result.json and PNG figures")
+    trials: int | None = param(None, check=optional(integer(lo=1)), doc="Monte Carlo trials per condition",
+                               default_help=f"default {TRIALS}; --quick {QUICK_TRIALS}")
+    seed: int = param(1, check=integer(lo=0), doc="seed of the world and the faults")
+    duration: float | None = param(None, check=optional(number(0, lo_open=True)), metavar="S",
+                                   doc="simulated time of every run, s at 1 Hz; must leave 60 s after the longest "
+                                       "partition heals",
+                                   default_help="default: " + ", ".join(f"{k} {v.duration_s:g}" for k, v in SETUPS.items())
+                                                + "; --quick " + " / ".join(f"{v.duration_s:g}" for v in QUICK_SETUPS.values()))
+    scenarios: str = param(",".join(SCENARIOS), check=string(), metavar="NAMES",
+                           doc=f"comma-separated scenarios: {', '.join(SCENARIOS)}")
+    quick: bool = param(False, check=switch(),
+                        doc="fewer levels (loss 20, 50 %; burst 20 %; delay 1 s; partitions 10, 30 s), "
+                            f"{QUICK_TRIALS} trials unless --trials, shorter runs")
+    faults_from: float = param(default_of(Plan, "faults_from_s"), check=number(0), metavar="S",
+                               doc="loss, burst loss and delay act on measurements sent from S s on; partitions keep "
+                                   "their own times", note=": from the first epoch, the tracks' acquisition included")
+    burst_len: float = param(default_of(Plan, "burst_len"), check=number(0, lo_open=True), metavar="N",
+                             doc="mean Gilbert-Elliott burst length, packets")
+    quiet: bool = param(False, check=switch(), doc="no progress lines")
+
+    __post_init__ = validate
+
+
+def add_args(p) -> None:
+    add_flags(p, FaultsOptions)
 
 
 def _config(args):
@@ -677,7 +692,7 @@ def _config(args):
             setups[n].check(plan)
         except ValueError as exc:
             raise UsageError(f"--duration: {exc}") from None
-    trials = args.trials if args.trials is not None else (3 if quick else 8)
+    trials = args.trials if args.trials is not None else (QUICK_TRIALS if quick else TRIALS)
     return names, plan, setups, trials
 
 
