@@ -906,15 +906,15 @@ def check_args(args):
                          f"{SETTLE_S:g} s), got {args.duration:g}")
     if args.duration > 36000.0:
         raise UsageError(f"--duration: at most 36000 s, got {args.duration:g}")
-    if getattr(args, "integrity", "off") not in INTEGRITY_MODES:
+    if getattr(args, "integrity", default_of(BeaconOptions, "integrity")) not in INTEGRITY_MODES:
         raise UsageError(f"--integrity: one of {', '.join(INTEGRITY_MODES)}, got {args.integrity!r}")
     for name in ("range_step_m", "pr_step_m", "fault_at_s"):
-        v = getattr(args, name, 0.0)
+        v = getattr(args, name, default_of(BeaconOptions, name))
         if not math.isfinite(v) or abs(v) > 1e7 or (name == "fault_at_s" and v < 0):
             raise UsageError(f"--{name.replace('_', '-')}: a finite number{' >= 0' if name == 'fault_at_s' else ''}, "
                              f"got {v:g}")
     for name in ("range_step_uav", "pr_step_uav"):
-        v = getattr(args, name, 1)
+        v = getattr(args, name, default_of(BeaconOptions, name))
         if not 1 <= v <= args.uavs:
             raise UsageError(f"--{name.replace('_', '-')}: a UAV number in 1..{args.uavs}, got {v}")
     counts = sorted(set(args.uav_counts))
@@ -929,7 +929,7 @@ def run(args) -> dict:
     from vehicles import uav_nav
 
     counts = check_args(args)
-    geometry = getattr(args, "geometry", "printed")
+    geometry = getattr(args, "geometry", default_of(BeaconOptions, "geometry"))
     out = prepare_out(Path(args.out))
     prog = progress_printer(args.quiet)
     wall0 = time.perf_counter()
@@ -948,7 +948,7 @@ def run(args) -> dict:
             timing[f"truth_rk4_n{n}_t{trials}"] = time.perf_counter() - t0
         return track_cache[(n, trials)]
 
-    integrity = getattr(args, "integrity", "off")
+    integrity = getattr(args, "integrity", default_of(BeaconOptions, "integrity"))
     faults = {k: getattr(args, k, v) for k, v in FAULT_DEFAULTS.items()}
     integ = {}
     plots, doc_cases = {}, {}

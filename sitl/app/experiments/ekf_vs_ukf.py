@@ -434,12 +434,12 @@ def add_args(p) -> None:
 
 
 def _scenario_from_args(args) -> EkfVsUkfScenario:
-    kw = {"steps": getattr(args, "steps", 600)}
+    kw = {"steps": getattr(args, "steps", default_of(EkfVsUkfOptions, "steps"))}
     if getattr(args, "sigma_prr", None) is not None:
         kw["sigma_prr_m_s"] = args.sigma_prr
     if getattr(args, "sigma_a", None) is not None:
         kw["sigma_a_m_s2"] = args.sigma_a
-    return EkfVsUkfScenario.with_noise_reading(getattr(args, "noise_reading", "sigma"), **kw)
+    return EkfVsUkfScenario.with_noise_reading(getattr(args, "noise_reading", default_of(EkfVsUkfOptions, "noise_reading")), **kw)
 
 
 def _progress(quiet):

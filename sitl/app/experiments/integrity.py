@@ -1001,7 +1001,7 @@ def main(args) -> int:
     except ValueError as exc:
         raise UsageError(str(exc)) from None
     out = prepare_out(Path(args.out))
-    backend = None if getattr(args, "backend", "auto") == "auto" else args.backend
+    backend = None if getattr(args, "backend", default_of(IntegrityOptions, "backend")) == "auto" else args.backend
     res = run(scn, args.trials, args.seed, progress=progress_printer(args.quiet), backend=backend)
     figures = plot(res, scn, out)
     doc = result_document(scn, args.trials, args.seed, res, figures)

@@ -129,8 +129,8 @@ def scenario_from_args(args) -> iono_tropo_filters.IonoTropoScenario:
     kw = {"duration_s": args.duration, "sigma_pr_m": args.sigma_pr, "sigma_prr_m_s": args.sigma_prr,
           "sigma_phase_m": args.sigma_phase, "el_mask_deg": args.el_mask_deg,
           "adaptive_q": args.adaptive_q != "off", "truth_clock_psd_scale": args.truth_clock_psd_scale,
-          "cycle_slip_rate_hz": getattr(args, "slip_rate", 0.0), "cmc_noise": getattr(args, "cmc_noise", "states"),
-          "phase_max_sats": getattr(args, "phase_sats", 0)}
+          "cycle_slip_rate_hz": getattr(args, "slip_rate", default_of(IonoTropoOptions, "slip_rate")), "cmc_noise": getattr(args, "cmc_noise", default_of(IonoTropoOptions, "cmc_noise")),
+          "phase_max_sats": getattr(args, "phase_sats", default_of(IonoTropoOptions, "phase_sats"))}
     if args.adaptive_q != "off":
         kw["adaptive_q_scope"] = args.adaptive_q
     if args.adaptive_q_decay is not None:
@@ -367,7 +367,7 @@ def main(args) -> int:
     out = prepare_out(Path(args.out))
     names = selected_variants(args.variant)
     backend = None if args.backend == "auto" else args.backend
-    if getattr(args, "study", "none") != "none":
+    if getattr(args, "study", default_of(IonoTropoOptions, "study")) != "none":
         return _study(args, scn, out, backend)
     try:
         results = run_all(scn, names, args.trials, args.seed, backend=backend, progress=progress_printer(args.quiet))

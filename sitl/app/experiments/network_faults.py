@@ -676,7 +676,7 @@ def _config(args):
     try:
         plan = dataclasses.replace(QUICK_PLAN if quick else DEFAULT_PLAN,
                                    burst_len=float(getattr(args, "burst_len", DEFAULT_PLAN.burst_len)),
-                                   faults_from_s=float(getattr(args, "faults_from", 0.0) or 0.0))
+                                   faults_from_s=float(getattr(args, "faults_from", None) or default_of(Plan, "faults_from_s")))
         for v in plan.burst_loss:
             spec_for("burst_loss", v, plan, SETUPS["beacon"])
     except ValueError as exc:

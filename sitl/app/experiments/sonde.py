@@ -1144,7 +1144,7 @@ class SondeOptions:
     kinematics: str | None = param(None, check=optional(choice("relaxed", "singer")),
                                    doc="the trackers' sonde motion model: relaxed (the velocity relaxes to a wind the "
                                        "tracker estimates, as in the sonde model) or singer (eq 20 as printed)",
-                                   shown="relaxed")
+                                   shown=_scn("kinematics"))
     out: Path = param(Path("out/sonde"), check=OUTPUT_DIR, metavar="DIR",
                       doc="output directory for result.json and PNG figures")
     trials: int = param(20, check=integer(lo=1), doc="Monte Carlo trials")
@@ -1189,8 +1189,8 @@ def add_args(p) -> None:
 
 
 def scenario_from_args(args) -> SondeScenario:
-    kw = {"white_baseline": not getattr(args, "no_white_baseline", False), "filter": getattr(args, "filter", "auto"),
-          "kinematics": getattr(args, "kinematics", None) or "relaxed"}
+    kw = {"white_baseline": not getattr(args, "no_white_baseline", False), "filter": getattr(args, "filter", default_of(SondeOptions, "filter")),
+          "kinematics": getattr(args, "kinematics", None) or default_of(SondeScenario, "kinematics")}
     if getattr(args, "duration", None) is not None:
         kw["duration_s"] = float(args.duration)
     # the integrity options (flags --integrity, --relay-step M, --relay-step-sat ID, --relay-step-at A B,
