@@ -328,8 +328,7 @@ class LiveFaults:
         self.loop.close()
 
 
-__all__ = ["ACK_SUFFIX", "CTL_SUFFIX", "ERROR_PREFIX", "LIST_LINK", "LiveFaults", "MavFront", "NoFaultBoard",
-           "RunClock", "ack_key", "add_fault_args", "control_key", "serve"]
+__all__ = ["LiveFaults", "MavFront", "RunClock", "add_fault_args"]
 
 
 def _canon(text) -> str:
