@@ -65,12 +65,13 @@ class LagWindow:
             c.reprocessed_epochs += n
 
     _SNAP_ARRAYS = ("_x", "_P", "_t", "_t_init", "_t_meas", "_landed", "_land_t", "_land_a", "_land_b", "_land_var",
-                    "_land_v", "_nis", "_rejects", "_win_nis", "_win_m", "_win_k", "_win_S", "_win_M", "_bias_last")
+                    "_land_v", "_nis", "_rejects", "_bias_last")
 
     def _snapshot(self) -> dict:
         """Copies of what a step writes (the per-sonde arrays, the sondes' satellite error-state
         maps, the integrity monitor's bookkeeping); caches and the model are kept."""
         d = {name: getattr(self, name).copy() for name in self._SNAP_ARRAYS}
+        d["_window"] = self._window.copy()
         d["_slots"], d["_ids"], d["_keys"] = dict(self._slots), list(self._ids), list(self._keys)
         d["_bias_map"] = [dict(m) for m in self._bias_map]
         d["_bias_owner"] = [list(o) for o in self._bias_owner]

@@ -38,8 +38,7 @@ from .window import ManoeuvreWindow
 __all__ = ["SondeTracker"]
 
 
-class SondeTracker(Updates, EpochModel, Initialisation, RelayErrorStates, IntegrityGuard, ManoeuvreWindow, Landing,
-                   LagWindow):
+class SondeTracker(Updates, EpochModel, Initialisation, RelayErrorStates, IntegrityGuard, Landing, LagWindow):
     """EKF/UKF radiosonde tracker on the bus, for one mode and any number of sondes.
 
     run_id : the bus run prefix. params : SondeTrackerParams (mode, models, gating).
@@ -89,10 +88,7 @@ class SondeTracker(Updates, EpochModel, Initialisation, RelayErrorStates, Integr
         self._ground_h_m = None  # the ground's height (the site's), for the landing
         self._nis = np.zeros(0)  # summed block NIS of the last processed epoch
         self._rejects = np.zeros((0, 2), dtype=np.int64)  # consecutive rejections [relay, radar]
-        W = p.manoeuvre_window or 1
-        self._win_nis, self._win_m = np.zeros((0, W)), np.zeros((0, W), dtype=np.int64)  # NIS window
-        self._win_k = np.zeros(0, dtype=np.int64)
-        self._win_S, self._win_M = np.zeros(0), np.zeros(0, dtype=np.int64)
+        self._window = ManoeuvreWindow(p.manoeuvre_window or 1)  # the sliding-window NIS test's memory
         self._pending: dict[float, dict[str, list]] = defaultdict(dict)
         # lag window (params.lag_window_s): per step, the state before it, the epochs it processed
         # ({tau: {sonde: [relay, radar]}}, completed by late messages) and the counters it added
@@ -241,8 +237,7 @@ class SondeTracker(Updates, EpochModel, Initialisation, RelayErrorStates, Integr
             self._landed[slot] = False
             self._land_t[slot] = np.nan
             self._rejects[slot] = 0
-            self._win_nis[slot], self._win_m[slot], self._win_k[slot] = 0.0, 0, 0
-            self._win_S[slot], self._win_M[slot] = 0.0, 0
+            self._window.reset(slot)
             if self.layout.nb:
                 self._bias_clear(slot)
         self.counters.lost += len(slots)
@@ -302,12 +297,7 @@ class SondeTracker(Updates, EpochModel, Initialisation, RelayErrorStates, Integr
             self._land_v = np.append(self._land_v, 0.0)
             self._nis = np.append(self._nis, np.nan)
             self._rejects = np.concatenate([self._rejects, np.zeros((1, 2), dtype=np.int64)])
-            W = self.params.manoeuvre_window or 1
-            self._win_nis = np.concatenate([self._win_nis, np.zeros((1, W))])
-            self._win_m = np.concatenate([self._win_m, np.zeros((1, W), dtype=np.int64)])
-            self._win_k = np.append(self._win_k, 0)
-            self._win_S = np.append(self._win_S, 0.0)
-            self._win_M = np.append(self._win_M, 0)
+            self._window.add_slot()
             self._bias_map.append({})
             self._bias_owner.append([None] * self.layout.nb)
             self._bias_last = np.concatenate([self._bias_last, np.full((1, self.layout.nb), -np.inf)])

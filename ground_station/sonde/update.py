@@ -7,7 +7,7 @@ import numpy as np
 from scipy.stats import chi2
 
 from filters import kernels
-from filters.ekf import ekf_update
+from filters.ekf import ekf_predicted_step, ekf_update
 from filters.ukf import ukf_update
 
 from .epoch_model import MixedSites
@@ -148,13 +148,11 @@ class Updates:
         else:
             x_pred, P_pred = self._propagate(slots, dt, lnd)
         if filt == "ekf":
-            h, H = model.h_and_H(x_pred)
-            if shared:
-                xo, Po, nis = kernels.predict_joseph_update(F, Q, x_pred, P, model.z - h, H, model.R_diag(),
-                                                            backend=p.backend)
-            else:
-                xo, Po, nis = kernels.joseph_update(x_pred, P_pred, model.z - h, H, r_diag=model.R_diag(),
-                                                    backend=p.backend)
+            # shared (F, Q): the fused covariance predict + Joseph update (ekf_predicted_step, the mean
+            # predicted above); per-sonde transitions: the update at the prediction
+            res = (ekf_predicted_step(x_pred, P, model.z, F, Q, model, backend=p.backend) if shared
+                   else ekf_update(x_pred, P_pred, model.z, model, backend=p.backend))
+            xo, Po, nis = res.x, res.P, res.nis
         else:
             if P_pred is None:
                 P_pred = kernels.cov_predict(F, P, Q, backend=p.backend)
@@ -167,7 +165,7 @@ class Updates:
         if not bad.size:
             self._rejects[slots] = 0
             self._t_meas[slots[model.m_eff > 0]] = t  # an accepted measurement (rows left: not all masked out)
-            self._window_test(slots, np.asarray(nis, dtype=float), model.m_eff, dt)
+            self._window_manoeuvre(slots, np.asarray(nis, dtype=float), model.m_eff, dt)
             return
         good = np.ones(slots.size, dtype=bool)
         good[bad] = False
@@ -200,5 +198,20 @@ class Updates:
         m_all[bad] = m_used
         nis_all = np.asarray(nis, dtype=float).copy()
         nis_all[bad] = total
-        self._window_test(slots, nis_all, m_all, dt)
+        self._window_manoeuvre(slots, nis_all, m_all, dt)
         self._reacquire(bs, [group[i] for i in bad])
+
+    def _window_manoeuvre(self, slots, nis, m, dt: float) -> None:
+        """The sliding-window manoeuvre test (ManoeuvreWindow) on this epoch's NIS; where it fails,
+        the manoeuvre covariance scaled by how far the window's NIS exceeds its expectation (a burst
+        seen by the radar alone is a 40 m/s surprise, not one acceleration step) is added to the
+        posterior, and the integrity monitor waits (integrity_warmup_s)."""
+        if self.params.manoeuvre_window is None or self.params.gate_prob is None:
+            return
+        out = self._window.push(slots, nis, m, self._gate)
+        if out is None:
+            return
+        hs, scale = out
+        self._P[hs] += scale[:, None, None] * self._transition.boost(dt)
+        self._t_init[hs] = self._t[hs]
+        self.counters.window_manoeuvre += int(hs.size)

@@ -1,9 +1,9 @@
 """The sliding-window manoeuvre test of the sonde tracker: the NIS summed over the last
 ``manoeuvre_window`` epochs against the chi-square quantile of the summed dof catches a slow drift
-from the model that no single epoch's gate sees."""
+from the model (e.g. the radar alone after the burst) that no single epoch's gate sees."""
 from __future__ import annotations
 
-import math
+from collections.abc import Callable
 
 import numpy as np
 
@@ -11,54 +11,56 @@ __all__ = ["ManoeuvreWindow"]
 
 
 class ManoeuvreWindow:
-    """SondeTracker's part: the window test."""
+    """Per sonde slot, the NIS and the dof of the last ``size`` epochs (a ring) and their running
+    sums. ``push`` takes one epoch's NIS of some slots and returns the slots whose window fails the
+    test, with the factor S / M by which their window's NIS exceeds its expectation."""
 
-    def _window_test(self, slots, nis, m, dt: float) -> None:
-        """Sliding-window manoeuvre test: the NIS summed over the last ``manoeuvre_window``
-        epochs against the chi-square quantile of its summed dof catches a slow drift away
-        from the model (e.g. the radar alone after the burst) that no single epoch's gate
-        sees; then the manoeuvre covariance is added to the posterior and the window restarts."""
-        W = self.params.manoeuvre_window
-        if W is None or self.params.gate_prob is None:
-            return
-        if slots.size == 1:  # one sonde: plain floats, the same arithmetic
-            slot, v, mi = int(slots[0]), float(nis[0]), int(m[0])
-            if not math.isfinite(v):
-                v, mi = 0.0, 0
-            k = int(self._win_k[slot]) % W
-            self._win_S[slot] += v - self._win_nis[slot, k]
-            self._win_M[slot] += mi - self._win_m[slot, k]
-            self._win_nis[slot, k], self._win_m[slot, k] = v, mi
-            self._win_k[slot] += 1
-            S, M = float(self._win_S[slot]), int(self._win_M[slot])
-            if self._win_k[slot] < W or not S > M or not S > self._gate(np.array([M]))[0]:
-                return
-            self._P[slot] += (S / M) * self._transition.boost(dt)
-            self._t_init[slot] = self._t[slot]  # a manoeuvre: the monitor waits (integrity_warmup_s)
-            self._win_nis[slot], self._win_m[slot], self._win_k[slot] = 0.0, 0, 0
-            self._win_S[slot], self._win_M[slot] = 0.0, 0
-            self.counters.window_manoeuvre += 1
-            return
+    def __init__(self, size: int):
+        self.size = int(size)
+        self.nis, self.m = np.zeros((0, self.size)), np.zeros((0, self.size), dtype=np.int64)
+        self.k = np.zeros(0, dtype=np.int64)  # epochs pushed since the last restart
+        self.S, self.M = np.zeros(0), np.zeros(0, dtype=np.int64)  # the window's summed NIS and dof
+
+    def add_slot(self) -> None:
+        """Room for one more sonde, with an empty window."""
+        self.nis = np.concatenate([self.nis, np.zeros((1, self.size))])
+        self.m = np.concatenate([self.m, np.zeros((1, self.size), dtype=np.int64)])
+        self.k = np.append(self.k, 0)
+        self.S = np.append(self.S, 0.0)
+        self.M = np.append(self.M, 0)
+
+    def reset(self, slots) -> None:
+        """Restart the windows of these slots (a manoeuvre found, a track lost)."""
+        self.nis[slots], self.m[slots], self.k[slots] = 0.0, 0, 0
+        self.S[slots], self.M[slots] = 0.0, 0
+
+    def copy(self) -> ManoeuvreWindow:
+        out = ManoeuvreWindow.__new__(ManoeuvreWindow)
+        out.size = self.size
+        out.nis, out.m, out.k, out.S, out.M = (a.copy() for a in (self.nis, self.m, self.k, self.S, self.M))
+        return out
+
+    def push(self, slots: np.ndarray, nis, m, gate: Callable[[np.ndarray], np.ndarray]):
+        """One epoch's NIS (NaN: nothing used, counted as 0 with 0 dof) and dof m of the sondes in
+        slots. Returns (slots whose summed NIS exceeds ``gate`` of the summed dof over a full
+        window, S / M of each), their windows restarted; None when there is none."""
+        W = self.size
         ok = np.isfinite(nis)
         nis, m = np.where(ok, nis, 0.0), np.where(ok, m, 0)
-        k = self._win_k[slots] % W
-        self._win_S[slots] += nis - self._win_nis[slots, k]  # running sums over the window
-        self._win_M[slots] += m - self._win_m[slots, k]
-        self._win_nis[slots, k], self._win_m[slots, k] = nis, m
-        self._win_k[slots] += 1
-        S, M = self._win_S[slots], self._win_M[slots]
-        cand = (self._win_k[slots] >= W) & (S > M)  # the quantile is above M: test only these
+        k = self.k[slots] % W
+        self.S[slots] += nis - self.nis[slots, k]  # running sums over the window
+        self.M[slots] += m - self.m[slots, k]
+        self.nis[slots, k], self.m[slots, k] = nis, m
+        self.k[slots] += 1
+        S, M = self.S[slots], self.M[slots]
+        cand = (self.k[slots] >= W) & (S > M)  # the quantile is above M: test only these
         if not cand.any():
-            return
+            return None
         hit = np.zeros(slots.size, dtype=bool)
-        hit[cand] = S[cand] > self._gate(M[cand])
-        if hit.any():
-            hs = slots[hit]
-            # scaled by how far the window's NIS exceeds its expectation (a burst seen by the
-            # radar alone is a 40 m/s surprise, not one acceleration step)
-            scale = (S[hit] / M[hit])[:, None, None]
-            self._P[hs] += scale * self._transition.boost(dt)
-            self._t_init[hs] = self._t[hs]
-            self._win_nis[hs], self._win_m[hs], self._win_k[hs] = 0.0, 0, 0
-            self._win_S[hs], self._win_M[hs] = 0.0, 0
-            self.counters.window_manoeuvre += int(hit.sum())
+        hit[cand] = S[cand] > gate(M[cand])
+        if not hit.any():
+            return None
+        hs = slots[hit]
+        scale = S[hit] / M[hit]
+        self.reset(hs)
+        return hs, scale
