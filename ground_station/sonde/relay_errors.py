@@ -14,17 +14,17 @@ except ImportError:  # pragma: no cover
     _nb = None
 
 from sitl.constants import WGS84
-from sitl.radio import relay as _relay
+from sitl.radio import relay_error_model as rem
 
 __all__ = ["RelayErrorStates"]
 
 
-def _relay_err_py(pos, sat_pos, glonass, prm, h_tab, lnp_tab, scale, white):
-    """The relay error model's per-satellite numbers (SondeTracker._relay_error_model), loop by loop
-    for the compiled path: scale (Bs, U) the slow errors' std, white (Bs, U) the multipath's
-    PSD-equivalent variance. prm: [sisre GPS, sisre GLONASS, iono zenith, R/(R + h_I), tropo zenith,
-    mp a, mp b, mp el0 (rad), (1 + mu)/(1 - mu), 1/a^2, 1/b^2]; the pressure table of
-    sitl.radio.relay.pressure_ratio."""
+def _relay_err_py(pos, sat_pos, glonass, prm, scale, white):
+    """The relay error model's per-satellite numbers (RelayErrorStates._relay_error_model), loop by
+    loop for the compiled path: scale (Bs, U) the slow errors' std, white (Bs, U) the multipath's
+    PSD-equivalent variance, from the formulas of sitl.radio.relay_error_model at the geometry of
+    the estimated positions. prm: [sisre GPS, sisre GLONASS, iono zenith, R/(R + h_I), tropo zenith,
+    mp a, mp b, mp el0 (deg), (1 + mu)/(1 - mu), 1/a^2, 1/b^2]."""
     Bs, U = scale.shape
     for b in range(Bs):
         x, y, z = pos[b, 0], pos[b, 1], pos[b, 2]
@@ -33,23 +33,29 @@ def _relay_err_py(pos, sat_pos, glonass, prm, h_tab, lnp_tab, scale, white):
         nx, ny, nz = nx / nn, ny / nn, nz / nn
         r = math.sqrt(x * x + y * y + z * z)
         h = r - r / math.sqrt((x * x + y * y) * prm[9] + z * z * prm[10])
-        pr = math.exp(np.interp(h, h_tab, lnp_tab))
+        pr = _pressure_ratio(h)
         for u in range(U):
             dx, dy, dz = sat_pos[b, u, 0] - x, sat_pos[b, u, 1] - y, sat_pos[b, u, 2] - z
             d = max(math.sqrt(dx * dx + dy * dy + dz * dz), 1.0)
             se = min(max((dx * nx + dy * ny + dz * nz) / d, -1.0), 1.0)
-            el = max(math.asin(se), 0.0)
-            sp = math.sin(el)
-            c = prm[3] * math.cos(el)
-            iono = prm[2] / math.sqrt(1.0 - c * c)
-            tropo = prm[4] * pr * 1.001 / math.sqrt(0.002001 + sp * sp)
+            el = math.asin(se)
+            iono = _iono_sigma(prm[2], prm[3], el)
+            tropo = _tropo_sigma(prm[4], pr, el)
             sis = prm[1] if glonass[u] else prm[0]
             scale[b, u] = math.sqrt(sis * sis + iono * iono + tropo * tropo)
-            mp = prm[5] + prm[6] * math.exp(-el / prm[7])
+            mp = _multipath_sigma(prm[5], prm[6], prm[7], el)
             white[b, u] = mp * mp * prm[8]
 
 
-_relay_err_nb = None if _nb is None else _nb.njit(cache=True, nogil=True)(_relay_err_py)
+if _nb is None:  # pragma: no cover
+    _relay_err_nb = None
+else:  # the shared formulas compiled for the loop (the same source as the world's relay)
+    _jit = _nb.njit(cache=True, nogil=True)
+    _pressure_ratio = _jit(rem.pressure_ratio)
+    _iono_sigma = _jit(rem.iono_sigma_m)
+    _tropo_sigma = _jit(rem.tropo_sigma_m)
+    _multipath_sigma = _jit(rem.multipath_sigma_m)
+    _relay_err_nb = _jit(_relay_err_py)
 
 
 class RelayErrorStates:
@@ -114,15 +120,14 @@ class RelayErrorStates:
             if self._err_prm is None:
                 a2, b2 = 1.0 / WGS84.a_m**2, 1.0 / (WGS84.a_m * (1.0 - WGS84.f)) ** 2
                 self._err_prm = np.array([e.sisre_gps_m, e.sisre_glonass_m, e.iono_zenith_m,
-                                          WGS84.a_m / (WGS84.a_m + e.iono_shell_h_m), e.tropo_zenith_m,
-                                          e.multipath_a_m, e.multipath_b_m, math.radians(e.multipath_el0_deg), 0.0,
+                                          e.iono_shell_ratio, e.tropo_zenith_m,
+                                          e.multipath_a_m, e.multipath_b_m, e.multipath_el0_deg, 0.0,
                                           a2, b2])
             self._err_prm[8] = (1.0 + mu) / (1.0 - mu)
             Bs, U = sat_pos.shape[:2]
             scale, white = np.empty((Bs, U)), np.empty((Bs, U))
             _relay_err_nb(np.ascontiguousarray(pos, dtype=float), np.ascontiguousarray(sat_pos, dtype=float),
-                          np.ascontiguousarray(glonass), self._err_prm, _relay.P_TABLE_H_M, _relay.LN_P_TABLE,
-                          scale, white)
+                          np.ascontiguousarray(glonass), self._err_prm, scale, white)
             return scale, white
         # the geodetic vertical and height, to well below the model's needs for h < 100 km (the
         # ellipsoid's normal at the point, and the distance above the ellipsoid along the radius)
