@@ -10,11 +10,11 @@ import numpy as np
 from sitl.constants import WGS84
 from sitl.geodesy import ecef_to_geodetic, geodetic_to_ecef
 
-from .transition import _E2, enu_rotations
+from .transition import E2, enu_rotations
 
 __all__ = ["Landing", "curvature_drop_cov"]
 
-_NORMAL_SCALE = np.array([1.0, 1.0, 1.0 / (1.0 - _E2)])  # grad of x^2 + y^2 + z^2 / (1 - e^2): the ellipsoid's normal
+_NORMAL_SCALE = np.array([1.0, 1.0, 1.0 / (1.0 - E2)])  # grad of x^2 + y^2 + z^2 / (1 - e^2): the ellipsoid's normal
 
 
 def curvature_drop_cov(pos_ecef_m, pos_cov) -> np.ndarray:

@@ -69,7 +69,7 @@ VERTICAL_SPEED_REL_STEP = 0.005
 #: the vertical shear's std is at least this (keeps P positive definite for the UKF's Cholesky when the
 #: model has no vertical residual: over a 30 km descent it moves the target vertical speed by ~0.02 m/s)
 SHEAR_SIGMA_FLOOR_1_S = 1e-6
-_E2 = WGS84.f * (2.0 - WGS84.f)
+E2 = WGS84.f * (2.0 - WGS84.f)  # the WGS-84 first eccentricity squared
 
 
 def _quantised_speed(w):
@@ -94,9 +94,9 @@ def _step_geodetic(lat, lon, h, d_enu):
     meridian and prime-vertical radii of curvature (a 50 m step: ~1e-10 rad, 0.2 mm off the exact
     transform)."""
     s2 = np.sin(lat) ** 2
-    w = np.sqrt(1.0 - _E2 * s2)
+    w = np.sqrt(1.0 - E2 * s2)
     Nr = WGS84.a_m / w
-    Mr = WGS84.a_m * (1.0 - _E2) / (w * w * w)
+    Mr = WGS84.a_m * (1.0 - E2) / (w * w * w)
     return (lat + d_enu[:, 1] / (Mr + h), lon + d_enu[:, 0] / ((Nr + h) * np.cos(lat)), h + d_enu[:, 2])
 
 
