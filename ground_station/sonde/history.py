@@ -7,10 +7,10 @@ from typing import NamedTuple
 
 from ground_station import lag_window
 
-__all__ = ["LagWindow"]
+__all__ = ["HistoryStep", "LagWindow"]
 
 
-class _Step(NamedTuple):
+class HistoryStep(NamedTuple):
     """One step in the lag window: its time, the previous step's, the tracker's state before
     it, the epochs it processed ({tau: {sonde: [relay, radar]}}) and the counters it added."""
 
@@ -36,7 +36,7 @@ class LagWindow:
         self._step_core(t, epochs)
         self._t_last = t
         after = self.counters.as_dict()
-        self._hist.append(_Step(t, t_prev, snap, epochs, {k: after[k] - before[k] for k in after if after[k] != before[k]}))
+        self._hist.append(HistoryStep(t, t_prev, snap, epochs, {k: after[k] - before[k] for k in after if after[k] != before[k]}))
         lag_window.prune(self._hist, t, lag, 1e-9)
 
     def _hist_for(self, tau: float):

@@ -25,7 +25,7 @@ from sitl.integrity_events import IntegrityEventPublisher
 
 from .counters import TrackerCounters
 from .epoch_model import EpochModel
-from .history import LagWindow, _Step
+from .history import LagWindow, HistoryStep
 from .initialise import Initialisation
 from .integrity import IntegrityGuard
 from .landing import Landing, curvature_drop_cov
@@ -92,7 +92,7 @@ class SondeTracker(Updates, EpochModel, Initialisation, RelayErrorStates, Integr
         self._pending: dict[float, dict[str, list]] = defaultdict(dict)
         # lag window (params.lag_window_s): per step, the state before it, the epochs it processed
         # ({tau: {sonde: [relay, radar]}}, completed by late messages) and the counters it added
-        self._hist: list[_Step] = []
+        self._hist: list[HistoryStep] = []
         self._dirty: float | None = None  # the earliest step a late message completed
         self._t_last = -math.inf  # the last step's time
         self._gates: dict[int, float] = {}
