@@ -25,7 +25,7 @@ from sitl.integrity_events import IntegrityEventPublisher
 
 from .counters import TrackerCounters
 from .epoch_model import EpochModel
-from .history import LagWindow, HistoryStep
+from .history import HistoryStep, LagWindow
 from .initialise import Initialisation
 from .integrity import IntegrityGuard
 from .landing import Landing, curvature_drop_cov
