@@ -4,7 +4,7 @@ aerological radar, against each source alone, in batch mode over the in-memory b
 The world (vehicles.sonde.SondeFlight, sitl.radio.radar.Radar, sitl.radio.relay.Relay)
 publishes, per sonde and epoch, a `Truth`, a `SondeRelay` (empty during a GNSS outage or
 out of range) and a `RadarMeasurement` (when the radar has a valid range) through an
-`InMemoryTransport`; three `ground_station.sonde_tracker.SondeTracker`s (fused,
+`InMemoryTransport`; three `ground_station.sonde.SondeTracker`s (fused,
 radar_only, relay_only) subscribe, and by default two more with the naive white radar-noise
 treatment (fused_white, radar_only_white) for the consistency comparison. Each epoch:
 publish, ``drain(t)``, ``tracker.step(t)`` (which publishes the Estimates), ``drain(t)``.
@@ -249,7 +249,7 @@ def wind_shear_statistics(sp) -> tuple:
 
 def tracker_params(scn: SondeScenario, label: str, backend=None):
     """The trackers' model: the world models' parameters (not their states)."""
-    from ground_station.sonde_tracker import SondeTrackerParams
+    from ground_station.sonde import SondeTrackerParams
     from sitl.radio.radar import RadarParams
     from sitl.radio.relay import RelayParams
 
@@ -373,7 +373,7 @@ def run_trials(scn: SondeScenario, seed: int, trials, *, backend=None, progress=
     """
     # the world and the ground station are imported here, not at module import: sitl must
     # not import vehicles or ground_station when it is itself imported
-    from ground_station.sonde_tracker import SondeTracker
+    from ground_station.sonde import SondeTracker
     from sitl.bus import InMemoryTransport, RadarMeasurement, SondeRelay, Truth
     from sitl.geodesy import geodetic_to_ecef
 
