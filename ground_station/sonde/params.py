@@ -11,6 +11,7 @@ from typing import NamedTuple
 import numpy as np
 
 from filters.integrity import IntegrityConfig
+from sitl.atmosphere_std import Z_MAX_M
 from sitl.bus import is_valid_id
 from sitl.radio.radar import RadarParams
 from sitl.radio.relay import RelayErrorBudget, RelayParams
@@ -81,6 +82,14 @@ class SondeTrackerParams:
     # relaxed: the parachute's terminal speed at sea level, v_d(h) = v_sl sqrt(rho0 / rho(h)) (vehicles.sonde,
     # US76): a descending sonde's target vertical speed -v_d(h) follows its height as a known input; None: off
     descent_rate_sl_m_s: float | None = 5.0
+    # relaxed: the burst height's range (vehicles.sonde's burst_alt_range_m: uniform, low to high, m). A
+    # climbing track (target vertical speed > 0) may burst in any step inside it, with the model's hazard:
+    # the probability p = its climb over the step / the height left to the top (1 at the top); its target
+    # then steps to -v_d(h), and Q carries that step's mean square, p (target + v_d(h))^2 (burst_variance).
+    # None (or no descent law): no burst in the model, left to the manoeuvre hypothesis alone. The range is
+    # the world's (vehicles.sonde.SondeParams); the composition root (sitl.app) hands it over, so it has no
+    # default of its own here
+    burst_alt_range_m: tuple | None = None
     # relaxed: the sonde lands on flat ground at the site's height (the radar's, else the ground receiver's)
     # and stays there (vehicles.sonde's LANDED phase): a descending track whose height reaches it is
     # landed -- at rest from then on, until a re-initialisation. False: the track coasts on
@@ -121,6 +130,15 @@ class SondeTrackerParams:
             _finite(name, getattr(self, name), 0.0, lo_open=True)
         if self.descent_rate_sl_m_s is not None:
             _finite("descent_rate_sl_m_s", self.descent_rate_sl_m_s, 0.0, lo_open=True)
+        if self.burst_alt_range_m is not None:
+            try:
+                lo, hi = (float(a) for a in self.burst_alt_range_m)
+            except (TypeError, ValueError):
+                raise ValueError(f"burst_alt_range_m must be (low, high) in m or None, got {self.burst_alt_range_m!r}") from None
+            if not (math.isfinite(lo) and math.isfinite(hi) and 0.0 <= lo < hi <= Z_MAX_M):
+                raise ValueError(f"burst_alt_range_m must satisfy 0 <= low < high <= {Z_MAX_M:g} m, "
+                                 f"got {self.burst_alt_range_m!r}")
+            object.__setattr__(self, "burst_alt_range_m", (lo, hi))
         if self.max_coast_s is not None:
             if isinstance(self.max_coast_s, bool):
                 raise ValueError(f"max_coast_s must be a finite number > 0 or None, got {self.max_coast_s!r}")

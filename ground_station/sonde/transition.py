@@ -100,6 +100,27 @@ def _step_geodetic(lat, lon, h, d_enu):
     return (lat + d_enu[:, 1] / (Mr + h), lon + d_enu[:, 0] / ((Nr + h) * np.cos(lat)), h + d_enu[:, 2])
 
 
+def burst_variance(h, target, w, dt, burst_alt_range_m, v_sl_m_s):
+    """The mean square of the target vertical speed's step at a burst over one step dt of N sondes
+    (relaxed; heights h (N,), target vertical speeds (N,), vertical speeds w (N,)): the sonde model
+    bursts at a height uniform in burst_alt_range_m = (lo, hi), so a sonde that has not burst by h
+    bursts within the next dh with probability dh / (hi - h) (the uniform law's hazard; 1 from hi on),
+    and its target then steps to the descent law's -v_d(h). Over the step the sonde moves
+    dh = max(target, |w|) dt, p = (dh inside the range) / (the height left to hi) (<= 1), and the
+    prediction that keeps the target has the mean square error p (target + v_d(h))^2: the burst's
+    mode change in one Gaussian. It applies while the target lies above the law (the climb, or a
+    track still on its way from the climb to the law after a burst, whose remaining step it
+    is); 0 below the range and for a target on the law (the descent)."""
+    lo, hi = burst_alt_range_m
+    h, target = np.asarray(h, dtype=float), np.asarray(target, dtype=float)
+    a = np.maximum(h, lo)
+    climb = np.minimum(h + np.maximum(target, np.abs(w)) * dt, hi) - a
+    with np.errstate(divide="ignore", invalid="ignore"):
+        p = np.where(h >= hi, 1.0, np.where(climb > 0.0, climb / np.maximum(hi - a, 1e-9), 0.0))
+    step = np.maximum(target + descent_speed(h, v_sl_m_s), 0.0)
+    return np.clip(p, 0.0, 1.0) * step * step
+
+
 def _descent_speed_slope(h_m, v_sl_m_s):
     """d v_d / dh (1/s, > 0: the descent slows as the air thickens) of descent_speed, central
     difference over +-1 m."""
@@ -244,7 +265,9 @@ class SondeTransition:
         frame's turn R1' R0, not I). A descending sonde's (target vertical speed below 0) target follows the
         parachute's law, + v_d(h0) - v_d(h1) along the vertical, with its Jacobian in F (the target
         changes by -v_d'(h) per metre of descent); and F has the Jacobian of the bilinear u' = w s
-        in the vertical speed (ds/dw: s dt). The mean uses the law itself (not its linearisation)."""
+        in the vertical speed (ds/dw: s dt). The mean uses the law itself (not its linearisation).
+        A climbing sonde inside the burst range (burst_alt_range_m) may burst in the step: its target's
+        vertical Q has the step's mean square (burst_variance; the mean keeps the climb)."""
         p = self.params
         xk = np.asarray(xk, dtype=float)
         N = xk.shape[0]
@@ -293,6 +316,8 @@ class SondeTransition:
         Qf = np.zeros((N, 5, 3, 5, 3))
         for c in range(3):
             Qf[:, :, c, :, c] = Qa[:, c]
+        if p.burst_alt_range_m is not None and v_sl is not None:  # a climbing sonde may burst in the step
+            Qf[:, 3, 2, 3, 2] += burst_variance(h0, Y[:, 2, 3], w, float(dt), p.burst_alt_range_m, v_sl)
         Q = (R1T @ Qf.transpose(0, 1, 3, 2, 4) @ R1[:, None, None]).transpose(0, 1, 3, 2, 4).reshape(N, 15, 15)
         return x1, F, 0.5 * (Q + np.swapaxes(Q, -1, -2))
 

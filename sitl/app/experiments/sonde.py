@@ -271,6 +271,7 @@ def tracker_params(scn: SondeScenario, label: str, backend=None):
         kinematics=scn.kinematics, velocity_relax_rate_horizontal_1_s=sp.p1_1_s,
         velocity_relax_rate_vertical_1_s=sp.vertical_relax_rate_1_s, wind_shear_sigma_horizontal_1_s=g_h,
         wind_shear_sigma_vertical_1_s=g_v, wind_shear_corr_height_m=g_len, descent_rate_sl_m_s=sp.descent_rate_sl_m_s,
+        burst_alt_range_m=tuple(sp.burst_alt_range_m),
         accel_rate_1_s=beta, sigma_acc_horizontal_m_s2=s_h, sigma_acc_vertical_m_s2=s_v, osc_gamma_1_s=gp.osc_gamma_1_s,
         osc_sigma_m_s=2.0 * math.pi * gp.osc_sigma_hz * gp.osc_doppler_scale_m_s_per_rad_s,
         radar_sigma=tuple(rp.sigma), radar_gamma_1_s=tuple(rp.gamma_1_s), label=label,
