@@ -2,7 +2,7 @@
 
 ``GroundStationNode(transport, run_id, config)`` runs the SAME objects as batch mode -- the
 beacon locator (ground_station.beacon.BeaconLocator) and the fused sonde tracker
-(ground_station.sonde_tracker.SondeTracker, parameters from the sonde experiment) -- and
+(ground_station.sonde.SondeTracker, parameters from the sonde experiment) -- and
 publishes their Estimates on ``<run>/gs/estimate/{beacon,sonde}/<id>``.
 
 The components subscribe and publish through a small deferred bus (`_DeferredBus`): what
@@ -170,7 +170,7 @@ class GroundStationNode:
 
     def __init__(self, transport, run_id: str, config: GsConfig | None = None, incarnation: int = 0):
         from ground_station.beacon import BeaconLocator
-        from ground_station.sonde_tracker import SondeTracker
+        from ground_station.sonde import SondeTracker
 
         self.config = c = config or GsConfig()
         self.run_id = run_id

@@ -194,7 +194,7 @@ def _dataclass_from_json(cls, d: dict):
 def sonde_tracker_from_spec(spec):
     """The sonde tracker's SondeTrackerParams from the spec's ``params`` (None when it has none:
     no sonde). JSON floats round-trip exactly (repr), so they are the composition root's own."""
-    from ground_station.sonde_tracker import SondeTrackerParams
+    from ground_station.sonde import SondeTrackerParams
 
     d = spec.params.get("sonde_tracker")
     return None if d is None else _dataclass_from_json(SondeTrackerParams, d)

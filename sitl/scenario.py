@@ -349,9 +349,9 @@ def _faults_section(value) -> FaultsSection:
         links.append((name, fault_spec_text(key, text)))
         if name.startswith("zenoh:"):  # a byte stream: delay, rate and partitions only
             from sitl.netfault import parse_spec
-            from sitl.netfault.tcp_proxy import _stream_spec
+            from sitl.netfault.tcp_proxy import stream_spec
             try:
-                _stream_spec(parse_spec(text), name)
+                stream_spec(parse_spec(text), name)
             except ValueError as e:
                 raise ScenarioError(f"scenario: {key}: {' '.join(str(e).split())}") from None
     return FaultsSection(tuple(links), True)
@@ -623,10 +623,10 @@ class WorkerSpec:
         return cls(**d)
 
     def scenario_obj(self) -> Scenario:
-        return scenario_from_dict(_to_toml_like(self.scenario), f"spec {self.name}")
+        return scenario_from_dict(to_toml_like(self.scenario), f"spec {self.name}")
 
 
-def _to_toml_like(d: dict) -> dict:
+def to_toml_like(d: dict) -> dict:
     """asdict() output back to what TOML would give (tuples -> lists)."""
     def conv(v):
         if isinstance(v, (tuple, list)):
@@ -655,7 +655,7 @@ def worker_specs(scn: Scenario, zenoh_connect, out_dir, overrides: dict | None =
 
 
 def _worker_specs(scn: Scenario, zenoh_connect, out_dir) -> list[WorkerSpec]:
-    doc = _to_toml_like(scn.to_dict())
+    doc = to_toml_like(scn.to_dict())
     n = scn.uavs.count
     groups = scn.n_uav_processes
     per = scn.uavs.per_process

@@ -20,7 +20,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from ground_station import _lagwindow
+from ground_station import lag_window
 from sitl.bus import BeaconMeasurement, Estimate, SequenceTracker, key_for, parse_key
 
 from .config import LocatorConfig
@@ -292,14 +292,14 @@ class BeaconLocator:
         obs = self._observations(inputs)  # (assigns new UAVs their slots first)
         self.process(t, obs, self._new_incarnations(inputs))
         self._hist.append(_Epoch(t, snap, inputs, self.counters - before))
-        _lagwindow.prune(self._hist, t, lag, 1e-6)
+        lag_window.prune(self._hist, t, lag, 1e-6)
 
     def _reprocess(self) -> None:
         """Back to the state before the earliest epoch completed by late messages, then re-run
         that epoch and the later ones of the history with their (completed) inputs -- every
         trial of the batch together (an untouched trial re-runs to the identical result)."""
         t0, self._dirty = self._dirty, None
-        n = _lagwindow.rerun(self._hist, t0, 1e-6, restore=lambda e: self._restore(e.snap),
+        n = lag_window.rerun(self._hist, t0, 1e-6, restore=lambda e: self._restore(e.snap),
                              uncount=lambda e: self.counters.subtract(e.added),
                              run=lambda e: self._run_epoch(e.t, e.inputs), events=self.integrity_events)
         if n:

@@ -95,13 +95,13 @@ def main(argv=None) -> int:
     import json
     import sys
 
-    from sitl.scenario import _to_toml_like, scenario_from_dict
+    from sitl.scenario import to_toml_like, scenario_from_dict
     argv = sys.argv[1:] if argv is None else argv
     if len(argv) != 2 or argv[1] != "--warm-up":
         print("usage: python -m sitl.app.batch SCENARIO.json --warm-up", file=sys.stderr)
         return 2
     with open(argv[0], encoding="utf-8") as f:
-        scn = scenario_from_dict(_to_toml_like(json.load(f)), argv[0])
+        scn = scenario_from_dict(to_toml_like(json.load(f)), argv[0])
     warm_up(scn)
     return 0
 

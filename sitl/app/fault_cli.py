@@ -122,9 +122,9 @@ def fault_main(args) -> int:
         except FaultSpecError as e:
             raise UsageError(" ".join(str(e).split())) from None
         if link.startswith("zenoh:"):  # a byte stream: delay, rate and partitions only
-            from sitl.netfault.tcp_proxy import _stream_spec
+            from sitl.netfault.tcp_proxy import stream_spec
             try:
-                _stream_spec(parsed, link)
+                stream_spec(parsed, link)
             except ValueError as e:
                 raise UsageError(f"fault: {' '.join(str(e).split())}") from None
     else:

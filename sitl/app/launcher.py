@@ -102,9 +102,9 @@ def _scenario_with_overrides(scn, args):
         d["mavlink"]["gcs"] = args.gcs
     if args.no_mavlink:
         d["mavlink"]["enabled"] = False
-    from sitl.scenario import _to_toml_like
+    from sitl.scenario import to_toml_like
     try:
-        return scenario_from_dict(_to_toml_like(d), scn.source + " + command line")
+        return scenario_from_dict(to_toml_like(d), scn.source + " + command line")
     except ScenarioError as e:
         raise UsageError(str(e).replace("scenario: bus.zenoh", "--zenoh").replace("scenario: mavlink.gcs", "--gcs")
                        ) from None
@@ -204,7 +204,7 @@ def launch(scn, out: Path, *, quiet: bool = False, stop: threading.Event | None 
     report: dict = {"mode": "live", "scenario": scn.to_dict(), "ok": False, "events": []}
     shutdown = {}
     try:
-        from sitl.bus._zconfig import ZenohConfigError
+        from sitl.bus.zconfig import ZenohConfigError
         from sitl.bus.router import Router, RouterError
         from sitl.bus.zenoh_transport import ZenohTransportError
         try:

@@ -1,7 +1,7 @@
 """The live launcher's network-fault wiring: proxies, the control board, the report.
 
 When a scenario has a [faults] table (even an empty one), `LiveFaults` starts, in the
-launcher, on one shared proxy thread (`sitl.netfault._proxyloop.ProxyLoop`):
+launcher, on one shared proxy thread (`sitl.netfault.proxyloop.ProxyLoop`):
 
 * per worker a `TcpProxy` between that worker's Zenoh session and the router: the worker's
   spec connects to the proxy (link ``zenoh:<worker>``: partitions, delay, rate);
@@ -199,7 +199,7 @@ class LiveFaults:
     """Everything the launcher runs for the network faults of one live run (module text)."""
 
     def __init__(self, scn, router_endpoints: list[str]):
-        from sitl.netfault._proxyloop import ProxyLoop
+        from sitl.netfault.proxyloop import ProxyLoop
         from sitl.netfault.control import FaultBoard
         self.scn = scn
         self.clock = RunClock(scn.run.speed)
@@ -328,8 +328,7 @@ class LiveFaults:
         self.loop.close()
 
 
-__all__ = ["ACK_SUFFIX", "CTL_SUFFIX", "ERROR_PREFIX", "LIST_LINK", "LiveFaults", "MavFront", "NoFaultBoard",
-           "RunClock", "ack_key", "add_fault_args", "control_key", "serve"]
+__all__ = ["LiveFaults", "MavFront", "RunClock", "add_fault_args"]
 
 
 def _canon(text) -> str:

@@ -28,7 +28,7 @@ from typing import Any
 
 import zenoh
 
-from ._zconfig import make_config, zenoh_error_text
+from .zconfig import make_config, zenoh_error_text
 
 log = logging.getLogger("sitl.bus.router")
 

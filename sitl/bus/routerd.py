@@ -16,7 +16,7 @@ import os
 import signal
 import sys
 
-from ._zconfig import ZenohConfigError
+from .zconfig import ZenohConfigError
 from .router import DEFAULT_LISTEN, Router, RouterError
 
 

@@ -108,7 +108,7 @@ from typing import Any
 
 import zenoh
 
-from ._zconfig import ZenohConfigError, make_config, zenoh_error_text
+from .zconfig import ZenohConfigError, make_config, zenoh_error_text
 from .codec import BusDecodeError, decode
 from .transport import (
     Callback,

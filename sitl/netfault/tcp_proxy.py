@@ -45,7 +45,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ._proxyloop import ProxyLoop, TimerHandle, truth_copy
+from .proxyloop import ProxyLoop, TimerHandle, truth_copy
 from .udp_proxy import as_rng, as_spec, parse_addr
 
 MODES = ("silent", "reset")
@@ -57,7 +57,7 @@ _R, _W = selectors.EVENT_READ, selectors.EVENT_WRITE
 _PACKET_ONLY = ("loss", "gemodel", "reorder", "gap", "duplicate", "corrupt")
 
 
-def _stream_spec(spec, name: str):
+def stream_spec(spec, name: str):
     """(spec for the timing model: no partitions, no queue limit; partition windows)."""
     fields = {f.name for f in dataclasses.fields(spec)}
     default = type(spec)()
@@ -148,7 +148,7 @@ class TcpProxy:
             raise ValueError(f"{name}: max_buffer: expected an int >= 1, got {max_buffer!r}")
         self.mode = mode
         self.max_buffer = max_buffer
-        timing, self._windows = _stream_spec(as_spec(spec), name)
+        timing, self._windows = stream_spec(as_spec(spec), name)
         from sitl.netfault import LinkFault
         r_up, r_down = as_rng(rng).spawn(2)
         self._lf_up = LinkFault(timing, rng=r_up, name=f"{name}:up", record=record)
@@ -191,7 +191,7 @@ class TcpProxy:
         its partitions are simulation-time windows. mode: change the partition mode too."""
         if mode is not None and mode not in MODES:
             raise ValueError(f"{self.name}: mode: expected one of {', '.join(MODES)}, got {mode!r}")
-        timing, windows = _stream_spec(as_spec(spec), self.name)
+        timing, windows = stream_spec(as_spec(spec), self.name)
 
         def apply():
             t = self.loop.now()

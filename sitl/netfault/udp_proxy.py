@@ -18,7 +18,7 @@ when its delivery time (simulation time) is due.
 
 Time: ``clock()`` gives simulation time (the launcher passes its Pacer's ``sim_now``), and a
 send due at simulation time t waits ``(t - clock()) / speed`` wall seconds. Many proxies
-share one thread with ``loop=ProxyLoop(clock, speed)`` (see `sitl.netfault._proxyloop`).
+share one thread with ``loop=ProxyLoop(clock, speed)`` (see `sitl.netfault.proxyloop`).
 
 The receiver-side tap (``tap=True``) parses each forwarded datagram as the receiver would
 (pymavlink, MAVLink 2 ardupilotmega dialect) and keeps, per (sysid, compid), the sequence
@@ -49,7 +49,7 @@ import numpy as np
 
 from sitl.bus.transport import SeqCounters, SequenceTracker
 
-from ._proxyloop import ProxyLoop, truth_copy
+from .proxyloop import ProxyLoop, truth_copy
 
 log = logging.getLogger("sitl.netfault.proxy")
 

@@ -137,12 +137,12 @@ from typing import NamedTuple
 
 import numpy as np
 
-from sitl.atmosphere_std import P0_PA, us76
 from sitl.constants import C_M_S, F_GPS_L1_HZ, WGS84
 from sitl.geodesy import ecef_to_aer, ecef_to_geodetic
 from sitl.gnss.orbits import Constellation
 from sitl.gnss.ranging import light_time_geometry
 from sitl.gnss.world import ephemeris_for_filter, look_angles
+from sitl.radio import relay_error_model
 from sitl.radio.radar import (
     MAX_RANGE_M,
     _in_schedule,
@@ -154,6 +154,7 @@ from sitl.radio.radar import (
     _time,
     _vec3,
 )
+from sitl.radio.relay_error_model import LN_P_TABLE, P_TABLE_H_M, pressure_ratio  # noqa: F401 (re-exported)
 
 __all__ = ["Relay", "RelayEpoch", "RelayErrorBudget", "RelayParams", "RelayTrack", "compact", "gauss_markov_step",
            "oscillator_discretisation"]
@@ -182,16 +183,6 @@ def oscillator_discretisation(gamma_1_s: float, sigma_w_rad_s: float, phase_psd_
 def _sqrt_psd(q: np.ndarray) -> np.ndarray:
     w, v = np.linalg.eigh(q)
     return v * np.sqrt(np.clip(w, 0.0, None))
-
-
-P_TABLE_H_M = np.arange(-500.0, 86_000.0 + 1.0, 50.0)
-LN_P_TABLE = np.log(us76(P_TABLE_H_M).pressure_pa / P0_PA)
-
-
-def pressure_ratio(h_m):
-    """p(h) / p0 of the US-76 atmosphere, tabulated every 50 m and interpolated in ln p (relative
-    error < 1e-5; ~100x faster than sitl.atmosphere_std.us76 on a few values)."""
-    return np.exp(np.interp(h_m, P_TABLE_H_M, LN_P_TABLE))
 
 
 def gauss_markov_step(u: np.ndarray, n: np.ndarray, dt_s: float, tau_s) -> np.ndarray:
@@ -234,33 +225,34 @@ class RelayErrorBudget:
         """(3,) correlation times of [SISRE, ionosphere, troposphere]."""
         return np.array([self.sisre_tau_s, self.iono_tau_s, self.tropo_tau_s])
 
+    @property
+    def iono_shell_ratio(self) -> float:
+        """R / (R + h_I): the thin shell's radius ratio of the obliquity factor."""
+        return WGS84.a_m / (WGS84.a_m + self.iono_shell_h_m)
+
     def iono_obliquity(self, el_rad):
         """Thin-shell obliquity factor F(el) = 1/sqrt(1 - (R cos el / (R + h_I))^2)."""
-        r = WGS84.a_m / (WGS84.a_m + self.iono_shell_h_m)
-        c = r * np.cos(np.clip(el_rad, 0.0, None))
-        return 1.0 / np.sqrt(1.0 - c * c)
+        return relay_error_model.iono_obliquity(self.iono_shell_ratio, el_rad)
 
     @staticmethod
     def tropo_mapping(el_rad):
         """m(el) = 1.001 / sqrt(0.002001 + sin^2 el) (RTCA DO-229)."""
-        s = np.sin(np.clip(el_rad, 0.0, None))
-        return 1.001 / np.sqrt(0.002001 + s * s)
+        return relay_error_model.tropo_mapping(el_rad)
 
     def slow_sigmas_m(self, glonass, el_rad, h_m) -> np.ndarray:
         """(..., 3) std of [SISRE, ionosphere, troposphere] for satellites seen at elevation
         el_rad (...) from a sonde at height h_m (broadcasting against el_rad); glonass (...)
         bool: the satellite is a GLONASS one."""
         el = np.asarray(el_rad, dtype=float)
-        p_ratio = pressure_ratio(h_m)
         sisre = np.where(glonass, self.sisre_glonass_m, self.sisre_gps_m) * np.ones_like(el)
-        iono = self.iono_zenith_m * self.iono_obliquity(el)
-        tropo = self.tropo_zenith_m * p_ratio * self.tropo_mapping(el)
+        iono = relay_error_model.iono_sigma_m(self.iono_zenith_m, self.iono_shell_ratio, el)
+        tropo = relay_error_model.tropo_sigma_m(self.tropo_zenith_m, pressure_ratio(h_m), el)
         return np.stack(np.broadcast_arrays(sisre, iono, tropo), axis=-1)
 
     def multipath_sigma_m(self, el_rad):
         """Airborne multipath std: a + b e^{-el / el0}."""
-        el_deg = np.degrees(np.clip(np.asarray(el_rad, dtype=float), 0.0, None))
-        return self.multipath_a_m + self.multipath_b_m * np.exp(-el_deg / self.multipath_el0_deg)
+        return relay_error_model.multipath_sigma_m(self.multipath_a_m, self.multipath_b_m, self.multipath_el0_deg,
+                                                   np.asarray(el_rad, dtype=float))
 
 
 @dataclass(frozen=True)

@@ -1,5 +1,5 @@
 """The integrity monitor wired into the system (issue 6): sitl/integrity_events.py, the UAV
-onboard navigation (vehicles/uav_nav.py) and the sonde tracker (ground_station/sonde_tracker.py).
+onboard navigation (vehicles/uav_nav.py) and the sonde tracker (ground_station/sonde/).
 
 * the events adapter: one event per channel and epoch at most, its kind from the Report's
   flags (a law over random Reports, hypothesis); a step on one channel of a linear model gives
@@ -335,7 +335,7 @@ def test_sonde_fault_free_monitored_fused_track_is_not_worse():
 def test_bad_integrity_options_name_the_field(kw, name):
     with pytest.raises(ValueError, match=name):
         E.SondeScenario(**kw)
-    from ground_station.sonde_tracker import SondeTrackerParams
+    from ground_station.sonde import SondeTrackerParams
     with pytest.raises(ValueError, match="integrity"):
         SondeTrackerParams(integrity={"jump_sigma": 3})
     with pytest.raises(ValueError, match="integrity"):

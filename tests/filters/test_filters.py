@@ -176,7 +176,7 @@ def test_reference_kf_equals_filterpy(lg_ref, lg_filterpy, kind):
     assert_close(xr[:, :FP_TRIALS], Pr[:, :FP_TRIALS], xf, Pf, 1e-9, "reference KF vs filterpy")
 
 
-LG_METHODS = ["ekf", "ekf_step", "ekf_batchedF", "ukf_seed001", "ukf_merwe", "ukf_seed001_sigma", "ukf_merwe_sigma"]
+LG_METHODS = ["ekf", "ekf_step", "ekf_batchedF", "ukf_julier", "ukf_merwe", "ukf_julier_sigma", "ukf_merwe_sigma"]
 
 
 def run_lg(method, d, kind, N, backend):
@@ -184,7 +184,7 @@ def run_lg(method, d, kind, N, backend):
     meas = models.LinearGaussian(d.H, d.R[kind])
     assert (meas.R_diag() is None) == (kind == "full")
     trans = (BatchedFTransition if method == "ekf_batchedF" else LinearTransition)(d.F, d.Q)
-    points = SigmaPoints.julier(n) if "seed001" in method else SigmaPoints(n, alpha=1.0, beta=2.0, kappa=0.0)
+    points = SigmaPoints.julier(n) if "julier" in method else SigmaPoints(n, alpha=1.0, beta=2.0, kappa=0.0)
     x, P = d.x0[:N].copy(), d.P0[:N].copy()
     xs, Ps = [], []
     for z in d.z[kind][:, :N]:
@@ -262,7 +262,7 @@ SEED_NOISE = dict(sigma_pr_m=100.0, sigma_prr_m_s=15.0)
 
 
 @pytest.fixture(scope="module")
-def seed001():
+def singer_clock():
     """300 trials x 50 steps of the seed 001 scenario: truth, measurements, satellite states."""
     scn = EkfVsUkfScenario(steps=SEED_STEPS, **SEED_NOISE)
     setup = Setup.make(scn)
@@ -315,9 +315,9 @@ def seed_batch_run(d, kind, backend, shape):
 
 
 @pytest.fixture(scope="module")
-def seed_batch(seed001):
+def seed_batch(singer_clock):
     """(kind, backend, shape) -> seed_batch_run (memoised: shared by several tests)."""
-    return functools.cache(lambda kind, backend, shape: seed_batch_run(seed001, kind, backend, shape))
+    return functools.cache(lambda kind, backend, shape: seed_batch_run(singer_clock, kind, backend, shape))
 
 
 # ============================================================================ 2. batch = loop of single runs
@@ -326,10 +326,10 @@ def seed_batch(seed001):
 @pytest.mark.slow
 @pytest.mark.parametrize("kind", ["ekf", "ukf"])
 @pytest.mark.parametrize("backend", BACKENDS)
-def test_batch_equals_loop_of_single_runs(seed001, seed_batch, backend, kind):
+def test_batch_equals_loop_of_single_runs(singer_clock, seed_batch, backend, kind):
     """300 trials x 30 steps batched equals a Python loop over the trials run one at a time,
     even trials with batch shape () and odd ones with batch shape (1,)."""
-    d = seed001
+    d = singer_clock
     xb, Pb, nisb = seed_batch(kind, backend, (SEED_TRIALS,))
     points = SigmaPoints.julier(N_STATE)
     errs = []  # per trial: relative error of x, P, nis
@@ -368,7 +368,7 @@ def test_multi_axis_batch_equals_flat(seed_batch, backend, kind):
 
 
 @pytest.mark.parametrize("kind", ["ekf", "ukf"])
-def test_numba_equals_numpy_seed001(seed_batch, kind):
+def test_numba_equals_numpy_singer_clock(seed_batch, kind):
     xa, Pa, na = seed_batch(kind, "numba", (SEED_TRIALS,))
     xb, Pb, nb_ = seed_batch(kind, "numpy", (SEED_TRIALS,))
     assert_close(xa, Pa, xb, Pb, 1e-9, f"{kind} numba vs numpy")
@@ -376,11 +376,11 @@ def test_numba_equals_numpy_seed001(seed_batch, kind):
 
 
 @pytest.mark.parametrize("N", [SEED_TRIALS, FP_TRIALS], ids=["parallel", "serial"])
-def test_numba_equals_numpy_kernels_seed001(seed001, seed_batch, N):
+def test_numba_equals_numpy_kernels_singer_clock(singer_clock, seed_batch, N):
     """Each kernel separately on seed 001 covariances (sparse Singer/clock F, 8 channels):
     cov_predict, joseph_update (diagonal and full R), predict_joseph_update, sigma_points,
     ut_moments, ukf_update."""
-    d = seed001
+    d = singer_clock
     rng = np.random.default_rng(3)
     xs, Ps, _ = seed_batch("ekf", "numpy", (SEED_TRIALS,))
     x, P = xs[-1][:N], Ps[-1][:N]
@@ -421,7 +421,7 @@ def test_numba_equals_numpy_kernels_seed001(seed001, seed_batch, N):
 # ============================================================================ 4. against filterpy on seed 001
 
 
-def _filterpy_seed001_ekf(d, steps, t=0):
+def _filterpy_singer_clock_ekf(d, steps, t=0):
     from filterpy.kalman import ExtendedKalmanFilter
 
     kf = ExtendedKalmanFilter(dim_x=N_STATE, dim_z=8)
@@ -441,7 +441,7 @@ def _filterpy_seed001_ekf(d, steps, t=0):
     return np.array(xs), np.array(Ps)
 
 
-def _filterpy_seed001_ukf(d, steps, t=0):
+def _filterpy_singer_clock_ukf(d, steps, t=0):
     from filterpy.kalman import MerweScaledSigmaPoints, UnscentedKalmanFilter
 
     points = MerweScaledSigmaPoints(N_STATE, alpha=1.0, beta=0.0, kappa=-8.0)  # = SigmaPoints.julier(11)
@@ -467,7 +467,7 @@ def _filterpy_seed001_ukf(d, steps, t=0):
     return np.array(xs), np.array(Ps)
 
 
-def _skyfuse_seed001_single(d, kind, steps, backend, t=0):
+def _skyfuse_singer_clock_single(d, kind, steps, backend, t=0):
     x, P = d.x0.copy(), d.P0.copy()
     xs, Ps = [], []
     for k in range(steps):
@@ -479,16 +479,16 @@ def _skyfuse_seed001_single(d, kind, steps, backend, t=0):
 
 
 @pytest.mark.parametrize("backend", BACKENDS)
-def test_ekf_equals_filterpy_ekf_seed001(seed001, backend):
-    xs, Ps = _skyfuse_seed001_single(seed001, "ekf", SEED_STEPS, backend)
-    xf, Pf = _filterpy_seed001_ekf(seed001, SEED_STEPS)
+def test_ekf_equals_filterpy_ekf_singer_clock(singer_clock, backend):
+    xs, Ps = _skyfuse_singer_clock_single(singer_clock, "ekf", SEED_STEPS, backend)
+    xf, Pf = _filterpy_singer_clock_ekf(singer_clock, SEED_STEPS)
     assert_close(xs, Ps, xf, Pf, 1e-8, f"EKF ({backend}) vs filterpy ExtendedKalmanFilter")
 
 
 @pytest.mark.parametrize("backend", BACKENDS)
-def test_ukf_equals_filterpy_ukf_seed001(seed001, backend):
-    xs, Ps = _skyfuse_seed001_single(seed001, "ukf", SEED_STEPS, backend)
-    xf, Pf = _filterpy_seed001_ukf(seed001, SEED_STEPS)
+def test_ukf_equals_filterpy_ukf_julier(singer_clock, backend):
+    xs, Ps = _skyfuse_singer_clock_single(singer_clock, "ukf", SEED_STEPS, backend)
+    xf, Pf = _filterpy_singer_clock_ukf(singer_clock, SEED_STEPS)
     assert_close(xs, Ps, xf, Pf, 1e-8, f"UKF ({backend}) vs filterpy UnscentedKalmanFilter")
 
 
@@ -559,7 +559,7 @@ class RangeBearing(models.Measurement):
 
 
 @pytest.mark.parametrize("backend", BACKENDS)
-@pytest.mark.parametrize("params", [(0.5, 2.0, 1.0), (1.0, 0.0, -1.0)], ids=["a0.5_b2_k1", "seed001"])
+@pytest.mark.parametrize("params", [(0.5, 2.0, 1.0), (1.0, 0.0, -1.0)], ids=["a0.5_b2_k1", "julier"])
 def test_nonlinear_model_equals_filterpy(backend, params):
     """A strongly nonlinear f and h (state-dependent turn, range/bearing), 5 trials x 10 steps,
     batched: UKF (sigma-point prediction through f; beta != 0 makes Wc_0 != Wm_0 matter) against
@@ -707,7 +707,7 @@ def test_consistency_fails_on_mismatched_model(consistency_mismatched, kind):
 @settings(max_examples=40, deadline=None, derandomize=True, suppress_health_check=[HealthCheck.too_slow])
 @given(seed=st.integers(0, 2**32 - 1), steps=st.integers(1, 10), filt=st.sampled_from(["ekf", "ukf"]),
        full_R=st.booleans(), predict=st.booleans(),
-       points=st.sampled_from(["seed001", "merwe", "default"]))
+       points=st.sampled_from(["julier", "merwe", "default"]))
 def test_covariance_stays_symmetric_positive_definite(backend, seed, steps, filt, full_R, predict, points):
     rng = np.random.default_rng(seed)
     n = int(rng.integers(2, 12))
@@ -715,7 +715,7 @@ def test_covariance_stays_symmetric_positive_definite(backend, seed, steps, filt
     N = int(rng.integers(1, 5))
     x = rng.standard_normal((N, n)) * 10.0
     P = random_spd(rng, n, (N,), lo=0.1, hi=100.0)
-    sp = {"seed001": SigmaPoints.julier(n), "merwe": SigmaPoints(n, 1.0, 2.0, 0.0), "default": SigmaPoints(n)}[points]
+    sp = {"julier": SigmaPoints.julier(n), "merwe": SigmaPoints(n, 1.0, 2.0, 0.0), "default": SigmaPoints(n)}[points]
     for _ in range(steps):
         if predict:
             trans = LinearTransition(np.eye(n) + 0.3 * rng.standard_normal((n, n)) / math.sqrt(n),
@@ -774,8 +774,8 @@ def _assert_meas_close(a, b, rtol=1e-12, core=1):
     assert not bad.any(), f"max entrywise relative difference {np.max(err / np.where(scale > 0, scale, 1)):.3g}"
 
 
-def test_compiled_pseudorange_doppler_equals_numpy(seed001):
-    d = seed001
+def test_compiled_pseudorange_doppler_equals_numpy(singer_clock):
+    d = singer_clock
     k = 10
     N = SEED_TRIALS
     rng = np.random.default_rng(4)

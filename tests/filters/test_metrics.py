@@ -118,7 +118,7 @@ def test_pcrb_of_a_linear_gaussian_model_is_the_kalman_covariance(first_meas_at_
     np.testing.assert_allclose(B4, P, rtol=1e-9, atol=1e-12)
 
 
-def seed001_geometry(rng, steps, n_mc, n_sats, dt=0.01):
+def singer_clock_geometry(rng, steps, n_mc, n_sats, dt=0.01):
     """True states on a straight accelerating path under fixed satellites, Jacobians H."""
     r_e = 6.371e6
     sat_dir = rng.normal(size=(n_sats, 3)) + np.array([3.0, 0.0, 0.0])
@@ -134,12 +134,12 @@ def seed001_geometry(rng, steps, n_mc, n_sats, dt=0.01):
     return sp, sv, xs
 
 
-def test_pcrb_seed001_deterministic_geometry_matches_riccati_despite_singular_q():
+def test_pcrb_singer_clock_deterministic_geometry_matches_riccati_despite_singular_q():
     # seed 001 model: Q is singular (paper clock) and badly scaled (T = 0.01)
     rng = np.random.default_rng(11)
     m = singer_clock_transition()
     dt, steps = 0.01, 200
-    sp, sv, xs = seed001_geometry(rng, steps, 1, 4)
+    sp, sv, xs = singer_clock_geometry(rng, steps, 1, 4)
     Hs = PseudorangeDoppler(sp, sv, 10.0, np.sqrt(15.0)).H(xs[:, 0])
     R = np.diag([100.0] * 4 + [15.0] * 4)
     P0 = np.diag([50.0**2] * 3 + [1e4] + [10.0**2] * 3 + [9.0] + [5.0**2] * 3)
@@ -162,7 +162,7 @@ def test_pcrb_with_more_measurements_is_smaller():
     rng = np.random.default_rng(3)
     m = singer_clock_transition()
     dt, steps, n_mc = 0.01, 100, 500
-    sp, sv, xs = seed001_geometry(rng, steps, n_mc, 6)
+    sp, sv, xs = singer_clock_geometry(rng, steps, n_mc, 6)
     H6 = PseudorangeDoppler(sp, sv, 10.0, np.sqrt(15.0)).H(xs)  # (steps, n_mc, 12, 11)
     R6 = np.diag([100.0] * 6 + [15.0] * 6)
     keep = [0, 1, 2, 3, 6, 7, 8, 9]  # satellites 1-4 only

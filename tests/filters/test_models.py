@@ -205,7 +205,7 @@ def test_clock_drift_variance_is_stationary(exact):
     assert (F @ P @ F.T + Q)[1, 1] == pytest.approx(9.0, rel=1e-14)
 
 
-def test_clock_random_walk_seed000():
+def test_clock_random_walk_iono_tropo():
     N, T, c = 0.8e-20, 0.1, 299_792_458.0
     m = ClockRandomWalk(N)
     np.testing.assert_allclose(m.Q(T), c**2 * N * np.array([[T**3 / 3, T**2 / 2], [T**2 / 2, T]]),
@@ -218,7 +218,7 @@ def test_clock_random_walk_seed000():
 # ----------------------------------------------------------------------------- Composite
 
 
-def test_seed001_blocks_land_at_the_seed_indices():
+def test_singer_clock_blocks_land_at_the_seed_indices():
     alpha, sa, mu, sd, T = 0.2, 5.0, 0.1, 3.0, 0.01
     m = singer_clock_transition(alpha, sa, mu, sd)
     assert m.ndim == SINGER_CLOCK_N == 11 and m.linear

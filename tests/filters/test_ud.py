@@ -201,7 +201,7 @@ SEED_TRIALS, SEED_STEPS = 40, 30
 
 
 @pytest.fixture(scope="module")
-def seed001():
+def singer_clock():
     """40 trials x 30 steps of the seed 001 scenario (11 states, 4 satellites, m = 8)."""
     from sitl.app.experiments.ekf_vs_ukf import EkfVsUkfScenario, Setup
 
@@ -223,7 +223,7 @@ def seed_meas(d, k, shape=(SEED_TRIALS,)):
                                      d["scn"].sigma_pr_m, d["scn"].sigma_prr_m_s)
 
 
-def run_ud_seed001(d, backend, shape=(SEED_TRIALS,), steps=SEED_STEPS):
+def run_ud_singer_clock(d, backend, shape=(SEED_TRIALS,), steps=SEED_STEPS):
     """A U-D run on batch shape `shape`; returns per-step (x, P, nis) with a flat trial axis."""
     n = models.SINGER_CLOCK_N
     x = np.broadcast_to(d["x0"], shape + (n,)).copy()
@@ -241,11 +241,11 @@ def run_ud_seed001(d, backend, shape=(SEED_TRIALS,), steps=SEED_STEPS):
 
 
 @pytest.mark.parametrize("backend", BACKENDS)
-def test_seed001_equals_joseph_ekf(seed001, backend):
+def test_singer_clock_equals_joseph_ekf(singer_clock, backend):
     """40 trials x 30 steps on the nonlinear pseudorange/Doppler model: U-D (ud_step)
     equals the Joseph EKF (ekf_step, numpy) to 1e-8 at every step, NIS included."""
-    d = seed001
-    xs, Ps, nis = run_ud_seed001(d, backend)
+    d = singer_clock
+    xs, Ps, nis = run_ud_singer_clock(d, backend)
     n = models.SINGER_CLOCK_N
     x = np.broadcast_to(d["x0"], (SEED_TRIALS, n)).copy()
     P = np.broadcast_to(d["P0"], (SEED_TRIALS, n, n)).copy()
@@ -256,27 +256,27 @@ def test_seed001_equals_joseph_ekf(seed001, backend):
         np.testing.assert_allclose(nis[k], e.nis, rtol=1e-8)
 
 
-def test_seed001_batch_equals_loop_and_multi_axis(seed001):
+def test_singer_clock_batch_equals_loop_and_multi_axis(singer_clock):
     """The batched U-D run (numpy and numba) equals a loop of single runs (batch shape ())
     over the trials, and a (5, 8) batch equals the flat (40,) one. The tolerance is the
     rounding of h: a flat batch takes PseudorangeDoppler's compiled h, the others its
     numpy h, and a few ulp of a 2e7 m pseudorange are ~1e-9 of the clock bias's sd."""
-    d = seed001
+    d = singer_clock
     steps = 10
     for backend in BACKENDS:
-        xb, Pb, nisb = run_ud_seed001(d, backend, steps=steps)
-        xm, Pm, nism = run_ud_seed001(d, backend, shape=(5, 8), steps=steps)
+        xb, Pb, nisb = run_ud_singer_clock(d, backend, steps=steps)
+        xm, Pm, nism = run_ud_singer_clock(d, backend, shape=(5, 8), steps=steps)
         assert_close(xm, Pm, xb, Pb, 1e-9, f"(5, 8) vs flat, {backend}")
         for t in (0, 17, SEED_TRIALS - 1):
             one = dict(d, z=d["z"][:, t], sp=d["sp"][:, t], sv=d["sv"][:, t])
-            xs, Ps, nis = run_ud_seed001(one, backend, shape=(), steps=steps)
+            xs, Ps, nis = run_ud_singer_clock(one, backend, shape=(), steps=steps)
             assert_close(xs[:, 0], Ps[:, 0], xb[:, t], Pb[:, t], 1e-9, f"trial {t}, {backend}")
             np.testing.assert_allclose(nis[:, 0], nisb[:, t], rtol=1e-9)
 
 
-def test_numba_equals_numpy_kernels(seed001):
+def test_numba_equals_numpy_kernels(singer_clock):
     """The compiled MWGS and Bierman kernels give the numpy kernels' U and d to rounding."""
-    d = seed001
+    d = singer_clock
     n = models.SINGER_CLOCK_N
     rng = np.random.default_rng(9)
     x = d["x0"] + rng.standard_normal((SEED_TRIALS, n))

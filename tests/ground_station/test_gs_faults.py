@@ -19,7 +19,7 @@ from tests.ground_station.test_sonde_tracker import (
 )
 
 from ground_station.beacon import BeaconLocator, LocatorConfig
-from ground_station.sonde_tracker import SondeTracker, SondeTrackerParams
+from ground_station.sonde import SondeTracker, SondeTrackerParams
 from sitl.bus import InMemoryTransport
 from sitl.netfault import KeyFaults
 

@@ -18,7 +18,7 @@ import numpy as np
 import pytest
 from scipy.stats import chi2
 
-from ground_station.sonde_tracker import SondeTracker, SondeTrackerParams
+from ground_station.sonde import SondeTracker, SondeTrackerParams
 from sitl.bus import SondeRelay
 from sitl.app.experiments import sonde as E
 from sitl.geodesy import ecef_to_geodetic, enu_rotation

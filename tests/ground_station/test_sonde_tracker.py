@@ -1,4 +1,4 @@
-"""Seed 004 sonde tracker (ground_station.sonde_tracker) and `skyfuse experiment sonde`.
+"""Seed 004 sonde tracker (ground_station.sonde) and `skyfuse experiment sonde`.
 
 Consistency (NEES in chi-square bounds, and the naive white radar noise failing them),
 fused against each single source, rejection of bad bus payloads, range-only updates,
@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 
 from filters.metrics import chi2_bounds, nees
-from ground_station.sonde_tracker import (
+from ground_station.sonde import (
     SondeMeasurement,
     SondeTracker,
     SondeTrackerParams,

@@ -193,8 +193,8 @@ def test_faults_section_parsed_in_order_and_validated_with_the_netfault_parser()
     # an empty table is "faults on, none yet": the launcher starts the proxies
     empty = parse_scenario("[faults]\n")
     assert empty.faults.enabled and empty.faults.links == ()
-    from sitl.scenario import _to_toml_like
-    assert scenario_from_dict(_to_toml_like(empty.to_dict())).faults.enabled
+    from sitl.scenario import to_toml_like
+    assert scenario_from_dict(to_toml_like(empty.to_dict())).faults.enabled
 
 
 @pytest.mark.parametrize("line, key, expected", BAD_FAULTS, ids=[b[0][:24] for b in BAD_FAULTS])

@@ -21,7 +21,6 @@ import math
 
 import numpy as np
 import pytest
-import scipy.stats
 from scipy.integrate import solve_ivp
 
 from filters import metrics

@@ -70,7 +70,7 @@ def _no_bus(scn, seed: int, chunk: int = 300) -> tuple[float, float, int]:
     from sitl.bus import RadarMeasurement, SondeRelay
     from sitl.app.experiments.sonde import RADAR_ID, RUN_ID, tracker_params, world
 
-    from ground_station.sonde_tracker import SondeTracker
+    from ground_station.sonde import SondeTracker
     w0 = time.perf_counter()
     _, _, _, _, track, radar, relay = world(scn, seed, [0])
     tr = SondeTracker(RUN_ID, tracker_params(scn, "fused"), radar_id=RADAR_ID)

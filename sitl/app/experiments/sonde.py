@@ -4,7 +4,7 @@ aerological radar, against each source alone, in batch mode over the in-memory b
 The world (vehicles.sonde.SondeFlight, sitl.radio.radar.Radar, sitl.radio.relay.Relay)
 publishes, per sonde and epoch, a `Truth`, a `SondeRelay` (empty during a GNSS outage or
 out of range) and a `RadarMeasurement` (when the radar has a valid range) through an
-`InMemoryTransport`; three `ground_station.sonde_tracker.SondeTracker`s (fused,
+`InMemoryTransport`; three `ground_station.sonde.SondeTracker`s (fused,
 radar_only, relay_only) subscribe, and by default two more with the naive white radar-noise
 treatment (fused_white, radar_only_white) for the consistency comparison. Each epoch:
 publish, ``drain(t)``, ``tracker.step(t)`` (which publishes the Estimates), ``drain(t)``.
@@ -251,7 +251,7 @@ def wind_shear_statistics(sp) -> tuple:
 
 def tracker_params(scn: SondeScenario, label: str, backend=None):
     """The trackers' model: the world models' parameters (not their states)."""
-    from ground_station.sonde_tracker import SondeTrackerParams
+    from ground_station.sonde import SondeTrackerParams
     from sitl.radio.radar import RadarParams
     from sitl.radio.relay import RelayParams
 
@@ -273,6 +273,7 @@ def tracker_params(scn: SondeScenario, label: str, backend=None):
         kinematics=scn.kinematics, velocity_relax_rate_horizontal_1_s=sp.p1_1_s,
         velocity_relax_rate_vertical_1_s=sp.vertical_relax_rate_1_s, wind_shear_sigma_horizontal_1_s=g_h,
         wind_shear_sigma_vertical_1_s=g_v, wind_shear_corr_height_m=g_len, descent_rate_sl_m_s=sp.descent_rate_sl_m_s,
+        burst_alt_range_m=tuple(sp.burst_alt_range_m),
         accel_rate_1_s=beta, sigma_acc_horizontal_m_s2=s_h, sigma_acc_vertical_m_s2=s_v, osc_gamma_1_s=gp.osc_gamma_1_s,
         osc_sigma_m_s=2.0 * math.pi * gp.osc_sigma_hz * gp.osc_doppler_scale_m_s_per_rad_s,
         radar_sigma=tuple(rp.sigma), radar_gamma_1_s=tuple(rp.gamma_1_s), label=label,
@@ -375,7 +376,7 @@ def run_trials(scn: SondeScenario, seed: int, trials, *, backend=None, progress=
     """
     # the world and the ground station are imported here, not at module import: sitl must
     # not import vehicles or ground_station when it is itself imported
-    from ground_station.sonde_tracker import SondeTracker
+    from ground_station.sonde import SondeTracker
     from sitl.bus import InMemoryTransport, RadarMeasurement, SondeRelay, Truth
     from sitl.geodesy import geodetic_to_ecef
 

@@ -22,7 +22,7 @@ from scipy import integrate
 from scipy.stats import chi2
 
 from filters.metrics import nees
-from ground_station.sonde_tracker import SondeTracker, SondeTrackerParams, layout_for, relaxed_axis_discretisation
+from ground_station.sonde import SondeTracker, SondeTrackerParams, layout_for, relaxed_axis_discretisation
 from sitl.bus import SondeRelay
 from sitl.app.cli import main
 from sitl.app.experiments import sonde as E
@@ -135,9 +135,9 @@ def test_wind_shear_statistics_of_profiles_match_the_integrals():
     # the target vertical speed has no residual shear: the descent law is the tracker's input, the
     # world's own (vehicles.sonde.descent_speed_m_s; ground_station has its own copy of it)
     assert v_rms == 0.0
-    from ground_station.sonde_tracker import _descent_speed
+    from ground_station.sonde import descent_speed as tracker_descent_speed
     hh = np.linspace(0.0, top, 2001)
-    np.testing.assert_allclose(_descent_speed(hh, sp.descent_rate_sl_m_s), descent_speed_m_s(hh, sp.descent_rate_sl_m_s),
+    np.testing.assert_allclose(tracker_descent_speed(hh, sp.descent_rate_sl_m_s), descent_speed_m_s(hh, sp.descent_rate_sl_m_s),
                                rtol=1e-6)
     const = SondeParams(wind_alt_m=alt, wind_speed_m_s=(10.0, 10.0), wind_from_rad=math.radians(270.0))
     assert E.wind_shear_statistics(const)[0] == 0.0

@@ -5,7 +5,6 @@ import inspect
 
 import numpy as np
 import pytest
-from scipy import stats
 
 from sitl.constants import C_M_S, F_GPS_L1_HZ, WGS84, glonass_l1_hz
 from sitl.geodesy import ecef_to_aer, geocentric_elevation_rad, geodetic_to_ecef

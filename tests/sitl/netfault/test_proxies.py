@@ -15,11 +15,11 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
-from sitl.bus._zconfig import make_config
+from sitl.bus.zconfig import make_config
 from sitl.bus.router import Router
 from sitl.pacing import Pacer
 from sitl.netfault import FaultSpecError, LinkFault
-from sitl.netfault._proxyloop import ProxyLoop
+from sitl.netfault.proxyloop import ProxyLoop
 from sitl.netfault.tcp_proxy import TcpProxy
 from sitl.netfault.udp_proxy import UdpProxy, parse_addr
 from tests.procs import tcp_free, udp_free

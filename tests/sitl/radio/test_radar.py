@@ -5,7 +5,6 @@ import math
 
 import numpy as np
 import pytest
-from scipy import stats
 
 from sitl.geodesy import ecef_to_aer, enu_to_ecef, geodetic_to_ecef
 from sitl.radio.radar import (
