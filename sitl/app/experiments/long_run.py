@@ -1,4 +1,4 @@
-"""`skyfuse experiment long-run`: do the live SITL's estimates stay right over hours? (issue 19)
+"""`skyfuse experiment long-run`: do the live SITL's estimates stay right over hours?
 
 What runs: the built-in default scenario (sitl/scenario.py) exactly as ``skyfuse demo --batch``
 runs it (sitl/app/batch.py's run_batch: vehicles.process.VehicleGroup and
@@ -99,7 +99,7 @@ SETTLE_S = 100.0  # as experiment beacon: the first 100 s (the blind start's acq
 BOUND_FACTOR = 2.0  # a window passes if its RMSE is within this factor of sqrt(PCRB)
 BAND_P = 0.99
 FIGURE = "long_run.png"
-#: the old default's [uavs] pattern and [beacon] (before issue 19): --geometry north
+#: the old default's [uavs] pattern and [beacon] (the first live releases): --geometry north
 NORTH_OVERRIDES = {"uavs": {"pattern": "north"}, "beacon": {"mode": "legs", "start": (45.15, 30.15, 300.0)}}
 
 
@@ -118,7 +118,7 @@ def scenario_for(geometry: str = "default", duration_s: float = 21600.0, seed: i
 
 def _locator_config(node, locator: str):
     """The LocatorConfig of a variant: "live" the ground station's own, "inflate" the same with
-    observer_uncertainty "inflate" (the ground station's locator before issue 19)."""
+    observer_uncertainty "inflate" (the ground station's locator of the first live releases)."""
     if locator not in LOCATORS:
         raise ValueError(f"locator must be one of {LOCATORS}, got {locator!r}")
     cfg = node.locator.config

@@ -27,7 +27,7 @@ model's kinematics (``kinematics="relaxed"``: the velocity relaxes with p1, k_v 
 wind the tracker estimates, driven by the gust a_g of eq 20 with rate p1 + p2 and std sigma_a; the
 wind changing at the shear x the vertical speed, the shear Gauss-Markov in height with the std and
 correlation height of ``wind_shear_statistics``, the wind profile between launch and burst), or ``kinematics="singer"`` (eq 20 as printed, the model
-before issue 19: Singer with the rate p1 + p2 and the stationary acceleration std of the sonde
+before the relaxed model: Singer with the rate p1 + p2 and the stationary acceleration std of the sonde
 model, sigma_a sqrt((p1 + p2) / (2 p1 + p2))), the relay's oscillator, the radar's AR(1) errors. ``filter="auto"``: the EKF, and the UKF for a sonde-epoch whose position
 uncertainty is large against its distance to the radar (the radar-only track's range-only
 coast after launch).
@@ -48,7 +48,7 @@ slant range <= 250 km: beyond, neither source measures and every mode coasts ali
   * ``continuity``: the fused track has an estimate at every epoch of every trial (from its
     first one), and its largest gap;
   * ``seed_study`` (``--seeds N``): trial 0 of N seeds (each the flight of ``--seed S --trials 1``),
-    fused / relay-only / radar-only RMSE per seed overall and in each episode, against issue 19's
+    fused / relay-only / radar-only RMSE per seed overall and in each episode, against the live-robustness
     targets (fused below relay-only in >= 95 % of the seeds and never above 1.5x it; in each outage
     no worse on average than the source left); ``acquire_s`` starts the trackers in flight (the
     suite's short variant picks the sonde up 300 s before the GNSS outage);
@@ -119,7 +119,7 @@ class SondeScenario:
     # the trackers' sonde kinematics (SondeTrackerParams.kinematics): "relaxed" (the sonde model's
     # structure: the velocity relaxes to a wind the tracker estimates) or "singer" (eq 20 as printed)
     kinematics: str = "relaxed"
-    # the integrity monitor (issue 6): "off"; "on" (every tracker monitored); "compare" (the three main
+    # the integrity monitor: "off"; "on" (every tracker monitored); "compare" (the three main
     # trackers plain, and each again with the monitor, "<mode>_monitored", on the same messages)
     integrity: str = "off"
     # measurement faults (sitl.measfault, world side; times since launch): a clock step on one relayed
@@ -363,7 +363,7 @@ def run_trials(scn: SondeScenario, seed: int, trials, *, backend=None, progress=
     the three main ones). Returns the raw arrays (truth, estimates per mode, ground range,
     times) and timings.
 
-    bus_faults (issue 8): network faults on the MEASUREMENT links only (MEASUREMENT_KEYS: the
+    bus_faults: network faults on the MEASUREMENT links only (MEASUREMENT_KEYS: the
     relayed GNSS and the radar measurements), never the truth or the trackers' estimates: a
     list of FaultFilters (``sitl.netfault.KeyFaults``, ``LinkFault``) and/or KeyFaults rules
     ``(key_expr, spec)`` seeded with ``fault_seed`` (default: from ``seed``); times in the specs
