@@ -89,9 +89,12 @@ def test_kill_9_of_the_vehicle_worker_restart_recovery_and_exact_replay(tmp_path
               f"restart (never killed: {never_killed:.2f} m)")
         assert after <= 2.0 * max(before, never_killed), (kind, before, after, never_killed)
 
-    # the bus log replays to exactly the live estimates
+    # the bus log replays to exactly the live estimates; the GS published an estimate at (nearly) every
+    # second its inputs existed: all but the silence between the kill and the restart's first message
+    # (which is longer on a loaded machine) and the ~10 s the estimators take to be published again
     rep = replay(tmp_path / "bus.log", scn)
+    expected = scn.run.duration_s - (first_new - last_old) - 10.0
     for kind in ("beacon", "sonde"):
         c = rep["vs_live"][kind]
-        assert c["matched"] == c["recorded"] > 100, c
+        assert c["matched"] == c["recorded"] >= min(100.0, expected) > 60.0, (c, expected)
         assert c["max_pos_diff_m"] == 0.0, c
