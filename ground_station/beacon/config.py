@@ -11,6 +11,7 @@ import scipy.stats
 from filters import kernels
 from filters.beacon import OBSERVER_UNCERTAINTY
 from filters.integrity import IntegrityConfig
+from sitl.scenario import GroundStationSection
 
 __all__ = ["LocatorConfig", "MOTIONS", "INITS", "INTEGRITY"]
 
@@ -131,7 +132,7 @@ class LocatorConfig:
     integrity_max_links: int = 32
     integrity_common_fraction: float = 0.5
     integrity_min_links: int = 3
-    lag_window_s: float = 5.0
+    lag_window_s: float = GroundStationSection.lag_window_s  # the scenario's declared default
 
     def __post_init__(self):
         if self.integrity is not None and not isinstance(self.integrity, IntegrityConfig):

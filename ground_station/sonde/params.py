@@ -15,6 +15,7 @@ from sitl.atmosphere_std import Z_MAX_M
 from sitl.bus import is_valid_id
 from sitl.radio.radar import RadarParams
 from sitl.radio.relay import RelayErrorBudget, RelayParams
+from sitl.scenario import GroundStationSection
 
 __all__ = ["KINEMATICS", "MODES", "RADAR_NOISE", "Layout", "SondeTrackerParams", "layout_for"]
 
@@ -112,7 +113,7 @@ class SondeTrackerParams:
     integrity_sat_channels: int = 48  # relayed-satellite channels of the monitor (>= satellites seen in its memory)
     integrity_warmup_s: float = 10.0  # a track is not judged this long after its (re)initialisation or a manoeuvre
     integrity_common_fraction: float = 0.25  # jumps on more than this fraction of a sonde's rows: a manoeuvre
-    lag_window_s: float = 5.0  # out-of-sequence messages this old are used by re-processing (0: dropped as stale)
+    lag_window_s: float = GroundStationSection.lag_window_s  # out-of-sequence messages this old are used by re-processing (0: dropped as stale)
 
     def __post_init__(self):
         if self.mode not in MODES:
