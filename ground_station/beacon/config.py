@@ -2,7 +2,6 @@
 from __future__ import annotations
 
 import functools
-import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -11,6 +10,8 @@ import scipy.stats
 from filters import kernels
 from filters.beacon import OBSERVER_UNCERTAINTY
 from filters.integrity import IntegrityConfig
+from sitl.checks import nonnegative as _nonneg
+from sitl.checks import positive as _pos
 from sitl.scenario import GroundStationSection
 
 __all__ = ["LocatorConfig", "MOTIONS", "INITS", "INTEGRITY"]
@@ -26,20 +27,6 @@ INITS = ("multilateration", "prior")
 @functools.lru_cache(maxsize=64)
 def _chi2_isf(p: float, dof: int) -> float:
     return float(scipy.stats.chi2.isf(p, dof))
-
-
-def _pos(name, v):
-    v = float(v)
-    if not (math.isfinite(v) and v > 0):
-        raise ValueError(f"{name} must be a finite number > 0, got {v!r}")
-    return v
-
-
-def _nonneg(name, v):
-    v = float(v)
-    if not (math.isfinite(v) and v >= 0):
-        raise ValueError(f"{name} must be a finite number >= 0, got {v!r}")
-    return v
 
 
 @dataclass(frozen=True)
