@@ -203,6 +203,16 @@ def switch() -> Check:
     return Check(test, cli={"action": "store_true"})
 
 
+
+def quiet_option():
+    """The ``--quiet`` switch of every long command (a fresh field per options class)."""
+    return param(False, check=switch(), doc="no progress lines")
+
+
+def backend_option(doc: str = "covariance kernels: compiled (numba) or plain numpy"):
+    """The ``--backend auto|numba|numpy`` choice of the compiled commands (a fresh field per class)."""
+    return param("auto", check=choice("auto", "numba", "numpy"), doc=doc)
+
 def string() -> Check:
     """Any string."""
     def test(v):

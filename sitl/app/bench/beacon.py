@@ -31,7 +31,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from sitl.app.args import OUTPUT_FILE
-from sitl.params import add_flags, choice, integer, number, optional, param, switch, validate
+from sitl.params import add_flags, choice, integer, number, optional, param, quiet_option, validate
 
 # numpy and the components are imported inside the functions: the CLI imports this module
 # to build its parser (add_args), and `skyfuse --help` must stay instant
@@ -51,7 +51,7 @@ class BeaconBenchOptions:
     rounds: int = param(3, check=integer(lo=1), doc="interleaved rounds, minimum taken")
     seed: int = param(1, check=integer(lo=0), doc="seed of the numpy Generators")
     json: Path | None = param(None, check=optional(OUTPUT_FILE), metavar="FILE", doc="also write the result as JSON")
-    quiet: bool = param(False, check=switch(), doc="no progress lines")
+    quiet: bool = quiet_option()
 
     __post_init__ = validate
 

@@ -40,7 +40,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from sitl.app.args import OUTPUT_FILE
-from sitl.params import add_flags, choice, integer, optional, param, switch, validate
+from sitl.params import add_flags, choice, integer, optional, param, quiet_option, validate
 
 
 @dataclass(frozen=True)
@@ -54,7 +54,7 @@ class IntegrityBenchOptions:
     seed: int = param(0, check=integer(lo=0), doc="random seed")
     backend: str = param("numba", check=choice("numba", "numpy"), doc="filter kernels")
     json: Path | None = param(None, check=optional(OUTPUT_FILE), metavar="FILE", doc="also write the result as JSON")
-    quiet: bool = param(False, check=switch(), doc="no progress lines")
+    quiet: bool = quiet_option()
 
     __post_init__ = validate
 

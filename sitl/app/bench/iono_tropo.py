@@ -25,7 +25,7 @@ from pathlib import Path
 import numpy as np
 
 from sitl.app.args import OUTPUT_FILE
-from sitl.params import add_flags, choice, integer, number, optional, param, switch, validate
+from sitl.params import add_flags, choice, integer, number, optional, param, quiet_option, validate
 
 BENCH_MASK_DEG = 17.0  # 12 satellites in view all along the default 1200 s trajectory
 
@@ -118,7 +118,7 @@ class IonoTropoBenchOptions:
     backend: str = param("numba", check=choice("numba", "numpy"), doc="main kernels (numba: also times numpy as the peer)")
     adaptive_q: str = param("dynamic", check=choice("off", "all", "dynamic"), doc="eq 7 scope, as in experiment iono-tropo")
     json: Path | None = param(None, check=optional(OUTPUT_FILE), metavar="FILE", doc="also write the result as JSON")
-    quiet: bool = param(False, check=switch(), doc="no progress lines")
+    quiet: bool = quiet_option()
 
     __post_init__ = validate
 

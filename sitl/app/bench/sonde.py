@@ -29,7 +29,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from sitl.app.args import OUTPUT_FILE
-from sitl.params import add_flags, integer, number, optional, param, switch, validate
+from sitl.params import add_flags, integer, number, optional, param, quiet_option, switch, validate
 
 TARGET_S = 10.0
 
@@ -44,7 +44,7 @@ class SondeBenchOptions:
     seed: int = param(4, check=integer(lo=0), doc="random seed", note=", as the experiment")
     no_trio: bool = param(False, check=switch(), doc="skip the three-tracker case")
     json: Path | None = param(None, check=optional(OUTPUT_FILE), metavar="FILE", doc="also write the result as JSON")
-    quiet: bool = param(False, check=switch(), doc="no progress lines")
+    quiet: bool = quiet_option()
 
     __post_init__ = validate
 

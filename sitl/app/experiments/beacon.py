@@ -75,7 +75,7 @@ from pathlib import Path
 import numpy as np
 
 from sitl.app.args import OUTPUT_DIR
-from sitl.params import add_flags, choice, default_of, from_text, integer, number, param, switch, validate
+from sitl.params import add_flags, choice, default_of, from_text, integer, number, param, quiet_option, validate
 from sitl.app.experiments.common import (measurement_faults, prepare_out, progress_printer, save_figure,
                                       strict)
 
@@ -137,7 +137,7 @@ class BeaconOptions:
     pr_step_uav: int = param(1, check=integer(lo=1), metavar="I", doc="UAV number of the pseudorange step")
     fault_at_s: float = param(150.0, check=number(0), flag="--fault-at", metavar="S",
                               doc="start of the injected faults, s since the run's start")
-    quiet: bool = param(False, check=switch(), doc="no progress lines")
+    quiet: bool = quiet_option()
 
     __post_init__ = validate
 

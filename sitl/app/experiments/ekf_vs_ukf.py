@@ -48,7 +48,9 @@ from sitl import geodesy
 from sitl.constants import C_M_S
 from sitl.gnss import orbits, ranging
 from sitl.app.args import OUTPUT_DIR
-from sitl.params import add_flags, choice, default_of, integer, number, optional, param, switch, validate
+from sitl.params import (
+    add_flags, backend_option, choice, default_of, integer, number, optional, param, quiet_option, validate,
+)
 
 N_STATE = 11
 POS = [0, 1, 2]
@@ -422,9 +424,8 @@ class EkfVsUkfOptions:
     sigma_a: float | None = param(None, check=optional(number(0, lo_open=True)), metavar="M_S2",
                                   doc="Singer manoeuvre sigma, m/s^2", note="; the seed gives none",
                                   shown=lambda: default_of(EkfVsUkfScenario, "sigma_a_m_s2"))
-    backend: str = param("auto", check=choice("auto", "numba", "numpy"),
-                         doc="covariance kernels: compiled (numba) or plain numpy")
-    quiet: bool = param(False, check=switch(), doc="no progress lines")
+    backend: str = backend_option()
+    quiet: bool = quiet_option()
 
     __post_init__ = validate
 

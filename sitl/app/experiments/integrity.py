@@ -92,7 +92,10 @@ from sitl.gnss.receiver import Receiver, ReceiverConfig
 from sitl.gnss.world import elevation_grid, ephemeris_for_filter, geometry_track
 from sitl.measfault import FAULT_KINDS, Fault, FaultInjector, GaussMarkov
 from sitl.app.args import OUTPUT_DIR
-from sitl.params import add_flags, choice, default_of, integer, number, optional, param, switch, validate
+from sitl.params import (
+    add_flags, backend_option, choice, default_of, integer, number, optional, param, quiet_option, switch,
+    validate,
+)
 
 __all__ = ["IntegrityScenario", "run", "FILTERS", "MIN_CHANNELS", "main"]
 
@@ -964,8 +967,8 @@ class IntegrityOptions:
                                       "frequency fault, the pseudorange rate carries the ramp's rate too",
                                   shown=_scn("ramp_kind"))
     no_faults: bool = param(False, check=switch(), doc="the same world with no faults injected")
-    backend: str = param("auto", check=choice("auto", "numba", "numpy"), doc="filter kernels")
-    quiet: bool = param(False, check=switch(), doc="no progress lines")
+    backend: str = backend_option("filter kernels")
+    quiet: bool = quiet_option()
 
     __post_init__ = validate
 

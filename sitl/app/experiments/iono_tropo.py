@@ -27,7 +27,9 @@ from sitl.app.experiments.common import prepare_out, progress_printer, save_figu
 
 from sitl.app.experiments import iono_tropo_filters
 from sitl.app.args import OUTPUT_DIR
-from sitl.params import add_flags, choice, default_of, integer, number, optional, param, switch, validate
+from sitl.params import (
+    add_flags, backend_option, choice, default_of, integer, number, optional, param, quiet_option, validate,
+)
 
 VARIANTS = {"code_doppler": 1, "phase_increments": 2, "carrier_phase": 3}  # name -> seed000 variant
 LABELS = {
@@ -113,9 +115,8 @@ class IonoTropoOptions:
     seeds: int = param(20, check=integer(lo=1), doc="ordering study: seeds --seed, --seed + 1, ...")
     clock_scale: float = param(1e3, check=number(0, lo_open=True), metavar="X",
                                doc="adaptive-q study: the mismodelled clock's PSD / the filter's")
-    backend: str = param("auto", check=choice("auto", "numba", "numpy"),
-                         doc="covariance kernels: compiled (numba) or plain numpy")
-    quiet: bool = param(False, check=switch(), doc="no progress lines")
+    backend: str = backend_option()
+    quiet: bool = quiet_option()
 
     __post_init__ = validate
 

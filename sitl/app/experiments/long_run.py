@@ -89,7 +89,7 @@ from pathlib import Path
 import numpy as np
 
 from sitl.app.args import OUTPUT_DIR
-from sitl.params import add_flags, choice, integer, number, param, switch, validate
+from sitl.params import add_flags, choice, integer, number, param, quiet_option, switch, validate
 from sitl.app.experiments.common import prepare_out, progress_printer, save_figure, strict
 
 GEOMETRIES = ("default", "north")
@@ -507,7 +507,7 @@ class LongRunOptions:
                          doc="live: the ground station's locator; inflate: its old one (for comparison)")
     no_pcrb: bool = param(False, check=switch(), doc="skip the bound: judge each window against 2x the first window's RMSE")
     no_sonde: bool = param(False, check=switch(), doc="no sonde in trial 0 (faster)")
-    quiet: bool = param(False, check=switch(), doc="no progress lines")
+    quiet: bool = quiet_option()
 
     __post_init__ = validate
 

@@ -59,7 +59,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from sitl.app.args import OUTPUT_DIR
-from sitl.params import add_flags, default_of, integer, number, optional, param, string, switch, validate
+from sitl.params import add_flags, default_of, integer, number, optional, param, quiet_option, string, switch, validate
 from sitl.app.experiments.common import prepare_out, progress_printer, save_figure, strict
 
 # numpy and the components are imported inside the functions: the CLI imports this module to
@@ -655,7 +655,7 @@ class FaultsOptions:
                                    "their own times", note=": from the first epoch, the tracks' acquisition included")
     burst_len: float = param(default_of(Plan, "burst_len"), check=number(0, lo_open=True), metavar="N",
                              doc="mean Gilbert-Elliott burst length, packets")
-    quiet: bool = param(False, check=switch(), doc="no progress lines")
+    quiet: bool = quiet_option()
 
     __post_init__ = validate
 

@@ -72,7 +72,10 @@ from sitl.app.experiments.common import (measurement_faults, prepare_out, progre
                                       strict)
 from sitl.scenario import SondeSection
 from sitl.app.args import OUTPUT_DIR
-from sitl.params import add_flags, choice, default_of, integer, number, optional, param, several, string, switch, validate
+from sitl.params import (
+    add_flags, backend_option, choice, default_of, integer, number, optional, param, quiet_option, several,
+    string, switch, validate,
+)
 
 MODES = ("fused", "radar_only", "relay_only")
 WHITE_MODES = ("fused_white", "radar_only_white")
@@ -1158,8 +1161,7 @@ class SondeOptions:
     no_white_baseline: bool = param(False, check=switch(),
                                     doc="skip the two extra trackers with the naive white radar-noise model "
                                         "(NEES comparison)")
-    backend: str = param("auto", check=choice("auto", "numba", "numpy"),
-                         doc="filter kernels and flight loop: compiled (numba) or plain numpy")
+    backend: str = backend_option("filter kernels and flight loop: compiled (numba) or plain numpy")
     integrity: str | None = param(None, check=optional(choice("off", "on", "compare")),
                                   doc="integrity monitor on the trackers: on, or compare (the three main trackers "
                                       "plain and again monitored, <mode>_monitored, on the same messages)",
@@ -1180,7 +1182,7 @@ class SondeOptions:
     az_step_deg: float | None = param(None, check=optional(number()), metavar="D", doc="radar azimuth step, degrees")
     az_step_at: list | None = param(None, check=optional(several(number(0), 2)), metavar=("A", "B"),
                                     doc="the step's start and end, s since launch", shown=_scn("az_step_s"))
-    quiet: bool = param(False, check=switch(), doc="no progress lines")
+    quiet: bool = quiet_option()
 
     __post_init__ = validate
 
