@@ -8,7 +8,7 @@ import argparse
 import os
 from pathlib import Path
 
-from sitl.params import cli_type, from_text, integer, number
+from sitl.params import Check, ParamError, cli_type, from_text, help_text, integer, number, options_from_args
 
 EXIT_USAGE = 2
 
@@ -89,3 +89,43 @@ def output_file(text: str) -> Path:
 # the checks of the options' declarations (sitl.params.param) that the command line reads
 OUTPUT_DIR = from_text(output_dir)
 OUTPUT_FILE = from_text(output_file)
+
+
+# --- what add_flags does not give: a repeatable flag, positional arguments -------------------
+
+def repeatable(check: Check) -> Check:
+    """A flag given any number of times (argparse's append): None when it is not given, else the
+    list of its values, each one that ``check`` takes."""
+    def test(v):
+        if v is None:
+            return None
+        if not isinstance(v, (list, tuple)):
+            raise ParamError("", f"expected a list of values, got {v!r}")
+        return [check("", x) for x in v]
+
+    return Check(test, check.parse, cli={**check.cli, "action": "append"}, show=check.show)
+
+
+def add_positional(parser, cls, name: str) -> None:
+    """The positional argument of option ``name`` of dataclass ``cls``: declared like a flag
+    (sitl.params.param with its check and doc) and cli=False, since add_flags gives flags only
+    (argparse takes no dest= for a positional)."""
+    from dataclasses import fields
+
+    f = next(f for f in fields(cls) if f.name == name)
+    check = f.metadata["check"]
+    kw = {"help": help_text(f), **check.cli}
+    if "choices" not in kw:
+        kw["type"] = cli_type(check)
+    if f.metadata.get("metavar") is not None:
+        kw["metavar"] = f.metadata["metavar"]
+    parser.add_argument(name, **kw)
+
+
+def options_of(cls, ns):
+    """The options instance of the parsed command line ``ns`` (sitl.params.options_from_args); a
+    value its declaration refuses (one built by a caller, not by argparse) is a UsageError."""
+    try:
+        return options_from_args(cls, ns)
+    except ParamError as exc:
+        raise UsageError(str(exc)) from None

@@ -8,20 +8,33 @@ from __future__ import annotations
 
 import argparse
 import sys
+from dataclasses import dataclass
 from pathlib import Path
 
 from sitl.app.args import (  # noqa: F401  (the vocabulary of every subcommand's flags)
     EXIT_USAGE,
+    OUTPUT_FILE,
     Parser,
     UsageError,
     int_at_least,
     nonnegative_float,
     nonnegative_int,
+    options_of,
     output_dir,
     output_file,
     positive_float,
     positive_int,
 )
+from sitl.params import add_flags, optional, param, validate
+
+
+@dataclass(frozen=True)
+class ScenarioOptions:
+    """`skyfuse scenario`'s options, declared once (sitl.params)."""
+
+    out: Path | None = param(None, check=optional(OUTPUT_FILE), metavar="FILE", doc="write it to FILE instead of stdout")
+
+    __post_init__ = validate
 
 # --- subcommands -------------------------------------------------------------------------
 
@@ -142,16 +155,20 @@ def build_parser() -> argparse.ArgumentParser:
 
     from sitl.app import launcher as _live  # light at import: the live machinery loads in run/demo
 
-    _live.add_demo_args(sub.add_parser(
+    # the live commands' options (launcher.DemoOptions, RunOptions, ReplayOptions): their flags
+    # are added when the subcommand is parsed or its --help printed (--help reads defaults from
+    # the scenario's declarations: `skyfuse --help` does not import it)
+    sub.add_parser(
         "demo", help="the live SITL on the built-in default scenario (3 UAVs, a moving beacon, a radiosonde)",
         description="Run the built-in default scenario live: vehicle processes speaking MAVLink over UDP, "
                     "the Zenoh bus (an embedded router), the ground-station process; a status line; "
-                    "everything stops after --duration simulated seconds or on Ctrl-C."))
-    _live.add_run_args(sub.add_parser("run", help="run a scenario file (TOML) live",
-                                      description="Run a scenario file (TOML) live, as `demo` does the default."))
-    _live.add_replay_args(sub.add_parser("replay", help="a recorded bus log through the batch ground station",
-                                         description="Run a recorded bus log (OUT/bus.log) through the batch "
-                                                     "ground station and compare its estimates with the recorded ones."))
+                    "everything stops after --duration simulated seconds or on Ctrl-C.", flags=_live.add_demo_args)
+    sub.add_parser("run", help="run a scenario file (TOML) live",
+                   description="Run a scenario file (TOML) live, as `demo` does the default.", flags=_live.add_run_args)
+    sub.add_parser("replay", help="a recorded bus log through the batch ground station",
+                   description="Run a recorded bus log (OUT/bus.log) through the batch "
+                               "ground station and compare its estimates with the recorded ones.",
+                   flags=_live.add_replay_args)
 
     from sitl.app import live_faults as _fault  # light: the fault models load only when the command runs
 
@@ -162,7 +179,7 @@ def build_parser() -> argparse.ArgumentParser:
     sc = sub.add_parser("scenario", help="print the built-in default scenario: every key, its default and what it means",
                         description="Print the built-in default scenario as TOML, every section and key with its default "
                                     "and its doc (a starting point for `skyfuse run FILE`).")
-    sc.add_argument("--out", type=output_file, default=None, metavar="FILE", help="write it to FILE instead of stdout")
+    add_flags(sc, ScenarioOptions)
 
     exp = sub.add_parser("experiment", help="run a reproducible experiment of a seed paper",
                          description="Run an experiment; each writes DIR/result.json and PNG figures.")
@@ -198,11 +215,12 @@ def _run(args: argparse.Namespace) -> int:
     if args.command == "scenario":
         from sitl.scenario import DEFAULT_SCENARIO_TOML
 
-        if args.out is None:
+        opts = options_of(ScenarioOptions, args)
+        if opts.out is None:
             sys.stdout.write(DEFAULT_SCENARIO_TOML)
         else:
-            Path(args.out).write_text(DEFAULT_SCENARIO_TOML, encoding="utf-8")
-            print(f"wrote {args.out}")
+            Path(opts.out).write_text(DEFAULT_SCENARIO_TOML, encoding="utf-8")
+            print(f"wrote {opts.out}")
         return 0
     if args.command == "fault":
         from sitl.app.fault_cli import fault_main

@@ -20,17 +20,19 @@ from pathlib import Path
 
 from sitl.app.live_faults import (  # the parser (light)
     DEFAULT_OUTS,
+    FaultListOptions,
+    FaultSetOptions,
     add_fault_args,
 )
 
-from sitl.app.args import UsageError
+from sitl.app.args import UsageError, options_of
 
 EXIT_OK, EXIT_NO_ANSWER, EXIT_USAGE = 0, 1, 2
 
 
 
 
-def _target(args) -> tuple[list[str], str, dict]:
+def _target(args: FaultListOptions) -> tuple[list[str], str, dict]:
     """(router endpoints, run id, run.json or {})."""
     doc: dict = {}
     path = None
@@ -109,9 +111,9 @@ def _request(endpoints, run_id, link, spec, timeout_s) -> tuple[bool, str] | Non
 def fault_main(args) -> int:
     from sitl.netfault import FaultSpecError, parse_spec
     from sitl.netfault.control import LIST_LINK, canonical_link
-    if not (args.timeout > 0 and args.timeout < 3600):
-        raise UsageError(f"fault: --timeout: expected seconds in (0, 3600), got {args.timeout}")
-    if args.fault_command == "set":
+    command = args.fault_command
+    args = options_of(FaultSetOptions if command == "set" else FaultListOptions, args)  # --timeout: checked there
+    if command == "set":
         spec = " ".join(args.spec)
         try:
             link = canonical_link(args.link)
@@ -133,7 +135,7 @@ def fault_main(args) -> int:
     if doc.get("finished"):
         print(f"fault: the run {run_id!r} has ended (run.json says finished)", file=sys.stderr)
         return EXIT_NO_ANSWER
-    if args.fault_command == "set" and doc.get("links") is not None and not link.startswith("bus:"):
+    if command == "set" and doc.get("links") is not None and not link.startswith("bus:"):
         known = set(doc["links"])
         if link not in known and not ({f"{link}:up", f"{link}:down"} <= known):
             raise UsageError(f"fault: unknown link {link!r} in run {run_id!r} (links: {', '.join(sorted(known)) or 'none'})")
@@ -145,7 +147,7 @@ def fault_main(args) -> int:
     ok, text = ans
     if not ok:
         raise UsageError(f"fault: the launcher refused it: {text}")
-    if args.fault_command == "list":
+    if command == "list":
         try:
             cur = json.loads(text)
         except ValueError:

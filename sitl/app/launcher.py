@@ -42,9 +42,11 @@ import os
 import signal
 import sys
 import threading
+from dataclasses import dataclass
 from pathlib import Path
 
-from sitl.app.args import UsageError
+from sitl.app.args import UsageError, add_positional, options_of, repeatable
+from sitl.params import add_flags, default_of, from_text, integer, number, optional, param, string, switch, validate
 from sitl.pacing import Pacer, perf_now, wall_now
 
 READY_TIMEOUT_S = 240.0  # first start compiles / loads the numba kernels
@@ -54,40 +56,83 @@ END_GRACE_WALL_S = 20.0  # after the last epoch: how long workers may take to fi
 # ---------------------------------------------------------------------- arguments
 
 
-def _common_args(p: argparse.ArgumentParser, default_out: str) -> None:
-    from sitl.app.args import nonnegative_int, positive_float
-    p.add_argument("--speed", type=positive_float, default=None, help="x real time (default: the scenario's)")
-    p.add_argument("--duration", type=positive_float, default=None, metavar="S",
-                   help="simulated seconds, then everything stops (default: the scenario's)")
-    p.add_argument("--seed", type=nonnegative_int, default=None, help="random seed (default: the scenario's)")
-    p.add_argument("--out", type=Path, default=Path(default_out), metavar="DIR",
-                   help=f"report, bus log, tlogs, worker logs (default {default_out})")
-    p.add_argument("--zenoh", action="append", default=None, metavar="tcp/HOST:PORT",
-                   help="connect to this Zenoh router instead of starting one (repeatable)")
-    p.add_argument("--gcs", default=None, metavar="HOST:PORT", help="ground-control endpoint (default 127.0.0.1:14550)")
-    p.add_argument("--no-mavlink", action="store_true", help="no MAVLink endpoints")
-    p.add_argument("--batch", action="store_true",
-                   help="batch mode: the same components in one process, simulated time, in-memory bus")
-    p.add_argument("--quiet", action="store_true", help="no status line")
+# Each command's options are one frozen dataclass declared once (sitl.params.param: the check,
+# the doc = the --help text, the default); add_flags gives the flags, options_of the instance.
+# A flag left out means "the scenario's" (None); a default shown in --help that is the
+# scenario's is read from its declaration (sitl.scenario), never written here.
+
+
+def _scenario_gcs() -> str:
+    from sitl.scenario import MavlinkSection  # the help text's; imported when the flags are added
+    return default_of(MavlinkSection, "gcs")
+
+
+def _out_option(default: str):
+    """--out DIR of `demo` / `run` (the same flag, each command its default directory)."""
+    return param(Path(default), check=from_text(Path), metavar="DIR", doc="report, bus log, tlogs, worker logs")
+
+
+_SCENARIOS = "default: the scenario's"
+
+
+@dataclass(frozen=True, kw_only=True)
+class DemoOptions:
+    """`skyfuse demo`'s options: the scenario's overrides (None: the scenario's) and the run's."""
+
+    speed: float | None = param(None, check=optional(number(0, lo_open=True)), default_help=_SCENARIOS,
+                                doc="x real time")
+    duration: float | None = param(None, check=optional(number(0, lo_open=True)), metavar="S", default_help=_SCENARIOS,
+                                   doc="simulated seconds, then everything stops")
+    seed: int | None = param(None, check=optional(integer(lo=0)), default_help=_SCENARIOS, doc="random seed")
+    out: Path = _out_option("out/demo")
+    zenoh: list | None = param(None, check=repeatable(string()), metavar="tcp/HOST:PORT",
+                               doc="connect to this Zenoh router instead of starting one (repeatable)")
+    gcs: str | None = param(None, check=optional(string()), metavar="HOST:PORT", shown=_scenario_gcs,
+                            doc="ground-control endpoint")
+    no_mavlink: bool = param(False, check=switch(), doc="no MAVLink endpoints")
+    batch: bool = param(False, check=switch(),
+                        doc="batch mode: the same components in one process, simulated time, in-memory bus")
+    quiet: bool = param(False, check=switch(), doc="no status line")
+
+    __post_init__ = validate
+
+
+@dataclass(frozen=True, kw_only=True)
+class RunOptions(DemoOptions):
+    """`skyfuse run SCENARIO`'s options: the scenario file, then `demo`'s."""
+
+    out: Path = _out_option("out/run")
+    scenario: Path = param(check=from_text(Path), cli=False, doc="scenario file (TOML)")  # positional
+
+
+@dataclass(frozen=True, kw_only=True)
+class ReplayOptions:
+    """`skyfuse replay LOG`'s options."""
+
+    log: Path = param(check=from_text(Path), cli=False,  # positional
+                      doc="a bus log written by `skyfuse run` / `demo` (OUT/bus.log)")
+    scenario: Path | None = param(None, check=optional(from_text(Path)), doc="the run's scenario",
+                                  default_help="default: scenario.json beside the log, else the built-in default")
+    json: Path | None = param(None, check=optional(from_text(Path)), metavar="FILE", doc="also write the result as JSON")
+
+    __post_init__ = validate
 
 
 def add_run_args(p: argparse.ArgumentParser) -> None:
-    p.add_argument("scenario", type=Path, help="scenario file (TOML)")
-    _common_args(p, "out/run")
+    add_positional(p, RunOptions, "scenario")
+    add_flags(p, RunOptions)
 
 
 def add_demo_args(p: argparse.ArgumentParser) -> None:
-    _common_args(p, "out/demo")
+    add_flags(p, DemoOptions)
 
 
 def add_replay_args(p: argparse.ArgumentParser) -> None:
-    p.add_argument("log", type=Path, help="a bus log written by `skyfuse run` / `demo` (OUT/bus.log)")
-    p.add_argument("--scenario", type=Path, default=None,
-                   help="the run's scenario (default: scenario.json beside the log, else the built-in default)")
-    p.add_argument("--json", type=Path, default=None, metavar="FILE", help="also write the result as JSON")
+    add_positional(p, ReplayOptions, "log")
+    add_flags(p, ReplayOptions)
 
 
-def _scenario_with_overrides(scn, args):
+def _scenario_with_overrides(scn, args: DemoOptions):
     from sitl.scenario import ScenarioError, scenario_from_dict
     d = scn.to_dict()
     if args.speed is not None:
@@ -112,19 +157,21 @@ def _scenario_with_overrides(scn, args):
 
 def run_main(args) -> int:
     from sitl.scenario import ScenarioError, load_scenario
+    opts = options_of(RunOptions, args)
     try:
-        scn = load_scenario(args.scenario)
+        scn = load_scenario(opts.scenario)
     except ScenarioError as e:
         raise UsageError(str(e)) from None
-    return _main(_scenario_with_overrides(scn, args), args)
+    return _main(_scenario_with_overrides(scn, opts), opts)
 
 
 def demo_main(args) -> int:
     from sitl.scenario import default_scenario
-    return _main(_scenario_with_overrides(default_scenario(), args), args)
+    opts = options_of(DemoOptions, args)
+    return _main(_scenario_with_overrides(default_scenario(), opts), opts)
 
 
-def _main(scn, args) -> int:
+def _main(scn, args: DemoOptions) -> int:
     from sitl.app.experiments.common import prepare_out
     from sitl.app.preflight import OutDirLock, PreflightError, preflight
     out = prepare_out(Path(args.out))
@@ -149,7 +196,7 @@ def _main(scn, args) -> int:
     return 0 if report["ok"] else 1
 
 
-def _batch(scn, out: Path, args) -> int:
+def _batch(scn, out: Path, args: DemoOptions) -> int:
     from sitl.app.experiments.common import strict
     from sitl.app.batch import run_batch
     t0 = perf_now()
@@ -574,6 +621,7 @@ def replay_main(args) -> int:
         load_scenario,
         scenario_from_dict,
     )
+    args = options_of(ReplayOptions, args)
     log = Path(args.log)
     if not log.is_file():
         raise UsageError(f"replay: {str(log)!r}: no such file")

@@ -27,9 +27,13 @@ from __future__ import annotations
 import argparse
 import selectors
 import socket
+from dataclasses import dataclass
 from pathlib import Path
 
+from sitl.app.args import add_positional, repeatable
+from sitl.app.launcher import DemoOptions, RunOptions
 from sitl.pacing import wall_now
+from sitl.params import Check, ParamError, add_flags, default_of, from_text, optional, param, several, string, validate
 
 PRESTART_OFFSET_S = 1e6  # simulated seconds below zero before the start (module text)
 # the proxies' receiver-side MAVLink tap (pymavlink parses every forwarded datagram: measured
@@ -41,9 +45,58 @@ MAV_RECORD_MAX_VEHICLE_S = 3 * 7200
 
 # ---------------------------------------------------------------------- `skyfuse fault` arguments
 # (the parser is built at every `skyfuse` call: it lives here, light; sitl.app.fault_cli runs it)
+# Each subcommand's options are one frozen dataclass declared once (sitl.params.param); add_flags
+# gives the flags, sitl.app.args.options_of the instance.
 
-DEFAULT_TIMEOUT_S = 5.0
-DEFAULT_OUTS = ("out/demo", "out/run")
+# the live runs' output directories, where `fault` looks for run.json: `demo`'s and `run`'s --out defaults
+DEFAULT_OUTS = tuple(str(default_of(c, "out")) for c in (DemoOptions, RunOptions))
+TIMEOUT_MAX_S = 3600.0
+
+
+def _timeout_s() -> Check:
+    """Seconds in (0, TIMEOUT_MAX_S): how long `fault` waits for the launcher."""
+    what = f"seconds in (0, {TIMEOUT_MAX_S:g})"
+
+    def test(v):
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not 0 < v < TIMEOUT_MAX_S:
+            raise ParamError("", f"expected {what}, got {v!r}")
+        return float(v)
+
+    def parse(text):
+        try:
+            v = float(text)
+        except ValueError:
+            raise ParamError("", f"expected {what}, got {text!r}") from None
+        return test(v)
+
+    return Check(test, parse)
+
+
+@dataclass(frozen=True, kw_only=True)
+class FaultListOptions:
+    """`skyfuse fault list`'s options: where the run is, how long to wait for its launcher."""
+
+    out: Path | None = param(None, check=optional(from_text(Path)), metavar="DIR", doc="the run's output directory",
+                             default_help="its run.json names the router and the run; "
+                                          f"default: the newest of {', '.join(DEFAULT_OUTS)}")
+    zenoh: list | None = param(None, check=repeatable(string()), metavar="tcp/HOST:PORT",
+                               doc="the run's Zenoh router (instead of OUT/run.json; repeatable)")
+    run: str | None = param(None, check=optional(string()), metavar="ID", doc="the run id",
+                            default_help="default: run.json's, else 'demo'")
+    timeout: float = param(5.0, check=_timeout_s(), metavar="S", note=" s",
+                           doc="how long to wait for the launcher's answer")
+
+    __post_init__ = validate
+
+
+@dataclass(frozen=True, kw_only=True)
+class FaultSetOptions(FaultListOptions):
+    """`skyfuse fault set LINK SPEC...`'s options: the link, its new fault, then `list`'s."""
+
+    link: str = param(check=string(), cli=False,  # positional
+                      doc="mav:<sysid>[:up|:down], zenoh:<worker>, bus:<key expression>")
+    spec: list = param(check=several(string(), "+"), cli=False,  # positional, one or more words
+                       doc='netem-like text, e.g. loss=10% delay=100ms~20ms ("none": no fault)')
 
 
 def add_fault_args(p: argparse.ArgumentParser) -> None:
@@ -53,24 +106,12 @@ def add_fault_args(p: argparse.ArgumentParser) -> None:
     s = sub.add_parser("set", help="change a link's fault while a live run goes",
                        description="Change the network fault of one link of a running live run (0: acknowledged, "
                                    "2: bad spec or unknown link, 1: no launcher answered).")
-    s.add_argument("link", help="mav:<sysid>[:up|:down], zenoh:<worker>, bus:<key expression>")
-    s.add_argument("spec", nargs="+", help='netem-like text, e.g. loss=10%% delay=100ms~20ms ("none": no fault)')
-    _where(s)
+    add_positional(s, FaultSetOptions, "link")
+    add_positional(s, FaultSetOptions, "spec")
+    add_flags(s, FaultSetOptions)
     ls = sub.add_parser("list", help="the links of a live run and their current faults",
                         description="List the links of a running live run and their current faults.")
-    _where(ls)
-
-
-def _where(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--out", type=Path, default=None, metavar="DIR",
-                   help="the run's output directory (its run.json names the router and the run; "
-                        f"default: the newest of {', '.join(DEFAULT_OUTS)})")
-    p.add_argument("--zenoh", action="append", default=None, metavar="tcp/HOST:PORT",
-                   help="the run's Zenoh router (instead of OUT/run.json; repeatable)")
-    p.add_argument("--run", default=None, metavar="ID", help="the run id (default: run.json's, else 'demo')")
-    p.add_argument("--timeout", type=float, default=DEFAULT_TIMEOUT_S, metavar="S",
-                   help=f"how long to wait for the launcher's answer (default {DEFAULT_TIMEOUT_S:g} s)")
-
+    add_flags(ls, FaultListOptions)
 
 
 class RunClock:
