@@ -160,6 +160,8 @@ class FtpOp:
     burst_complete: int = 0
     offset: int = 0
     data: bytes = b""
+    #: on unpack: the whole data area (239 bytes), for the path checks
+    buffer: bytes = field(default=b"", repr=False, compare=False)
 
     def pack(self) -> bytes:
         """The 251-byte payload (data zero-padded)."""
@@ -171,7 +173,8 @@ class FtpOp:
     def unpack(cls, payload: bytes) -> "FtpOp":
         p = bytes(payload).ljust(PAYLOAD_LEN, b"\x00")
         seq, session, opcode, size, req, burst, _pad, offset = struct.unpack("<HBBBBBBI", p[:HEADER_LEN])
-        return cls(seq, session, opcode, size, req, burst, offset, p[HEADER_LEN:HEADER_LEN + min(size, DATA_LEN)])
+        return cls(seq, session, opcode, size, req, burst, offset, p[HEADER_LEN:HEADER_LEN + min(size, DATA_LEN)],
+                   p[HEADER_LEN:])
 
 
 @dataclass
@@ -302,8 +305,14 @@ class FtpServer:
 
     def _expire(self) -> None:
         for key in [k for k, s in self._sessions.items() if self._now - s.last_s > self.session_kill_s]:
-            del self._sessions[key]
+            self._close(key)
             self.counters["expired"] += 1
+
+    def _close(self, key) -> None:
+        """Forget a session that times out or is taken over, and its cached replies: a late
+        retry of its open must not get an Ack for a file that is no longer open."""
+        del self._sessions[key]
+        self._last.pop(key, None)
 
     def _reply(self, req: FtpOp, opcode=OP_ACK, data=b"", offset=0, seq_add=1, burst_complete=0) -> FtpOp:
         return FtpOp(req.seq + seq_add, req.session, opcode, len(data), req.opcode, burst_complete, offset, data)
@@ -315,11 +324,13 @@ class FtpServer:
         return self._reply(req, OP_NAK, bytes([err]) if errno is None else bytes([err, errno]), **kw)
 
     def _path(self, req: FtpOp) -> str | None:
-        """The request's path, or None when its length disagrees with size (check_name_len)."""
-        data = req.data
+        """The request's path, or None when its length disagrees with size (ArduPilot's
+        check_name_len: the NUL-terminated string of the data area is size bytes long, or
+        size - 1 with the NUL counted)."""
+        data = req.buffer or req.data
         n = data.find(b"\x00")
         n = len(data) if n < 0 else n
-        if req.size == 0 or not (n == req.size or (n == req.size - 1 and data[n:] == b"\x00")):
+        if req.size == 0 or not (n == req.size or n == req.size - 1):
             return None
         return data[:n].decode("latin-1")
 
@@ -381,7 +392,7 @@ class FtpServer:
         if key in self._sessions:
             if self._now - self._sessions[key].last_s <= self.session_timeout_s:
                 return self._nak(req, ERR_FAIL, "already_open", f"session {req.session} already has a file open")
-            del self._sessions[key]  # the client gave up on it (ArduPilot: 3 s idle)
+            self._close(key)  # the client gave up on it (ArduPilot: 3 s idle)
             self.counters["taken_over"] += 1
         try:
             entries, data = self._snapshot(query)
@@ -392,7 +403,7 @@ class FtpServer:
             if self._now - self._sessions[oldest].last_s <= self.session_timeout_s:
                 return self._nak(req, ERR_NO_SESSIONS_AVAILABLE, "no_sessions",
                                  f"all {self.max_sessions} FTP sessions are in use")
-            del self._sessions[oldest]
+            self._close(oldest)
             self.counters["taken_over"] += 1
         self._sessions[key] = _Session(query, entries, self._now, self._now)
         self.counters["opened"] += 1

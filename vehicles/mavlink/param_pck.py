@@ -14,8 +14,9 @@ decode it):
              len bytes                 the rest of the name
              value                     little-endian, the type's width (1, 2, 4, 4 bytes)
              [default]                 same width, only when flags bit 0 is set
-    pad      zero bytes before an entry so that no value (type width > 1) straddles a
-             read-block boundary: a re-read of one lost block never gets half a value.  A
+    pad      zero bytes before an entry so that its last value (type width > 1) does not
+             straddle a read-block boundary: a re-read of one lost block never gets half a
+             value.  (With a default, only the default is guarded, as in ArduPilot.)  A
              decoder skips zero bytes between entries (a type byte is never 0).
 
 ArduPilot pads against the first read's size (every later read must use that size); here
