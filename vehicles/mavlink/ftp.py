@@ -30,8 +30,18 @@ about the last reject.  ``handle`` never raises.
 Addressing: the endpoint's frame filter lets target_system 0 through; :func:`addressed_to`
 answers FTP only when it names this vehicle (system == ours, component 0 or ours): a file
 session belongs to one vehicle, and a broadcast request on a shared link would get every
-vehicle's replies under the same session id.  MAVProxy and QGroundControl always fill in
-the vehicle's system id.
+vehicle's replies under the same session id.  MAVProxy fills in the vehicle's system id
+(its target_system, learnt from the HEARTBEAT) and component 0 or 1.
+
+MAVProxy 1.8.75 (mavproxy_param.py, mavproxy_ftp.py; read, and run against this server over
+UDP loopback).  On connection its param module asks for ``@PARAM/param.pck?withdefaults=1``
+(FTP first; it checks neither AUTOPILOT_VERSION's capabilities nor the HEARTBEAT's autopilot)
+with OpenFileRO, then one BurstReadFile of 239-byte blocks, fills gaps with ReadFile, and
+sends TerminateSession.  It retries an unanswered open with the same seq (1 s, then its RTT
+estimate) 10 times, then gives up and sends PARAM_REQUEST_LIST (~11 s after the first try); a
+Nak of the open falls back at its next 1 s check.  A file it cannot decode (bad magic, a count
+that disagrees with total_params) makes it retry FTP every second without falling back: the
+packer must never produce one.
 
 The protocol (mavlink.io "File Transfer Protocol (FTP)", mavlink/mavlink-devguide
 en/services/ftp.md, and ArduPilot's libraries/GCS_MAVLink/GCS_FTP.cpp, both read for this
@@ -47,9 +57,10 @@ opcode Ack (128) or Nak (129, data[0] = error, size 1; FailErrno adds errno in d
                       first entry; past the end Nak EOF; anything else Nak FileNotFound
   OpenFileRO 4        @PARAM/param.pck[?withdefaults=1&start=N&count=C]: takes a snapshot of
                       the store's values, Ack size 4, data = u32 file size; the session id is
-                      the one the client sent (ArduPilot and MAVProxy's convention; a client
-                      that lets the server choose, such as QGroundControl, uses the id of the
-                      Ack, which is the one it sent).  Another path Nak FileNotFound; a bad
+                      the one the client sent (MAVProxy 1.8.75 picks its own and routes the
+                      replies by it; a client that lets the server choose, the spec's model,
+                      takes the Ack's, which is the one it sent; ArduPilot assigns a new id
+                      only to session 0, which would strand MAVProxy's replies 1 time in 256).  Another path Nak FileNotFound; a bad
                       query Nak FailErrno/EINVAL; a session already open Nak Fail (ArduPilot);
                       no free session Nak NoSessionsAvailable
   ReadFile 5          size bytes (1..239) at offset, Ack with offset and size; at/after EOF
@@ -138,8 +149,11 @@ FTP_COUNTERS = FTP_TRAFFIC_COUNTERS + FTP_REJECT_REASONS
 
 
 def advertised_capabilities(capabilities: int) -> int:
-    """AUTOPILOT_VERSION.capabilities with MAV_PROTOCOL_CAPABILITY_FTP set: what a GCS reads
-    before it uses FTP (QGroundControl does; MAVProxy just tries, see the closing note)."""
+    """AUTOPILOT_VERSION.capabilities with MAV_PROTOCOL_CAPABILITY_FTP set: the spec's
+    discovery rule (mavlink.io FTP, "Protocol Discovery").  MAVProxy 1.8.75 does not look at
+    it: its param module tries ``@PARAM/param.pck?withdefaults=1`` first whenever its ftp
+    module is loaded (the default) and falls back to PARAM_REQUEST_LIST only after a Nak or
+    ~11 s of silence (10 retries of the open)."""
     return int(capabilities) | MAV_PROTOCOL_CAPABILITY_FTP
 
 
@@ -183,11 +197,12 @@ class _Session:
     entries: list
     opened_s: float
     last_s: float
-    file: bytes | None = None  # built at the first read
+    prebuilt: bytes  # the file for 239-byte reads, built at the open for its size
+    file: bytes | None = None  # fixed at the first read
 
     def data(self, block: int) -> bytes:
         if self.file is None:
-            self.file = param_pck.pack(self.entries, self.query, block)
+            self.file = self.prebuilt if block == param_pck.BLOCK else param_pck.pack(self.entries, self.query, block)
         return self.file
 
 
@@ -405,7 +420,7 @@ class FtpServer:
                                  f"all {self.max_sessions} FTP sessions are in use")
             self._close(oldest)
             self.counters["taken_over"] += 1
-        self._sessions[key] = _Session(query, entries, self._now, self._now)
+        self._sessions[key] = _Session(query, entries, self._now, self._now, data)
         self.counters["opened"] += 1
         return self._reply(req, data=struct.pack("<I", len(data)))
 

@@ -1,8 +1,7 @@
 """``@PARAM/param.pck``: a parameter table in ArduPilot's packed format (pure, no I/O).
 
 The format is ArduPilot's (libraries/AP_Filesystem/AP_Filesystem_Param.cpp, read for this
-work; MAVProxy's MAVProxy/modules/lib/param_ftp.py ``ftp_param_decode`` and QGroundControl
-decode it):
+work; MAVProxy's MAVProxy/modules/lib/param_ftp.py ``ftp_param_decode`` decodes it):
 
     header   u16 magic      0x671b, or 0x671c when the file carries defaults (?withdefaults=1)
              u16 num_params the entries in this file (total - start, at most count)
@@ -21,7 +20,7 @@ decode it):
 
 ArduPilot pads against the first read's size (every later read must use that size); here
 the bytes are built once per open session against one block size (:data:`BLOCK`, 239, the
-largest FTP read and what MAVProxy and QGroundControl ask for), and then frozen.
+largest FTP read and MAVProxy's burst size), and then frozen.
 
 Query string (``@PARAM/param.pck?withdefaults=1&start=N&count=C``, as ArduPilot):
 ``withdefaults`` 0/1; ``start`` the first index; ``count`` at most this many (0: all).
@@ -152,8 +151,8 @@ def pack(entries: Iterable[Entry], query: Query = Query(), block: int = BLOCK) -
         if e.ap_type not in _WIDTH:
             raise ValueError(f"param {e.name}: ap_var_type {e.ap_type} is not 1..4")
         width = _WIDTH[e.ap_type][0]
-        common = 0
-        while common < min(len(name), len(last), 15) and name[common] == last[common]:
+        common, limit = 0, min(len(name), len(last), 15)
+        while common < limit and name[common] == last[common]:
             common += 1
         if common == len(name):  # a repeated name: keep one byte to send (ArduPilot's rule)
             common -= 1

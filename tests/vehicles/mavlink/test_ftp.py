@@ -380,6 +380,9 @@ def test_every_unsupported_or_malformed_request_gets_a_clear_counted_nak():
     # MAVLink 2 strips trailing zeros: a short payload is zero-extended (all zeros: None -> Ack)
     (r,) = [FtpOp.unpack(p) for p in srv.handle(b"\x05", 0.0)]
     assert (r.opcode, r.req_opcode, r.seq) == (OP_ACK, OP_NONE, 6)
+    # seq is a u16 and wraps
+    (r,) = _req(srv, FtpOp(seq=0xFFFF, opcode=OP_NONE))
+    assert (r.opcode, r.seq) == (OP_ACK, 0)
     # the clock: NaN or backwards is counted and ignored
     assert srv.handle(FtpOp(opcode=OP_NONE).pack(), math.nan) and srv.counters["bad_time"] == 1
 
