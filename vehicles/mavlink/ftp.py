@@ -15,8 +15,10 @@ Wiring it into the endpoint (vehicles/mavlink/endpoint.py; the lead's step)::
         if not addressed_to(msg.target_system, msg.target_component, self.sysid, self.compid):
             self.counters["not_for_us"] += 1
             return
-        for args in self.ftp.handle_message(msg, self._t, peer=addr):
+        for args in self.ftp.handle_message(msg, self._t or 0.0, peer=addr):
             self._send_to(addr, "file_transfer_protocol_send", *args)
+
+    (and drop the ``ftp_refused`` counter and the _FTP_* constants of the refusing handler)
 
 ``handle_message`` returns ``(target_network, target_system, target_component, payload)``
 tuples for ``file_transfer_protocol_send``: network 0, the requester's system and component
@@ -56,13 +58,14 @@ opcode Ack (128) or Nak (129, data[0] = error, size 1; FailErrno adds errno in d
   ListDirectory 3     "" and "/" -> "D@PARAM"; "@PARAM" -> "Fparam.pck\\t<size>"; offset =
                       first entry; past the end Nak EOF; anything else Nak FileNotFound
   OpenFileRO 4        @PARAM/param.pck[?withdefaults=1&start=N&count=C]: takes a snapshot of
-                      the store's values, Ack size 4, data = u32 file size; the session id is
-                      the one the client sent (MAVProxy 1.8.75 picks its own and routes the
-                      replies by it; a client that lets the server choose, the spec's model,
-                      takes the Ack's, which is the one it sent; ArduPilot assigns a new id
-                      only to session 0, which would strand MAVProxy's replies 1 time in 256).  Another path Nak FileNotFound; a bad
-                      query Nak FailErrno/EINVAL; a session already open Nak Fail (ArduPilot);
-                      no free session Nak NoSessionsAvailable
+                      the store's values, Ack size 4, data = u32 file size.  The session id is
+                      the one the client sent: MAVProxy 1.8.75 picks its own and routes the
+                      replies by it; a client that lets the server choose (the spec's model)
+                      takes the Ack's; ArduPilot assigns a new id to session 0 only, which
+                      would strand MAVProxy's replies 1 time in 256.  Another path Nak
+                      FileNotFound; a bad query, or an empty store, Nak FailErrno/EINVAL (the
+                      GCS falls back to the list protocol); a session already open Nak Fail
+                      (ArduPilot); no free session Nak NoSessionsAvailable
   ReadFile 5          size bytes (1..239) at offset, Ack with offset and size; at/after EOF
                       Nak EOF
   BurstReadFile 15    from offset, Acks of min(size or 239, 239) bytes with seq + 1, + 2, ...
