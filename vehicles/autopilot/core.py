@@ -60,13 +60,32 @@ REL_FRAMES = frozenset({mavlink.MAV_FRAME_GLOBAL_RELATIVE_ALT, mavlink.MAV_FRAME
 #: what a refusal is counted as (``Autopilot.counters``)
 REFUSALS = ("bad_vehicle", "nonfinite", "bad_mode", "mode_unsupported", "unsupported_command", "bad_param",
             "disarmed", "in_flight", "not_in_mode", "unsupported_item", "bad_item", "bad_sequence", "no_mission",
-            "bad_state")
+            "bad_state", "internal_error")
 
 _TAKEOFF_ALT_TOL_M = 2.0  # ArduPlane: take-off complete 2 m below the target altitude
 _LOITER_ALT_TOL_M = 5.0
 _TOUCHDOWN_M = 0.5
 _FLARE_M = 2.0  # a landing aims this far below the ground, so that it crosses the touchdown height
 _EPS = 1e-9
+
+
+def _guarded(mission: bool = False):
+    """An operation never raises: an exception is a refusal (counted 'internal_error', reason
+    kept), so that a bug shows up in the counters and the ACK, not as a dead endpoint."""
+    def wrap(fn):
+        import functools
+
+        @functools.wraps(fn)
+        def op(self, *a, **kw):
+            try:
+                return fn(self, *a, **kw)
+            except Exception as e:  # noqa: BLE001 - the contract: a code, never an exception
+                reason = f"{fn.__name__}: {type(e).__name__}: {' '.join(str(e).split())}"
+                if mission:
+                    return self._refuse("internal_error", mavlink.MAV_MISSION_ERROR, reason, MissionResult)
+                return self._refuse("internal_error", mavlink.MAV_RESULT_FAILED, reason)
+        return op
+    return wrap
 
 
 class Result(NamedTuple):
@@ -482,6 +501,7 @@ class Autopilot:
         return s == -1.0
 
     # ------------------------------------------------------------------ operations (each: a code, a reason)
+    @_guarded()
     def arm(self, i, arm: bool = True, force: bool = False) -> Result:
         """MAV_CMD_COMPONENT_ARM_DISARM (param1 1 / 0, param2 21196: force).  Arming on the
         ground sets home to the current position (ArduPlane).  Disarming in the air is refused
@@ -520,6 +540,7 @@ class Autopilot:
             self.kind[v], self.task[v] = gd.HOLD, T_NONE
         return Result(mavlink.MAV_RESULT_ACCEPTED)
 
+    @_guarded()
     def set_mode(self, i, custom_mode, base_mode: int = mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED) -> Result:
         """SET_MODE / MAV_CMD_DO_SET_MODE (param1 base_mode, param2 custom_mode).  A number
         ArduPlane does not have: DENIED; one it has but these vehicles cannot fly (the
@@ -545,6 +566,7 @@ class Autopilot:
             self._enter(v, m)
         return Result(mavlink.MAV_RESULT_ACCEPTED)
 
+    @_guarded()
     def takeoff(self, i, alt_rel_m=None) -> Result:
         """MAV_CMD_NAV_TAKEOFF (param7 altitude above home; NaN / 0 / None: TKOFF_ALT): TAKEOFF
         mode.  Refused (FAILED) when disarmed.  (ArduPlane accepts this command only on a
@@ -564,6 +586,7 @@ class Autopilot:
         self._enter(v, cv.TAKEOFF)
         return Result(mavlink.MAV_RESULT_ACCEPTED)
 
+    @_guarded()
     def goto(self, i, lat_rad, lon_rad, alt_m, *, relative_alt: bool = True, radius_m=None, speed_m_s=None,
              change_mode: bool = True) -> Result:
         """GUIDED to a point: MAV_CMD_DO_REPOSITION (param1 speed, -1 default; param2 flags,
@@ -612,6 +635,7 @@ class Autopilot:
         """MAV_CMD_NAV_LOITER_UNLIM as a command: LOITER mode (circle the current position)."""
         return self.set_mode(i, cv.LOITER)
 
+    @_guarded()
     def land(self, i, lat_rad=None, lon_rad=None, alt_m=None, *, relative_alt: bool = True) -> Result:
         """MAV_CMD_NAV_LAND as a command: AUTOLAND mode at the point (param5/6; NaN or None:
         straight ahead on the glide slope, MAVLink's "current position"; param7 ground altitude,
@@ -641,6 +665,7 @@ class Autopilot:
             self._set_land(v, pt)
         return Result(mavlink.MAV_RESULT_ACCEPTED)
 
+    @_guarded()
     def mission_start(self, i, first=0, last=0) -> Result:
         """MAV_CMD_MISSION_START: AUTO from item 1 (first / last other than 0: DENIED, ArduPlane)."""
         v = self._vehicle(i)
@@ -652,6 +677,7 @@ class Autopilot:
             self.m_state[v] = mavlink.MISSION_STATE_NOT_STARTED  # start, not resume
         return self.set_mode(v, cv.AUTO)
 
+    @_guarded()
     def change_speed(self, i, speed_type, speed_m_s) -> Result:
         """MAV_CMD_DO_CHANGE_SPEED as a command: only in AUTO / GUIDED (FAILED else, ArduPlane);
         an airspeed outside AIRSPEED_MIN..MAX: FAILED."""
@@ -668,6 +694,7 @@ class Autopilot:
                                 f"speed {float(speed_m_s):g} m/s outside AIRSPEED_MIN..AIRSPEED_MAX")
         return Result(mavlink.MAV_RESULT_ACCEPTED)
 
+    @_guarded()
     def set_home(self, i, lat_rad=None, lon_rad=None, alt_m=None, use_current: bool = False) -> Result:
         """MAV_CMD_DO_SET_HOME (param1 1: the current position; else param5..7, MSL)."""
         v = self._vehicle(i)
@@ -685,6 +712,7 @@ class Autopilot:
             self._rtl(v)  # ArduPlane: in RTL head to the new home
         return Result(mavlink.MAV_RESULT_ACCEPTED)
 
+    @_guarded(mission=True)
     def set_mission(self, i, items) -> MissionResult:
         """A complete uploaded mission (items with seq, frame, command, param1..4, x, y (degE7),
         z: vehicles.mavlink.mission.MissionItem or MISSION_ITEM_INT messages).  Item 0 is home
@@ -792,6 +820,7 @@ class Autopilot:
             if old != cv.FIRST_ITEM:
                 self._emit(v, "mission_current", cv.FIRST_ITEM)
 
+    @_guarded()
     def set_current(self, i, seq, reset_jumps: bool = False) -> Result:
         """MISSION_SET_CURRENT / MAV_CMD_DO_SET_MISSION_CURRENT (param1 seq, param2 1: reset the
         DO_JUMP counters).  seq 0 (home) restarts at item 1; a seq past the mission: DENIED.  In
@@ -823,6 +852,7 @@ class Autopilot:
         return Result(mavlink.MAV_RESULT_ACCEPTED)
 
     # ------------------------------------------------------------------ the generic entry points
+    @_guarded()
     def command(self, i, command: int, params=(0.0,) * 7, frame: int | None = None) -> Result:
         """COMMAND_LONG / COMMAND_INT -> the operation.  params: (param1..param4, latitude deg,
         longitude deg, altitude) -- for COMMAND_INT pass x * 1e-7, y * 1e-7, z and its frame; for
@@ -830,15 +860,16 @@ class Autopilot:
         A command the autopilot does not know: UNSUPPORTED (counted)."""
         try:
             p = [float(x) for x in params]
-        except (TypeError, ValueError):
-            return self._refuse("bad_param", mavlink.MAV_RESULT_DENIED, f"params {params!r}")
+            c = int(command)
+            frame = None if frame is None else int(frame)
+        except (TypeError, ValueError, OverflowError):
+            return self._refuse("bad_param", mavlink.MAV_RESULT_DENIED, f"command {command!r}, params {params!r}")
         if len(p) != 7:
             return self._refuse("bad_param", mavlink.MAV_RESULT_DENIED, f"expected 7 params, got {len(p)}")
         rel = frame is None or int(frame) in REL_FRAMES
         if frame is not None and int(frame) not in REL_FRAMES and int(frame) not in ABS_FRAMES and command in (
                 mavlink.MAV_CMD_DO_REPOSITION, mavlink.MAV_CMD_NAV_LAND):
             return self._refuse("bad_param", mavlink.MAV_RESULT_DENIED, f"frame {frame} unsupported")
-        c = int(command)
         if c == mavlink.MAV_CMD_COMPONENT_ARM_DISARM:
             if p[0] not in (0.0, 1.0):
                 return self._refuse("bad_param", mavlink.MAV_RESULT_DENIED, f"arm param1 {p[0]!r} (0 or 1)")
@@ -875,6 +906,7 @@ class Autopilot:
         return self._refuse("unsupported_command", mavlink.MAV_RESULT_UNSUPPORTED,
                             f"{cv.command_name(c)} ({c}) not supported")
 
+    @_guarded(mission=True)
     def guided_item(self, i, item) -> MissionResult:
         """MISSION_ITEM_INT with current = 2 (MAVProxy ``guided LAT LON ALT`` with
         guided_use_reposition off): GUIDED to the item's position; current = 3: change the
