@@ -298,6 +298,7 @@ class Autopilot:
         self.phase[i] = cv.LANDING
         self.kind[i], self.task[i] = gd.LAND, T_LAND
         self.tgt[i] = (point[0], point[1], point[2] - _FLARE_M)  # aims below the ground: it touches down
+        self.prev[i] = self.pos[i]
         self.ground[i] = point[2]
         self.airspeed[i] = self.cfg.airspeed_min_m_s
 
@@ -518,6 +519,8 @@ class Autopilot:
                 self.airspeed[v] = self.cfg.airspeed_cruise_m_s
                 self._enter(v, int(self.mode[v]))
             if self.phase[v] in (cv.ON_GROUND, cv.LANDED):
+                if self.m_state[v] == mavlink.MISSION_STATE_COMPLETE:
+                    self.m_state[v] = mavlink.MISSION_STATE_NOT_STARTED  # arming in AUTO flies it again
                 self.home[v] = self.pos[v]
                 self.ground[v] = self.pos[v, 2]
                 self.phase[v] = cv.ON_GROUND
@@ -978,7 +981,8 @@ class Autopilot:
         # a take-off starts: armed on the ground in TAKEOFF, or in AUTO with a mission to fly
         ground = np.isin(self.phase, (cv.ON_GROUND, cv.LANDED)) & (self.task != T_ROLLOUT)
         has = self.m_count > 1
-        start = ground & self.armed & ((self.mode == cv.TAKEOFF) | ((self.mode == cv.AUTO) & has))
+        flyable = has & (self.m_state != mavlink.MISSION_STATE_COMPLETE)
+        start = ground & self.armed & ((self.mode == cv.TAKEOFF) | ((self.mode == cv.AUTO) & flyable))
         for i in np.flatnonzero(start).tolist():
             self._takeoff_start(i)
         # the take-off roll and climb-out
@@ -1015,7 +1019,16 @@ class Autopilot:
                 | ((tk == T_TIME) & (t - self.t_stage[idx] >= self.loiter_time[idx])) \
                 | ((tk == T_ALT) & (np.abs(h[idx] - self.tgt[idx, 2]) < _LOITER_ALT_TOL_M))
             self._item_done(idx[done])
-        # landings: touchdown, roll-out, landed
+        # landings: over the landing point (or past its finish line) the final straight ahead
+        ld = (self.task == T_LAND) & (self.kind == gd.LAND)
+        if ld.any():
+            idx = np.flatnonzero(ld)
+            over = (self._dist(pos[idx], self.tgt[idx]) < cfg.wp_radius_m) | self._past(idx)
+            for i in idx[over].tolist():
+                self.kind[i] = gd.FINAL
+                self.leg_heading[i] = self.psi[i]
+                self.tgt[i, 2] = self.ground[i]
+        # touchdown, roll-out, landed
         down = np.isin(self.task, (T_LAND, T_GLIDE)) & (h <= self.ground + _TOUCHDOWN_M)
         for i in np.flatnonzero(down).tolist():
             self.kind[i], self.task[i] = gd.LEG, T_ROLLOUT

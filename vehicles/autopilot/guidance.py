@@ -15,8 +15,11 @@ are the existing laws' own (vehicles/uav.py):
           psi_ref = bearing - pi/2 + atan(k_r (d - r) / r), psi' = clip(v / r + k_orbit
           wrap(psi_ref - psi), +-w_max); v_u as GOTO (a loiter also changes altitude)
   LEG     heading hold: psi' = clip(k_goto wrap(heading - psi), +-w_max); v_u as GOTO
-  LAND    GOTO's turn towards the landing point, v_u = clip(k_climb (alt + slope d - h),
-          -sink_max, 0): a glide slope, never a climb
+  LAND    the approach: GOTO's turn towards the landing point, v_u = clip(k_climb (alt + slope d
+          - h), -sink_max, 0): down the glide slope from above, level below it, never a climb
+  FINAL   past the landing point: LEG's heading hold, v_u = -clip(max(slope v, k_climb (h - alt)),
+          0, sink_max) above the ground (alt), 0 on it: straight ahead down to the ground, at least at
+          the glide slope's sink rate
   HOLD    v = v_u = psi' = 0 (on the ground)
   SCENARIO  the scenario's own law flies this UAV (the caller's; :class:`AutopilotLaw` evaluates
           it for these UAVs only when given one, see vehicles.autopilot.swarm)
@@ -34,8 +37,9 @@ import numpy as np
 
 from sitl.constants import Ellipsoid, ellipsoid
 
-HOLD, SCENARIO, GOTO, ORBIT, LEG, LAND = 0, 1, 2, 3, 4, 5
-KIND_NAMES = {HOLD: "hold", SCENARIO: "scenario", GOTO: "goto", ORBIT: "orbit", LEG: "leg", LAND: "land"}
+HOLD, SCENARIO, GOTO, ORBIT, LEG, LAND, FINAL = 0, 1, 2, 3, 4, 5, 6
+KIND_NAMES = {HOLD: "hold", SCENARIO: "scenario", GOTO: "goto", ORBIT: "orbit", LEG: "leg", LAND: "land",
+              FINAL: "final"}
 
 #: gains: WaypointMission's turn and climb gains, Racetrack's turn and radial gains (vehicles/uav.py defaults)
 K_GOTO_1_S, K_CLIMB_1_S, K_ORBIT_1_S, K_RADIAL = 0.5, 0.05, 0.1, 1.0
@@ -84,36 +88,59 @@ def commands(g: Guidance, y, ell: Ellipsoid | None = None, scenario=None):
     """(speed, climb, heading rate) of every UAV at states y (N, 4) [lat, lon, h, heading].
 
     scenario: (speed, climb, rate) arrays (N,) of the scenario's law at y, used for the
-    SCENARIO UAVs (zeros if None)."""
+    SCENARIO UAVs (zeros if None).  When every UAV has the same kind only that kind's formulas
+    are evaluated (the same numbers: each kind's formula is element-wise)."""
     lat, lon, h, psi = y[..., 0], y[..., 1], y[..., 2], y[..., 3]
     kind = g.kind
-    d_e, d_n = offsets(lat, lon, h, g.lat_rad, g.lon_rad, ell)
-    bearing = np.arctan2(d_e, d_n)
-    d = np.hypot(d_e, d_n)
-    w = g.max_turn_rate_rad_s
+    k0 = int(kind[0]) if kind.size else HOLD
+    uniform = bool(np.all(kind == k0))
+    kinds = (k0,) if uniform else tuple(int(k) for k in np.unique(kind))
     v = g.speed_m_s
-    r = np.maximum(g.radius_m, 1.0)
-    goto_rate = K_GOTO_1_S * _wrap(bearing - psi)
-    orbit_ref = bearing - 0.5 * np.pi + np.arctan(K_RADIAL * (d - r) / r)
-    orbit_rate = v / r + K_ORBIT_1_S * _wrap(orbit_ref - psi)
-    leg_rate = K_GOTO_1_S * _wrap(g.heading_rad - psi)
-    rate = np.where(kind == ORBIT, orbit_rate, np.where(kind == LEG, leg_rate, goto_rate))
-    rate = np.clip(rate, -w, w)
+    zero = np.zeros(kind.shape)
+    if uniform and k0 == HOLD:
+        return zero, zero.copy(), zero.copy()
+    if uniform and k0 == SCENARIO:
+        return scenario if scenario is not None else (zero, zero.copy(), zero.copy())
+    need_target = any(k in (GOTO, ORBIT, LAND) for k in kinds)
+    if need_target:
+        d_e, d_n = offsets(lat, lon, h, g.lat_rad, g.lon_rad, ell)
+        bearing = np.arctan2(d_e, d_n)
+    rate = zero
+    if GOTO in kinds or LAND in kinds:
+        r_goto = K_GOTO_1_S * _wrap(bearing - psi)
+        rate = r_goto if uniform else np.where((kind == GOTO) | (kind == LAND), r_goto, rate)
+    if ORBIT in kinds:
+        d = np.hypot(d_e, d_n)
+        r = np.maximum(g.radius_m, 1.0)
+        ref = bearing - 0.5 * np.pi + np.arctan(K_RADIAL * (d - r) / r)
+        r_orbit = v / r + K_ORBIT_1_S * _wrap(ref - psi)
+        rate = r_orbit if uniform else np.where(kind == ORBIT, r_orbit, rate)
+    if LEG in kinds or FINAL in kinds:
+        r_leg = K_GOTO_1_S * _wrap(g.heading_rad - psi)
+        rate = r_leg if uniform else np.where((kind == LEG) | (kind == FINAL), r_leg, rate)
+    w = g.max_turn_rate_rad_s
+    rate = np.minimum(np.maximum(rate, -w), w)
     vmax = 0.5 * v
     up = np.minimum(g.climb_max_m_s, vmax)
     down = np.minimum(g.sink_max_m_s, vmax)
-    climb = np.clip(K_CLIMB_1_S * (g.alt_m - h), -down, up)
-    land_climb = np.clip(K_CLIMB_1_S * (g.alt_m + g.slope * d - h), -down, 0.0)
-    climb = np.where(kind == LAND, land_climb, climb)
-    still = kind == HOLD
-    speed = np.where(still, 0.0, v)
-    climb = np.where(still, 0.0, climb)
-    rate = np.where(still, 0.0, rate)
-    if scenario is not None:
-        sc = kind == SCENARIO
-        speed = np.where(sc, scenario[0], speed)
-        climb = np.where(sc, scenario[1], climb)
-        rate = np.where(sc, scenario[2], rate)
+    climb = np.minimum(np.maximum(K_CLIMB_1_S * (g.alt_m - h), -down), up)
+    if LAND in kinds:
+        land = np.minimum(np.maximum(K_CLIMB_1_S * (g.alt_m + g.slope * np.hypot(d_e, d_n) - h), -down), 0.0)
+        climb = land if uniform else np.where(kind == LAND, land, climb)
+    if FINAL in kinds:
+        fin = np.where(h > g.alt_m, -np.minimum(np.maximum(g.slope * v, K_CLIMB_1_S * (h - g.alt_m)), down), 0.0)
+        climb = fin if uniform else np.where(kind == FINAL, fin, climb)
+    speed = v
+    if not uniform:
+        still = kind == HOLD
+        speed = np.where(still, 0.0, v)
+        climb = np.where(still, 0.0, climb)
+        rate = np.where(still, 0.0, rate)
+        if scenario is not None:
+            sc = kind == SCENARIO
+            speed = np.where(sc, scenario[0], speed)
+            climb = np.where(sc, scenario[1], climb)
+            rate = np.where(sc, scenario[2], rate)
     return speed, climb, rate
 
 

@@ -78,10 +78,14 @@ class AutopilotSwarm:
     @property
     def state_y(self) -> np.ndarray:
         """(N, 4) [lat, lon, h, heading] of every UAV now."""
+        if self.own.all():
+            return self.y.copy()
         sw = np.asarray(self.swarm.state.y, float).reshape(-1, 4)
         return np.where(self.own[:, None], self.y, sw)
 
     def _scenario_for(self, idx):
+        if not np.any(self.last_guidance.kind[idx] == gd.SCENARIO):
+            return None
         key = tuple(idx.tolist())
         if self._sub_law is None or self._sub_law[0] != key:
             self._sub_law = (key, subset_law(self.swarm.guidance, idx))
@@ -110,9 +114,12 @@ class AutopilotSwarm:
                     self.ap.scenario[newly] = False  # this law cannot fly a subset: no pattern to rejoin
             self._advance(t0, tb, g)
             t0 = tb
-        tu = self.swarm.step(t1)
         self.t_s = t1
         self.events = events
+        if self.own.all():  # nobody flies the scenario's swarm any more: it need not be stepped
+            law = gd.AutopilotLaw(self.last_guidance, self._scenario_for(np.arange(self.n)), self.swarm.ell)
+            return uav.truth(uav.KinematicState(t1, self.y.copy(), np.zeros(self.n, dtype=int)), law, self.swarm.ell)
+        tu = self.swarm.step(t1)
         if not self.own.any():
             return tu
         idx = np.flatnonzero(self.own)
@@ -128,7 +135,11 @@ class AutopilotSwarm:
         self.last_guidance = g
         if not self.own.any() or t1 <= t0:
             return
-        idx = np.flatnonzero(self.own)
+        # a held UAV (speed, climb and turn 0) is a fixed point of the ODE: not integrated, so it
+        # stays put exactly (the integrator's longitude wrap would move its last bit)
+        idx = np.flatnonzero(self.own & (g.kind != gd.HOLD))
+        if not idx.size:
+            return
         law = gd.AutopilotLaw(g.subset(idx), self._scenario_for(idx), self.swarm.ell)
         st = uav.KinematicState(t0, self.y[idx].copy(), np.zeros(idx.size, dtype=int))
         st = uav.propagate(st, t1, law, self.dt_s, self.swarm.ell, backend="numpy")
