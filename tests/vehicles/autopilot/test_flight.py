@@ -6,12 +6,15 @@ from __future__ import annotations
 import math
 
 import numpy as np
+import pytest
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 from vehicles.autopilot import convention as cv
 from vehicles.autopilot.core import DO_JUMP, NAV_LAND, NAV_TAKEOFF, NAV_WAYPOINT
 
 from .sim import Run, fleet, item, ref_distance, ref_distance_rad
+
+pytestmark = pytest.mark.slow
 
 R = mavlink
 WPS = [(45.30, 30.35, 300.0), (45.40, 30.50, 500.0), (45.30, 30.65, 400.0), (45.20, 30.50, 200.0)]

@@ -15,6 +15,9 @@ from vehicles.autopilot import Autopilot, AutopilotSwarm
 from vehicles.autopilot import convention as cv
 
 
+pytestmark = pytest.mark.slow
+
+
 def seed_swarm(pattern: str):
     """The vehicle process's swarm for the default scenario (VehicleGroup.__init__'s law)."""
     u = default_scenario().uavs
