@@ -147,6 +147,45 @@ def _finite(*v) -> bool:
         return False
 
 
+def check_item(k: int, it, n: int) -> MissionResult:
+    """Item k of an n-item upload: MAV_MISSION_ACCEPTED, or the code of what is wrong with it
+    (pure; the MissionServer may call it item by item as they arrive)."""
+    try:
+        seq, frame, cmd = int(it.seq), int(it.frame), int(it.command)
+        p = [float(it.param1), float(it.param2), float(it.param3), float(it.param4)]
+        x, y, z = float(it.x), float(it.y), float(it.z)
+    except (AttributeError, TypeError, ValueError, OverflowError):
+        return MissionResult(mavlink.MAV_MISSION_ERROR, f"item {k}: not a mission item", k)
+    if seq != k:
+        return MissionResult(mavlink.MAV_MISSION_INVALID_SEQUENCE, f"item {k}: seq {seq}", k)
+    if k == 0:
+        return MissionResult(mavlink.MAV_MISSION_ACCEPTED)  # home: the vehicle's own
+    if cmd not in FLYABLE_ITEMS:
+        return MissionResult(mavlink.MAV_MISSION_UNSUPPORTED,
+                             f"item {k}: {cv.command_name(cmd)} ({cmd}) cannot be flown", k)
+    if cmd in POSITION_ITEMS:
+        if frame not in ABS_FRAMES and frame not in REL_FRAMES:
+            return MissionResult(mavlink.MAV_MISSION_UNSUPPORTED_FRAME, f"item {k}: frame {frame}", k)
+        if not (math.isfinite(x) and -900_000_000 <= x <= 900_000_000):
+            return MissionResult(mavlink.MAV_MISSION_INVALID_PARAM5_X, f"item {k}: latitude {x!r} degE7", k)
+        if not (math.isfinite(y) and -1_800_000_000 <= y <= 1_800_000_000):
+            return MissionResult(mavlink.MAV_MISSION_INVALID_PARAM6_Y, f"item {k}: longitude {y!r} degE7", k)
+        if not math.isfinite(z):
+            return MissionResult(mavlink.MAV_MISSION_INVALID_PARAM7, f"item {k}: altitude {z!r}", k)
+    if cmd == LOITER_TURNS and not (math.isfinite(p[0]) and p[0] > 0):
+        return MissionResult(mavlink.MAV_MISSION_INVALID_PARAM1, f"item {k}: turns {p[0]!r}", k)
+    if cmd == LOITER_TIME and not (math.isfinite(p[0]) and p[0] >= 0):
+        return MissionResult(mavlink.MAV_MISSION_INVALID_PARAM1, f"item {k}: time {p[0]!r} s", k)
+    if cmd == DO_JUMP:
+        if not (math.isfinite(p[0]) and p[0] == int(p[0]) and 1 <= p[0] < n and int(p[0]) != k):
+            return MissionResult(mavlink.MAV_MISSION_INVALID_PARAM1, f"item {k}: DO_JUMP target {p[0]!r}", k)
+        if not (math.isfinite(p[1]) and p[1] == int(p[1]) and p[1] >= -1):
+            return MissionResult(mavlink.MAV_MISSION_INVALID_PARAM2, f"item {k}: DO_JUMP repeats {p[1]!r}", k)
+    if cmd == DO_CHANGE_SPEED and not (math.isfinite(p[0]) and math.isfinite(p[1])):
+        return MissionResult(mavlink.MAV_MISSION_INVALID_PARAM2, f"item {k}: speed {p[1]!r}", k)
+    return MissionResult(mavlink.MAV_MISSION_ACCEPTED)
+
+
 class Autopilot:
     """N UAVs' autopilots (see the module and package docstrings).
 
@@ -743,40 +782,7 @@ class Autopilot:
         return MissionResult(mavlink.MAV_MISSION_ACCEPTED)
 
     def _check_item(self, k: int, it, n: int) -> MissionResult:
-        try:
-            seq, frame, cmd = int(it.seq), int(it.frame), int(it.command)
-            p = [float(it.param1), float(it.param2), float(it.param3), float(it.param4)]
-            x, y, z = float(it.x), float(it.y), float(it.z)
-        except (AttributeError, TypeError, ValueError, OverflowError):
-            return MissionResult(mavlink.MAV_MISSION_ERROR, f"item {k}: not a mission item", k)
-        if seq != k:
-            return MissionResult(mavlink.MAV_MISSION_INVALID_SEQUENCE, f"item {k}: seq {seq}", k)
-        if k == 0:
-            return MissionResult(mavlink.MAV_MISSION_ACCEPTED)  # home: the vehicle's own
-        if cmd not in FLYABLE_ITEMS:
-            return MissionResult(mavlink.MAV_MISSION_UNSUPPORTED,
-                                 f"item {k}: {cv.command_name(cmd)} ({cmd}) cannot be flown", k)
-        if cmd in POSITION_ITEMS:
-            if frame not in ABS_FRAMES and frame not in REL_FRAMES:
-                return MissionResult(mavlink.MAV_MISSION_UNSUPPORTED_FRAME, f"item {k}: frame {frame}", k)
-            if not (math.isfinite(x) and -900_000_000 <= x <= 900_000_000):
-                return MissionResult(mavlink.MAV_MISSION_INVALID_PARAM5_X, f"item {k}: latitude {x!r} degE7", k)
-            if not (math.isfinite(y) and -1_800_000_000 <= y <= 1_800_000_000):
-                return MissionResult(mavlink.MAV_MISSION_INVALID_PARAM6_Y, f"item {k}: longitude {y!r} degE7", k)
-            if not math.isfinite(z):
-                return MissionResult(mavlink.MAV_MISSION_INVALID_PARAM7, f"item {k}: altitude {z!r}", k)
-        if cmd == LOITER_TURNS and not (math.isfinite(p[0]) and p[0] > 0):
-            return MissionResult(mavlink.MAV_MISSION_INVALID_PARAM1, f"item {k}: turns {p[0]!r}", k)
-        if cmd == LOITER_TIME and not (math.isfinite(p[0]) and p[0] >= 0):
-            return MissionResult(mavlink.MAV_MISSION_INVALID_PARAM1, f"item {k}: time {p[0]!r} s", k)
-        if cmd == DO_JUMP:
-            if not (math.isfinite(p[0]) and p[0] == int(p[0]) and 1 <= p[0] < n and int(p[0]) != k):
-                return MissionResult(mavlink.MAV_MISSION_INVALID_PARAM1, f"item {k}: DO_JUMP target {p[0]!r}", k)
-            if not (math.isfinite(p[1]) and p[1] == int(p[1]) and p[1] >= -1):
-                return MissionResult(mavlink.MAV_MISSION_INVALID_PARAM2, f"item {k}: DO_JUMP repeats {p[1]!r}", k)
-        if cmd == DO_CHANGE_SPEED and not (math.isfinite(p[0]) and math.isfinite(p[1])):
-            return MissionResult(mavlink.MAV_MISSION_INVALID_PARAM2, f"item {k}: speed {p[1]!r}", k)
-        return MissionResult(mavlink.MAV_MISSION_ACCEPTED)
+        return check_item(k, it, n)
 
     def _store_mission(self, v: int, items) -> None:
         n = len(items)

@@ -79,3 +79,16 @@ def test_clearing_the_mission_rejoins_the_scenario_pattern():
     tu = fl.step(20.0)
     assert fl.last_guidance.kind[0] == 1 and np.all(np.isfinite(tu.pos_ecef_m))  # SCENARIO again
     assert abs(float(tu.speed_m_s[0]) - 100.0) < 1e-9  # the orbit law's speed
+
+
+def test_checkpoint_pickle_resumes_identically():
+    # the vehicle worker checkpoints its group by pickle (vehicles/process.py): the fleet must survive it
+    import pickle
+    fl = with_autopilot(seed_swarm("orbit"))
+    assert fl.ap.command(0, mavlink.MAV_CMD_NAV_RETURN_TO_LAUNCH).ok
+    for t in range(1, 11):
+        fl.step(float(t))
+    copy = pickle.loads(pickle.dumps(fl))
+    for t in range(11, 40):
+        a, b = fl.step(float(t)), copy.step(float(t))
+    assert np.array_equal(a.pos_ecef_m, b.pos_ecef_m) and fl.ap.counters == copy.ap.counters
