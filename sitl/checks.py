@@ -1,6 +1,8 @@
 """Parameter checks shared by the world models (sitl/, vehicles/): each returns the value as a
 float or float array, or raises ValueError with a one-line message naming the parameter.
-(filters/ keeps its own copies in filters/models.py: it imports only numpy and scipy.)"""
+(filters/ keeps its own copies in filters/models.py: it imports only numpy and scipy.)
+Being replaced by filters.params (declared checks, ParamError): sitl/ and ground_station/ no longer
+use this module; it goes once vehicles/ has moved too."""
 from __future__ import annotations
 
 import math

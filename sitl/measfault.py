@@ -28,50 +28,43 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from sitl.checks import nonnegative, positive
+from filters.params import choice, integer, number, optional, param, require, validate
 
 __all__ = ["FAULT_KINDS", "Fault", "FaultInjector", "GaussMarkov", "Injected"]
 
 FAULT_KINDS = ("step", "ramp", "outlier", "dropout", "delay")
 
 
+_POSITIVE = number(0, lo_open=True)  # a positive scalar argument (dt_s)
+_PROB = "a number in [0, 1]"
+
+
 @dataclass(frozen=True)
 class Fault:
     """One fault on one channel (the last axis of the measurement array)."""
 
-    kind: str
-    channel: int
-    t_start_s: float
-    t_end_s: float = math.inf
-    magnitude: float = 0.0  # step: the jump (measurement units)
-    rate: float = 0.0  # ramp: units per second
-    prob: float = 0.0  # outlier: probability per epoch
-    scale: float = 0.0  # outlier: scale of the Student-t draw
-    dof: float = 2.0  # outlier: degrees of freedom (heavy tails: small)
-    delay_s: float = 0.0  # delay: how late the value is
-    trial: int | None = None  # batch index (flattened), None: every trial
+    kind: str = param(check=choice(*FAULT_KINDS), doc="what the fault does: " + ", ".join(FAULT_KINDS))
+    channel: int = param(check=integer(0), doc="the channel it hits: an index on the measurement array's last axis")
+    t_start_s: float = param(check=number(), doc="start of the fault (inclusive), simulation s")
+    t_end_s: float = param(math.inf, check=number(finite=False),
+                           doc="end of the fault (exclusive), simulation s; > t_start_s (inf: it stays)")
+    magnitude: float = param(0.0, check=number(), doc="step: the jump, measurement units")
+    rate: float = param(0.0, check=number(), doc="ramp: the drift, measurement units per s")
+    prob: float = param(0.0, check=number(0, what=_PROB), doc="outlier: probability of an outlier per epoch")
+    scale: float = param(0.0, check=number(0), doc="outlier: scale of the Student-t draw, measurement units")
+    dof: float = param(2.0, check=number(0, lo_open=True),
+                       doc="outlier: degrees of freedom of the Student-t draw (heavy tails: small)")
+    delay_s: float = param(0.0, check=number(0), doc="delay: how late the delivered value is, s (> 0 for a delay)")
+    trial: int | None = param(None, check=optional(integer(0)),
+                              doc="the batch index (flattened) it hits; None: every trial")
 
     def __post_init__(self):
-        if self.kind not in FAULT_KINDS:
-            raise ValueError(f"fault kind must be one of {', '.join(FAULT_KINDS)}, got {self.kind!r}")
-        if isinstance(self.channel, bool) or not isinstance(self.channel, (int, np.integer)) or self.channel < 0:
-            raise ValueError(f"fault channel must be an integer >= 0, got {self.channel!r}")
-        for name in ("t_start_s", "magnitude", "rate"):
-            v = getattr(self, name)
-            if not isinstance(v, (int, float, np.integer, np.floating)) or isinstance(v, bool) or not math.isfinite(v):
-                raise ValueError(f"fault {name} must be a finite number, got {v!r}")
-        if not (isinstance(self.t_end_s, (int, float, np.integer, np.floating)) and self.t_end_s > self.t_start_s):
-            raise ValueError(f"fault t_end_s must be > t_start_s = {self.t_start_s!r}, got {self.t_end_s!r}")
-        if not 0.0 <= self.prob <= 1.0:
-            raise ValueError(f"fault prob must be in [0, 1], got {self.prob!r}")
-        nonnegative("fault scale", self.scale)
-        positive("fault dof", self.dof)
-        nonnegative("fault delay_s", self.delay_s)
-        if self.kind == "delay" and self.delay_s <= 0:
-            raise ValueError(f"a delay fault needs delay_s > 0, got {self.delay_s!r}")
-        if self.trial is not None and (isinstance(self.trial, bool) or not isinstance(self.trial, (int, np.integer))
-                                       or self.trial < 0):
-            raise ValueError(f"fault trial must be None or an integer >= 0, got {self.trial!r}")
+        validate(self)
+        require(self.t_end_s > self.t_start_s, "t_end_s",
+                f"expected a number > t_start_s = {self.t_start_s!r}, got {self.t_end_s!r}")
+        require(self.prob <= 1.0, "prob", f"expected {_PROB}, got {self.prob!r}")
+        require(self.kind != "delay" or self.delay_s > 0, "delay_s",
+                f"expected a number > 0 for a delay fault, got {self.delay_s!r}")
 
     def active(self, t: float) -> bool:
         return self.t_start_s <= t < self.t_end_s
@@ -175,7 +168,7 @@ class GaussMarkov:
 
     def step(self, rng: np.random.Generator, dt_s: float):
         """Advance by dt_s and return the new error (a view of the state)."""
-        dt = positive("dt_s", dt_s)
+        dt = _POSITIVE("dt_s", dt_s)
         phi = np.exp(-dt / self.tau_s)
         self.x = phi * self.x + self.sigma * np.sqrt(1.0 - phi * phi) * rng.standard_normal(self.x.shape)
         return self.x

@@ -11,6 +11,7 @@ from typing import NamedTuple
 import numpy as np
 
 from filters.integrity import IntegrityConfig
+from filters.params import Check, ParamError, choice, integer, number, optional, param, require, several, switch, validate
 from sitl.atmosphere_std import Z_MAX_M
 from sitl.bus import is_valid_id
 from sitl.radio.radar import RadarParams
@@ -28,14 +29,27 @@ _RADAR_DEFAULT = RadarParams()
 _RELAY_DEFAULT = RelayParams()
 
 
-def _finite(name, value, lo=None, lo_open=False) -> float:
-    try:
-        v = float(value)
-    except (TypeError, ValueError):
-        raise ValueError(f"{name} must be a number, got {value!r}") from None
-    if not math.isfinite(v) or (lo is not None and (v <= lo if lo_open else v < lo)):
-        raise ValueError(f"{name} must be a finite number {'>' if lo_open else '>='} {lo}, got {value!r}")
-    return v
+_POSITIVE = number(0, lo_open=True)
+_NONNEGATIVE = number(0)
+
+
+def _instance_or_none(cls, what: str):
+    """A check (key, value) -> value of the filters.params kind: an instance of ``cls`` or None."""
+    def check(key, value):
+        if value is not None and not isinstance(value, cls):
+            raise ParamError(key, f"expected {what} or None, got {value!r}")
+        return value
+    return check
+
+
+def _label(value):
+    if not is_valid_id(value):
+        raise ParamError("", f"expected 1..64 chars of [A-Za-z0-9_.-], got {value!r}")
+    return value
+
+
+_FRACTION_OPEN = "a number in (0, 1)"
+_FRACTION_HALF_OPEN = "a number in (0, 1]"
 
 
 @dataclass(frozen=True)
@@ -47,145 +61,131 @@ class SondeTrackerParams:
     models, not the truth's state.
     """
 
-    mode: str = "fused"  # one of MODES
-    radar_noise: str = "colored"  # "colored": AR(1) errors in the state; "white": naive
-    filter: str = "ekf"  # "ekf", "ukf" (same models) or "auto" (per sonde and epoch, see below)
-    auto_ukf_ratio: float = 0.02  # auto: the UKF when sqrt(trace P_pos) > this x the distance to the site
-    # the sonde's motion: "relaxed" (vehicles.sonde's model: the velocity relaxes with the aerodynamic
-    # rate to the wind it meets, driven by the Gauss-Markov gust acceleration of eq 20; the wind and its
-    # rate of change are states) or "singer" (eq 20 as printed: the acceleration Gauss-Markov, the
-    # velocity its integral -- a random walk, which over a coast grows the position variance as T^3)
-    kinematics: str = "relaxed"
-    accel_rate_1_s: float = 0.12  # p1 + p2 (seed eq 20): the gust acceleration's (singer: the acceleration's) rate
-    sigma_acc_horizontal_m_s2: float = 0.15  # its stationary std (relaxed: the gust a_g; singer: the acceleration)
-    sigma_acc_vertical_m_s2: float = 0.10
-    velocity_relax_rate_horizontal_1_s: float = 0.1  # relaxed: p1, the velocity relaxes to the wind in 1/p1
-    velocity_relax_rate_vertical_1_s: float = 0.2  # relaxed: k_v, the vertical speed to its target
-    # relaxed: the wind the sonde meets is the wind profile at its height, so it changes at the shear
-    # du/dh times the sonde's vertical speed: the shear is a state, Gauss-Markov in height, with a
-    # stationary std per horizontal axis and a correlation height; vertically, the shear of the target
-    # vertical speed left once the descent law (descent_rate_sl_m_s) is applied. The defaults are
-    # sitl.app.experiments.sonde.wind_shear_statistics of the experiment's sonde (the default jet profile
-    # x 1.15 between the launch and the burst height); its target vertical speed is the constant ascent
-    # rate, then the descent law itself: no vertical residual
-    wind_shear_sigma_horizontal_1_s: float = 2.93e-3
-    wind_shear_sigma_vertical_1_s: float = 0.0
-    wind_shear_corr_height_m: float = 4430.0
-    delta_d_rw_psd_m2_s: float = 1e-6  # dd random walk (eq 21: constant; tiny slack)
-    osc_gamma_1_s: float = _RELAY_DEFAULT.osc_gamma_1_s
-    osc_sigma_m_s: float = _RELAY_DEFAULT.osc_sigma_hz * _RELAY_DEFAULT.osc_doppler_scale_m_s_per_rad_s * TWO_PI
-    radar_sigma: tuple = tuple(float(s) for s in _RADAR_DEFAULT.sigma)  # (m, rad, rad), AR(1) stationary std
-    radar_gamma_1_s: tuple = tuple(float(g) for g in _RADAR_DEFAULT.gamma_1_s)  # AR(1) spectrum widths
-    radar_white_fraction: float = 1e-3  # coloured model: white part of R, fraction of sigma^2
-    gate_prob: float | None = 1.0 - 1e-4  # chi-square gate per block; None: no gating
-    manoeuvre_sigma_acc_m_s2: float = 10.0  # unknown acceleration step of the manoeuvre hypothesis
-    manoeuvre_sigma_wind_m_s: float = 30.0  # relaxed: and an unknown step of the wind / target speed (the burst)
-    # relaxed: the parachute's terminal speed at sea level, v_d(h) = v_sl sqrt(rho0 / rho(h)) (vehicles.sonde,
-    # US76): a descending sonde's target vertical speed -v_d(h) follows its height as a known input; None: off
-    descent_rate_sl_m_s: float | None = 5.0
-    # relaxed: the burst height's range (vehicles.sonde's burst_alt_range_m: uniform, low to high, m). A
-    # climbing track (target vertical speed > 0) may burst in any step inside it, with the model's hazard:
-    # the probability p = its climb over the step / the height left to the top (1 at the top); its target
-    # then steps to -v_d(h), and Q carries that step's mean square, p (target + v_d(h))^2 (burst_variance).
-    # None (or no descent law): no burst in the model, left to the manoeuvre hypothesis alone. The range is
-    # the world's (vehicles.sonde.SondeParams); the composition root (sitl.app) hands it over, so it has no
-    # default of its own here
-    burst_alt_range_m: tuple | None = None
-    # relaxed: the sonde lands on flat ground at the site's height (the radar's, else the ground receiver's)
-    # and stays there (vehicles.sonde's LANDED phase): a descending track whose height reaches it is
-    # landed -- at rest from then on, until a re-initialisation. False: the track coasts on
-    landing: bool = True
-    # a track with no accepted measurement (a relay or radar block that passed the gate, or a fix that
-    # (re)initialised it) for longer than this is lost: its Estimate is no longer published (counted
-    # ``lost``) and the next measurement initialises it again, as at its acquisition. None: never lost
-    max_coast_s: float | None = 300.0
-    manoeuvre_window: int | None = 10  # epochs of the sliding-window NIS test (None: off)
-    reacquire_after: int | None = 5  # re-initialise after this many rejected blocks in a row
-    prior_sigma_vel_m_s: float = 20.0
-    prior_sigma_wind_offset_m_s: float = 10.0  # relaxed: the wind's offset from the velocity at initialisation
-    prior_sigma_delta_d_m: float = 3000.0
-    relay_errors: RelayErrorBudget | None = _RELAY_DEFAULT.errors  # the relay's error budget; None: white only
-    bias_slots: int = 24  # per-satellite error states (relay modes with relay_errors); >= satellites in view
-    bias_tau_s: float | None = None  # their correlation time; None: relay_errors' variance-weighted one
-    label: str | None = None  # Estimate.mode; default: mode (+ "_white" for naive radar noise)
-    backend: str | None = None  # filters.kernels backend (None: default)
-    integrity: IntegrityConfig | None = None  # the integrity monitor (filters.integrity) around the updates; None: off
-    integrity_sat_channels: int = 48  # relayed-satellite channels of the monitor (>= satellites seen in its memory)
-    integrity_warmup_s: float = 10.0  # a track is not judged this long after its (re)initialisation or a manoeuvre
-    integrity_common_fraction: float = 0.25  # jumps on more than this fraction of a sonde's rows: a manoeuvre
-    lag_window_s: float = GroundStationSection.lag_window_s  # out-of-sequence messages this old are used by re-processing (0: dropped as stale)
+    mode: str = param("fused", check=choice(*MODES), doc="which measurements the tracker uses: " + ", ".join(MODES))
+    radar_noise: str = param("colored", check=choice(*RADAR_NOISE),
+                             doc='"colored": the radar\'s AR(1) errors are states; "white": the naive white model')
+    filter: str = param("ekf", check=choice("ekf", "ukf", "auto"),
+                        doc='"ekf", "ukf" (the same models) or "auto" (per sonde and epoch, see auto_ukf_ratio)')
+    auto_ukf_ratio: float = param(0.02, check=_POSITIVE,
+                                  doc="auto: the UKF when sqrt(trace P_pos) exceeds this times the distance to the site")
+    kinematics: str = param(
+        "relaxed", check=choice(*KINEMATICS),
+        doc='the sonde\'s motion: "relaxed" (vehicles.sonde\'s model: the velocity relaxes with the aerodynamic '
+            "rate to the wind it meets, driven by the Gauss-Markov gust acceleration of eq 20; the wind and its rate "
+            'of change are states) or "singer" (eq 20 as printed: the acceleration Gauss-Markov, the velocity its '
+            "integral -- a random walk, which over a coast grows the position variance as T^3)")
+    accel_rate_1_s: float = param(0.12, check=_POSITIVE,
+                                  doc="p1 + p2 (seed eq 20): the rate of the gust acceleration (singer: of the "
+                                      "acceleration), 1/s")
+    sigma_acc_horizontal_m_s2: float = param(0.15, check=_NONNEGATIVE,
+                                             doc="its stationary std per horizontal axis (relaxed: the gust a_g; "
+                                                 "singer: the acceleration), m/s^2")
+    sigma_acc_vertical_m_s2: float = param(0.10, check=_NONNEGATIVE, doc="its stationary std vertically, m/s^2")
+    velocity_relax_rate_horizontal_1_s: float = param(0.1, check=_POSITIVE,
+                                                      doc="relaxed: p1, the velocity relaxes to the wind in 1/p1, 1/s")
+    velocity_relax_rate_vertical_1_s: float = param(0.2, check=_POSITIVE,
+                                                    doc="relaxed: k_v, the vertical speed relaxes to its target, 1/s")
+    wind_shear_sigma_horizontal_1_s: float = param(
+        2.93e-3, check=_NONNEGATIVE,
+        doc="relaxed: stationary std of the wind shear du/dh per horizontal axis, 1/s: the wind the sonde meets "
+            "is the profile at its height, so it changes at the shear times the vertical speed; the shear is a "
+            "state, Gauss-Markov in height (the default: sitl.app.experiments.sonde.wind_shear_statistics of the "
+            "experiment's sonde, the default jet profile x 1.15 between the launch and the burst height)")
+    wind_shear_sigma_vertical_1_s: float = param(
+        0.0, check=_NONNEGATIVE,
+        doc="relaxed: stationary std of the shear of the target vertical speed left once the descent law "
+            "(descent_rate_sl_m_s) is applied, 1/s (the default: none, the ascent rate is constant)")
+    wind_shear_corr_height_m: float = param(4430.0, check=_POSITIVE, doc="relaxed: the shear's correlation height, m")
+    delta_d_rw_psd_m2_s: float = param(1e-6, check=_NONNEGATIVE,
+                                       doc="PSD of the dd random walk (eq 21: a constant; a tiny slack), m^2/s")
+    osc_gamma_1_s: float = param(_RELAY_DEFAULT.osc_gamma_1_s, check=_POSITIVE,
+                                 doc="spectrum width of the relay LO's frequency offset, 1/s (the relay's)")
+    osc_sigma_m_s: float = param(
+        _RELAY_DEFAULT.osc_sigma_hz * _RELAY_DEFAULT.osc_doppler_scale_m_s_per_rad_s * TWO_PI, check=_POSITIVE,
+        doc="stationary std of the relay LO's frequency offset as a pseudo-Doppler, m/s (the relay's)")
+    radar_sigma: tuple = param(tuple(float(s) for s in _RADAR_DEFAULT.sigma), check=several(_POSITIVE, 3),
+                               doc="stationary std of the radar's AR(1) errors (range m, az rad, el rad)")
+    radar_gamma_1_s: tuple = param(tuple(float(g) for g in _RADAR_DEFAULT.gamma_1_s), check=several(_POSITIVE, 3),
+                                   doc="spectrum widths of the radar's AR(1) errors (range, az, el), 1/s")
+    radar_white_fraction: float = param(1e-3, check=_POSITIVE,
+                                        doc="coloured radar model: the white part of R, a fraction of sigma^2")
+    gate_prob: float | None = param(1.0 - 1e-4, check=optional(number(0, lo_open=True, what=_FRACTION_OPEN)),
+                                    doc="probability of the chi-square gate per block, in (0, 1); None: no gating")
+    manoeuvre_sigma_acc_m_s2: float = param(10.0, check=_NONNEGATIVE,
+                                            doc="the unknown acceleration step of the manoeuvre hypothesis, m/s^2")
+    manoeuvre_sigma_wind_m_s: float = param(30.0, check=_NONNEGATIVE,
+                                            doc="relaxed: and the unknown step of the wind / target speed (the "
+                                                "burst), m/s")
+    descent_rate_sl_m_s: float | None = param(
+        5.0, check=optional(_POSITIVE),
+        doc="relaxed: the parachute's terminal speed at sea level, m/s, v_d(h) = v_sl sqrt(rho0 / rho(h)) "
+            "(vehicles.sonde, US76): a descending sonde's target vertical speed -v_d(h) follows its height as a "
+            "known input; None: off")
+    burst_alt_range_m: tuple | None = param(
+        None, check=optional(several(number(0), 2)),
+        doc="relaxed: the burst height's range (low, high), m, 0 <= low < high <= the atmosphere's top "
+            "(vehicles.sonde's burst_alt_range_m). A climbing track may burst in any step inside it, with the "
+            "model's hazard p = its climb over the step / the height left to the top (1 at the top); its target "
+            "then steps to -v_d(h), and Q carries that step's mean square, p (target + v_d(h))^2. None (or no "
+            "descent law): no burst in the model, left to the manoeuvre hypothesis. The composition root "
+            "(sitl.app) hands over the world's range: no default of its own here")
+    landing: bool = param(True, check=switch(),
+                          doc="relaxed: the sonde lands on flat ground at the site's height (the radar's, else the "
+                              "ground receiver's) and stays there: a descending track whose height reaches it is "
+                              "at rest from then on, until a re-initialisation; False: the track coasts on")
+    max_coast_s: float | None = param(
+        300.0, check=optional(_POSITIVE),
+        doc="a track with no accepted measurement (a relay or radar block that passed the gate, or a fix that "
+            "(re)initialised it) for longer than this is lost, s: its Estimate is no longer published (counted "
+            "lost) and the next measurement initialises it again; None: never lost")
+    manoeuvre_window: int | None = param(10, check=optional(integer(1)),
+                                         doc="epochs of the sliding-window NIS test (None: off)")
+    reacquire_after: int | None = param(5, check=optional(integer(1)),
+                                        doc="re-initialise after this many rejected blocks in a row (None: never)")
+    prior_sigma_vel_m_s: float = param(20.0, check=_POSITIVE, doc="prior std of the velocity at initialisation, m/s")
+    prior_sigma_wind_offset_m_s: float = param(10.0, check=_NONNEGATIVE,
+                                               doc="relaxed: prior std of the wind's offset from the velocity at "
+                                                   "initialisation, m/s")
+    prior_sigma_delta_d_m: float = param(3000.0, check=_POSITIVE, doc="prior std of dd at initialisation, m")
+    relay_errors: RelayErrorBudget | None = param(_RELAY_DEFAULT.errors,
+                                                  check=_instance_or_none(RelayErrorBudget, "a RelayErrorBudget"),
+                                                  doc="the relay's error budget; None: white noise only")
+    bias_slots: int = param(24, check=integer(1),
+                            doc="per-satellite error states (relay modes with relay_errors); >= satellites in view")
+    bias_tau_s: float | None = param(None, check=optional(_POSITIVE),
+                                     doc="their correlation time, s; None: relay_errors' variance-weighted one")
+    label: str | None = param(None, check=optional(Check(_label)),
+                              doc='the Estimate\'s mode; None: mode (+ "_white" for the naive radar noise)')
+    backend: str | None = param(None, check=optional(choice("auto", "numpy", "numba")),
+                                doc="the filters.kernels backend (None: the default)")
+    integrity: IntegrityConfig | None = param(
+        None, check=_instance_or_none(IntegrityConfig, "a filters.integrity.IntegrityConfig"),
+        doc="the integrity monitor (filters.integrity) around the updates; None: off")
+    integrity_sat_channels: int = param(48, check=integer(1),
+                                        doc="relayed-satellite channels of the monitor (>= satellites seen in its "
+                                            "memory)")
+    integrity_warmup_s: float = param(10.0, check=_NONNEGATIVE,
+                                      doc="a track is not judged this long after its (re)initialisation or a "
+                                          "manoeuvre, s")
+    integrity_common_fraction: float = param(0.25, check=number(0, lo_open=True, what=_FRACTION_HALF_OPEN),
+                                             doc="jumps on more than this fraction of a sonde's rows: a manoeuvre")
+    lag_window_s: float = param(GroundStationSection.lag_window_s, check=_NONNEGATIVE,
+                                doc="out-of-sequence messages this old are used by re-processing, s (0: dropped as "
+                                    "stale)")
 
     def __post_init__(self):
-        if self.mode not in MODES:
-            raise ValueError(f"mode must be one of {MODES}, got {self.mode!r}")
-        if self.kinematics not in KINEMATICS:
-            raise ValueError(f"kinematics must be one of {KINEMATICS}, got {self.kinematics!r}")
-        if self.radar_noise not in RADAR_NOISE:
-            raise ValueError(f"radar_noise must be one of {RADAR_NOISE}, got {self.radar_noise!r}")
-        if self.filter not in ("ekf", "ukf", "auto"):
-            raise ValueError(f"filter must be 'ekf', 'ukf' or 'auto', got {self.filter!r}")
-        _finite("auto_ukf_ratio", self.auto_ukf_ratio, 0.0, lo_open=True)
-        for name in ("accel_rate_1_s", "osc_gamma_1_s", "osc_sigma_m_s", "prior_sigma_vel_m_s",
-                     "prior_sigma_delta_d_m", "velocity_relax_rate_horizontal_1_s", "velocity_relax_rate_vertical_1_s",
-                     "wind_shear_corr_height_m"):
-            _finite(name, getattr(self, name), 0.0, lo_open=True)
-        if self.descent_rate_sl_m_s is not None:
-            _finite("descent_rate_sl_m_s", self.descent_rate_sl_m_s, 0.0, lo_open=True)
-        if self.burst_alt_range_m is not None:
-            try:
-                lo, hi = (float(a) for a in self.burst_alt_range_m)
-            except (TypeError, ValueError):
-                raise ValueError(f"burst_alt_range_m must be (low, high) in m or None, got {self.burst_alt_range_m!r}") from None
-            if not (math.isfinite(lo) and math.isfinite(hi) and 0.0 <= lo < hi <= Z_MAX_M):
-                raise ValueError(f"burst_alt_range_m must satisfy 0 <= low < high <= {Z_MAX_M:g} m, "
-                                 f"got {self.burst_alt_range_m!r}")
-            object.__setattr__(self, "burst_alt_range_m", (lo, hi))
-        if self.max_coast_s is not None:
-            if isinstance(self.max_coast_s, bool):
-                raise ValueError(f"max_coast_s must be a finite number > 0 or None, got {self.max_coast_s!r}")
-            _finite("max_coast_s", self.max_coast_s, 0.0, lo_open=True)
-        for name in ("sigma_acc_horizontal_m_s2", "sigma_acc_vertical_m_s2", "delta_d_rw_psd_m2_s",
-                     "manoeuvre_sigma_acc_m_s2", "manoeuvre_sigma_wind_m_s", "wind_shear_sigma_horizontal_1_s",
-                     "wind_shear_sigma_vertical_1_s", "prior_sigma_wind_offset_m_s"):
-            _finite(name, getattr(self, name), 0.0)
-        _finite("radar_white_fraction", self.radar_white_fraction, 0.0, lo_open=True)
+        validate(self)
         for name in ("radar_sigma", "radar_gamma_1_s"):
-            v = getattr(self, name)
-            try:
-                t = tuple(float(a) for a in v)
-            except (TypeError, ValueError):
-                raise ValueError(f"{name} must be 3 numbers (range, az, el), got {v!r}") from None
-            if len(t) != 3 or not all(math.isfinite(a) and a > 0 for a in t):
-                raise ValueError(f"{name} must be 3 finite numbers > 0 (range, az, el), got {v!r}")
-            object.__setattr__(self, name, t)
-        if self.gate_prob is not None:
-            g = _finite("gate_prob", self.gate_prob, 0.0, lo_open=True)
-            if not g < 1.0:
-                raise ValueError(f"gate_prob must lie in (0, 1) or be None, got {self.gate_prob!r}")
-        for name in ("reacquire_after", "manoeuvre_window"):
-            v = getattr(self, name)
-            if v is not None and (isinstance(v, bool) or not isinstance(v, int) or v < 1):
-                raise ValueError(f"{name} must be an integer >= 1 or None, got {v!r}")
-        if self.label is not None and not is_valid_id(self.label):
-            raise ValueError(f"label must be 1..64 chars of [A-Za-z0-9_.-], got {self.label!r}")
-        if self.relay_errors is not None and not isinstance(self.relay_errors, RelayErrorBudget):
-            raise ValueError(f"relay_errors must be a RelayErrorBudget or None, got {self.relay_errors!r}")
-        if isinstance(self.bias_slots, bool) or not isinstance(self.bias_slots, int) or self.bias_slots < 1:
-            raise ValueError(f"bias_slots must be an integer >= 1, got {self.bias_slots!r}")
-        if self.bias_tau_s is not None:
-            _finite("bias_tau_s", self.bias_tau_s, 0.0, lo_open=True)
-        if self.backend not in (None, "auto", "numpy", "numba"):
-            raise ValueError(f"backend must be None, 'auto', 'numpy' or 'numba', got {self.backend!r}")
-        if self.integrity is not None and not isinstance(self.integrity, IntegrityConfig):
-            raise ValueError(f"integrity must be a filters.integrity.IntegrityConfig or None, got {self.integrity!r}")
-        v = self.integrity_sat_channels
-        if isinstance(v, bool) or not isinstance(v, int) or v < 1:
-            raise ValueError(f"integrity_sat_channels must be an integer >= 1, got {v!r}")
-        _finite("integrity_warmup_s", self.integrity_warmup_s, 0.0)
-        _finite("lag_window_s", self.lag_window_s, 0.0)
-        f = _finite("integrity_common_fraction", self.integrity_common_fraction, 0.0, lo_open=True)
-        if f > 1.0:
-            raise ValueError(f"integrity_common_fraction must lie in (0, 1], got {self.integrity_common_fraction!r}")
+            object.__setattr__(self, name, tuple(getattr(self, name)))
+        if self.burst_alt_range_m is not None:
+            lo, hi = self.burst_alt_range_m
+            object.__setattr__(self, "burst_alt_range_m", (lo, hi))
+            require(lo < hi <= Z_MAX_M, "burst_alt_range_m",
+                    f"expected 0 <= low < high <= {Z_MAX_M:g} m, got {self.burst_alt_range_m!r}")
+        require(self.gate_prob is None or self.gate_prob < 1.0, "gate_prob",
+                f"expected {_FRACTION_OPEN} or None, got {self.gate_prob!r}")
+        require(self.integrity_common_fraction <= 1.0, "integrity_common_fraction",
+                f"expected {_FRACTION_HALF_OPEN}, got {self.integrity_common_fraction!r}")
 
     @property
     def relay_bias_states(self) -> int:

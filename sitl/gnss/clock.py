@@ -18,6 +18,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from filters.params import number, param, validate
 from sitl.constants import C_M_S
 
 TCXO_PSD_1_S = 0.8e-20  # seed 000: N_ε of a Rakon RTXS5032A TCXO
@@ -38,21 +39,14 @@ def _as_shape(batch_shape) -> tuple:
 
 @dataclass(frozen=True)
 class ClockModel:
-    """Receiver clock bias/drift model of seed 000 (eqs. 13-15).
+    """Receiver clock bias/drift model of seed 000 (eqs. 13-15)."""
 
-    psd_1_s: N_ε, PSD of the forming noise of the fractional frequency, 1/s.
-    """
-
-    psd_1_s: float = TCXO_PSD_1_S
+    psd_1_s: float = param(TCXO_PSD_1_S, check=number(0, what="a finite PSD >= 0 in 1/s"),
+                           doc="N_epsilon, the PSD of the noise forming the fractional frequency rate, 1/s "
+                               "(seed 000: 0.8e-20, a Rakon RTXS5032A TCXO)")
 
     def __post_init__(self):
-        v = self.psd_1_s
-        try:
-            ok = bool(np.isfinite(float(v)) and float(v) >= 0.0)
-        except (TypeError, ValueError):
-            ok = False
-        if not ok:
-            raise ValueError(f"psd_1_s must be a finite non-negative PSD in 1/s, got {v!r}")
+        validate(self)
 
     @property
     def q_m2_s3(self) -> float:

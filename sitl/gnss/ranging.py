@@ -43,10 +43,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from filters.params import ParamError
 from sitl.constants import C_M_S, ellipsoid
 from sitl.gnss.orbits import Constellation, _propagate
 
-__all__ = ["Geometry", "light_time_geometry", "sat_state_at_reception_frame", "LIGHT_TIME_TOL_S"]
+__all__ = ["Geometry", "finite_vec3", "light_time_geometry", "sat_state_at_reception_frame", "LIGHT_TIME_TOL_S"]
 
 #: The light-time iteration stops when tau changes by less than this.  The returned
 #: satellite position is the one evaluated at the previous iterate, within 1e-12 s of
@@ -93,12 +94,19 @@ def _check_constellation(constellation) -> Constellation:
     return constellation
 
 
-def _vec3(name: str, value) -> np.ndarray:
-    arr = np.asarray(value, dtype=float)
+def finite_vec3(key: str, value) -> np.ndarray:
+    """A check (key, value) -> value of the filters.params kind for a function argument that is
+    a batch of positions or velocities: a finite (..., 3) float array, np.asarray of ``value``
+    (no copy), else ParamError naming ``key``. (The core's array() fixes the number of axes;
+    these arguments have any.)"""
+    try:
+        arr = np.asarray(value, dtype=float)
+    except (TypeError, ValueError):
+        raise ParamError(key, f"expected a finite (..., 3) array, got a {type(value).__name__}") from None
     if arr.ndim < 1 or arr.shape[-1] != 3:
-        raise ValueError(f"{name}: expected shape (..., 3), got {arr.shape}")
+        raise ParamError(key, f"expected a finite (..., 3) array, got shape {arr.shape}")
     if not np.all(np.isfinite(arr)):
-        raise ValueError(f"{name}: values must be finite")
+        raise ParamError(key, "expected a finite (..., 3) array, got non-finite values")
     return arr
 
 
@@ -292,8 +300,8 @@ def light_time_geometry(t_rx_gps_s, rx_pos_ecef_m, rx_vel_ecef_m_s, constellatio
     """
     c = _check_constellation(constellation)
     we = _omega(ell)
-    r = _vec3("rx_pos_ecef_m", rx_pos_ecef_m)
-    v = _vec3("rx_vel_ecef_m_s", rx_vel_ecef_m_s)
+    r = finite_vec3("rx_pos_ecef_m", rx_pos_ecef_m)
+    v = finite_vec3("rx_vel_ecef_m_s", rx_vel_ecef_m_s)
     t = _times("t_rx_gps_s", t_rx_gps_s)
     try:
         batch = np.broadcast_shapes(r.shape[:-1], v.shape[:-1])

@@ -27,67 +27,44 @@ trials; per-satellite constants (carrier, system) are (S,); the clock is (*batch
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, fields
+from dataclasses import dataclass
 
 import numpy as np
 
+from filters.params import integer, number, param, require, validate
 from sitl.constants import C_M_S, F_GPS_L1_HZ
 from sitl.gnss.atmosphere import iono_slant_delay_m, tropo_slant_delay_m
+
+_EL_MASK = "a number in (0, pi/2)"
 
 
 @dataclass(frozen=True)
 class ReceiverConfig:
-    """Noise, mask, atmosphere and tracking parameters of the receiver (defaults: seed 000).
+    """Noise, mask, atmosphere and tracking parameters of the receiver (defaults: seed 000)."""
 
-    sigma_pr_m: pseudorange noise σ_D, m.
-    sigma_prr_m_s: pseudorange-rate noise σ_Ḋ, m/s.
-    sigma_phase_m: carrier-phase noise σ_G, m.
-    el_mask_rad: elevation mask, rad; tracked iff el >= mask. In (0, π/2): 1/sin el is
-        singular at the horizon.
-    iono_zenith_m: true zenith ionospheric group delay I_g at iono_ref_hz, m.
-    tropo_zenith_m: true zenith tropospheric delay U_g, m.
-    gps_glonass_offset_m: true GPS-GLONASS time offset Δ_A, m, added to GPS code and phase
-        (0 disables it).
-    cycle_slip_rate_hz: rate of random cycle slips per tracked satellite, 1/s.
-    slip_cycles_max: largest |ΔN| of a random slip, cycles (>= 1).
-    ambiguity_max_cycles: new ambiguities are uniform integers in [−M, M].
-    iono_ref_hz: reference frequency of iono_zenith_m (GPS L1).
-    """
-
-    sigma_pr_m: float = 6.0
-    sigma_prr_m_s: float = 0.064
-    sigma_phase_m: float = 0.003
-    el_mask_rad: float = float(np.deg2rad(5.0))
-    iono_zenith_m: float = 15.0
-    tropo_zenith_m: float = 2.5
-    gps_glonass_offset_m: float = 0.0
-    cycle_slip_rate_hz: float = 0.0
-    slip_cycles_max: int = 5
-    ambiguity_max_cycles: int = 1_000_000
-    iono_ref_hz: float = F_GPS_L1_HZ
+    sigma_pr_m: float = param(6.0, check=number(0), doc="pseudorange noise sigma_D (1 sigma), m")
+    sigma_prr_m_s: float = param(0.064, check=number(0), doc="pseudorange-rate noise sigma_Ddot (1 sigma), m/s")
+    sigma_phase_m: float = param(0.003, check=number(0), doc="carrier-phase noise sigma_G (1 sigma), m")
+    el_mask_rad: float = param(float(np.deg2rad(5.0)), check=number(0, lo_open=True, what=_EL_MASK),
+                               doc="elevation mask, rad: a satellite is tracked iff el >= mask; in (0, pi/2), "
+                                   "since 1/sin el is singular at the horizon")
+    iono_zenith_m: float = param(15.0, check=number(0),
+                                 doc="true zenith ionospheric group delay I_g at iono_ref_hz, m")
+    tropo_zenith_m: float = param(2.5, check=number(0), doc="true zenith tropospheric delay U_g, m")
+    gps_glonass_offset_m: float = param(0.0, check=number(),
+                                        doc="true GPS-GLONASS time offset Delta_A, m, added to GPS code and phase "
+                                            "(0 disables it)")
+    cycle_slip_rate_hz: float = param(0.0, check=number(0),
+                                      doc="rate of random cycle slips per tracked satellite, 1/s")
+    slip_cycles_max: int = param(5, check=integer(1), doc="largest |Delta N| of a random slip, cycles")
+    ambiguity_max_cycles: int = param(1_000_000, check=integer(0),
+                                      doc="new ambiguities are uniform integers in [-M, M], cycles")
+    iono_ref_hz: float = param(F_GPS_L1_HZ, check=number(0, lo_open=True),
+                               doc="reference frequency of iono_zenith_m, Hz (GPS L1)")
 
     def __post_init__(self):
-        for f in fields(self):
-            v = getattr(self, f.name)
-            try:
-                finite = bool(np.isfinite(float(v)))
-            except (TypeError, ValueError):
-                finite = False
-            if not finite:
-                raise ValueError(f"{f.name} must be a finite number, got {v!r}")
-        for name in ("sigma_pr_m", "sigma_prr_m_s", "sigma_phase_m", "iono_zenith_m",
-                     "tropo_zenith_m", "cycle_slip_rate_hz"):
-            v = getattr(self, name)
-            if v < 0.0:
-                raise ValueError(f"{name} must be >= 0, got {v!r}")
-        if not 0.0 < self.el_mask_rad < np.pi / 2:
-            raise ValueError(f"el_mask_rad must be in (0, pi/2), got {self.el_mask_rad!r}")
-        for name, lo in (("slip_cycles_max", 1), ("ambiguity_max_cycles", 0)):
-            v = getattr(self, name)
-            if int(v) != v or v < lo:
-                raise ValueError(f"{name} must be an integer >= {lo}, got {v!r}")
-        if self.iono_ref_hz <= 0.0:
-            raise ValueError(f"iono_ref_hz must be > 0, got {self.iono_ref_hz!r}")
+        validate(self)
+        require(self.el_mask_rad < np.pi / 2, "el_mask_rad", f"expected {_EL_MASK}, got {self.el_mask_rad!r}")
 
 
 @dataclass(frozen=True, eq=False)

@@ -34,8 +34,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from sitl.checks import finite_array as _finite
-from sitl.checks import vec3 as _vec3
+from filters.params import array
 from sitl.constants import C_M_S
 from sitl.geodesy import ecef_to_aer, geocentric_elevation_rad
 from sitl.gnss.clock import ClockModel
@@ -43,6 +42,7 @@ from sitl.gnss.orbits import Constellation
 from sitl.gnss.ranging import (
     Geometry,
     _check_constellation,
+    finite_vec3,
     light_time_geometry,
     sat_state_at_reception_frame,
 )
@@ -60,6 +60,8 @@ __all__ = [
     "visible_count",
     "NOMINAL_TAU_S",
 ]
+
+_FINITE = array()  # a function argument of finite numbers, any shape (a read-only float copy)
 
 #: Transit time put in for untracked satellites before evaluating the ephemeris (their
 #: output is NaN afterwards); any value keeps ``sat_state_at_reception_frame`` happy.
@@ -111,7 +113,7 @@ def look_angles(rx_pos_ecef_m, geometry: Geometry, ell=None) -> tuple[np.ndarray
     """
     if not isinstance(geometry, Geometry):
         raise ValueError(f"geometry: expected a ranging.Geometry, got {type(geometry).__name__}")
-    rx = _vec3("rx_pos_ecef_m", rx_pos_ecef_m)
+    rx = finite_vec3("rx_pos_ecef_m", rx_pos_ecef_m)
     az, el, _ = ecef_to_aer(rx[..., None, :], geometry.sat_pos_ecef_m, ell)
     return az, el
 
@@ -152,8 +154,8 @@ def geometry_track(t_gps_s, rx_pos_ecef_m, rx_vel_ecef_m_s, constellation: Const
     t = np.asarray(t_gps_s, dtype=float)
     if t.ndim != 1 or not np.all(np.isfinite(t)):
         raise ValueError(f"t_gps_s: expected a 1-D array of finite times, got shape {t.shape}")
-    pos = _vec3("rx_pos_ecef_m", rx_pos_ecef_m)
-    vel = _vec3("rx_vel_ecef_m_s", rx_vel_ecef_m_s)
+    pos = finite_vec3("rx_pos_ecef_m", rx_pos_ecef_m)
+    vel = finite_vec3("rx_vel_ecef_m_s", rx_vel_ecef_m_s)
     if pos.shape != (t.size, 3) or vel.shape != (t.size, 3):
         raise ValueError(f"rx_pos_ecef_m and rx_vel_ecef_m_s must have shape ({t.size}, 3), got {pos.shape} "
                          f"and {vel.shape}")
@@ -180,13 +182,13 @@ def _observe(rng, t_gps_s, rx_pos_ecef_m, rx_vel_ecef_m_s, clock_bias_m, clock_d
     if receiver.n_sats != len(c):
         raise ValueError(f"receiver: tracks {receiver.n_sats} satellites but the constellation has {len(c)}")
     t = _scalar_time("t_gps_s", t_gps_s)
-    pos = _vec3("rx_pos_ecef_m", rx_pos_ecef_m)
-    vel = _vec3("rx_vel_ecef_m_s", rx_vel_ecef_m_s)
+    pos = finite_vec3("rx_pos_ecef_m", rx_pos_ecef_m)
+    vel = finite_vec3("rx_vel_ecef_m_s", rx_vel_ecef_m_s)
     batch = receiver.batch_shape
     _broadcasts_to("rx_pos_ecef_m", pos, batch + (3,), "the receiver's batch")
     _broadcasts_to("rx_vel_ecef_m_s", vel, batch + (3,), "the receiver's batch")
-    bias = _finite("clock_bias_m", clock_bias_m)
-    drift = _finite("clock_drift_m_s", clock_drift_m_s)
+    bias = _FINITE("clock_bias_m", clock_bias_m)
+    drift = _FINITE("clock_drift_m_s", clock_drift_m_s)
     _broadcasts_to("clock_bias_m", bias, batch, "the receiver's batch")
     _broadcasts_to("clock_drift_m_s", drift, batch, "the receiver's batch")
 
@@ -331,20 +333,20 @@ def simulate_receiver(rng: np.random.Generator, t_gps_s, rx_pos_ecef_m, rx_vel_e
     clk = ClockModel() if clock is None else clock
     if not isinstance(clk, ClockModel):
         raise ValueError(f"clock: expected a ClockModel, got {type(clk).__name__}")
-    t = _finite("t_gps_s", t_gps_s)
+    t = _FINITE("t_gps_s", t_gps_s)
     if t.ndim != 1 or t.size < 1:
         raise ValueError(f"t_gps_s: expected shape (T,) with T >= 1, got {t.shape}")
     if np.any(np.diff(t) <= 0.0):
         raise ValueError("t_gps_s: epochs must be strictly increasing")
-    pos = _vec3("rx_pos_ecef_m", rx_pos_ecef_m)
+    pos = finite_vec3("rx_pos_ecef_m", rx_pos_ecef_m)
     if pos.ndim < 2 or pos.shape[0] != t.size:
         raise ValueError(f"rx_pos_ecef_m: expected shape ({t.size}, ..., 3) (one row per epoch), got {pos.shape}")
-    vel = _vec3("rx_vel_ecef_m_s", rx_vel_ecef_m_s)
+    vel = finite_vec3("rx_vel_ecef_m_s", rx_vel_ecef_m_s)
     _broadcasts_to("rx_vel_ecef_m_s", vel, pos.shape, "rx_pos_ecef_m's shape")
     vel = np.broadcast_to(vel, pos.shape)
     batch = pos.shape[1:-1]
-    b0 = _finite("clock_bias0_m", clock_bias0_m)
-    d0 = _finite("clock_drift0_m_s", clock_drift0_m_s)
+    b0 = _FINITE("clock_bias0_m", clock_bias0_m)
+    d0 = _FINITE("clock_drift0_m_s", clock_drift0_m_s)
     _broadcasts_to("clock_bias0_m", b0, batch, "the batch")
     _broadcasts_to("clock_drift0_m_s", d0, batch, "the batch")
 
@@ -413,13 +415,13 @@ def ephemeris_for_filter(t_rx_gps_s, pseudorange_m, constellation: Constellation
         raise ValueError(f"pseudorange_m: expected shape (..., {S}) (one column per satellite), got {pr.shape}")
     if np.any(np.isinf(pr)):
         raise ValueError("pseudorange_m: values must be finite or NaN (untracked)")
-    t = _finite("t_rx_gps_s", t_rx_gps_s)
+    t = _FINITE("t_rx_gps_s", t_rx_gps_s)
     try:
         np.broadcast_shapes(t.shape, pr.shape[:-1])
     except ValueError:
         raise ValueError(f"t_rx_gps_s: shape {t.shape} does not broadcast with pseudorange_m batch "
                          f"{pr.shape[:-1]}") from None
-    b = _finite("clock_bias_est_m", clock_bias_est_m)
+    b = _FINITE("clock_bias_est_m", clock_bias_est_m)
     try:
         np.broadcast_shapes(b.shape, pr.shape[:-1])
     except ValueError:

@@ -28,6 +28,8 @@ import math
 import re
 from dataclasses import dataclass, fields
 
+from filters.params import ParamError, choice, integer, number, optional, param, require, several, validate
+
 __all__ = ["DISTRIBUTIONS", "FaultSpec", "FaultSpecError", "parse_spec"]
 
 DISTRIBUTIONS = ("uniform", "normal", "pareto", "paretonormal")
@@ -41,6 +43,27 @@ def _err(token: str, what: str) -> FaultSpecError:
     return FaultSpecError(f"fault spec: {token}: {what}")
 
 
+_FRACTION_TEXT = "a fraction in [0, 1]"
+_FRACTION = number(0, what=_FRACTION_TEXT)
+_FRACTIONS = ("loss", "loss_corr", "delay_corr", "reorder", "reorder_corr", "duplicate", "duplicate_corr",
+              "corrupt", "corrupt_corr")
+
+
+def _partitions(key, value) -> tuple:
+    """(t1_s, t2_s) intervals with finite t1 < t2, as a tuple of float pairs (a check (key, value)
+    -> value of the filters.params kind)."""
+    parts = []
+    for iv in value:
+        try:
+            t1, t2 = (float(x) for x in iv)
+        except (TypeError, ValueError):
+            raise ParamError(key, f"expected (t1_s, t2_s) intervals, got {iv!r}") from None
+        if not (math.isfinite(t1) and math.isfinite(t2)) or not t1 < t2:
+            raise ParamError(key, f"expected finite t1 < t2 in every interval, got {iv!r}")
+        parts.append((t1, t2))
+    return tuple(parts)
+
+
 @dataclass(frozen=True)
 class FaultSpec:
     """What a link does to packets. All fractions in [0, 1], times in s, rate in bit/s.
@@ -49,76 +72,52 @@ class FaultSpec:
     with correlation ``loss_corr``). ``rate_bps`` 0 means unlimited; ``limit`` None means no
     queue limit. ``partitions`` are ``(t1_s, t2_s)`` intervals, down for t1 <= t < t2.
     A spec with ``reorder > 0`` has ``gap >= 1`` (gap 0 with reorder is normalised to 1).
+    A bad value raises a one-line FaultSpecError (a ValueError) naming the field.
     """
 
-    loss: float = 0.0
-    loss_corr: float = 0.0
-    ge: tuple[float, float, float, float] | None = None
-    delay_s: float = 0.0
-    jitter_s: float = 0.0
-    delay_corr: float = 0.0
-    distribution: str = "uniform"
-    reorder: float = 0.0
-    reorder_corr: float = 0.0
-    gap: int = 0
-    duplicate: float = 0.0
-    duplicate_corr: float = 0.0
-    corrupt: float = 0.0
-    corrupt_corr: float = 0.0
-    rate_bps: float = 0.0
-    limit: int | None = None
-    partitions: tuple[tuple[float, float], ...] = ()
+    loss: float = param(0.0, check=_FRACTION, doc="random loss: the fraction of packets dropped")
+    loss_corr: float = param(0.0, check=_FRACTION, doc="random loss: its correlation with the previous packet's")
+    ge: tuple[float, float, float, float] | None = param(
+        None, check=optional(several(_FRACTION, 4)),
+        doc="the Gilbert-Elliott loss model (p, r, 1-h, 1-k), fractions; None: random loss (loss, loss_corr)")
+    delay_s: float = param(0.0, check=number(0), doc="the delay of every packet, s")
+    jitter_s: float = param(0.0, check=number(0), doc="the delay's jitter, s (0: none)")
+    delay_corr: float = param(0.0, check=_FRACTION, doc="the jitter's correlation with the previous packet's")
+    distribution: str = param("uniform", check=choice(*DISTRIBUTIONS),
+                              doc="the jitter's distribution (uniform: the kernel's default)")
+    reorder: float = param(0.0, check=_FRACTION,
+                           doc="the fraction of packets sent at once, ahead of the delayed ones (needs a delay)")
+    reorder_corr: float = param(0.0, check=_FRACTION, doc="reordering: its correlation with the previous packet's")
+    gap: int = param(0, check=integer(0), doc="reordering: every gap-th packet is a candidate (0 with reorder: 1)")
+    duplicate: float = param(0.0, check=_FRACTION, doc="the fraction of packets sent twice")
+    duplicate_corr: float = param(0.0, check=_FRACTION, doc="duplication: its correlation with the previous packet's")
+    corrupt: float = param(0.0, check=_FRACTION, doc="the fraction of packets with a flipped bit")
+    corrupt_corr: float = param(0.0, check=_FRACTION, doc="corruption: its correlation with the previous packet's")
+    rate_bps: float = param(0.0, check=number(0), doc="the link's rate limit, bit/s (0: unlimited)")
+    limit: int | None = param(None, check=optional(integer(0)), doc="the queue limit, packets (None: no limit)")
+    partitions: tuple[tuple[float, float], ...] = param(
+        (), check=_partitions, doc="(t1_s, t2_s) intervals of simulation time in which the link is down (t1 <= t < t2)")
 
     def __post_init__(self) -> None:
-        def frac(name: str) -> None:
-            v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, (int, float)) or not (0.0 <= v <= 1.0):
-                raise FaultSpecError(f"fault spec: {name}={v!r}: expected a fraction in [0, 1]")
-            object.__setattr__(self, name, float(v))
-
-        for name in ("loss", "loss_corr", "delay_corr", "reorder", "reorder_corr",
-                     "duplicate", "duplicate_corr", "corrupt", "corrupt_corr"):
-            frac(name)
-        for name in ("delay_s", "jitter_s", "rate_bps"):
-            v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v < 0:
-                raise FaultSpecError(f"fault spec: {name}={v!r}: expected a finite number >= 0")
-            object.__setattr__(self, name, float(v))
-        if self.ge is not None:
-            ge = tuple(self.ge)
-            if len(ge) != 4 or not all(isinstance(x, (int, float)) and not isinstance(x, bool)
-                                       and 0.0 <= x <= 1.0 for x in ge):
-                raise FaultSpecError(f"fault spec: ge={self.ge!r}: expected 4 fractions in [0, 1] "
-                                     "(p, r, 1-h, 1-k)")
-            object.__setattr__(self, "ge", tuple(float(x) for x in ge))
-            if self.loss > 0 or self.loss_corr > 0:
-                raise FaultSpecError("fault spec: loss and gemodel: only one loss model at a time")
-        if self.distribution not in DISTRIBUTIONS:
-            raise FaultSpecError(f"fault spec: distribution={self.distribution!r}: expected one of "
-                                 f"{', '.join(DISTRIBUTIONS)}")
-        if isinstance(self.gap, bool) or not isinstance(self.gap, int) or self.gap < 0:
-            raise FaultSpecError(f"fault spec: gap={self.gap!r}: expected an integer >= 0")
-        if self.reorder > 0 and self.gap == 0:
-            object.__setattr__(self, "gap", 1)
-        if self.limit is not None and (isinstance(self.limit, bool) or not isinstance(self.limit, int)
-                                       or self.limit < 0):
-            raise FaultSpecError(f"fault spec: limit={self.limit!r}: expected an integer >= 0")
-        if self.reorder > 0 and not self.has_delay:
-            raise FaultSpecError(f"fault spec: reorder={_fmt_frac(self.reorder)}: reordering "
-                                 "needs a delay (as netem)")
-        if self.distribution != "uniform" and not self.jitter_s > 0:
-            raise FaultSpecError(f"fault spec: distribution={self.distribution}: a distribution "
-                                 "needs a delay jitter (delay=D~J)")
-        parts = []
-        for iv in self.partitions:
-            try:
-                t1, t2 = (float(x) for x in iv)
-            except (TypeError, ValueError):
-                raise FaultSpecError(f"fault spec: partition {iv!r}: expected (t1_s, t2_s)") from None
-            if not (math.isfinite(t1) and math.isfinite(t2)) or not t1 < t2:
-                raise FaultSpecError(f"fault spec: partition {iv!r}: expected finite t1 < t2")
-            parts.append((t1, t2))
-        object.__setattr__(self, "partitions", tuple(parts))
+        try:
+            validate(self)
+            for name in _FRACTIONS:
+                require(getattr(self, name) <= 1.0, name, f"expected {_FRACTION_TEXT}, got {getattr(self, name)!r}")
+            if self.ge is not None:
+                object.__setattr__(self, "ge", tuple(self.ge))
+                require(all(x <= 1.0 for x in self.ge), "ge", f"expected 4 fractions in [0, 1] (p, r, 1-h, 1-k), "
+                                                              f"got {self.ge!r}")
+            require(self.ge is None or not (self.loss > 0 or self.loss_corr > 0), "loss and gemodel",
+                    "only one loss model at a time")
+            if self.reorder > 0 and self.gap == 0:
+                object.__setattr__(self, "gap", 1)
+            if self.reorder > 0:
+                require(self.has_delay, f"reorder={_fmt_frac(self.reorder)}", "reordering needs a delay (as netem)")
+            if self.distribution != "uniform":
+                require(self.jitter_s > 0, f"distribution={self.distribution}",
+                        "a distribution needs a delay jitter (delay=D~J)")
+        except ParamError as exc:
+            raise FaultSpecError(f"fault spec: {exc}") from None
 
     # ------------------------------------------------------------------------------------
     @property

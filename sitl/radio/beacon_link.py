@@ -31,10 +31,10 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
-from sitl.checks import positive as _check_positive
-from sitl.checks import vec3 as _vec3
+from filters.params import number, param, validate
 from sitl.constants import Ellipsoid
 from sitl.geodesy import ecef_to_geodetic
+from sitl.gnss.ranging import finite_vec3 as _vec3
 
 __all__ = [
     "psd_to_variance",
@@ -52,6 +52,8 @@ __all__ = [
 DEFAULT_PSD_RANGE_M2_S = 5.0**2
 DEFAULT_PSD_RANGE_RATE_M2_S = 0.1**2
 
+_POSITIVE = number(0, lo_open=True)  # the check of a positive scalar argument (dt_s, a sigma)
+
 
 def psd_to_variance(psd_two_sided, dt_s):
     """Variance of one sample of white noise with two-sided PSD N, averaged over dt_s: N / dt_s.
@@ -68,7 +70,7 @@ def psd_to_variance(psd_two_sided, dt_s):
 
     psd_two_sided: scalar or array, >= 0.  dt_s: scalar > 0.  Returns an array like psd.
     """
-    dt = _check_positive("dt_s", dt_s)
+    dt = _POSITIVE("dt_s", dt_s)
     try:
         n = np.asarray(psd_two_sided, dtype=float)
     except (TypeError, ValueError):
@@ -80,23 +82,18 @@ def psd_to_variance(psd_two_sided, dt_s):
 
 @dataclass(frozen=True)
 class BeaconLinkConfig:
-    """Noise of the beacon link: two-sided PSDs and the measurement interval.
+    """Noise of the beacon link: two-sided PSDs and the measurement interval."""
 
-    psd_range_m2_s: two-sided PSD of the range noise, m^2 s (seed: 25).
-    psd_range_rate_m2_s: two-sided PSD of the range-rate noise, (m/s)^2 s (seed: 0.01).
-    dt_s: measurement interval over which the noise is averaged, s (default 1).
-    """
-
-    psd_range_m2_s: float = DEFAULT_PSD_RANGE_M2_S
-    psd_range_rate_m2_s: float = DEFAULT_PSD_RANGE_RATE_M2_S
-    dt_s: float = 1.0
+    psd_range_m2_s: float = param(DEFAULT_PSD_RANGE_M2_S, check=number(0),
+                                  doc="two-sided PSD of the range noise, m^2 s (seed 002: (5 m)^2 s = 25)")
+    psd_range_rate_m2_s: float = param(DEFAULT_PSD_RANGE_RATE_M2_S, check=number(0),
+                                       doc="two-sided PSD of the range-rate noise, (m/s)^2 s "
+                                           "(seed 002: (0.1 m/s)^2 s = 0.01)")
+    dt_s: float = param(1.0, check=number(0, lo_open=True),
+                        doc="measurement interval over which the noise is averaged, s")
 
     def __post_init__(self):
-        _check_positive("dt_s", self.dt_s)
-        for name in ("psd_range_m2_s", "psd_range_rate_m2_s"):
-            v = getattr(self, name)
-            if not (isinstance(v, (int, float)) and math.isfinite(v) and v >= 0):
-                raise ValueError(f"{name} must be a finite number >= 0, got {v!r}")
+        validate(self)
 
     @property
     def var_range_m2(self) -> float:
@@ -248,7 +245,7 @@ def multilaterate(range_m, anchors_pos_ecef_m, var_range_m2: Any = DEFAULT_PSD_R
     if isinstance(gauss_newton_iterations, bool) or int(gauss_newton_iterations) != gauss_newton_iterations \
             or gauss_newton_iterations < 0:
         raise ValueError(f"gauss_newton_iterations must be an integer >= 0, got {gauss_newton_iterations!r}")
-    sig_h = _check_positive("prior_sigma_h_m", prior_sigma_h_m)
+    sig_h = _POSITIVE("prior_sigma_h_m", prior_sigma_h_m)
     try:
         batch = np.broadcast_shapes(r.shape[:-1], U.shape[:-2], var.shape[:-1] if var.ndim else ())
     except ValueError:

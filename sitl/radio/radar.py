@@ -57,10 +57,9 @@ from typing import NamedTuple
 
 import numpy as np
 
-from sitl.checks import nonnegative as _nonneg
-from sitl.checks import positive as _pos
-from sitl.checks import vec3 as _vec3
+from filters.params import ParamError, number, param, require, validate
 from sitl.geodesy import aer_to_ecef, ecef_to_aer, enu_rotation, geodetic_to_ecef
+from sitl.gnss.ranging import finite_vec3 as _vec3
 
 __all__ = [
     "MAX_RANGE_M",
@@ -81,16 +80,28 @@ MAX_RANGE_M = 250_000.0
 # helpers shared with sitl.radio.relay
 
 
-def _intervals(name, value) -> tuple:
-    """A schedule: a sequence of (t_start, t_end) pairs with t_start < t_end (GPS s)."""
+def _intervals(key, value) -> tuple:
+    """A schedule: a sequence of (t_start, t_end) pairs with t_start < t_end (GPS s), as a tuple
+    of float pairs; a check (key, value) -> value of the filters.params kind."""
     try:
         out = tuple((float(a), float(b)) for a, b in value)
     except (TypeError, ValueError):
-        raise ValueError(f"{name} must be a sequence of (t_start, t_end) pairs of GPS seconds") from None
+        raise ParamError(key, f"expected a sequence of (t_start, t_end) pairs of GPS seconds, got {value!r}") from None
     for a, b in out:
         if not (math.isfinite(a) and math.isfinite(b) and a < b):
-            raise ValueError(f"{name}: every interval needs finite t_start < t_end, got ({a}, {b})")
+            raise ParamError(key, f"expected finite t_start < t_end in every interval, got ({a}, {b})")
     return out
+
+
+#: the elevation masks' range (a mask at the zenith would see nothing)
+EL_MASK_TEXT = "a number in [-pi/2, pi/2)"
+_EL_MASK = number(-math.pi / 2, what=EL_MASK_TEXT)
+
+
+def _el_mask_below_zenith(obj, key: str) -> None:
+    """The rule after validate(): the mask named ``key`` lies below pi/2."""
+    v = getattr(obj, key)
+    require(v < math.pi / 2, key, f"expected {EL_MASK_TEXT}, got {v!r}")
 
 
 def _in_schedule(schedule: tuple, t: float) -> bool:
@@ -243,29 +254,34 @@ def aer_cov_to_ecef(az_rad, el_rad, range_m, site_pos_ecef_m, var_aer) -> np.nda
 class RadarParams:
     """Radar error and coverage parameters (SI units; angles in radians)."""
 
-    sigma_range_m: float = 15.0
-    sigma_az_rad: float = math.radians(0.1)
-    sigma_el_rad: float = math.radians(0.1)
-    gamma_range_1_s: float = 0.1  # error spectrum width; correlation time 1/gamma
-    gamma_az_1_s: float = 0.1
-    gamma_el_1_s: float = 0.1
-    max_range_m: float = MAX_RANGE_M
-    el_mask_rad: float = 0.0  # no measurement below this elevation (geodetic horizon)
-    loss_schedule: tuple = ()  # ((t_start, t_end), ...) GPS s: angular auto-tracking lost
-    loss_rate_1_s: float = 0.0  # base hazard of a tracking loss; 0 = no random losses
-    loss_ang_rate_ref_rad_s: float = math.radians(1.0)  # hazard x (1 + (omega/ref)^2)
-    loss_mean_duration_s: float = 30.0
+    sigma_range_m: float = param(15.0, check=number(0), doc="stationary std of the range error (AR(1)), m")
+    sigma_az_rad: float = param(math.radians(0.1), check=number(0),
+                                doc="stationary std of the azimuth error (AR(1)), rad")
+    sigma_el_rad: float = param(math.radians(0.1), check=number(0),
+                                doc="stationary std of the elevation error (AR(1)), rad")
+    gamma_range_1_s: float = param(0.1, check=number(0, lo_open=True),
+                                   doc="spectrum width of the range error, 1/s (correlation time 1/gamma)")
+    gamma_az_1_s: float = param(0.1, check=number(0, lo_open=True),
+                                doc="spectrum width of the azimuth error, 1/s (correlation time 1/gamma)")
+    gamma_el_1_s: float = param(0.1, check=number(0, lo_open=True),
+                                doc="spectrum width of the elevation error, 1/s (correlation time 1/gamma)")
+    max_range_m: float = param(MAX_RANGE_M, check=number(0, lo_open=True),
+                               doc="largest true slant range measured, m")
+    el_mask_rad: float = param(0.0, check=_EL_MASK,
+                               doc="no measurement below this elevation above the geodetic horizon, rad")
+    loss_schedule: tuple = param((), check=_intervals,
+                                 doc="((t_start, t_end), ...) GPS s: angular auto-tracking lost in these intervals")
+    loss_rate_1_s: float = param(0.0, check=number(0),
+                                 doc="base hazard of a random tracking loss, 1/s (0: no random losses)")
+    loss_ang_rate_ref_rad_s: float = param(math.radians(1.0), check=number(0, lo_open=True),
+                                           doc="angular rate of the target that doubles the loss hazard, rad/s "
+                                               "(hazard x (1 + (omega / ref)^2))")
+    loss_mean_duration_s: float = param(30.0, check=number(0, lo_open=True),
+                                        doc="mean duration of a random tracking loss, s")
 
     def __post_init__(self):
-        for n in ("sigma_range_m", "sigma_az_rad", "sigma_el_rad", "loss_rate_1_s"):
-            _nonneg(n, getattr(self, n))
-        for n in ("gamma_range_1_s", "gamma_az_1_s", "gamma_el_1_s", "max_range_m", "loss_ang_rate_ref_rad_s",
-                  "loss_mean_duration_s"):
-            _pos(n, getattr(self, n))
-        m = float(self.el_mask_rad)
-        if not (math.isfinite(m) and -math.pi / 2 <= m < math.pi / 2):
-            raise ValueError(f"el_mask_rad must lie in [-pi/2, pi/2), got {self.el_mask_rad!r}")
-        object.__setattr__(self, "loss_schedule", _intervals("loss_schedule", self.loss_schedule))
+        validate(self)
+        _el_mask_below_zenith(self, "el_mask_rad")
 
     @property
     def sigma(self) -> np.ndarray:

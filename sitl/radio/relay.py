@@ -137,22 +137,23 @@ from typing import NamedTuple
 
 import numpy as np
 
+from filters.params import ParamError, number, param, require, switch, validate
 from sitl.constants import C_M_S, F_GPS_L1_HZ, WGS84
 from sitl.geodesy import ecef_to_aer, ecef_to_geodetic
 from sitl.gnss.orbits import Constellation
+from sitl.gnss.ranging import finite_vec3 as _vec3
 from sitl.gnss.ranging import light_time_geometry
 from sitl.gnss.world import ephemeris_for_filter, look_angles
 from sitl.radio import relay_error_model
 from sitl.radio.radar import (
+    _EL_MASK,
     MAX_RANGE_M,
+    _el_mask_below_zenith,
     _in_schedule,
     _intervals,
-    _nonneg,
-    _pos,
     _site,
     _Streams,
     _time,
-    _vec3,
 )
 from sitl.radio.relay_error_model import LN_P_TABLE, P_TABLE_H_M, pressure_ratio  # noqa: F401 (re-exported)
 
@@ -197,28 +198,32 @@ class RelayErrorBudget:
     """The relayed pseudoranges' propagation and relay errors (see the module docstring for
     the values and their sources). Standard deviations in m, correlation times in s."""
 
-    sisre_gps_m: float = 0.6
-    sisre_glonass_m: float = 1.5
-    sisre_tau_s: float = 3600.0
-    iono_zenith_m: float = 1.5
-    iono_shell_h_m: float = 350e3
-    iono_tau_s: float = 1800.0
-    tropo_zenith_m: float = 0.05
-    tropo_tau_s: float = 3600.0
-    multipath_a_m: float = 0.13
-    multipath_b_m: float = 0.53
-    multipath_el0_deg: float = 10.0
-    multipath_tau_s: float = 5.0
-    path_sigma_m: float = 1.5
-    path_tau_s: float = 1200.0
+    sisre_gps_m: float = param(0.6, check=number(0), doc="broadcast orbit and clock error (SISRE) of a GPS satellite (1 sigma), m")
+    sisre_glonass_m: float = param(1.5, check=number(0),
+                                   doc="broadcast orbit and clock error (SISRE) of a GLONASS satellite (1 sigma), m")
+    sisre_tau_s: float = param(3600.0, check=number(0, lo_open=True), doc="correlation time of the SISRE, s")
+    iono_zenith_m: float = param(1.5, check=number(0),
+                                 doc="zenith ionospheric delay left after the broadcast model (1 sigma), m, times the "
+                                     "thin-shell obliquity")
+    iono_shell_h_m: float = param(350e3, check=number(0, lo_open=True), doc="height of the ionosphere's thin shell, m")
+    iono_tau_s: float = param(1800.0, check=number(0, lo_open=True), doc="correlation time of the ionospheric error, s")
+    tropo_zenith_m: float = param(0.05, check=number(0),
+                                  doc="zenith tropospheric delay left after a standard-atmosphere model at sea level "
+                                      "(1 sigma), m, times p(h)/p0 and the mapping m(el)")
+    tropo_tau_s: float = param(3600.0, check=number(0, lo_open=True),
+                               doc="correlation time of the tropospheric error, s")
+    multipath_a_m: float = param(0.13, check=number(0), doc="airborne multipath std a of a + b e^(-el / el0), m")
+    multipath_b_m: float = param(0.53, check=number(0), doc="airborne multipath std b of a + b e^(-el / el0), m")
+    multipath_el0_deg: float = param(10.0, check=number(0, lo_open=True),
+                                     doc="elevation scale el0 of the multipath std a + b e^(-el / el0), deg")
+    multipath_tau_s: float = param(5.0, check=number(0, lo_open=True), doc="correlation time of the multipath, s")
+    path_sigma_m: float = param(1.5, check=number(0),
+                                doc="relay-path variation common to a sonde's satellites (the relay's group delay, the "
+                                    "GCPP clock; 1 sigma), m: an assumption, no published value")
+    path_tau_s: float = param(1200.0, check=number(0, lo_open=True), doc="correlation time of the path error, s")
 
     def __post_init__(self):
-        for n in ("sisre_gps_m", "sisre_glonass_m", "iono_zenith_m", "tropo_zenith_m", "multipath_a_m",
-                  "multipath_b_m", "path_sigma_m"):
-            _nonneg(n, getattr(self, n))
-        for n in ("sisre_tau_s", "iono_shell_h_m", "iono_tau_s", "tropo_tau_s", "multipath_el0_deg",
-                  "multipath_tau_s", "path_tau_s"):
-            _pos(n, getattr(self, n))
+        validate(self)
 
     @property
     def slow_tau_s(self) -> np.ndarray:
@@ -255,42 +260,50 @@ class RelayErrorBudget:
                                                    np.asarray(el_rad, dtype=float))
 
 
+def _budget_or_none(key, value):
+    """A RelayErrorBudget or None (a check (key, value) -> value of the filters.params kind)."""
+    if value is not None and not isinstance(value, RelayErrorBudget):
+        raise ParamError(key, f"expected a RelayErrorBudget or None, got {value!r}")
+    return value
+
+
+_GCPP_OFFSET = "a finite number below 1 ms in size"
+
+
 @dataclass(frozen=True)
 class RelayParams:
     """Relay / ground-receiver parameters (SI units, angles in radians)."""
 
-    sigma_pr_m: float = 5.0
-    sigma_prr_m_s: float = 0.1
-    sat_el_mask_rad: float = math.radians(5.0)  # at the sonde
-    ground_el_mask_rad: float = 0.0  # the sonde seen from G
-    max_range_m: float = MAX_RANGE_M  # radio range G - sonde
-    relay_delay_s: float = 1.5e-6  # tau_ret
-    gcpp_clock_offset_s: float = 100e-9  # GCPP clock - system time
-    osc_sigma_hz: float = 10.0  # stationary std of the relay LO frequency offset
-    osc_gamma_1_s: float = 1e-3  # its spectrum width (correlation time 1000 s)
-    osc_phase_psd_rad2_s: float = 0.0  # N/2 of eq 16
-    carrier_hz: float = F_GPS_L1_HZ  # converts the LO offset to m/s
-    outage_schedule: tuple = ()  # ((t_start, t_end), ...) GPS s: nothing delivered
-    downlink_sagnac: bool = True
-    errors: RelayErrorBudget | None = RelayErrorBudget()  # None: white noise only (the old world)
+    sigma_pr_m: float = param(5.0, check=number(0), doc="white pseudorange noise of the relayed code (1 sigma), m")
+    sigma_prr_m_s: float = param(0.1, check=number(0), doc="white pseudo-Doppler noise (1 sigma), m/s")
+    sat_el_mask_rad: float = param(math.radians(5.0), check=_EL_MASK,
+                                   doc="elevation mask of the satellites at the sonde, rad")
+    ground_el_mask_rad: float = param(0.0, check=_EL_MASK,
+                                      doc="elevation mask of the sonde seen from the ground receiver G, rad")
+    max_range_m: float = param(MAX_RANGE_M, check=number(0, lo_open=True), doc="radio range G - sonde, m")
+    relay_delay_s: float = param(1.5e-6, check=number(0), doc="the relay's retransmission delay tau_ret, s")
+    gcpp_clock_offset_s: float = param(100e-9, check=number(what=_GCPP_OFFSET),
+                                       doc="the ground receiver's (GCPP) clock minus system time, s (|offset| < 1 ms)")
+    osc_sigma_hz: float = param(10.0, check=number(0), doc="stationary std of the relay LO's frequency offset, Hz")
+    osc_gamma_1_s: float = param(1e-3, check=number(0, lo_open=True),
+                                 doc="spectrum width of the LO frequency offset, 1/s (correlation time 1/gamma)")
+    osc_phase_psd_rad2_s: float = param(0.0, check=number(0), doc="white phase noise PSD N/2 of eq 16, rad^2 s")
+    carrier_hz: float = param(F_GPS_L1_HZ, check=number(0, lo_open=True),
+                              doc="carrier that converts the LO offset to m/s, Hz")
+    outage_schedule: tuple = param((), check=_intervals,
+                                   doc="((t_start, t_end), ...) GPS s: nothing is delivered in these intervals")
+    downlink_sagnac: bool = param(True, check=switch(),
+                                  doc="the Sagnac correction of the sonde-to-ground downlink is in the simulated delay")
+    errors: RelayErrorBudget | None = param(RelayErrorBudget(), check=_budget_or_none,
+                                            doc="the propagation and relay error budget; None: white noise only "
+                                                "(the old world)")
 
     def __post_init__(self):
-        for n in ("sigma_pr_m", "sigma_prr_m_s", "relay_delay_s", "osc_sigma_hz", "osc_phase_psd_rad2_s"):
-            _nonneg(n, getattr(self, n))
-        for n in ("max_range_m", "osc_gamma_1_s", "carrier_hz"):
-            _pos(n, getattr(self, n))
-        for n in ("sat_el_mask_rad", "ground_el_mask_rad"):
-            m = float(getattr(self, n))
-            if not (math.isfinite(m) and -math.pi / 2 <= m < math.pi / 2):
-                raise ValueError(f"{n} must lie in [-pi/2, pi/2), got {getattr(self, n)!r}")
-        c = float(self.gcpp_clock_offset_s)
-        if not (math.isfinite(c) and abs(c) < 1e-3):
-            raise ValueError(f"gcpp_clock_offset_s must be finite and below 1 ms in size, got {self.gcpp_clock_offset_s!r}")
-        if not isinstance(self.downlink_sagnac, (bool, np.bool_)):
-            raise ValueError(f"downlink_sagnac must be a bool, got {self.downlink_sagnac!r}")
-        object.__setattr__(self, "outage_schedule", _intervals("outage_schedule", self.outage_schedule))
-        if self.errors is not None and not isinstance(self.errors, RelayErrorBudget):
-            raise ValueError(f"errors must be a RelayErrorBudget or None, got {self.errors!r}")
+        validate(self)
+        for key in ("sat_el_mask_rad", "ground_el_mask_rad"):
+            _el_mask_below_zenith(self, key)
+        require(abs(self.gcpp_clock_offset_s) < 1e-3, "gcpp_clock_offset_s",
+                f"expected {_GCPP_OFFSET}, got {self.gcpp_clock_offset_s!r}")
 
     @property
     def delta_d_m(self) -> float:
