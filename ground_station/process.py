@@ -54,7 +54,6 @@ def sonde_tracker_from_spec(spec):
 
 
 def main(argv=None) -> int:
-    from ground_station.node import GroundStationNode, GsConfig
     from sitl.live.worker import WorkerRuntime, open_bus, out_path
 
     argv = sys.argv[1:] if argv is None else argv
@@ -67,8 +66,6 @@ def main(argv=None) -> int:
     gcs = None
     node = None
     try:
-        node = GroundStationNode(bus, spec.run_id, GsConfig.from_scenario(scn, sonde_tracker_from_spec(spec)),
-                                 incarnation=rt.incarnation)
         if scn.mavlink.enabled:
             try:
                 from sitl.mavlink.framing import load_signing_key
@@ -78,8 +75,17 @@ def main(argv=None) -> int:
                               signing_state=out_path(spec, f"mav_signing_{GS_SYSID}.json") if key is not None else None)
             except Exception as e:  # no MAVLink: the bus side still runs
                 print(f"gs: MAVLink to {scn.mavlink.gcs} not available: {e}", file=sys.stderr)
-        if not rt.wait_start():
-            return 0
+        # the link first: it heartbeats (standby) while the node is built and the run waits to start
+        standby = _standby_heartbeats(gcs) if gcs is not None else None
+        try:
+            from ground_station.node import GroundStationNode, GsConfig  # numba kernels: seconds on a cold start
+            node = GroundStationNode(bus, spec.run_id, GsConfig.from_scenario(scn, sonde_tracker_from_spec(spec)),
+                                     incarnation=rt.incarnation)
+            if not rt.wait_start():
+                return 0
+        finally:
+            if standby is not None:
+                standby()
         pacer = rt.pacer()
         hold_sim = scn.ground_station.hold_wall_s * scn.run.speed
         t_end = scn.run.t0_gps_s + scn.run.duration_s
@@ -97,6 +103,8 @@ def main(argv=None) -> int:
             if not pacer.wait_until(t):
                 break
             w0 = perf_now()
+            if gcs is not None:  # HEARTBEAT when due (simulation time) before the step, which may take long
+                gcs.tick(pacer.sim_now())
             bus.drain()
             horizon = min(pacer.sim_now(), t_end + hold_sim) - hold_sim
             try:
@@ -108,7 +116,6 @@ def main(argv=None) -> int:
                     print(f"gs: step failed ({errors} so far): {type(e).__name__}: {e}", file=sys.stderr)
             if gcs is not None:
                 try:
-                    gcs.tick(pacer.sim_now())  # HEARTBEAT when due (simulation time), text buckets
                     for key, est in out:
                         parts = key.rsplit("/", 2)
                         gcs.adsb(parts[-2], parts[-1], est)
@@ -139,6 +146,33 @@ def main(argv=None) -> int:
         if gcs is not None:
             gcs.close()
         bus.close()
+
+
+def _standby_heartbeats(gcs, period_wall_s: float = 1.0):
+    """HEARTBEAT (MAV_STATE_STANDBY) once per wall second while the worker waits for the start
+    command -- the launcher waits for every worker, which may be compiling kernels for a minute:
+    the GCS sees the ground station at once, not when the run starts.  No simulated clock runs
+    yet, so this one is paced by the wall clock.  Returns the stop function; it joins the
+    thread, so the link is the main loop's alone afterwards (pymavlink's sequence numbers and
+    signing state are not shared between threads)."""
+    import threading
+
+    from pymavlink.dialects.v20 import common as m
+    done = threading.Event()
+
+    def run():
+        while True:
+            gcs.heartbeat(m.MAV_STATE_STANDBY)
+            if done.wait(period_wall_s):
+                return
+
+    th = threading.Thread(target=run, name="gs-standby-heartbeat", daemon=True)
+    th.start()
+
+    def stop():
+        done.set()
+        th.join(5.0)
+    return stop
 
 
 def _status(node, bus, gcs, errors, t, tick_s=()) -> dict:
