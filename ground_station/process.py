@@ -6,7 +6,7 @@ that are complete (every source publishing has delivered them) or older than
 ``ground_station.hold_wall_s`` (x speed, in simulated time), publishing the
 Estimates on ``<run>/gs/estimate/**``. It is also a MAVLink 2 component toward the
 ground-control endpoint (ground_station.mavlink_link.GcsLink: system 250, HEARTBEAT at 1 Hz of
-the paced simulation time, signed like the vehicles when ``[mavlink] signing_key_file`` is set,
+the paced simulation time -- MAV_STATE_STANDBY at 1 Hz wall before the run starts --, signed like the vehicles when ``[mavlink] signing_key_file`` is set,
 with its signing state in ``OUT/mav_signing_250.json``): the beacon and sonde estimates as
 ADSB_VEHICLE with their 1-sigma uncertainty in UTM_GLOBAL_POSITION, the integrity events its
 trackers publish (``<run>/gs/integrity/**``) and its input links turning stale or coming back

@@ -433,3 +433,75 @@ def test_mavsdk_sees_the_ground_station_connected_once_it_heartbeats(signed):
         if g is not None:
             g.close()
         d.destroy()
+
+
+def test_standby_heartbeats_while_the_worker_waits_then_the_thread_is_gone():
+    from ground_station.process import _standby_heartbeats
+    rx = Rx()
+    g = GcsLink(rx.addr, clock=Clock())
+    try:
+        stop = _standby_heartbeats(g, period_wall_s=0.1)
+        time.sleep(0.35)
+        stop()
+        n = len(rx.drain())
+        g.tick(T0)  # the main loop's, ACTIVE
+        got = rx.drain()
+        assert n >= 2 and [x.system_status for x in got] == [m.MAV_STATE_ACTIVE]
+        import threading
+        assert not [t for t in threading.enumerate() if t.name == "gs-standby-heartbeat"]
+    finally:
+        g.close()
+        rx.close()
+
+
+# ---------------------------------------------------------------------------- MAVProxy
+def _mavproxy(tmp_path, mav_type, monkeypatch, seconds=6.0):
+    """MAVProxy 1.8.75 headless on udpin, the GS heartbeating (and sending a track) to it: its
+    output and the HEARTBEATs from system 250 in its own tlog (proof it heard them)."""
+    import subprocess
+    import sys
+
+    import ground_station.mavlink_link as ml
+    pytest.importorskip("MAVProxy")
+    monkeypatch.setattr(ml, "GS_MAV_TYPE", mav_type)
+    probe = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    probe.bind(("127.0.0.1", 0))
+    port = probe.getsockname()[1]
+    probe.close()
+    p = subprocess.Popen([sys.executable, "-m", "MAVProxy.mavproxy", f"--master=udpin:127.0.0.1:{port}",
+                          "--non-interactive", "--default-modules=link,adsb,console", f"--state-basedir={tmp_path}",
+                          "--cmd=set heartbeat 0"], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+                         cwd=tmp_path)
+    g = GcsLink(f"127.0.0.1:{port}", clock=Clock())
+    cov = _ecef_cov(np.eye(3) * 25.0, np.eye(3))
+    try:
+        t, t_end = T0, time.monotonic() + seconds
+        while time.monotonic() < t_end:
+            g.tick(t)
+            g.adsb("sonde", "s0000", _estimate(cov))
+            t += 0.5
+            time.sleep(0.25)
+    finally:
+        g.close()
+        p.terminate()
+        out = p.communicate(timeout=20)[0]
+    tl = mavutil.mavlink_connection(str(tmp_path / "mav.tlog"))
+    hb = 0
+    while (x := tl.recv_match(type="HEARTBEAT")) is not None:
+        hb += x.get_srcSystem() == GS_SYSID
+    tl.close()
+    return out, hb
+
+
+@pytest.mark.slow
+def test_mavproxy_hears_the_ground_station_and_does_not_list_it_as_a_vehicle(tmp_path, monkeypatch):
+    out, hb = _mavproxy(tmp_path, m.MAV_TYPE_GCS, monkeypatch)
+    assert hb >= 3, out[-2000:]
+    assert "Detected vehicle 250" not in out and "online system 250" not in out, out[-2000:]
+
+
+@pytest.mark.slow
+def test_mavproxy_would_list_an_onboard_controller_type_as_a_vehicle(tmp_path, monkeypatch):
+    """The control for the test above: the one other candidate type is listed."""
+    out, hb = _mavproxy(tmp_path, m.MAV_TYPE_ONBOARD_CONTROLLER, monkeypatch)
+    assert hb >= 3 and "Detected vehicle 250:191" in out and "online system 250" not in out, out[-2000:]
