@@ -61,7 +61,10 @@ GS_COMPID = m.MAV_COMP_ID_ONBOARD_COMPUTER
 GS_MAV_TYPE = m.MAV_TYPE_GCS
 GS_AUTOPILOT = m.MAV_AUTOPILOT_INVALID
 HEARTBEAT_PERIOD_S = 1.0  # simulation time
-ADSB_ICAO = {"beacon": 0xB1C000, "sonde": 0x50D000}
+#: ICAO address bases: inside 0x004000..0x9FFFFF, where MAVProxy's adsb module trusts the
+#: message's emitter type -- below it draws a drone, from 0xA00000 an aircraft, and 0xB10000..
+#: 0xB1FFFF (the beacon's base until now) a migratory bird (its synthetic-obstacle bands)
+ADSB_ICAO = {"beacon": 0x50BEA0, "sonde": 0x50D000}
 ADSB_EMITTER = {"beacon": m.ADSB_EMITTER_TYPE_UAV, "sonde": m.ADSB_EMITTER_TYPE_LIGHTER_AIR}
 #: STATUSTEXT severity of an integrity event kind (sitl.integrity_events.EVENT_KINDS): a channel
 #: excluded (a step that stays, a drift) is a WARNING, one row left out of one epoch a NOTICE,

@@ -247,6 +247,8 @@ def test_every_estimated_object_gets_its_own_adsb_and_uncertainty():
         utm = [x for x in got if x.get_type() == "UTM_GLOBAL_POSITION"]
         assert [x.callsign for x in adsb] == ["BEAb1", "SONs0000", "SONs0001"]
         assert len({x.ICAO_address for x in adsb}) == 3
+        # outside MAVProxy's synthetic-obstacle ICAO bands (it then draws the emitter type sent)
+        assert all(0x004000 <= x.ICAO_address < 0xA00000 for x in adsb)
         assert [bytes(x.uas_id).rstrip(b"\0").decode() for x in utm] == [x.callsign for x in adsb]
         assert {x.h_acc for x in utm} == {10_000} and {x.v_acc for x in utm} == {20_000}
         assert adsb[0].emitter_type == m.ADSB_EMITTER_TYPE_UAV
