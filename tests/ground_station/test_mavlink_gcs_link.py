@@ -14,7 +14,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from pymavlink.dialects.v20 import common as m
 
-from ground_station.process import GS_SYSID, GcsLink
+from ground_station.mavlink_link import GS_SYSID, GcsLink
 
 pytestmark = pytest.mark.live
 
