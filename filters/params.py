@@ -28,7 +28,8 @@ from dataclasses import MISSING
 import numpy as np
 
 __all__ = ["param", "checks", "docs", "ParamError", "Check", "integer", "number", "choice", "switch", "string",
-           "optional", "several", "from_text", "array", "vec3", "default_of", "flag_of", "validate", "require"]
+           "optional", "several", "from_text", "array", "vec3", "reworded", "default_of", "flag_of", "validate",
+           "require"]
 
 
 def param(default=MISSING, *, check, doc: str, default_factory=MISSING, flag=None, metavar=None,
@@ -310,6 +311,19 @@ def array(shape: tuple | None = None, *, finite: bool = True, nan: bool = False,
 def vec3(what: str | None = None) -> Check:
     """A finite 3-vector (a float array of shape (3,))."""
     return array((3,), what=what or "a finite 3-vector")
+
+
+def reworded(check, text: str):
+    """``check`` whose failure reads ``key: key <text>, got <value>``: for a parameter whose
+    error message callers already match (e.g. "n must be a positive integer"). A plain
+    check(key, value) function (for validate; no text parser)."""
+    def worded(key, value):
+        try:
+            return check(key, value)
+        except ParamError:
+            raise ParamError(key, f"{key} {text}, got {value!r}") from None
+
+    return worded
 
 
 def require(condition: bool, key: str, reason: str) -> None:
