@@ -32,7 +32,7 @@ __all__ = ["param", "checks", "docs", "ParamError", "Check", "integer", "number"
            "require"]
 
 
-def param(default=MISSING, *, check, doc: str, default_factory=MISSING, flag=None, metavar=None,
+def param(default=MISSING, *, check, doc: str, default_factory=MISSING, kw_only=MISSING, flag=None, metavar=None,
           cli=True, shown=None, note="", default_help=None):
     """A dataclass field with its check (key, value) -> value and its one-paragraph doc.
 
@@ -40,7 +40,8 @@ def param(default=MISSING, *, check, doc: str, default_factory=MISSING, flag=Non
     ``metavar``, ``cli=False`` to keep it off the command line; the --help text is the doc then
     "(default X<note>)", X the default or ``shown`` (a text or a callable giving the value that
     stands for a None default, e.g. another dataclass's declared default), or ``default_help``
-    instead of that parenthesis."""
+    instead of that parenthesis. ``kw_only`` as dataclasses.field's (a field without a default
+    after fields with one)."""
     if not doc or not callable(check):
         raise TypeError("param: a check and a doc are required")
     md = {"check": check, "doc": " ".join(doc.split())}
@@ -50,7 +51,7 @@ def param(default=MISSING, *, check, doc: str, default_factory=MISSING, flag=Non
         md["note"] = note
     if not cli:
         md["cli"] = False
-    return dataclasses.field(default=default, default_factory=default_factory, metadata=md)
+    return dataclasses.field(default=default, default_factory=default_factory, kw_only=kw_only, metadata=md)
 
 
 @functools.lru_cache(maxsize=None)
@@ -286,6 +287,20 @@ def array(shape: tuple | None = None, *, finite: bool = True, nan: bool = False,
         what = ("a finite " if finite else "a ") + "numeric array" + ("" if shape is None else f" of shape {shown}") + \
             ("" if lo is None else f" {'>' if lo_open else '>='} {lo:g}")
 
+    scan = finite or not nan or lo is not None  # a check of the values (none: shape only)
+
+    def ok(a) -> bool:
+        if a.ndim == 0:  # a scalar: without numpy's reductions (a model built every step)
+            x = float(a)
+            return not ((finite and not math.isfinite(x)) or (not nan and x != x) or
+                        (lo is not None and (x <= lo if lo_open else x < lo)))
+        if finite:
+            if not np.isfinite(a).all():
+                return False
+        elif not nan and np.isnan(a).any():
+            return False
+        return lo is None or not (a <= lo if lo_open else a < lo).any()
+
     def test(v):
         try:
             a = np.array(v, dtype=float) if copy else np.asarray(v, dtype=float)
@@ -294,9 +309,7 @@ def array(shape: tuple | None = None, *, finite: bool = True, nan: bool = False,
         if tail is not None and ((a.ndim < len(tail) if batch else a.ndim != len(tail)) or
                                  any(s not in (-1, n) for s, n in zip(tail, a.shape[a.ndim - len(tail):]))):
             raise ParamError("", f"expected {what}, got shape {a.shape}")
-        bad_nan = not nan and np.any(np.isnan(a))
-        if bad_nan or (finite and not np.all(np.isfinite(a))) or \
-                (lo is not None and np.any(a <= lo if lo_open else a < lo)):
+        if scan and not ok(a):
             raise ParamError("", f"expected {what}, got {_brief(v)}")
         if copy:
             a.setflags(write=False)
