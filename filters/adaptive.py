@@ -18,13 +18,14 @@ Pure functions on an AdaptiveQState; nothing here keeps state between calls.
 """
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 from typing import NamedTuple
 
 import numpy as np
 
-from .protocols import TransitionModel, require
+from .params import Check, ParamError, number, optional, param, require, reworded, validate
+from .protocols import TransitionModel
+from .protocols import require as require_model
 
 __all__ = ["AdaptiveQ", "AdaptiveQState", "ScaledTransition"]
 
@@ -38,7 +39,7 @@ class ScaledTransition:
     """A transition model whose Q is ``scale`` x the wrapped model's (f and F unchanged)."""
 
     def __init__(self, base: TransitionModel, scale: float):
-        self.base = require(base, TransitionModel, "transition model")
+        self.base = require_model(base, TransitionModel, "transition model")
         self.scale = float(scale)
         self.linear = base.linear
 
@@ -52,26 +53,36 @@ class ScaledTransition:
         return self.scale * np.asarray(self.base.Q(dt), dtype=float)
 
 
+_COEFFICIENT = reworded(number(numpy=True), "must be a finite number")
+
+
+def _state_indices(v):
+    """State indices: anything whose items int() takes, as a tuple of ints."""
+    try:
+        return tuple(int(i) for i in v)
+    except (TypeError, ValueError):
+        raise ParamError("", f"expected state indices, got {v!r}") from None
+
+
 @dataclass(frozen=True)
 class AdaptiveQ:
     """Eq 7 with its coefficients; ``states`` limits the adaptation to some state indices
     (None: every state, as in the seed)."""
 
-    decay: float = 0.1
-    gain: float = 0.7
-    states: tuple | None = None
+    decay: float = param(0.1, check=_COEFFICIENT,
+                         doc="a, the weight of the previous adaptive Q in the next one (seed: 0.1); < 1, or Q grows "
+                             "without bound")
+    gain: float = param(0.7, check=_COEFFICIENT,
+                        doc="b, the weight of this step's squared state correction (W nu)^2 (seed: 0.7)")
+    states: tuple | None = param(None, check=optional(Check(_state_indices)),
+                                 doc="the state indices whose process noise adapts (None: every state, as in the "
+                                     "seed)")
 
     def __post_init__(self):
-        for name in ("decay", "gain"):
-            v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, (int, float, np.integer, np.floating)) or not math.isfinite(v):
-                raise ValueError(f"{name} must be a finite number, got {v!r}")
-            if v < 0:
-                raise ValueError(f"{name} must be >= 0, got {v!r}")
-        if not self.decay < 1.0:
-            raise ValueError(f"decay must be < 1 (Q would grow without bound), got {self.decay!r}")
-        if self.states is not None:
-            object.__setattr__(self, "states", tuple(int(i) for i in self.states))
+        validate(self)
+        for key in ("decay", "gain"):
+            require(getattr(self, key) >= 0.0, key, f"{key} must be >= 0, got {getattr(self, key)!r}")
+        require(self.decay < 1.0, "decay", f"decay must be < 1 (Q would grow without bound), got {self.decay!r}")
 
     def init(self, batch_shape, n: int) -> AdaptiveQState:
         """Q(0) = Q_min: scale 1, no adaptive diagonal."""

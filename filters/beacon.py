@@ -27,20 +27,15 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .models import _readonly
+from .params import array, choice, optional, param, require, validate
 
 __all__ = ["ObserverRangeDoppler", "OBSERVER_UNCERTAINTY"]
 
 OBSERVER_UNCERTAINTY = ("inflate", "ignore")
 
 
-def _arr(name, a, tail):
-    a = np.asarray(a, dtype=float)
-    if a.ndim < len(tail) or a.shape[a.ndim - len(tail):] != tail:
-        raise ValueError(f"{name} must have shape (..., {', '.join(map(str, tail))}), got shape {a.shape}")
-    if not np.all(np.isfinite(a)):
-        raise ValueError(f"{name} must be finite")
-    return a
+_STATES = array((..., -1, 3), copy=False, what="a finite numeric array of shape (..., N, 3)")
+_VARIANCES = array(lo=0, lo_open=True, copy=False, what="finite numbers > 0")
 
 
 @dataclass(frozen=True, eq=False)
@@ -52,36 +47,34 @@ class ObserverRangeDoppler:
     (..., N).
     """
 
-    observer_pos_ecef_m: np.ndarray
-    observer_vel_ecef_m_s: np.ndarray
-    var_range_m2: object
-    var_range_rate_m2_s2: object
-    observer_cov: np.ndarray | None = None
-    observer_uncertainty: str = "inflate"
+    observer_pos_ecef_m: np.ndarray = param(check=_STATES, doc="the observers' estimated positions (ECEF), "
+                                                              "(..., N, 3), m")
+    observer_vel_ecef_m_s: np.ndarray = param(check=_STATES, doc="the observers' estimated velocities (ECEF), "
+                                                                "(..., N, 3), m/s")
+    var_range_m2: object = param(check=_VARIANCES, doc="range noise variance: a scalar, (N,) or (..., N), m^2")
+    var_range_rate_m2_s2: object = param(check=_VARIANCES,
+                                         doc="range-rate noise variance: a scalar, (N,) or (..., N), m^2/s^2")
+    observer_cov: np.ndarray | None = param(
+        None, check=optional(array((..., -1, 6, 6), copy=False, what="a finite numeric array of shape (..., N, 6, 6)")),
+        doc="covariance of each observer's own [U, V] estimate, (..., N, 6, 6), m^2, m^2/s, m^2/s^2 (used with "
+            "'inflate')")
+    observer_uncertainty: str = param("inflate", check=choice(*OBSERVER_UNCERTAINTY),
+                                      doc="'inflate': the observers' covariance added to R to first order; "
+                                          "'ignore': the observers taken as exact")
 
     def __post_init__(self):
-        U = _arr("observer_pos_ecef_m", self.observer_pos_ecef_m, (3,))
-        if U.ndim < 2 or U.shape[-2] < 1:
-            raise ValueError(f"observer_pos_ecef_m must have shape (..., N, 3) with N >= 1, got shape {U.shape}")
+        validate(self)
+        U, V = self.observer_pos_ecef_m, self.observer_vel_ecef_m_s
         N = U.shape[-2]
-        V = _arr("observer_vel_ecef_m_s", self.observer_vel_ecef_m_s, (N, 3))
+        require(N >= 1, "observer_pos_ecef_m", f"expected (..., N, 3) with N >= 1, got shape {U.shape}")
+        require(V.shape[-2:] == (N, 3), "observer_vel_ecef_m_s", f"expected shape (..., {N}, 3), got shape {V.shape}")
         for name in ("var_range_m2", "var_range_rate_m2_s2"):
-            v = np.asarray(getattr(self, name), dtype=float)
-            if v.ndim and v.shape[-1] not in (1, N):
-                raise ValueError(f"{name} must be a scalar or (..., {N}), got shape {v.shape}")
-            if not np.all(np.isfinite(v) & (v > 0)):
-                raise ValueError(f"{name} must be finite and > 0")
-            object.__setattr__(self, name, _readonly(v))
-        if self.observer_uncertainty not in OBSERVER_UNCERTAINTY:
-            raise ValueError(f"observer_uncertainty must be one of {OBSERVER_UNCERTAINTY}, "
-                             f"got {self.observer_uncertainty!r}")
+            v = getattr(self, name)
+            require(v.ndim == 0 or v.shape[-1] in (1, N), name, f"expected a scalar or (..., {N}), got shape {v.shape}")
         if self.observer_uncertainty == "inflate":
-            if self.observer_cov is None:
-                raise ValueError("observer_cov must be given when observer_uncertainty='inflate'")
-            C = _arr("observer_cov", self.observer_cov, (N, 6, 6))
-            object.__setattr__(self, "observer_cov", _readonly(C))
-        object.__setattr__(self, "observer_pos_ecef_m", _readonly(U))
-        object.__setattr__(self, "observer_vel_ecef_m_s", _readonly(V))
+            C = self.observer_cov
+            require(C is not None, "observer_cov", "observer_cov must be given when observer_uncertainty='inflate'")
+            require(C.shape[-3:] == (N, 6, 6), "observer_cov", f"expected shape (..., {N}, 6, 6), got shape {C.shape}")
 
     @property
     def n_observers(self) -> int:

@@ -67,10 +67,12 @@ Pure numpy/scipy; no I/O.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, fields
+from dataclasses import dataclass
 
 import numpy as np
 from scipy.special import ndtri
+
+from .params import number, optional, param, validate
 
 __all__ = [
     "CycleSlipConfig",
@@ -98,33 +100,24 @@ class CycleSlipConfig:
     max_dt_s: epochs further apart than this are not tested (the arc is reset instead).
     """
 
-    sigma_prr_m_s: float = 0.064
-    sigma_phase_m: float = 0.003
-    sigma_model_m_s: float = 0.05
-    pfa: float = 1e-6
-    threshold_sigma: float | None = None
-    max_dt_s: float = 1.0
+    sigma_prr_m_s: float = param(0.064, check=number(0, numpy=True),
+                                 doc="pseudorange-rate (Doppler) noise sigma_D (1 sigma, white per epoch), m/s")
+    sigma_phase_m: float = param(0.003, check=number(0, numpy=True),
+                                 doc="carrier-phase noise sigma_G (1 sigma, white per epoch), m")
+    sigma_model_m_s: float = param(0.05, check=number(0, numpy=True),
+                                   doc="bound (1 sigma) on the unmodelled rate of phase minus integrated Doppler "
+                                       "(adds sigma_model T to sigma_r), m/s")
+    pfa: float = param(1e-6, check=number(0, lo_open=True, hi=1, hi_open=True, numpy=True),
+                       doc="per satellite-epoch false-alarm probability under Gaussian noise; sets "
+                           "k = Phi^-1(1 - pfa/2)")
+    threshold_sigma: float | None = param(None, check=optional(number(0, lo_open=True, numpy=True)),
+                                          doc="explicit decision threshold k in units of sigma_r, overriding pfa "
+                                              "(None: derived from pfa)")
+    max_dt_s: float = param(1.0, check=number(0, lo_open=True, numpy=True),
+                            doc="epochs further apart than this are not tested (the arc is reset instead), s")
 
     def __post_init__(self):
-        for f in fields(self):
-            v = getattr(self, f.name)
-            if v is None and f.name == "threshold_sigma":
-                continue
-            try:
-                ok = bool(np.isfinite(float(v)))
-            except (TypeError, ValueError):
-                ok = False
-            if not ok:
-                raise ValueError(f"{f.name} must be a finite number, got {v!r}")
-        for name in ("sigma_prr_m_s", "sigma_phase_m", "sigma_model_m_s"):
-            if getattr(self, name) < 0.0:
-                raise ValueError(f"{name} must be >= 0, got {getattr(self, name)!r}")
-        if not 0.0 < self.pfa < 1.0:
-            raise ValueError(f"pfa must be in (0, 1), got {self.pfa!r}")
-        if self.threshold_sigma is not None and not self.threshold_sigma > 0.0:
-            raise ValueError(f"threshold_sigma must be > 0, got {self.threshold_sigma!r}")
-        if not self.max_dt_s > 0.0:
-            raise ValueError(f"max_dt_s must be > 0, got {self.max_dt_s!r}")
+        validate(self)
 
     @property
     def k_sigma(self) -> float:

@@ -70,58 +70,43 @@ import numpy as np
 import scipy.stats
 
 from .ekf import UpdateResult, ekf_update, measure
+from .params import integer, number, optional, param, switch, validate
 from .protocols import MeasurementModel
 
 __all__ = ["GuardedModel", "IntegrityConfig", "IntegrityMonitor", "MonitorState", "Report"]
 
 
-def _pos(name, v, allow_inf=False):
-    if isinstance(v, bool) or not isinstance(v, (int, float, np.integer, np.floating)) or math.isnan(v) \
-            or (math.isinf(v) and not allow_inf) or v <= 0:
-        raise ValueError(f"{name} must be a positive number, got {v!r}")
-    return float(v)
-
-
-def _count(name, v, lo=1):
-    if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < lo:
-        raise ValueError(f"{name} must be an integer >= {lo}, got {v!r}")
-    return int(v)
+_PROBABILITY = number(0, lo_open=True, hi=1, hi_open=True, numpy=True)
 
 
 @dataclass(frozen=True)
 class IntegrityConfig:
-    jump_sigma: float = 3.0  # |beta| at or above: jump / outlier (inf: no jump test)
-    window: int = 10  # epochs of the sliding chi-square drift test
-    window_alpha: float = 1e-3  # false-alarm probability of the mean-square test per row-epoch (0 < a < 1)
-    bias_alpha: float | None = 1e-3  # the same for the bias test (None: no bias test)
-    persist: int = 2  # consecutive jump epochs that exclude the channel (a step that stays)
-    readmit_after: int = 10  # consecutive clean epochs before an excluded channel comes back
-    huber_c: float | None = None  # Huber threshold on |beta| (None: plain quadratic update)
-    adapt_r: bool = False  # innovation-based R estimate (nominal R is the floor)
-    r_forget: float = 0.02  # its exponential forgetting factor lam, 0 < lam <= 1
-    isolate: bool = True  # False: detect and report only, use every row as the plain filter
-    min_channels: int = 0  # isolate only while this many present channels stay in (below: detect only)
+    jump_sigma: float = param(3.0, check=number(0, lo_open=True, finite=False, numpy=True),
+                              doc="|beta| at or above which a row is a jump / outlier (inf: no jump test)")
+    window: int = param(10, check=integer(1, numpy=True), doc="epochs of the sliding chi-square drift test")
+    window_alpha: float = param(1e-3, check=_PROBABILITY,
+                                doc="false-alarm probability of the mean-square test per row-epoch")
+    bias_alpha: float | None = param(1e-3, check=optional(_PROBABILITY),
+                                     doc="false-alarm probability of the bias test per row-epoch (None: no bias test)")
+    persist: int = param(2, check=integer(1, numpy=True),
+                         doc="consecutive jump epochs that exclude the channel (a step that stays)")
+    readmit_after: int = param(10, check=integer(1, numpy=True),
+                               doc="consecutive clean epochs before an excluded channel comes back")
+    huber_c: float | None = param(None, check=optional(number(0, lo_open=True, numpy=True)),
+                                  doc="Huber threshold on |beta| (None: plain quadratic update)")
+    adapt_r: bool = param(False, check=switch(numpy=True),
+                          doc="innovation-based R estimate (the nominal R is the floor)")
+    r_forget: float = param(0.02, check=number(0, lo_open=True, hi=1, numpy=True),
+                            doc="exponential forgetting factor lam of the R estimate, 0 < lam <= 1")
+    isolate: bool = param(True, check=switch(numpy=True),
+                          doc="isolate faulty rows and channels (False: detect and report only, every row used as "
+                              "by the plain filter)")
+    min_channels: int = param(0, check=integer(0, numpy=True),
+                              doc="isolate only while this many present channels stay in (below: detect only; "
+                                  "0: no limit)")
 
     def __post_init__(self):
-        _pos("jump_sigma", self.jump_sigma, allow_inf=True)
-        _count("window", self.window)
-        for name in ("window_alpha", "bias_alpha"):
-            a = getattr(self, name)
-            if a is None and name == "bias_alpha":
-                continue
-            if isinstance(a, bool) or not isinstance(a, (int, float, np.floating)) or not 0.0 < a < 1.0:
-                raise ValueError(f"{name} must be in (0, 1), got {a!r}")
-        _count("persist", self.persist)
-        _count("readmit_after", self.readmit_after)
-        _count("min_channels", self.min_channels, lo=0)
-        if self.huber_c is not None:
-            _pos("huber_c", self.huber_c)
-        lam = self.r_forget
-        if isinstance(lam, bool) or not isinstance(lam, (int, float, np.floating)) or not 0.0 < lam <= 1.0:
-            raise ValueError(f"r_forget must be in (0, 1], got {lam!r}")
-        for name in ("adapt_r", "isolate"):
-            if not isinstance(getattr(self, name), (bool, np.bool_)):
-                raise ValueError(f"{name} must be true or false, got {getattr(self, name)!r}")
+        validate(self)
 
     def drift_thresholds(self) -> np.ndarray:
         """(window,) tolerance on the mean of beta^2 over k = 1..window epochs (read-only, cached)."""

@@ -34,7 +34,9 @@ from typing import Any
 
 import numpy as np
 
-from .models import C_M_S, _check_dt, _check_state, _nonnegative, _positive, _readonly
+from .models import (_COUNT, _NONNEGATIVE, _POSITIVE, _SAT_STATES, _SIGMAS, C_M_S, _check_dt, _check_state,
+                     _per_satellite, _readonly)
+from .params import Check, ParamError, array, integer, optional, param, require, switch, validate
 
 __all__ = [
     "IDX_POS",
@@ -140,24 +142,21 @@ class IonoTropoTransition:
     for it (A^2 = 0), so the filters may use f/F as they are.
     """
 
-    n_amb: int = 0
-    q_accel_m2_s3: float = 1.0
-    clock_psd_1_s: float = CLOCK_PSD_1_S
-    q_gps_glo_m2_s: float = 1e-10
-    q_iono_m2_s: float = 1e-10
-    q_tropo_m2_s: float = 1e-10
-    c: float = C_M_S
+    n_amb: int = param(0, check=integer(0, numpy=True), doc="carrier-phase ambiguity states K_j (n = 11 + n_amb)")
+    q_accel_m2_s3: float = param(1.0, check=_NONNEGATIVE, doc="white-acceleration PSD of the receiver, m^2/s^3")
+    clock_psd_1_s: float = param(CLOCK_PSD_1_S, check=_NONNEGATIVE,
+                                 doc="two-sided PSD N_eps of the clock's forming noise (eqs 13-15), 1/s")
+    q_gps_glo_m2_s: float = param(1e-10, check=_NONNEGATIVE,
+                                  doc="random-walk PSD of the GPS-GLONASS offset Delta_A, m^2/s")
+    q_iono_m2_s: float = param(1e-10, check=_NONNEGATIVE, doc="random-walk PSD of the zenith ionosphere I_g, m^2/s")
+    q_tropo_m2_s: float = param(1e-10, check=_NONNEGATIVE,
+                                doc="random-walk PSD of the zenith troposphere U_g, m^2/s")
+    c: float = param(C_M_S, check=_POSITIVE, doc="speed of light (the clock states are in m and m/s), m/s")
 
     linear = True
 
     def __post_init__(self):
-        n = self.n_amb
-        if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or n < 0:
-            raise ValueError(f"n_amb must be an integer >= 0, got {n!r}")
-        object.__setattr__(self, "n_amb", int(n))
-        for name in ("q_accel_m2_s3", "clock_psd_1_s", "q_gps_glo_m2_s", "q_iono_m2_s", "q_tropo_m2_s"):
-            object.__setattr__(self, name, _nonnegative(name, getattr(self, name)))
-        object.__setattr__(self, "c", _positive("c", self.c))
+        validate(self)
 
     @property
     def ndim(self) -> int:
@@ -208,13 +207,20 @@ class IonoTropoTransition:
 # measurement
 
 
-def _sigma(name, value, S):
-    s = np.asarray(value, dtype=float)
-    if s.ndim > 0 and s.shape[-1] not in (1, S):
-        raise ValueError(f"{name} must be a scalar or (..., {S}), got shape {s.shape}")
-    if not np.all(np.isfinite(s) & (s > 0)):
-        raise ValueError(f"{name} must be finite and > 0, got {value!r}")
-    return _readonly(s) if s.ndim else float(s)
+def _strict_bools(v) -> np.ndarray:
+    """A bool array (dtype bool already: 0/1 integers are not taken)."""
+    g = np.asarray(v)
+    if g.dtype != np.bool_:
+        raise ParamError("", f"expected a bool array, got {v!r}")
+    return _readonly(g)
+
+
+def _ints(v) -> np.ndarray:
+    """An integer array."""
+    k = np.asarray(v)
+    if not np.issubdtype(k.dtype, np.integer):
+        raise ParamError("", f"expected an int array, got {v!r}")
+    return k
 
 
 @dataclass(frozen=True, eq=False)
@@ -251,79 +257,64 @@ class IonoTropoGnss:
     satellites (N, S, 3)); batch shapes broadcast.
     """
 
-    sat_pos_ecef_m: np.ndarray
-    sat_vel_ecef_m_s: np.ndarray
-    carrier_hz: np.ndarray
-    is_gps: np.ndarray
-    sigma_pr_m: Any
-    sigma_prr_m_s: Any
-    sigma_phase_m: Any = None
-    phase_state_index: Any = None
-    use_phase: bool = False
-    n_state: int | None = None
-    f_ref_hz: float = F_REF_HZ
-    h_shell_m: float = IONO_SHELL_HEIGHT_M
-    r_earth_m: float = EARTH_RADIUS_M
+    sat_pos_ecef_m: np.ndarray = param(check=_SAT_STATES,
+                                       doc="satellite positions (reception-time ECEF), (..., S, 3), m")
+    sat_vel_ecef_m_s: np.ndarray = param(check=_SAT_STATES,
+                                         doc="satellite velocities (reception-time ECEF), (..., S, 3), m/s")
+    carrier_hz: np.ndarray = param(check=array((-1,), lo=0, lo_open=True, copy=False, what="(S,) finite and > 0"),
+                                   doc="each satellite's carrier frequency (GLONASS FDMA: its own), (S,), Hz")
+    is_gps: np.ndarray = param(check=Check(_strict_bools), doc="GPS (True) or GLONASS (False) per satellite, (S,) bool")
+    sigma_pr_m: Any = param(check=_SIGMAS, doc="pseudorange noise (1 sigma): a scalar, (S,) or (..., S), m")
+    sigma_prr_m_s: Any = param(check=_SIGMAS,
+                               doc="pseudorange-rate noise (1 sigma): a scalar, (S,) or (..., S), m/s")
+    sigma_phase_m: Any = param(None, check=optional(_SIGMAS),
+                               doc="carrier-phase noise (1 sigma): a scalar, (S,) or (..., S), m (needed with "
+                                   "use_phase)")
+    phase_state_index: Any = param(None, check=optional(Check(_ints)),
+                                   doc="the index in x (>= 11) of each satellite's K_j, or -1 for none, (S,) int "
+                                       "(None: no K state)")
+    use_phase: bool = param(False, check=switch(numpy=True),
+                            doc="append the phase rows (needs sigma_phase_m and phase_state_index)")
+    n_state: int | None = param(None, check=optional(_COUNT),
+                                doc="state dimension (None: 11, or max(phase_state_index) + 1)")
+    f_ref_hz: float = param(F_REF_HZ, check=_POSITIVE, doc="reference frequency of I_g (GPS L1), Hz")
+    h_shell_m: float = param(IONO_SHELL_HEIGHT_M, check=_POSITIVE, doc="height of the thin ionosphere shell (eq 9), m")
+    r_earth_m: float = param(EARTH_RADIUS_M, check=_POSITIVE, doc="Earth radius of the mapping functions, m")
 
     def __post_init__(self):
-        sp = np.asarray(self.sat_pos_ecef_m, dtype=float)
-        sv = np.asarray(self.sat_vel_ecef_m_s, dtype=float)
-        if sp.ndim < 2 or sp.shape[-1] != 3 or sp.shape[-2] < 1:
-            raise ValueError(f"sat_pos_ecef_m must have shape (..., S, 3), got shape {sp.shape}")
+        validate(self)
+        sp, sv, fc, g = self.sat_pos_ecef_m, self.sat_vel_ecef_m_s, self.carrier_hz, self.is_gps
         S = sp.shape[-2]
-        if sv.ndim < 2 or sv.shape[-2:] != (S, 3):
-            raise ValueError(f"sat_vel_ecef_m_s must have shape (..., {S}, 3), got shape {sv.shape}")
-        fc = np.asarray(self.carrier_hz, dtype=float)
-        if fc.shape != (S,) or not np.all(np.isfinite(fc) & (fc > 0)):
-            raise ValueError(f"carrier_hz must be (S,) = ({S},) finite and > 0, got {self.carrier_hz!r}")
-        g = np.asarray(self.is_gps)
-        if g.shape != (S,) or g.dtype != np.bool_:
-            raise ValueError(f"is_gps must be a ({S},) bool array, got {self.is_gps!r}")
-        for name in ("f_ref_hz", "h_shell_m", "r_earth_m"):
-            object.__setattr__(self, name, _positive(name, getattr(self, name)))
-        object.__setattr__(self, "sigma_pr_m", _sigma("sigma_pr_m", self.sigma_pr_m, S))
-        object.__setattr__(self, "sigma_prr_m_s", _sigma("sigma_prr_m_s", self.sigma_prr_m_s, S))
-        if not isinstance(self.use_phase, (bool, np.bool_)):
-            raise ValueError(f"use_phase must be a bool, got {self.use_phase!r}")
+        require(S >= 1, "sat_pos_ecef_m", f"expected (..., S, 3) with S >= 1, got shape {sp.shape}")
+        require(sv.shape[-2:] == (S, 3), "sat_vel_ecef_m_s", f"expected shape (..., {S}, 3), got shape {sv.shape}")
+        require(fc.shape == (S,), "carrier_hz", f"expected (S,) = ({S},) finite and > 0, got shape {fc.shape}")
+        require(g.shape == (S,), "is_gps", f"expected a ({S},) bool array, got shape {g.shape}")
+        for name in ("sigma_pr_m", "sigma_prr_m_s"):
+            object.__setattr__(self, name, _per_satellite(name, getattr(self, name), S))
 
         if self.phase_state_index is None:
             kidx = np.full(S, -1, dtype=np.intp)
         else:
-            k = np.asarray(self.phase_state_index)
-            if k.shape != (S,) or not np.issubdtype(k.dtype, np.integer):
-                raise ValueError(f"phase_state_index must be a ({S},) int array, got {self.phase_state_index!r}")
+            k = self.phase_state_index
+            require(k.shape == (S,), "phase_state_index", f"expected a ({S},) int array, got shape {k.shape}")
             kidx = k.astype(np.intp)
             used = kidx[kidx >= 0]
-            if np.any((kidx < 0) & (kidx != -1)) or np.any(used < N_BASE) or len(set(used.tolist())) != used.size:
-                raise ValueError(
-                    f"phase_state_index must hold distinct state indices >= {N_BASE} or -1, got {self.phase_state_index!r}"
-                )
+            require(not (np.any((kidx < 0) & (kidx != -1)) or np.any(used < N_BASE)
+                         or len(set(used.tolist())) != used.size), "phase_state_index",
+                    f"expected distinct state indices >= {N_BASE} or -1, got {k!r}")
         n_min = N_BASE if not np.any(kidx >= 0) else int(kidx.max()) + 1
         if self.n_state is None:
-            n = n_min
-        else:
-            n = self.n_state
-            if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or n < n_min:
-                raise ValueError(f"n_state must be an integer >= {n_min}, got {self.n_state!r}")
-            n = int(n)
-        object.__setattr__(self, "n_state", n)
+            object.__setattr__(self, "n_state", n_min)
+        require(self.n_state >= n_min, "n_state", f"expected an integer >= {n_min}, got {self.n_state}")
 
         if self.use_phase:
-            if self.sigma_phase_m is None:
-                raise ValueError("sigma_phase_m must be given when use_phase=True, got None")
-            if self.phase_state_index is None or not np.any(kidx >= 0):
-                raise ValueError(
-                    f"phase_state_index must give at least one K state when use_phase=True, got {self.phase_state_index!r}"
-                )
+            require(self.sigma_phase_m is not None, "sigma_phase_m", "expected a value when use_phase=True, got None")
+            require(self.phase_state_index is not None and np.any(kidx >= 0), "phase_state_index",
+                    f"expected at least one K state when use_phase=True, got {self.phase_state_index!r}")
         if self.sigma_phase_m is not None:
-            object.__setattr__(self, "sigma_phase_m", _sigma("sigma_phase_m", self.sigma_phase_m, S))
+            object.__setattr__(self, "sigma_phase_m", _per_satellite("sigma_phase_m", self.sigma_phase_m, S))
 
-        object.__setattr__(self, "sat_pos_ecef_m", _readonly(sp))
-        object.__setattr__(self, "sat_vel_ecef_m_s", _readonly(sv))
-        object.__setattr__(self, "carrier_hz", _readonly(fc))
-        object.__setattr__(self, "is_gps", _readonly(g))
         object.__setattr__(self, "phase_state_index", _readonly(kidx))
-        object.__setattr__(self, "use_phase", bool(self.use_phase))
         # derived per-satellite constants
         object.__setattr__(self, "_k_iono", _readonly((self.f_ref_hz / fc) ** 2))
         object.__setattr__(self, "_gps", _readonly(g.astype(float)))

@@ -37,6 +37,8 @@ from typing import Any, Sequence
 
 import numpy as np
 
+from .params import Check, ParamError, array, integer, number, optional, param, require, switch, validate
+
 try:  # optional compiled helpers (numba); numpy is the reference path
     from . import _nbkernels as _nbk
 except ImportError:  # pragma: no cover
@@ -69,34 +71,27 @@ C_M_S = 299_792_458.0  # speed of light, m/s (kept here so that filters/ imports
 
 
 # --------------------------------------------------------------------------------------
-# validation helpers (messages name the parameter and its value)
+# parameter checks (filters.params; messages name the parameter and its value)
 
-
-def _positive(name: str, value: Any) -> float:
-    v = float(value)
-    if not (math.isfinite(v) and v > 0.0):
-        raise ValueError(f"{name} must be a finite number > 0, got {value!r}")
-    return v
-
-
-def _nonnegative(name: str, value: Any) -> float:
-    v = float(value)
-    if not (math.isfinite(v) and v >= 0.0):
-        raise ValueError(f"{name} must be a finite number >= 0, got {value!r}")
-    return v
-
-
-def _positive_int(name: str, value: Any) -> int:
-    if isinstance(value, bool) or int(value) != value or int(value) < 1:
-        raise ValueError(f"{name} must be an integer >= 1, got {value!r}")
-    return int(value)
+_COUNT = integer(1, numpy=True)
+_NONNEGATIVE = number(0, numpy=True)
+_POSITIVE = number(0, lo_open=True, numpy=True)
+_DT = number(0, numpy=True, what="a finite number >= 0 s")
+# a per-step model's arrays: read-only views of the caller's (no copy), shape checked only
+_SAT_STATES = array((..., -1, 3), finite=False, nan=True, copy=False, what="a numeric array of shape (..., S, 3)")
+_MATRICES = array((..., -1, -1), finite=False, nan=True, copy=False, what="a numeric array of shape (..., m, n)")
+_SIGMAS = array(lo=0, lo_open=True, copy=False, what="finite numbers > 0")
 
 
 def _check_dt(dt: Any) -> float:
-    v = float(dt)
-    if not (math.isfinite(v) and v >= 0.0):
-        raise ValueError(f"dt must be a finite number >= 0 s, got {dt!r}")
-    return v
+    return _DT("dt", dt)
+
+
+def _per_satellite(key: str, a: np.ndarray, S: int):
+    """A checked sigma (_SIGMAS) that must be a scalar or (..., S) (a rule between fields):
+    a float for a scalar, else the read-only array."""
+    require(a.ndim == 0 or a.shape[-1] in (1, S), key, f"expected a scalar or (..., {S}), got shape {a.shape}")
+    return float(a) if a.ndim == 0 else a
 
 
 def _check_state(x: Any, n: int) -> np.ndarray:
@@ -203,14 +198,13 @@ class ConstantVelocity(_LinearKinematic):
     F = [[1, T], [0, 1]],  Q = q [[T^3/3, T^2/2], [T^2/2, T]]  (exact discretisation).
     """
 
-    ndim_pos: int = 3
-    q: float = field(kw_only=True)  # acceleration PSD, m^2/s^3
+    ndim_pos: int = param(3, check=_COUNT, doc="position axes; the state is [p, v], ndim_pos each")
+    q: float = param(check=_NONNEGATIVE, kw_only=True, doc="acceleration PSD, m^2/s^3")
 
     _order = 2
 
     def __post_init__(self):
-        _positive_int("ndim_pos", self.ndim_pos)
-        _nonnegative("q", self.q)
+        validate(self)
 
     def _F_axis(self, T):
         return np.array([[1.0, T], [0.0, 1.0]])
@@ -227,14 +221,13 @@ class ConstantAcceleration(_LinearKinematic):
     Q = q [[T^5/20, T^4/8, T^3/6], [T^4/8, T^3/3, T^2/2], [T^3/6, T^2/2, T]].
     """
 
-    ndim_pos: int = 3
-    q: float = field(kw_only=True)  # jerk PSD, m^2/s^5
+    ndim_pos: int = param(3, check=_COUNT, doc="position axes; the state is [p, v, a], ndim_pos each")
+    q: float = param(check=_NONNEGATIVE, kw_only=True, doc="jerk PSD, m^2/s^5")
 
     _order = 3
 
     def __post_init__(self):
-        _positive_int("ndim_pos", self.ndim_pos)
-        _nonnegative("q", self.q)
+        validate(self)
 
     def _F_axis(self, T):
         return np.array([[1.0, T, T**2 / 2], [0.0, 1.0, T], [0.0, 0.0, 1.0]])
@@ -262,16 +255,15 @@ class Singer(_LinearKinematic):
     Evaluated by series for small alpha T (the closed forms cancel there).
     """
 
-    alpha_1_s: float  # manoeuvre time constant inverse (acceleration spectrum width), 1/s
-    sigma_a_m_s2: float  # std of the acceleration, m/s^2
-    ndim_pos: int = 3
+    alpha_1_s: float = param(check=_POSITIVE,
+                             doc="inverse manoeuvre time constant (acceleration spectrum width), 1/s")
+    sigma_a_m_s2: float = param(check=_NONNEGATIVE, doc="stationary std of the acceleration, m/s^2")
+    ndim_pos: int = param(3, check=_COUNT, doc="position axes; the state is [p, v, a], ndim_pos each")
 
     _order = 3
 
     def __post_init__(self):
-        _positive("alpha_1_s", self.alpha_1_s)
-        _nonnegative("sigma_a_m_s2", self.sigma_a_m_s2)
-        _positive_int("ndim_pos", self.ndim_pos)
+        validate(self)
 
     def _F_axis(self, T):
         x = self.alpha_1_s * T
@@ -307,18 +299,16 @@ class ClockGaussMarkov:
     its F uses T, and its entries lack the 2 mu factor of its own difference equation.
     """
 
-    mu_1_s: float  # oscillator spectrum width, 1/s
-    sigma_drift_m_s: float  # stationary std of the drift, m/s
-    exact_bias: bool = False
+    mu_1_s: float = param(check=_POSITIVE, doc="oscillator spectrum width (inverse drift correlation time), 1/s")
+    sigma_drift_m_s: float = param(check=_NONNEGATIVE, doc="stationary std of the clock drift, m/s")
+    exact_bias: bool = param(False, check=switch(numpy=True),
+                             doc="the exact discretisation of the bias (False: the seed's D' + T V')")
 
     linear = True
     ndim = 2
 
     def __post_init__(self):
-        _positive("mu_1_s", self.mu_1_s)
-        _nonnegative("sigma_drift_m_s", self.sigma_drift_m_s)
-        if not isinstance(self.exact_bias, (bool, np.bool_)):
-            raise ValueError(f"exact_bias must be a bool, got {self.exact_bias!r}")
+        validate(self)
 
     def f(self, x, dt):
         x = _check_state(x, 2)
@@ -347,15 +337,14 @@ class ClockRandomWalk:
     N the two-sided PSD of the forming noise (1/s; seed 000: 0.8e-20).
     """
 
-    psd_1_s: float
-    c: float = C_M_S
+    psd_1_s: float = param(check=_NONNEGATIVE, doc="two-sided PSD N of the clock's forming noise, 1/s")
+    c: float = param(C_M_S, check=_POSITIVE, doc="speed of light (the bias and drift are in m and m/s), m/s")
 
     linear = True
     ndim = 2
 
     def __post_init__(self):
-        _nonnegative("psd_1_s", self.psd_1_s)
-        _positive("c", self.c)
+        validate(self)
 
     def f(self, x, dt):
         x = _check_state(x, 2)
@@ -374,6 +363,40 @@ class ClockRandomWalk:
 # block-diagonal composition with a state permutation
 
 
+def _transition_models(v) -> tuple:
+    """A non-empty tuple of transition models (objects with ndim, linear, f, F and Q)."""
+    try:
+        blocks = tuple(v)
+    except TypeError:
+        raise ParamError("", f"expected a tuple of transition models, got {v!r}") from None
+    if not blocks:
+        raise ParamError("", "expected at least one transition model, got ()")
+    for i, b in enumerate(blocks):
+        for attr in ("ndim", "linear", "f", "F", "Q"):
+            if not hasattr(b, attr):
+                raise ParamError("", f"expected transition models, got [{i}] = {b!r} (no {attr})")
+    return blocks
+
+
+def _bools(v) -> np.ndarray:
+    """A bool array (anything np.asarray(v, dtype=bool) takes)."""
+    try:
+        return np.asarray(v, dtype=bool)
+    except (TypeError, ValueError):
+        raise ParamError("", f"expected a bool array, got {v!r}") from None
+
+
+def _indices(v) -> tuple:
+    """Indices: anything whose items int() takes, as a tuple of ints."""
+    try:
+        return tuple(int(i) for i in v)
+    except (TypeError, ValueError):
+        raise ParamError("", f"expected indices, got {v!r}") from None
+
+
+_INDICES = Check(_indices)
+
+
 @dataclass(frozen=True, eq=False)
 class Composite:
     """Block-diagonal stack of transition models, then a permutation of the state.
@@ -383,8 +406,9 @@ class Composite:
     order=None keeps the stacked order.
     """
 
-    blocks: tuple
-    order: tuple | None = None
+    blocks: tuple = param(check=Check(_transition_models), doc="the transition models stacked block-diagonally")
+    order: tuple | None = param(None, check=optional(_INDICES),
+                                doc="the permutation of the stacked state: x[i] = s[order[i]] (None: stacked order)")
 
     _slices: tuple = field(init=False, repr=False)
     _inverse: np.ndarray = field(init=False, repr=False)
@@ -394,17 +418,11 @@ class Composite:
     _memo: dict = field(init=False, repr=False, default_factory=dict)
 
     def __post_init__(self):
-        blocks = tuple(self.blocks)
-        if not blocks:
-            raise ValueError("blocks must hold at least one transition model, got ()")
-        for i, b in enumerate(blocks):
-            for attr in ("ndim", "linear", "f", "F", "Q"):
-                if not hasattr(b, attr):
-                    raise ValueError(f"blocks[{i}] = {b!r} is not a transition model (no {attr})")
+        validate(self)
+        blocks = self.blocks
         n = sum(int(b.ndim) for b in blocks)
-        order = tuple(range(n)) if self.order is None else tuple(int(i) for i in self.order)
-        if sorted(order) != list(range(n)):
-            raise ValueError(f"order must be a permutation of range({n}), got {self.order!r}")
+        order = tuple(range(n)) if self.order is None else self.order
+        require(sorted(order) == list(range(n)), "order", f"expected a permutation of range({n}), got {self.order!r}")
         slices, start = [], 0
         for b in blocks:
             slices.append(slice(start, start + int(b.ndim)))
@@ -540,19 +558,14 @@ class JointMeasurement:
 class LinearGaussian(Measurement):
     """z = H x + v,  v ~ N(0, R).  H (m, n) or (..., m, n); R (m, m) or (..., m, m)."""
 
-    H_matrix: np.ndarray
-    R_matrix: np.ndarray
+    H_matrix: np.ndarray = param(check=_MATRICES, doc="measurement matrix H, (m, n) or (..., m, n)")
+    R_matrix: np.ndarray = param(check=_MATRICES, doc="measurement noise covariance R, (m, m) or (..., m, m)")
 
     def __post_init__(self):
-        H = np.asarray(self.H_matrix, dtype=float)
-        R = np.asarray(self.R_matrix, dtype=float)
-        if H.ndim < 2:
-            raise ValueError(f"H must have shape (..., m, n), got shape {H.shape}")
-        m = H.shape[-2]
-        if R.ndim < 2 or R.shape[-2:] != (m, m):
-            raise ValueError(f"R must have shape (..., {m}, {m}), got shape {R.shape}")
-        object.__setattr__(self, "H_matrix", _readonly(H))
-        object.__setattr__(self, "R_matrix", _readonly(R))
+        validate(self)
+        m = self.H_matrix.shape[-2]
+        require(self.R_matrix.shape[-2:] == (m, m), "R_matrix",
+                f"expected shape (..., {m}, {m}), got shape {self.R_matrix.shape}")
 
     @property
     def ndim_meas(self) -> int:
@@ -583,11 +596,11 @@ class LinearGaussian(Measurement):
 
 
 def _index3(name: str, idx, n: int) -> tuple:
+    """Three state indices in [0, n) (a tuple or a slice of range(n)): a rule between fields."""
     if isinstance(idx, slice):
         idx = tuple(range(n))[idx]
-    idx = tuple(int(i) for i in idx)
-    if len(idx) != 3 or any(not 0 <= i < n for i in idx):
-        raise ValueError(f"{name} must be 3 indices in [0, {n}), got {idx!r}")
+    idx = _INDICES(name, idx)
+    require(len(idx) == 3 and all(0 <= i < n for i in idx), name, f"expected 3 indices in [0, {n}), got {idx!r}")
     return idx
 
 
@@ -656,53 +669,37 @@ class PseudorangeDoppler(_PseudorangeRows):
     or (..., S). R = diag(sigma_pr^2, sigma_prr^2).
     """
 
-    sat_pos_ecef_m: np.ndarray
-    sat_vel_ecef_m_s: np.ndarray
-    sigma_pr_m: Any
-    sigma_prr_m_s: Any
-    idx_pos: Sequence[int] = (0, 1, 2)
-    idx_vel: Sequence[int] = (4, 5, 6)
-    idx_bias: int = 3
-    idx_drift: int = 7
-    n: int = 11
+    sat_pos_ecef_m: np.ndarray = param(check=_SAT_STATES,
+                                       doc="satellite positions (reception-time ECEF), (..., S, 3), m")
+    sat_vel_ecef_m_s: np.ndarray = param(check=_SAT_STATES,
+                                         doc="satellite velocities (reception-time ECEF), (..., S, 3), m/s")
+    sigma_pr_m: Any = param(check=_SIGMAS, doc="pseudorange noise (1 sigma): a scalar, (S,) or (..., S), m")
+    sigma_prr_m_s: Any = param(check=_SIGMAS,
+                               doc="pseudorange-rate noise (1 sigma): a scalar, (S,) or (..., S), m/s")
+    idx_pos: Sequence[int] = (0, 1, 2)  # the position's 3 state indices (or a slice), checked against n
+    idx_vel: Sequence[int] = (4, 5, 6)  # the velocity's 3 state indices (or a slice), checked against n
+    idx_bias: int = param(3, check=integer(0, numpy=True), doc="state index of the clock bias (m)")
+    idx_drift: int = param(7, check=integer(0, numpy=True), doc="state index of the clock drift (m/s)")
+    n: int = param(11, check=_COUNT, doc="state dimension")
 
     def __post_init__(self):
-        n = _positive_int("n", self.n)
-        sp = np.asarray(self.sat_pos_ecef_m, dtype=float)
-        sv = np.asarray(self.sat_vel_ecef_m_s, dtype=float)
-        if sp.ndim < 2 or sp.shape[-1] != 3 or sp.shape[-2] < 1:
-            raise ValueError(f"sat_pos_ecef_m must have shape (..., S, 3), got shape {sp.shape}")
-        if sv.shape[-2:] != sp.shape[-2:]:
-            raise ValueError(
-                f"sat_vel_ecef_m_s must have shape (..., {sp.shape[-2]}, 3), got shape {sv.shape}"
-            )
+        validate(self)
+        n = self.n
+        sp, sv = self.sat_pos_ecef_m, self.sat_vel_ecef_m_s
         S = sp.shape[-2]
+        require(S >= 1, "sat_pos_ecef_m", f"expected (..., S, 3) with S >= 1, got shape {sp.shape}")
+        require(sv.shape[-2:] == sp.shape[-2:], "sat_vel_ecef_m_s", f"expected shape (..., {S}, 3), got shape {sv.shape}")
         for name in ("sigma_pr_m", "sigma_prr_m_s"):
-            s = np.asarray(getattr(self, name), dtype=float)
-            if s.ndim > 0 and s.shape[-1] not in (1, S):
-                raise ValueError(f"{name} must be a scalar or (..., {S}), got shape {s.shape}")
-            if not np.all(np.isfinite(s) & (s > 0)):
-                raise ValueError(f"{name} must be finite and > 0, got {getattr(self, name)!r}")
-            object.__setattr__(self, name, _readonly(s) if s.ndim else float(s))
+            object.__setattr__(self, name, _per_satellite(name, getattr(self, name), S))
         ip = _index3("idx_pos", self.idx_pos, n)
         iv = _index3("idx_vel", self.idx_vel, n)
         for name in ("idx_bias", "idx_drift"):
-            i = getattr(self, name)
-            if isinstance(i, bool) or int(i) != i or not 0 <= int(i) < n:
-                raise ValueError(f"{name} must be an index in [0, {n}), got {i!r}")
-        used = ip + iv + (int(self.idx_bias), int(self.idx_drift))
-        if len(set(used)) != 8:
-            raise ValueError(
-                f"idx_pos, idx_vel, idx_bias, idx_drift must be distinct, got {ip}, {iv}, "
-                f"{self.idx_bias}, {self.idx_drift}"
-            )
-        object.__setattr__(self, "sat_pos_ecef_m", _readonly(sp))
-        object.__setattr__(self, "sat_vel_ecef_m_s", _readonly(sv))
+            require(getattr(self, name) < n, name, f"expected an index in [0, {n}), got {getattr(self, name)}")
+        require(len(set(ip + iv + (self.idx_bias, self.idx_drift))) == 8, "idx_drift",
+                f"idx_pos, idx_vel, idx_bias, idx_drift must be distinct, got {ip}, {iv}, {self.idx_bias}, "
+                f"{self.idx_drift}")
         object.__setattr__(self, "idx_pos", ip)
         object.__setattr__(self, "idx_vel", iv)
-        object.__setattr__(self, "idx_bias", int(self.idx_bias))
-        object.__setattr__(self, "idx_drift", int(self.idx_drift))
-        object.__setattr__(self, "n", n)
 
     @property
     def ndim_state(self) -> int:
@@ -813,25 +810,22 @@ class ClockFreePseudorangeDoppler(_PseudorangeRows, JointMeasurement):
     var_pr_m2, var_prr_m2_s2 scalars or (..., S); tracked (..., S) bool or None (all).
     """
 
-    sat_pos_ecef_m: np.ndarray
-    sat_vel_ecef_m_s: np.ndarray
-    var_pr_m2: Any
-    var_prr_m2_s2: Any
-    tracked: Any = None
+    sat_pos_ecef_m: np.ndarray = param(check=_SAT_STATES, doc="satellite positions (reception-time ECEF), "
+                                                             "(..., S, 3), NaN allowed where untracked, m")
+    sat_vel_ecef_m_s: np.ndarray = param(check=_SAT_STATES, doc="satellite velocities (reception-time ECEF), "
+                                                               "(..., S, 3), NaN allowed where untracked, m/s")
+    var_pr_m2: Any = param(check=_SIGMAS, doc="pseudorange noise variance: a scalar or (..., S), m^2")
+    var_prr_m2_s2: Any = param(check=_SIGMAS, doc="pseudorange-rate noise variance: a scalar or (..., S), m^2/s^2")
+    tracked: Any = param(None, check=optional(Check(_bools)),
+                         doc="the tracked satellites, (..., S) bool (None: all)")
 
     def __post_init__(self):
-        sp = np.asarray(self.sat_pos_ecef_m, dtype=float)
-        sv = np.asarray(self.sat_vel_ecef_m_s, dtype=float)
-        if sp.ndim < 2 or sp.shape[-1] != 3:
-            raise ValueError(f"sat_pos_ecef_m must have shape (..., S, 3), got {sp.shape}")
-        if sv.shape[-2:] != sp.shape[-2:]:
-            raise ValueError(f"sat_vel_ecef_m_s must have shape (..., {sp.shape[-2]}, 3), got {sv.shape}")
-        tr = np.ones(sp.shape[:-1], bool) if self.tracked is None else np.asarray(self.tracked, dtype=bool)
+        validate(self)
+        sp, sv = self.sat_pos_ecef_m, self.sat_vel_ecef_m_s
+        require(sv.shape[-2:] == sp.shape[-2:], "sat_vel_ecef_m_s",
+                f"expected shape (..., {sp.shape[-2]}, 3), got {sv.shape}")
+        tr = np.ones(sp.shape[:-1], bool) if self.tracked is None else self.tracked
         tr = np.broadcast_to(tr, np.broadcast_shapes(tr.shape, sp.shape[:-1], sv.shape[:-1]))
-        for name in ("var_pr_m2", "var_prr_m2_s2"):
-            a = np.asarray(getattr(self, name), dtype=float)
-            if not np.all(np.isfinite(a) & (a > 0)):
-                raise ValueError(f"{name} must be finite and > 0, got {getattr(self, name)!r}")
         m3 = tr[..., None]
         # Untracked satellites sit at the Earth's centre: finite geometry, masked afterwards.
         object.__setattr__(self, "sat_pos_ecef_m", np.where(m3, sp, 0.0))

@@ -21,16 +21,18 @@ declaration: the TOML form of a section and the command-line flags with their --
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 from dataclasses import MISSING
 
 import numpy as np
 
 __all__ = ["param", "checks", "docs", "ParamError", "Check", "integer", "number", "choice", "switch", "string",
-           "optional", "several", "from_text", "array", "vec3", "default_of", "flag_of", "validate", "require"]
+           "optional", "several", "from_text", "array", "vec3", "reworded", "default_of", "flag_of", "validate",
+           "require"]
 
 
-def param(default=MISSING, *, check, doc: str, default_factory=MISSING, flag=None, metavar=None,
+def param(default=MISSING, *, check, doc: str, default_factory=MISSING, kw_only=MISSING, flag=None, metavar=None,
           cli=True, shown=None, note="", default_help=None):
     """A dataclass field with its check (key, value) -> value and its one-paragraph doc.
 
@@ -38,7 +40,8 @@ def param(default=MISSING, *, check, doc: str, default_factory=MISSING, flag=Non
     ``metavar``, ``cli=False`` to keep it off the command line; the --help text is the doc then
     "(default X<note>)", X the default or ``shown`` (a text or a callable giving the value that
     stands for a None default, e.g. another dataclass's declared default), or ``default_help``
-    instead of that parenthesis."""
+    instead of that parenthesis. ``kw_only`` as dataclasses.field's (a field without a default
+    after fields with one)."""
     if not doc or not callable(check):
         raise TypeError("param: a check and a doc are required")
     md = {"check": check, "doc": " ".join(doc.split())}
@@ -48,11 +51,14 @@ def param(default=MISSING, *, check, doc: str, default_factory=MISSING, flag=Non
         md["note"] = note
     if not cli:
         md["cli"] = False
-    return dataclasses.field(default=default, default_factory=default_factory, metadata=md)
+    return dataclasses.field(default=default, default_factory=default_factory, kw_only=kw_only, metadata=md)
 
 
-def _declared(cls):
-    return [f for f in dataclasses.fields(cls) if "check" in f.metadata]
+@functools.lru_cache(maxsize=None)
+def _declared(cls) -> tuple:
+    """The declared fields of ``cls`` (cached: validate runs in the __post_init__ of models
+    built at every step)."""
+    return tuple(f for f in dataclasses.fields(cls) if "check" in f.metadata)
 
 
 def checks(cls) -> dict:
@@ -99,20 +105,23 @@ def _show(v) -> str:
     return str(v)
 
 
-def integer(lo: int | None = None, hi: int | None = None, what: str | None = None) -> Check:
-    """An integer (not a bool) in [lo, hi]; from text, int(text)."""
+def integer(lo: int | None = None, hi: int | None = None, what: str | None = None, *, numpy: bool = False) -> Check:
+    """An integer (not a bool) in [lo, hi]; from text, int(text). numpy=True: a numpy integer
+    too (stored as an int)."""
     if what is None:
         what = {1: "a positive integer", 0: "an integer >= 0"}.get(lo, "an integer") if hi is None else \
             f"an integer in {lo}..{hi}"
         if lo not in (None, 0, 1) and hi is None:
             what = f"an integer >= {lo}"
 
+    kinds = (int, np.integer) if numpy else int
+
     def test(v):
-        if isinstance(v, bool) or not isinstance(v, int):
+        if isinstance(v, bool) or not isinstance(v, kinds):
             raise ParamError("", f"expected {what}, got {v!r}")
         if (lo is not None and v < lo) or (hi is not None and v > hi):
             raise ParamError("", f"expected {what}, got {v}")
-        return v
+        return int(v) if numpy else v
 
     def parse(text):
         try:
@@ -124,20 +133,27 @@ def integer(lo: int | None = None, hi: int | None = None, what: str | None = Non
     return Check(test, parse)
 
 
-def number(lo: float | None = None, *, lo_open: bool = False, finite: bool = True, what: str | None = None) -> Check:
-    """A float (an int is taken as one), finite unless finite=False, and >= lo (> lo if lo_open);
-    from text, float(text)."""
+def number(lo: float | None = None, *, lo_open: bool = False, hi: float | None = None, hi_open: bool = False,
+           finite: bool = True, what: str | None = None, numpy: bool = False) -> Check:
+    """A float (an int is taken as one), finite unless finite=False, >= lo (> lo if lo_open) and
+    <= hi (< hi if hi_open); from text, float(text). numpy=True: a numpy integer or float too."""
     if what is None:
-        what = "a positive finite number" if (lo == 0 and lo_open) else \
-            ("a finite number" if finite else "a number") + ("" if lo is None else f" {'>' if lo_open else '>='} {lo:g}")
+        if hi is not None:
+            what = (f"a number in {'(' if lo_open else '['}{lo:g}, {hi:g}{')' if hi_open else ']'}" if lo is not None
+                    else ("a finite number" if finite else "a number") + f" {'<' if hi_open else '<='} {hi:g}")
+        else:
+            what = "a positive finite number" if (lo == 0 and lo_open) else \
+                ("a finite number" if finite else "a number") + ("" if lo is None else f" {'>' if lo_open else '>='} {lo:g}")
     loose = what.replace("positive finite", "positive").replace("finite ", "")  # a word that is no number
+    kinds = (int, float, np.integer, np.floating) if numpy else (int, float)
 
     def ok(x):
         return not ((finite and not math.isfinite(x)) or x != x or
-                    (lo is not None and (x <= lo if lo_open else x < lo)))
+                    (lo is not None and (x <= lo if lo_open else x < lo)) or
+                    (hi is not None and (x >= hi if hi_open else x > hi)))
 
     def test(v):
-        if isinstance(v, bool) or not isinstance(v, (int, float)):
+        if isinstance(v, bool) or not isinstance(v, kinds):
             raise ParamError("", f"expected {what}, got {v!r}")
         if not ok(float(v)):
             raise ParamError("", f"expected {what}, got {v!r}")
@@ -165,12 +181,15 @@ def choice(*options: str) -> Check:
     return Check(test, cli={"choices": options})
 
 
-def switch() -> Check:
-    """A boolean: a flag that sets it (store_true; the default is False)."""
+def switch(*, numpy: bool = False) -> Check:
+    """A boolean: a flag that sets it (store_true; the default is False). numpy=True: a numpy
+    bool too (stored as a bool)."""
+    kinds = (bool, np.bool_) if numpy else bool
+
     def test(v):
-        if not isinstance(v, bool):
+        if not isinstance(v, kinds):
             raise ParamError("", f"expected true or false, got {v!r}")
-        return v
+        return bool(v)
 
     return Check(test, cli={"action": "store_true"})
 
@@ -247,25 +266,56 @@ def validate(obj, flags: bool = False) -> None:
         object.__setattr__(obj, f.name, f.metadata["check"](key, getattr(obj, f.name)))
 
 
-def array(shape: tuple | None = None, *, finite: bool = True, lo: float | None = None, what: str | None = None) -> Check:
-    """A float array (anything np.asarray takes), of ``shape`` if given (-1 for any length on
-    that axis), finite unless finite=False, every element >= lo if given."""
+def _brief(v) -> str:
+    """repr(v) on one line, at most 80 characters (an array's repr spans lines)."""
+    text = " ".join(repr(v).split())
+    return text if len(text) <= 80 else text[:77] + "..."
+
+
+def array(shape: tuple | None = None, *, finite: bool = True, nan: bool = False, lo: float | None = None,
+          lo_open: bool = False, copy: bool = True, what: str | None = None) -> Check:
+    """A read-only float array (anything np.asarray takes), of ``shape`` if given (-1 for any
+    length on that axis; a leading ``...`` for any number of leading axes, e.g. (..., -1, 3)),
+    finite unless finite=False (NaN only with nan=True), every element >= lo (> lo if lo_open)
+    if given. copy=False: a read-only view of the caller's float array where it is one (no copy:
+    for a model built every step)."""
+    batch = shape is not None and len(shape) > 0 and shape[0] is Ellipsis
+    tail = tuple(shape[1:]) if batch else shape
     if what is None:
-        what = ("a finite " if finite else "a ") + "numeric array" + \
-            ("" if shape is None else f" of shape {tuple(shape)}") + ("" if lo is None else f" >= {lo:g}")
+        shown = None if shape is None else "(" + ", ".join("..." if s is Ellipsis else str(s) for s in shape) + \
+            ("," if len(shape) == 1 else "") + ")"
+        what = ("a finite " if finite else "a ") + "numeric array" + ("" if shape is None else f" of shape {shown}") + \
+            ("" if lo is None else f" {'>' if lo_open else '>='} {lo:g}")
+
+    scan = finite or not nan or lo is not None  # a check of the values (none: shape only)
+
+    def ok(a) -> bool:
+        if a.ndim == 0:  # a scalar: without numpy's reductions (a model built every step)
+            x = float(a)
+            return not ((finite and not math.isfinite(x)) or (not nan and x != x) or
+                        (lo is not None and (x <= lo if lo_open else x < lo)))
+        if finite:
+            if not np.isfinite(a).all():
+                return False
+        elif not nan and np.isnan(a).any():
+            return False
+        return lo is None or not (a <= lo if lo_open else a < lo).any()
 
     def test(v):
         try:
-            a = np.array(v, dtype=float)
+            a = np.array(v, dtype=float) if copy else np.asarray(v, dtype=float)
         except (TypeError, ValueError):
-            raise ParamError("", f"expected {what}, got {v!r}") from None
-        if shape is not None and (a.ndim != len(shape) or
-                                  any(s not in (-1, n) for s, n in zip(shape, a.shape))):
+            raise ParamError("", f"expected {what}, got {_brief(v)}") from None
+        if tail is not None and ((a.ndim < len(tail) if batch else a.ndim != len(tail)) or
+                                 any(s not in (-1, n) for s, n in zip(tail, a.shape[a.ndim - len(tail):]))):
             raise ParamError("", f"expected {what}, got shape {a.shape}")
-        if (finite and not np.all(np.isfinite(a))) or np.any(np.isnan(a)) or \
-                (lo is not None and np.any(a < lo)):
-            raise ParamError("", f"expected {what}, got {v!r}")
-        a.setflags(write=False)
+        if scan and not ok(a):
+            raise ParamError("", f"expected {what}, got {_brief(v)}")
+        if copy:
+            a.setflags(write=False)
+        else:
+            a = a.view()
+            a.flags.writeable = False
         return a
 
     return Check(test)
@@ -274,6 +324,19 @@ def array(shape: tuple | None = None, *, finite: bool = True, lo: float | None =
 def vec3(what: str | None = None) -> Check:
     """A finite 3-vector (a float array of shape (3,))."""
     return array((3,), what=what or "a finite 3-vector")
+
+
+def reworded(check, text: str):
+    """``check`` whose failure reads ``key: key <text>, got <value>``: for a parameter whose
+    error message callers already match (e.g. "n must be a positive integer"). A plain
+    check(key, value) function (for validate; no text parser)."""
+    def worded(key, value):
+        try:
+            return check(key, value)
+        except ParamError:
+            raise ParamError(key, f"{key} {text}, got {value!r}") from None
+
+    return worded
 
 
 def require(condition: bool, key: str, reason: str) -> None:

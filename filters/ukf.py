@@ -27,30 +27,30 @@ import numpy as np
 
 from . import kernels
 from .ekf import UpdateResult, _flatten
-from .protocols import SigmaPointMeasurementModel, TransitionModel, full_R, require
+from .params import integer, number, param, require, reworded, validate
+from .protocols import SigmaPointMeasurementModel, TransitionModel, full_R
+from .protocols import require as require_model
+
+
+_FINITE = reworded(number(numpy=True), "must be finite")
 
 
 @dataclass(frozen=True)
 class SigmaPoints:
     """Scaled symmetric sigma-point set for an n-dimensional state."""
 
-    n: int
-    alpha: float = 1e-3
-    beta: float = 2.0
-    kappa: float = 0.0
+    n: int = param(check=reworded(integer(1, numpy=True), "must be a positive integer"),
+                   doc="dimension of the state the points are for")
+    alpha: float = param(1e-3, check=_FINITE, doc="spread of the points around the mean (> 0)")
+    beta: float = param(2.0, check=_FINITE,
+                        doc="prior-distribution weight in Wc_0 (2: optimal for a Gaussian)")
+    kappa: float = param(0.0, check=_FINITE, doc="secondary scaling: lambda = alpha^2 (n + kappa) - n")
 
     def __post_init__(self):
-        if isinstance(self.n, bool) or not isinstance(self.n, (int, np.integer)) or self.n < 1:
-            raise ValueError(f"n must be a positive integer, got {self.n!r}")
-        object.__setattr__(self, "n", int(self.n))
-        for name in ("alpha", "beta", "kappa"):
-            v = getattr(self, name)
-            if not np.isfinite(v):
-                raise ValueError(f"{name} must be finite, got {v!r}")
-        if not self.alpha > 0:
-            raise ValueError(f"alpha must be > 0, got {self.alpha!r}")
-        if not self.n + self.lam > 0:
-            raise ValueError(f"n + lambda must be > 0 (n={self.n}, alpha={self.alpha}, kappa={self.kappa})")
+        validate(self)
+        require(self.alpha > 0, "alpha", f"alpha must be > 0, got {self.alpha!r}")
+        require(self.n + self.lam > 0, "kappa",
+                f"n + lambda must be > 0 (n={self.n}, alpha={self.alpha}, kappa={self.kappa})")
 
     @classmethod
     def julier(cls, n: int) -> "SigmaPoints":
@@ -100,7 +100,7 @@ def ukf_predict(x, P, model: TransitionModel, dt, points: SigmaPoints | None = N
     batch, xf, Pf = _flatten(x, P)
     n = xf.shape[-1]
     sp = _points_for(points, n)
-    require(model, TransitionModel, "transition model")
+    require_model(model, TransitionModel, "transition model")
     if exploit_linear and model.linear:
         F = np.asarray(model.F(x, dt), dtype=float)
         if F.ndim == 2:
@@ -121,7 +121,7 @@ def ukf_update(x, P, z, model: SigmaPointMeasurementModel, points: SigmaPoints |
     n = xf.shape[-1]
     sp = _points_for(points, n)
     K = 2 * n + 1
-    require(model, SigmaPointMeasurementModel, "measurement model")
+    require_model(model, SigmaPointMeasurementModel, "measurement model")
     X = kernels.sigma_points(xf, Pf, sp.c, backend=backend)
     Z = np.asarray(model.h(X.reshape((K,) + batch + (n,))), dtype=float)
     m = Z.shape[-1]
