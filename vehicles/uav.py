@@ -82,8 +82,7 @@ from typing import Any, Callable, NamedTuple, Sequence
 
 import numpy as np
 
-from sitl.checks import finite_array as _finite_array
-from sitl.checks import positive as _positive_scalar
+from filters.params import Check, ParamError, array, number, param, require, validate
 
 try:  # compiled integration loop; the numpy path below is the reference
     import numba as nb
@@ -156,13 +155,69 @@ def _readonly(a: np.ndarray) -> np.ndarray:
     return a
 
 
-def _broadcast_fields(obj, names: Sequence[str]) -> tuple:
-    """Validate the named fields as finite arrays and broadcast them to one batch shape."""
-    arrays = [_finite_array(n, getattr(obj, n)) for n in names]
-    try:
-        shape = np.broadcast_shapes(*(a.shape for a in arrays))
-    except ValueError:
-        raise ValueError(f"{', '.join(names)}: shapes {[a.shape for a in arrays]} do not broadcast") from None
+def _shown(v) -> str:
+    """A value as one short line of text (an array by its first numbers and its shape)."""
+    if isinstance(v, np.ndarray):
+        if v.size <= 8:
+            return repr(v.tolist())
+        return f"[{', '.join(f'{x:g}' for x in v.ravel()[:8])}, ...] (shape {v.shape})"
+    return repr(v)
+
+
+def _values(lo: float | None = None, *, lo_open: bool = False, what: str = "finite values") -> Check:
+    """Finite numbers as a read-only float array (a scalar, or an array the law broadcasts to
+    its batch shape), each >= lo (> lo if lo_open) when lo is given."""
+    base = array()
+
+    def test(v):
+        try:
+            a = base("", v)
+        except ParamError:
+            a = None
+        if a is None or (lo is not None and np.any(a <= lo if lo_open else a < lo)):
+            raise ParamError("", f"expected {what}, got {_shown(v)}")
+        return a
+
+    return Check(test)
+
+
+_FINITE = _values()
+_NONNEG = _values(0.0, what="finite values >= 0")
+_POSITIVE = _values(0.0, lo_open=True, what="finite values > 0")
+_GAIN = number(0.0, lo_open=True)  # a positive finite scalar
+_STEP = number(0.0, lo_open=True)  # an integration step, s
+
+
+def _real(key: str, value) -> float:
+    """A finite scalar argument (a time, s) as a float."""
+    return float(_FINITE(key, value))
+
+
+def _latitudes(key: str, value) -> np.ndarray:
+    """Geodetic latitudes strictly inside (-pi/2, pi/2) rad, as a read-only float array."""
+    a = _FINITE(key, value)
+    if np.any(np.abs(a) >= np.pi / 2):
+        raise ParamError(key, f"expected latitudes in (-pi/2, pi/2) rad (degrees passed?), got {_shown(value)}")
+    return a
+
+
+def _common_shape(named_shapes) -> tuple:
+    """The broadcast shape of (field name, shape) pairs; ParamError names the first field whose
+    shape does not broadcast with those before it."""
+    shape = ()
+    for n, s in named_shapes:
+        try:
+            shape = np.broadcast_shapes(shape, s)
+        except ValueError:
+            raise ParamError(n, f"expected a shape that broadcasts to {shape} (the fields before it), "
+                                f"got shape {s}") from None
+    return shape
+
+
+def _broadcast(obj, names: Sequence[str]) -> tuple:
+    """Broadcast the named (checked) array fields to one batch shape, stored read-only."""
+    arrays = [getattr(obj, n) for n in names]
+    shape = _common_shape((n, a.shape) for n, a in zip(names, arrays))
     for n, a in zip(names, arrays):
         object.__setattr__(obj, n, _readonly(np.broadcast_to(a, shape)))
     return shape
@@ -206,17 +261,19 @@ class SinusoidalLaw:
     Every field broadcasts to the batch shape (vehicles).  t is the simulation time, s.
     """
 
-    speed_mean_m_s: Any
-    speed_amp_m_s: Any = 0.0
-    speed_omega_rad_s: Any = 0.0
-    speed_phase_rad: Any = 0.0
-    heading0_rad: Any = 0.0
-    heading_amp_rad: Any = 0.0
-    heading_omega_rad_s: Any = 0.0
-    heading_phase_rad: Any = 0.0
-    climb_amp_m_s: Any = 0.0
-    climb_omega_rad_s: Any = 0.0
-    climb_phase_rad: Any = 0.0
+    speed_mean_m_s: Any = param(check=_POSITIVE, doc="mean 3-D speed, m/s (> 0)")
+    speed_amp_m_s: Any = param(0.0, check=_NONNEG, doc="amplitude of the speed's sinusoid, m/s (< speed_mean_m_s)")
+    speed_omega_rad_s: Any = param(0.0, check=_NONNEG, doc="angular frequency of the speed's sinusoid, rad/s")
+    speed_phase_rad: Any = param(0.0, check=_FINITE, doc="phase of the speed's sinusoid at t = 0, rad")
+    heading0_rad: Any = param(0.0, check=_FINITE, doc="mean heading, clockwise from north, rad")
+    heading_amp_rad: Any = param(0.0, check=_NONNEG, doc="amplitude of the heading's sinusoid, rad")
+    heading_omega_rad_s: Any = param(0.0, check=_NONNEG, doc="angular frequency of the heading's sinusoid, rad/s")
+    heading_phase_rad: Any = param(0.0, check=_FINITE, doc="phase of the heading's sinusoid at t = 0, rad")
+    climb_amp_m_s: Any = param(0.0, check=_NONNEG,
+                               doc="amplitude of the climb rate's cosine, m/s (< speed_mean_m_s - speed_amp_m_s: the "
+                                   "horizontal speed stays > 0)")
+    climb_omega_rad_s: Any = param(0.0, check=_NONNEG, doc="angular frequency of the climb rate's cosine, rad/s")
+    climb_phase_rad: Any = param(0.0, check=_FINITE, doc="phase of the climb rate's cosine at t = 0, rad")
     batch_shape: tuple = field(init=False)
 
     _FIELDS = ("speed_mean_m_s", "speed_amp_m_s", "speed_omega_rad_s", "speed_phase_rad", "heading0_rad",
@@ -224,19 +281,13 @@ class SinusoidalLaw:
                "climb_omega_rad_s", "climb_phase_rad")
 
     def __post_init__(self):
-        shape = _broadcast_fields(self, self._FIELDS)
-        object.__setattr__(self, "batch_shape", shape)
-        if np.any(self.speed_mean_m_s <= 0):
-            raise ValueError(f"speed_mean_m_s must be > 0, got {self.speed_mean_m_s}")
-        for name in ("speed_amp_m_s", "climb_amp_m_s", "heading_amp_rad", "speed_omega_rad_s",
-                     "heading_omega_rad_s", "climb_omega_rad_s"):
-            if np.any(getattr(self, name) < 0):
-                raise ValueError(f"{name} must be >= 0, got {getattr(self, name)}")
-        if np.any(self.speed_amp_m_s >= self.speed_mean_m_s):
-            raise ValueError(f"speed_amp_m_s must be < speed_mean_m_s, got {self.speed_amp_m_s}")
-        if np.any(self.climb_amp_m_s >= self.speed_mean_m_s - self.speed_amp_m_s):
-            raise ValueError("climb_amp_m_s must be < speed_mean_m_s - speed_amp_m_s (the horizontal speed "
-                             f"must stay > 0), got {self.climb_amp_m_s}")
+        validate(self)
+        object.__setattr__(self, "batch_shape", _broadcast(self, self._FIELDS))
+        require(not np.any(self.speed_amp_m_s >= self.speed_mean_m_s), "speed_amp_m_s",
+                f"expected values < speed_mean_m_s, got {_shown(self.speed_amp_m_s)}")
+        require(not np.any(self.climb_amp_m_s >= self.speed_mean_m_s - self.speed_amp_m_s), "climb_amp_m_s",
+                "expected values < speed_mean_m_s - speed_amp_m_s (the horizontal speed must stay > 0), "
+                f"got {_shown(self.climb_amp_m_s)}")
 
     def heading_at(self, t_s):
         return self.heading0_rad + self.heading_amp_rad * np.sin(self.heading_omega_rad_s * t_s
@@ -264,6 +315,14 @@ class SinusoidalLaw:
         return _LAW_SINUSOID, p, {}
 
 
+def _switch_times(key: str, value) -> np.ndarray:
+    """A strictly increasing 1-D array of finite times (read-only)."""
+    a = _FINITE(key, value)
+    if a.ndim != 1 or (a.size > 1 and np.any(np.diff(a) <= 0)):
+        raise ParamError(key, f"expected a strictly increasing 1-D array of times, got {_shown(value)}")
+    return a
+
+
 @dataclass(frozen=True, eq=False)
 class LegsAndTurns:
     """Straight legs and constant-rate turns on a time schedule, constant speed, level.
@@ -277,32 +336,24 @@ class LegsAndTurns:
     step's interval from its midpoint, so a switch never falls inside an RK4 step.
     """
 
-    speed_m_s: Any
-    heading0_rad: Any
-    switch_times_s: Any
-    turn_rates_rad_s: Any
+    speed_m_s: Any = param(check=_NONNEG, doc="speed, m/s (>= 0)")
+    heading0_rad: Any = param(check=_FINITE, doc="heading at the start, clockwise from north, rad")
+    switch_times_s: Any = param(check=_switch_times, doc="the schedule's switch times (K,), strictly increasing, s")
+    turn_rates_rad_s: Any = param(check=_FINITE,
+                                  doc="heading rate on each of the K + 1 intervals of the schedule (..., K + 1), "
+                                      "rad/s (> 0 to the right; 0 on a leg)")
     batch_shape: tuple = field(init=False)
 
     def __post_init__(self):
-        sw = _finite_array("switch_times_s", self.switch_times_s)
-        if sw.ndim != 1 or (sw.size > 1 and np.any(np.diff(sw) <= 0)):
-            raise ValueError(f"switch_times_s must be a strictly increasing 1-D array, got {self.switch_times_s!r}")
-        tr = _finite_array("turn_rates_rad_s", self.turn_rates_rad_s)
-        if tr.ndim < 1 or tr.shape[-1] != sw.size + 1:
-            raise ValueError(f"turn_rates_rad_s must have shape (..., {sw.size + 1}) (one rate per interval), "
-                             f"got {tr.shape}")
-        sp = _finite_array("speed_m_s", self.speed_m_s)
-        if np.any(sp < 0):
-            raise ValueError(f"speed_m_s must be >= 0, got {self.speed_m_s!r}")
-        h0 = _finite_array("heading0_rad", self.heading0_rad)
-        try:
-            shape = np.broadcast_shapes(sp.shape, h0.shape, tr.shape[:-1])
-        except ValueError:
-            raise ValueError("speed_m_s, heading0_rad, turn_rates_rad_s[..., 0]: shapes do not broadcast") from None
-        object.__setattr__(self, "speed_m_s", _readonly(np.broadcast_to(sp, shape)))
-        object.__setattr__(self, "heading0_rad", _readonly(np.broadcast_to(h0, shape)))
+        validate(self)
+        sw, tr = self.switch_times_s, self.turn_rates_rad_s
+        require(tr.ndim >= 1 and tr.shape[-1] == sw.size + 1, "turn_rates_rad_s",
+                f"expected shape (..., {sw.size + 1}) (one rate per interval), got {tr.shape}")
+        shape = _common_shape((("speed_m_s", self.speed_m_s.shape), ("heading0_rad", self.heading0_rad.shape),
+                               ("turn_rates_rad_s[..., 0]", tr.shape[:-1])))
+        object.__setattr__(self, "speed_m_s", _readonly(np.broadcast_to(self.speed_m_s, shape)))
+        object.__setattr__(self, "heading0_rad", _readonly(np.broadcast_to(self.heading0_rad, shape)))
         object.__setattr__(self, "turn_rates_rad_s", _readonly(np.broadcast_to(tr, shape + tr.shape[-1:])))
-        object.__setattr__(self, "switch_times_s", _readonly(sw))
         object.__setattr__(self, "batch_shape", shape)
 
     breakpoints_s = property(lambda self: self.switch_times_s)
@@ -364,37 +415,29 @@ class Racetrack:
     the batch shape.
     """
 
-    center_lat_rad: Any
-    center_lon_rad: Any
-    radius_m: Any
-    speed_m_s: Any
-    axis_rad: Any = 0.0
-    half_length_m: Any = 0.0
-    max_turn_rate_rad_s: Any = math.radians(3.0)
-    turn_gain_1_s: float = 0.1
-    radial_gain: float = 1.0
+    center_lat_rad: Any = param(check=_latitudes, doc="geodetic latitude of the pattern's centre, rad")
+    center_lon_rad: Any = param(check=_FINITE, doc="longitude of the pattern's centre, rad")
+    radius_m: Any = param(check=_POSITIVE,
+                          doc="turn radius (a circle's radius), m (> 0, >= speed_m_s / max_turn_rate_rad_s)")
+    speed_m_s: Any = param(check=_POSITIVE, doc="speed, m/s (> 0)")
+    axis_rad: Any = param(0.0, check=_FINITE, doc="heading of the first straight leg, clockwise from north, rad")
+    half_length_m: Any = param(0.0, check=_NONNEG, doc="half the straight legs' length, m (0: a circle)")
+    max_turn_rate_rad_s: Any = param(math.radians(3.0), check=_POSITIVE, doc="turn-rate bound, rad/s (> 0)")
+    turn_gain_1_s: float = param(0.1, check=_GAIN, doc="heading-error gain of the turn rate, 1/s (> 0)")
+    radial_gain: float = param(1.0, check=number(0.0),
+                               doc="gain of the reference heading's tilt towards the pattern per unit of radial "
+                                   "error (relative to radius_m), dimensionless (>= 0)")
     batch_shape: tuple = field(init=False)
 
     _FIELDS = ("center_lat_rad", "center_lon_rad", "radius_m", "speed_m_s", "axis_rad", "half_length_m",
                "max_turn_rate_rad_s")
 
     def __post_init__(self):
-        shape = _broadcast_fields(self, self._FIELDS)
-        object.__setattr__(self, "batch_shape", shape)
-        if np.any(np.abs(self.center_lat_rad) >= np.pi / 2):
-            raise ValueError(f"center_lat_rad must lie in (-pi/2, pi/2) rad (degrees passed?), got "
-                             f"{self.center_lat_rad!r}")
-        for name in ("radius_m", "speed_m_s", "max_turn_rate_rad_s"):
-            if np.any(getattr(self, name) <= 0):
-                raise ValueError(f"{name} must be > 0, got {getattr(self, name)!r}")
-        if np.any(self.half_length_m < 0):
-            raise ValueError(f"half_length_m must be >= 0, got {self.half_length_m!r}")
-        if np.any(self.speed_m_s / self.radius_m > self.max_turn_rate_rad_s):
-            raise ValueError(f"radius_m must be >= speed_m_s / max_turn_rate_rad_s (the tightest turn the "
-                             f"turn rate allows), got {self.radius_m!r}")
-        _positive_scalar("turn_gain_1_s", self.turn_gain_1_s)
-        if not (math.isfinite(self.radial_gain) and self.radial_gain >= 0):
-            raise ValueError(f"radial_gain must be a finite number >= 0, got {self.radial_gain!r}")
+        validate(self)
+        object.__setattr__(self, "batch_shape", _broadcast(self, self._FIELDS))
+        require(not np.any(self.speed_m_s / self.radius_m > self.max_turn_rate_rad_s), "radius_m",
+                "expected values >= speed_m_s / max_turn_rate_rad_s (the tightest turn the turn rate allows), "
+                f"got {_shown(self.radius_m)}")
 
     @classmethod
     def orbit_through(cls, lat_rad, lon_rad, center_lat_rad, center_lon_rad, speed_m_s, **kw) -> "Racetrack":
@@ -402,7 +445,7 @@ class Racetrack:
         (arrays of the batch shape): each radius is its start's distance from the centre (the
         guidance's own measure, at h = 0), so every vehicle starts on its circle (and, with
         :meth:`initial_heading`, along it)."""
-        lat, lon = np.broadcast_arrays(_finite_array("lat_rad", lat_rad), _finite_array("lon_rad", lon_rad))
+        lat, lon = np.broadcast_arrays(_FINITE("lat_rad", lat_rad), _FINITE("lon_rad", lon_rad))
         d_e, d_n = _center_offset(lat, lon, np.zeros(lat.shape), float(center_lat_rad), float(center_lon_rad),
                                   ellipsoid(None))
         r = np.hypot(d_e, d_n)
@@ -459,17 +502,28 @@ def _center_offset(lat, lon, h, lat_c, lon_c, ell):
     return wrap_pi(lon_c - lon) * (nn + h) * np.cos(lat), (lat_c - lat) * (m + h)
 
 
+def _batch_shape(key: str, value) -> tuple:
+    """A batch shape: a tuple of integers >= 0 (one integer n: (n,)), as a tuple of ints."""
+    shape = (value,) if isinstance(value, (int, np.integer)) else value
+    try:
+        dims = tuple(shape)
+        ok = not any(isinstance(n, bool) or int(n) != n or n < 0 for n in dims)
+    except (TypeError, ValueError, OverflowError):
+        ok = False
+    if not ok:
+        raise ParamError(key, f"expected a tuple of integers >= 0, got {value!r}")
+    return tuple(int(n) for n in dims)
+
+
 @dataclass(frozen=True, eq=False)
 class Hold:
     """A static vehicle: speed, climb and heading rate 0 (batch_shape vehicles)."""
 
-    batch_shape: tuple = ()
+    batch_shape: tuple = param((), check=_batch_shape,
+                               doc="the batch shape (vehicles): a tuple of integers >= 0, or one integer")
 
     def __post_init__(self):
-        shape = (self.batch_shape,) if isinstance(self.batch_shape, (int, np.integer)) else tuple(self.batch_shape)
-        if any(isinstance(n, bool) or int(n) != n or n < 0 for n in shape):
-            raise ValueError(f"batch_shape must be a tuple of integers >= 0, got {self.batch_shape!r}")
-        object.__setattr__(self, "batch_shape", tuple(int(n) for n in shape))
+        validate(self)
 
     def initial_heading(self, t_s, y):
         return np.zeros(self.batch_shape)
@@ -486,6 +540,27 @@ class Hold:
 
     def _kernel_args(self):
         return _LAW_HOLD, np.zeros((int(np.prod(self.batch_shape, dtype=np.int64)), _N_PARAMS)), {}
+
+
+def _waypoint_lists(key: str, value) -> tuple:
+    """One (K_i >= 1, 3) array [lat_rad, lon_rad, h_m] per vehicle (a single (K, 3) array: one
+    vehicle), latitudes in [-pi/2, pi/2]: a tuple of read-only float arrays."""
+    try:
+        wps = list(value) if not isinstance(value, np.ndarray) else ([value] if value.ndim == 2 else list(value))
+    except TypeError:
+        raise ParamError(key, f"expected one waypoint list per vehicle, got {_shown(value)}") from None
+    if not wps:
+        raise ParamError(key, "expected one waypoint list per vehicle, got none")
+    out = []
+    for i, w in enumerate(wps):
+        k = f"{key}[{i}]"
+        a = _FINITE(k, w)
+        if a.ndim != 2 or a.shape[-1] != 3 or a.shape[0] < 1:
+            raise ParamError(k, f"expected shape (K >= 1, 3) [lat_rad, lon_rad, h_m], got {a.shape}")
+        if np.any(np.abs(a[:, 0]) > np.pi / 2):
+            raise ParamError(k, f"expected latitudes in [-pi/2, pi/2] rad (degrees passed?), got {_shown(a[:, 0])}")
+        out.append(a)
+    return tuple(out)
 
 
 @dataclass(frozen=True, eq=False)
@@ -507,31 +582,24 @@ class WaypointMission:
     accept_radius_m.
     """
 
-    waypoints_rad_m: Sequence
-    speed_m_s: Any
-    max_turn_rate_rad_s: Any = math.radians(3.0)
-    max_climb_m_s: Any = 5.0
-    accept_radius_m: Any = 150.0
-    turn_gain_1_s: float = 0.5
-    climb_gain_1_s: float = 0.05
+    waypoints_rad_m: Sequence = param(check=_waypoint_lists,
+                                      doc="one waypoint list per vehicle, each a (K_i >= 1, 3) array [lat_rad, lon_rad, "
+                                          "h_m] (geodetic latitude and longitude in rad, ellipsoidal height in m; one "
+                                          "(K, 3) array: one vehicle); stored as a tuple of read-only arrays")
+    speed_m_s: Any = param(check=_POSITIVE, doc="commanded 3-D speed, m/s (> 0; a scalar or one per vehicle)")
+    max_turn_rate_rad_s: Any = param(math.radians(3.0), check=_POSITIVE, doc="turn-rate bound, rad/s (> 0)")
+    max_climb_m_s: Any = param(5.0, check=_POSITIVE, doc="climb and sink rate bound, m/s (> 0, < speed_m_s)")
+    accept_radius_m: Any = param(150.0, check=_POSITIVE,
+                                 doc="a waypoint is reached within this horizontal distance of it, m (> 0)")
+    turn_gain_1_s: float = param(0.5, check=_GAIN, doc="heading-error gain of the turn rate, 1/s (> 0)")
+    climb_gain_1_s: float = param(0.05, check=_GAIN, doc="height-error gain of the climb rate, 1/s (> 0)")
     batch_shape: tuple = field(init=False)
     _wp: np.ndarray = field(init=False, repr=False)
     _count: np.ndarray = field(init=False, repr=False)
 
     def __post_init__(self):
-        wps = list(self.waypoints_rad_m) if not isinstance(self.waypoints_rad_m, np.ndarray) else (
-            [self.waypoints_rad_m] if self.waypoints_rad_m.ndim == 2 else list(self.waypoints_rad_m))
-        if not wps:
-            raise ValueError("waypoints_rad_m must hold one waypoint list per vehicle, got none")
-        arrs = []
-        for i, w in enumerate(wps):
-            a = _finite_array(f"waypoints_rad_m[{i}]", w)
-            if a.ndim != 2 or a.shape[-1] != 3 or a.shape[0] < 1:
-                raise ValueError(f"waypoints_rad_m[{i}] must have shape (K >= 1, 3) [lat_rad, lon_rad, h_m], "
-                                 f"got {a.shape}")
-            if np.any(np.abs(a[:, 0]) > np.pi / 2):
-                raise ValueError(f"waypoints_rad_m[{i}] latitudes must lie in [-pi/2, pi/2] rad (degrees passed?)")
-            arrs.append(a)
+        validate(self)
+        arrs = self.waypoints_rad_m
         n, kmax = len(arrs), max(a.shape[0] for a in arrs)
         wp = np.zeros((n, kmax, 3))
         for i, a in enumerate(arrs):
@@ -539,21 +607,16 @@ class WaypointMission:
             wp[i, a.shape[0]:] = a[-1]
         object.__setattr__(self, "_wp", _readonly(wp))
         object.__setattr__(self, "_count", np.array([a.shape[0] for a in arrs]))
-        object.__setattr__(self, "waypoints_rad_m", tuple(_readonly(a) for a in arrs))
         object.__setattr__(self, "batch_shape", (n,))
         for name in ("speed_m_s", "max_turn_rate_rad_s", "max_climb_m_s", "accept_radius_m"):
-            a = _finite_array(name, getattr(self, name))
+            a = getattr(self, name)
             try:
                 a = np.broadcast_to(a, (n,))
             except ValueError:
-                raise ValueError(f"{name} must be a scalar or have shape ({n},), got {a.shape}") from None
-            if np.any(a <= 0):
-                raise ValueError(f"{name} must be > 0, got {getattr(self, name)!r}")
+                raise ParamError(name, f"expected a scalar or shape ({n},), got shape {a.shape}") from None
             object.__setattr__(self, name, _readonly(a))
-        if np.any(self.max_climb_m_s >= self.speed_m_s):
-            raise ValueError(f"max_climb_m_s must be < speed_m_s, got {self.max_climb_m_s}")
-        _positive_scalar("turn_gain_1_s", self.turn_gain_1_s)
-        _positive_scalar("climb_gain_1_s", self.climb_gain_1_s)
+        require(not np.any(self.max_climb_m_s >= self.speed_m_s), "max_climb_m_s",
+                f"expected values < speed_m_s, got {_shown(self.max_climb_m_s)}")
 
     @property
     def n_waypoints(self) -> np.ndarray:
@@ -676,16 +739,15 @@ def initial_state(guidance, lat0_rad, lon0_rad, h0_m, t0_s: float = 0.0, heading
     shape = guidance.batch_shape
     y = np.empty(shape + (4,))
     for k, (name, v) in enumerate((("lat0_rad", lat0_rad), ("lon0_rad", lon0_rad), ("h0_m", h0_m))):
-        a = _finite_array(name, v)
+        a = _FINITE(name, v)
         try:
             y[..., k] = np.broadcast_to(a, shape)
         except ValueError:
             raise ValueError(f"{name} must broadcast to the guidance batch shape {shape}, got {a.shape}") from None
     if np.any(np.abs(y[..., 0]) >= np.pi / 2):
         raise ValueError(f"lat0_rad must lie in (-pi/2, pi/2) rad (degrees passed?), got {lat0_rad!r}")
-    t0 = float(_finite_array("t0_s", t0_s))
-    y[..., 3] = guidance.initial_heading(t0, y) if heading0_rad is None else _finite_array("heading0_rad",
-                                                                                             heading0_rad)
+    t0 = _real("t0_s", t0_s)
+    y[..., 3] = guidance.initial_heading(t0, y) if heading0_rad is None else _FINITE("heading0_rad", heading0_rad)
     return KinematicState(t0, y, np.zeros(shape, dtype=int))
 
 
@@ -699,8 +761,8 @@ def propagate(state: KinematicState, t1_s: float, guidance, dt_s: float = 0.01,
     'numpy' (the reference: :func:`rk4_step` on :func:`geodetic_rates`, vectorised over the
     vehicles).  Both evaluate the same formulas in the same order.
     """
-    dt = _positive_scalar("dt_s", dt_s)
-    t1 = float(_finite_array("t1_s", t1_s))
+    dt = _STEP("dt_s", dt_s)
+    t1 = _real("t1_s", t1_s)
     if t1 < state.t_s:
         raise ValueError(f"t1_s must be >= the state's time {state.t_s}, got {t1_s!r}")
     if backend is None:
@@ -912,7 +974,7 @@ class KinematicSwarm:
         for attr in ("batch_shape", "commands", "initial_heading", "target", "advance"):
             if not hasattr(guidance, attr):
                 raise ValueError(f"guidance must be a guidance law (no {attr}), got {guidance!r}")
-        self.dt_s = _positive_scalar("dt_s", dt_s)
+        self.dt_s = _STEP("dt_s", dt_s)
         self.ell = ellipsoid(ell)
         self.guidance = guidance
         self.state = initial_state(guidance, lat0_rad, lon0_rad, h0_m, t0_s, heading0_rad)
@@ -1032,24 +1094,26 @@ class PrintedLaw:
     the ECEF z (= the paper's eta) coordinate.  Fields a, b, v0, d, e (m/s), cross_omega (w')
     and radius_omega (w_r) (rad/s) broadcast to the batch shape (vehicles)."""
 
-    a_m_s: Any
-    b_m_s: Any
-    v0_m_s: Any
-    d_m_s: Any
-    e_m_s: Any
-    cross_omega_rad_s: Any = 0.01
-    radius_omega_rad_s: Any = 0.01
+    a_m_s: Any = param(check=_FINITE, doc="a: the eta / r coefficient of V_xi, m/s")
+    b_m_s: Any = param(check=_FINITE, doc="b: the cos(w' t) c coefficient of V_xi, m/s")
+    v0_m_s: Any = param(check=_FINITE, doc="v0: the mean speed of V_eta, m/s")
+    d_m_s: Any = param(check=_FINITE, doc="d: the eta / r coefficient of V_zeta, m/s")
+    e_m_s: Any = param(check=_FINITE, doc="e: the cos(w' t) c coefficient of V_zeta, m/s")
+    cross_omega_rad_s: Any = param(0.01, check=_FINITE, doc="w': the angular frequency of the cross terms, rad/s")
+    radius_omega_rad_s: Any = param(0.01, check=_FINITE,
+                                    doc="w_r: the angular frequency of r(t) = 6.374e6 + 1500 sin(w_r t) m, rad/s")
     batch_shape: tuple = field(init=False)
 
     _FIELDS = ("a_m_s", "b_m_s", "v0_m_s", "d_m_s", "e_m_s", "cross_omega_rad_s", "radius_omega_rad_s")
 
     def __post_init__(self):
-        object.__setattr__(self, "batch_shape", _broadcast_fields(self, self._FIELDS))
+        validate(self)
+        object.__setattr__(self, "batch_shape", _broadcast(self, self._FIELDS))
 
     @classmethod
     def from_coeffs(cls, rows) -> "PrintedLaw":
         """From rows (a, b, v0, d, e, w', w_r) (:data:`PRINTED_COEFFS`' values)."""
-        c = _finite_array("rows", rows)
+        c = _FINITE("rows", rows)
         if c.ndim != 2 or c.shape[1] != 7:
             raise ValueError(f"rows must have shape (n, 7) (a, b, v0, d, e, w', w_r), got {c.shape}")
         return cls(*c.T)
@@ -1090,11 +1154,11 @@ def propagate_printed(pos_ecef_m, t0_s: float, t1_s: float, law: PrintedLaw, dt_
     backend 'numba' (default when installed: one compiled loop per vehicle) or 'numpy' (the
     reference: :func:`rk4_step` on :func:`printed_velocity_ecef`, vectorised); both evaluate
     the same formulas in the same order."""
-    dt = _positive_scalar("dt_s", dt_s)
-    t0, t1 = float(_finite_array("t0_s", t0_s)), float(_finite_array("t1_s", t1_s))
+    dt = _STEP("dt_s", dt_s)
+    t0, t1 = _real("t0_s", t0_s), _real("t1_s", t1_s)
     if t1 < t0:
         raise ValueError(f"t1_s must be >= t0_s {t0}, got {t1_s!r}")
-    x = _finite_array("pos_ecef_m", pos_ecef_m)
+    x = _FINITE("pos_ecef_m", pos_ecef_m)
     shape = law.batch_shape
     try:
         x = np.broadcast_to(x, shape + (3,)).astype(float)
@@ -1133,14 +1197,14 @@ class PrintedSwarm:
         if not isinstance(law, PrintedLaw):
             raise ValueError(f"law must be a PrintedLaw, got {law!r}")
         self.law = law
-        self.dt_s = _positive_scalar("dt_s", dt_s)
+        self.dt_s = _STEP("dt_s", dt_s)
         self.ell = ellipsoid(ell)
-        x = _finite_array("pos0_ecef_m", pos0_ecef_m)
+        x = _FINITE("pos0_ecef_m", pos0_ecef_m)
         try:
             self.pos = np.broadcast_to(x, law.batch_shape + (3,)).astype(float)
         except ValueError:
             raise ValueError(f"pos0_ecef_m must broadcast to {law.batch_shape} + (3,), got {x.shape}") from None
-        self._t = float(_finite_array("t0_s", t0_s))
+        self._t = _real("t0_s", t0_s)
 
     @property
     def n(self) -> int:
