@@ -1,6 +1,6 @@
 """Radio beacon (seed 002): moving or static, batched, RK4 truth like the UAVs.
 
-Modes (see vehicles/uav.py for how the seed's laws are read):
+Modes (see the docstring of vehicles/uav/__init__.py for how the seed's laws are read):
 
 * ``mode="printed"`` -- :func:`printed_beacon`: the beacon's velocity law exactly as
   printed (V_xi_p, V_eta_p, V_zeta_p: a = 12, b = 8.5, v0 = 115, d = 25, e = 17,

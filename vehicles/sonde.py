@@ -81,16 +81,14 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, fields
 from typing import NamedTuple
 
 import numpy as np
 import scipy.linalg
 
+from filters.params import Check, ParamError, array, number, param, require, validate
 from sitl.atmosphere_std import RHO0_KG_M3, Z_MAX_M, Z_MIN_M, us76_density
-from sitl.checks import finite_array
-from sitl.checks import nonnegative as _nonneg
-from sitl.checks import positive as _pos
 from sitl.constants import WGS84
 from sitl.geodesy import enu_rotation, geodetic_to_ecef
 from sitl.gnss.orbits import DEFAULT_TOA_GPS_S
@@ -193,6 +191,38 @@ def spawn_rngs(seed, n: int) -> list[np.random.Generator]:
 # ---------------------------------------------------------------------------
 # parameters
 
+_POSITIVE = number(0.0, lo_open=True)
+_NONNEG = number(0.0)
+
+
+def _kept(check: Check) -> Check:
+    """``check``'s test, the value stored as given: a tuple stays a tuple (SondeParams stays
+    hashable and comparable field by field)."""
+    def test(v):
+        check("", v)
+        return v
+
+    return Check(test)
+
+
+def _burst_range(key, value):
+    """A pair (low, high) of heights, 0 < low <= high <= 50 km, stored as given."""
+    try:
+        lo, hi = (float(x) for x in value)
+    except (TypeError, ValueError):
+        lo = hi = math.nan
+    if not (math.isfinite(lo) and math.isfinite(hi) and 0.0 < lo <= hi <= 50_000.0):
+        raise ParamError(key, f"expected a pair (low, high) of metres with 0 < low <= high <= 50 km, got {value!r}")
+    return value
+
+
+def _altitude_knots(key, value):
+    """A non-empty, strictly increasing sequence of finite altitudes, stored as given."""
+    alt = array()(key, value)
+    if alt.ndim != 1 or alt.size < 1 or np.any(np.diff(alt) <= 0.0):
+        raise ParamError(key, f"expected a non-empty, strictly increasing sequence of altitudes, got {value!r}")
+    return value
+
 
 @dataclass(frozen=True)
 class SondeParams:
@@ -203,44 +233,36 @@ class SondeParams:
     correlation time 1/p2 = 50 s, acceleration fluctuations 0.15 m/s^2 rms horizontally.
     """
 
-    ascent_rate_m_s: float = 5.0
-    burst_alt_range_m: tuple = (25_000.0, 35_000.0)
-    descent_rate_sl_m_s: float = 5.0  # parachute terminal speed at sea level
-    p1_1_s: float = 0.1  # aerodynamic response rate: velocity relaxes to the wind in 1/p1
-    p2_1_s: float = 0.02  # width of the wind-fluctuation spectrum
-    sigma_a_m_s2: float = 0.15  # stationary std of the horizontal gust acceleration (per axis)
-    sigma_a_vertical_m_s2: float = 0.1  # same, vertical
-    vertical_relax_rate_1_s: float = 0.2  # vertical speed relaxes to its target in 5 s
-    wind_alt_m: tuple = _WIND_ALT_M  # knots, strictly increasing
-    wind_speed_m_s: tuple = _WIND_SPEED_M_S
-    wind_from_rad: tuple = field(default=tuple(math.radians(d) for d in _WIND_FROM_DEG))
-    # direction the wind blows FROM, clockwise from north (meteorological); a scalar or per knot
+    ascent_rate_m_s: float = param(5.0, check=_POSITIVE, doc="balloon ascent rate, m/s")
+    burst_alt_range_m: tuple = param((25_000.0, 35_000.0), check=_burst_range,
+                                     doc="the burst height's range (low, high), m: drawn uniformly, 0 < low <= high "
+                                         "<= 50 km")
+    descent_rate_sl_m_s: float = param(5.0, check=_POSITIVE, doc="parachute terminal speed at sea level, m/s")
+    p1_1_s: float = param(0.1, check=_POSITIVE,
+                          doc="aerodynamic response rate p1, 1/s: the velocity relaxes to the wind in 1/p1")
+    p2_1_s: float = param(0.02, check=_POSITIVE, doc="width p2 of the wind-fluctuation spectrum, 1/s")
+    sigma_a_m_s2: float = param(0.15, check=_NONNEG,
+                                doc="stationary std of the horizontal gust acceleration (per axis), m/s^2")
+    sigma_a_vertical_m_s2: float = param(0.1, check=_NONNEG,
+                                         doc="stationary std of the vertical gust acceleration, m/s^2")
+    vertical_relax_rate_1_s: float = param(0.2, check=_POSITIVE,
+                                           doc="rate at which the vertical speed relaxes to its target, 1/s (0.2: in 5 s)")
+    wind_alt_m: tuple = param(_WIND_ALT_M, check=_altitude_knots,
+                              doc="altitude knots of the mean wind profile, strictly increasing, m")
+    wind_speed_m_s: tuple = param(_WIND_SPEED_M_S, check=_kept(array(lo=0.0, what="finite wind speeds >= 0")),
+                                  doc="mean wind speed at each altitude knot, m/s (>= 0)")
+    wind_from_rad: tuple = param(tuple(math.radians(d) for d in _WIND_FROM_DEG),
+                                 check=_kept(array(what="finite directions")),
+                                 doc="direction the wind blows FROM, clockwise from north (meteorological), rad: a "
+                                     "scalar or one per altitude knot")
 
     def __post_init__(self):
-        _pos("ascent_rate_m_s", self.ascent_rate_m_s)
-        _pos("descent_rate_sl_m_s", self.descent_rate_sl_m_s)
-        _pos("p1_1_s", self.p1_1_s)
-        _pos("p2_1_s", self.p2_1_s)
-        _nonneg("sigma_a_m_s2", self.sigma_a_m_s2)
-        _nonneg("sigma_a_vertical_m_s2", self.sigma_a_vertical_m_s2)
-        _pos("vertical_relax_rate_1_s", self.vertical_relax_rate_1_s)
-        try:
-            lo, hi = (float(x) for x in self.burst_alt_range_m)
-        except (TypeError, ValueError):
-            raise ValueError(f"burst_alt_range_m must be a pair (low, high) of metres, got "
-                             f"{self.burst_alt_range_m!r}") from None
-        if not (math.isfinite(lo) and math.isfinite(hi) and 0.0 < lo <= hi <= 50_000.0):
-            raise ValueError(f"burst_alt_range_m must satisfy 0 < low <= high <= 50 km, got {self.burst_alt_range_m!r}")
-        alt = finite_array("wind_alt_m", self.wind_alt_m)
-        if alt.ndim != 1 or alt.size < 1 or np.any(np.diff(alt) <= 0.0):
-            raise ValueError("wind_alt_m must be a non-empty, strictly increasing sequence of altitudes")
-        spd = finite_array("wind_speed_m_s", self.wind_speed_m_s)
-        if spd.shape != alt.shape or np.any(spd < 0.0):
-            raise ValueError(f"wind_speed_m_s must have one value >= 0 per altitude knot ({alt.size})")
-        frm = finite_array("wind_from_rad", self.wind_from_rad)
-        if frm.ndim > 1 or (frm.ndim == 1 and frm.shape != alt.shape):
-            raise ValueError(f"wind_from_rad must be a scalar or have one value per altitude knot ({alt.size})")
-
+        validate(self)
+        n = len(self.wind_alt_m)
+        require(np.shape(self.wind_speed_m_s) == (n,), "wind_speed_m_s",
+                f"expected one value per altitude knot ({n}), got shape {np.shape(self.wind_speed_m_s)}")
+        require(np.ndim(self.wind_from_rad) == 0 or np.shape(self.wind_from_rad) == (n,), "wind_from_rad",
+                f"expected a scalar or one value per altitude knot ({n}), got shape {np.shape(self.wind_from_rad)}")
 
     @classmethod
     def with_wind_scale(cls, scale: float):
@@ -430,7 +452,7 @@ class SondeFlight:
         self.params = p = SondeParams() if params is None else params
         if not isinstance(p, SondeParams):
             raise ValueError(f"params: expected a SondeParams, got {type(p).__name__}")
-        self.dt_s = _pos("dt_s", dt_s)
+        self.dt_s = _POSITIVE("dt_s", dt_s)
         try:
             t0 = float(t0_gps_s)
         except (TypeError, ValueError):
@@ -670,7 +692,7 @@ class SondeFlight:
         if until_landed:
             if n_steps is not None:
                 raise ValueError("n_steps must be None when until_landed=True")
-            k_max = math.ceil(_pos("max_duration_s", max_duration_s) / self.dt_s)
+            k_max = math.ceil(_POSITIVE("max_duration_s", max_duration_s) / self.dt_s)
         else:
             if n_steps is None or isinstance(n_steps, bool) or int(n_steps) != n_steps or n_steps < 0:
                 raise ValueError(f"n_steps must be an integer >= 0, got {n_steps!r}")

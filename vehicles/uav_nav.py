@@ -86,7 +86,7 @@ from __future__ import annotations
 import functools
 import itertools
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import NamedTuple
 
 import numpy as np
@@ -94,9 +94,8 @@ import numpy as np
 from filters.ekf import ekf_predict, ekf_step, ekf_update
 from filters.integrity import IntegrityConfig, IntegrityMonitor
 from filters.models import ClockFreePseudorangeDoppler, ConstantVelocity
+from filters.params import ParamError, integer, number, param, switch, validate
 from sitl import geodesy
-from sitl.checks import nonnegative as _nonnegative
-from sitl.checks import positive as _positive
 from sitl.gnss import orbits, ranging, world
 from sitl.gnss.orbits import Constellation
 from sitl.radio.beacon_link import psd_to_variance
@@ -150,24 +149,41 @@ def _check_constellation(constellation) -> Constellation:
 
 # --------------------------------------------------------------------------- configuration
 
+_POSITIVE = number(0.0, lo_open=True)
+
+
+def _instance_of(cls, *, none: bool = False):
+    """A check: an instance of ``cls`` (or None if ``none``), stored as it is."""
+    what = f"a {cls.__module__}.{cls.__name__}" + (" or None" if none else "")
+
+    def check(key, value):
+        if not (isinstance(value, cls) or (none and value is None)):
+            raise ParamError(key, f"expected {what}, got {type(value).__name__}")
+        return value
+
+    return check
+
+
+def _elevation(key, value) -> float:
+    """An elevation angle in [-pi/2, pi/2) rad, as a float."""
+    el = number()(key, value)
+    if not -math.pi / 2 <= el < math.pi / 2:
+        raise ParamError(key, f"expected an elevation in [-pi/2, pi/2) rad, got {value!r}")
+    return el
+
 
 @dataclass(frozen=True)
 class GnssNoise:
-    """GNSS measurement noise: two-sided PSDs and the receiver's output interval.
+    """GNSS measurement noise: two-sided PSDs and the receiver's output interval."""
 
-    psd_pr_m2_s: pseudorange noise PSD, m^2 s (seed: 900).
-    psd_prr_m2_s: Doppler (range-rate) noise PSD, (m/s)^2 s (seed: 0.04).
-    dt_s: interval over which a reported measurement averages the noise, s (default 1).
-    """
-
-    psd_pr_m2_s: float = DEFAULT_PSD_PR_M2_S
-    psd_prr_m2_s: float = DEFAULT_PSD_PRR_M2_S
-    dt_s: float = 1.0
+    psd_pr_m2_s: float = param(DEFAULT_PSD_PR_M2_S, check=_POSITIVE,
+                               doc="pseudorange noise PSD (two-sided), m^2 s (seed: 900)")
+    psd_prr_m2_s: float = param(DEFAULT_PSD_PRR_M2_S, check=_POSITIVE,
+                                doc="Doppler (range-rate) noise PSD (two-sided), (m/s)^2 s (seed: 0.04)")
+    dt_s: float = param(1.0, check=_POSITIVE, doc="interval over which a reported measurement averages the noise, s")
 
     def __post_init__(self):
-        _positive("psd_pr_m2_s", self.psd_pr_m2_s)
-        _positive("psd_prr_m2_s", self.psd_prr_m2_s)
-        _positive("dt_s", self.dt_s)
+        validate(self)
 
     # computed once per (frozen) instance: read several times every epoch
     @functools.cached_property
@@ -181,39 +197,24 @@ class GnssNoise:
 
 @dataclass(frozen=True)
 class NavConfig:
-    """Receiver and onboard-filter settings.
+    """Receiver and onboard-filter settings."""
 
-    noise: the receiver's noise (and the variances the filter assumes: the same numbers).
-    q_m2_s3: acceleration PSD of the constant-velocity model (see the module docstring).
-    el_mask_rad: satellites below this geodetic elevation are not tracked.
-    light_time: light-time geometry with Earth rotation (True) or instantaneous (False).
-    ls_iterations: Gauss-Newton iterations of the initial least-squares fix.
-    integrity: the integrity monitor around the EKF update (filters.integrity, one channel
-        per satellite: its pseudorange and rate rows), or None for the plain EKF.
-    """
-
-    noise: GnssNoise = field(default_factory=GnssNoise)
-    q_m2_s3: float = 0.035
-    el_mask_rad: float = math.radians(10.0)
-    light_time: bool = True
-    ls_iterations: int = 10
-    integrity: IntegrityConfig | None = None
+    noise: GnssNoise = param(default_factory=GnssNoise, check=_instance_of(GnssNoise),
+                             doc="the receiver's noise (and the variances the filter assumes: the same numbers)")
+    q_m2_s3: float = param(0.035, check=number(0.0),
+                           doc="acceleration PSD of the constant-velocity model, m^2/s^3 (see the module docstring)")
+    el_mask_rad: float = param(math.radians(10.0), check=_elevation,
+                               doc="satellites below this geodetic elevation are not tracked, rad")
+    light_time: bool = param(True, check=switch(),
+                             doc="light-time geometry with Earth rotation (True) or instantaneous (False)")
+    ls_iterations: int = param(10, check=integer(1), doc="Gauss-Newton iterations of the initial least-squares fix")
+    integrity: IntegrityConfig | None = param(None, check=_instance_of(IntegrityConfig, none=True),
+                                              doc="the integrity monitor around the EKF update (filters.integrity, one "
+                                                  "channel per satellite: its pseudorange and rate rows), or None for "
+                                                  "the plain EKF")
 
     def __post_init__(self):
-        if not isinstance(self.noise, GnssNoise):
-            raise ValueError(f"noise must be a GnssNoise, got {type(self.noise).__name__}")
-        _nonnegative("q_m2_s3", self.q_m2_s3)
-        el = float(self.el_mask_rad)
-        if not (math.isfinite(el) and -math.pi / 2 <= el < math.pi / 2):
-            raise ValueError(f"el_mask_rad must lie in [-pi/2, pi/2) rad, got {self.el_mask_rad!r}")
-        if not isinstance(self.light_time, (bool, np.bool_)):
-            raise ValueError(f"light_time must be a bool, got {self.light_time!r}")
-        if isinstance(self.ls_iterations, bool) or int(self.ls_iterations) != self.ls_iterations \
-                or self.ls_iterations < 1:
-            raise ValueError(f"ls_iterations must be an integer >= 1, got {self.ls_iterations!r}")
-        if self.integrity is not None and not isinstance(self.integrity, IntegrityConfig):
-            raise ValueError(f"integrity must be a filters.integrity.IntegrityConfig or None, "
-                             f"got {type(self.integrity).__name__}")
+        validate(self)
 
     def transition(self) -> ConstantVelocity:
         return ConstantVelocity(3, q=self.q_m2_s3)
@@ -294,7 +295,7 @@ def example_three_satellites(rx_pos_ecef_m, t0_gps_s: float = EXAMPLE_T0_GPS_S, 
     rx = np.asarray(rx_pos_ecef_m, dtype=float)
     if rx.shape != (3,) or not np.all(np.isfinite(rx)):
         raise ValueError(f"rx_pos_ecef_m must be one finite ECEF position (3,), got shape {rx.shape}")
-    _positive("duration_s", duration_s)
+    _POSITIVE("duration_s", duration_s)
     cu = unperturbed(c)
     pos, _ = orbits.sat_state_ecef(cu, np.array([t0_gps_s, t0_gps_s + duration_s]))
     _, el, _ = geodesy.ecef_to_aer(rx, pos)

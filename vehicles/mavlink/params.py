@@ -25,6 +25,9 @@ from typing import Callable, Iterable, Iterator
 
 import numpy as np
 
+from filters import params as declared
+from filters.params import number, optional, param, require, string, validate
+
 PARAM_ID_LEN = 16
 _F32_MAX = float(np.finfo(np.float32).max)
 
@@ -41,30 +44,36 @@ def _f32(x: float) -> float:
     return float(np.float32(x))
 
 
+def _param_id(key: str, value) -> str:
+    """A MAVLink parameter name: 1..16 characters of A-Z, 0-9 and _."""
+    if not (isinstance(value, str) and 1 <= len(value) <= PARAM_ID_LEN
+            and all(c.isascii() and (c.isupper() or c.isdigit() or c == "_") for c in value)):
+        raise declared.ParamError(key, f"expected 1..{PARAM_ID_LEN} characters of A-Z, 0-9 and _, got {value!r}")
+    return value
+
+
+_BOUND = number(finite=False)  # a float, +-inf allowed, not NaN
+
+
 @dataclass(frozen=True)
 class ParamSpec:
-    """One parameter: MAVLink name (<= 16 chars, A-Z 0-9 _), default, bounds, doc (with unit).
+    """One parameter of a vehicle's store, as PARAM_VALUE carries it."""
 
-    ``field``: the attribute of the simulation object it mirrors (see ParamStore.replace_into).
-    """
-
-    name: str
-    default: float
-    min: float = -math.inf
-    max: float = math.inf
-    doc: str = ""
-    field: str | None = None
+    name: str = param(check=_param_id,
+                      doc="the MAVLink name (PARAM_VALUE's param_id): 1..16 characters of A-Z, 0-9 and _")
+    default: float = param(check=number(), doc="the value before any PARAM_SET, in the unit of ``doc`` (finite)")
+    min: float = param(-math.inf, check=_BOUND, doc="lower bound of the value, inclusive (-inf: none)")
+    max: float = param(math.inf, check=_BOUND, doc="upper bound of the value, inclusive (inf: none)")
+    doc: str = param("", check=string(), doc="what the parameter is, with its unit")
+    field: str | None = param(None, check=optional(string()),
+                              doc="the attribute of the simulation object it mirrors (see ParamStore.replace_into), "
+                                  "or None")
 
     def __post_init__(self):
-        if not isinstance(self.name, str) or not 1 <= len(self.name) <= PARAM_ID_LEN:
-            raise ValueError(f"param name must be 1..{PARAM_ID_LEN} characters, got {self.name!r}")
-        if not all(c.isascii() and (c.isupper() or c.isdigit() or c == "_") for c in self.name):
-            raise ValueError(f"param name must use A-Z, 0-9 and _, got {self.name!r}")
-        lo, hi, d = float(self.min), float(self.max), float(self.default)
-        if math.isnan(lo) or math.isnan(hi) or lo > hi:
-            raise ValueError(f"param {self.name}: bounds must satisfy min <= max, got [{self.min}, {self.max}]")
-        if not (math.isfinite(d) and lo <= d <= hi):
-            raise ValueError(f"param {self.name}: default {self.default!r} must be finite and in [{lo}, {hi}]")
+        validate(self)
+        require(self.min <= self.max, "max", f"expected >= min {self.min} (param {self.name}), got {self.max}")
+        require(self.min <= self.default <= self.max, "default",
+                f"expected a value in [{self.min}, {self.max}] (param {self.name}), got {self.default!r}")
 
 
 class ParamStore(Mapping):
