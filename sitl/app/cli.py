@@ -191,6 +191,9 @@ def build_parser() -> argparse.ArgumentParser:
         # --help printed, so that `skyfuse --help` does not import every experiment
         exp_sub.add_parser(name, help=doc, description=doc, flags=lambda p, _load=load: _load().add_args(p))
 
+    from sitl.app.gnss.command import add_parser as add_gnss_parser  # `gnss`: sitl/app/gnss/ (light)
+    add_gnss_parser(sub)
+
     bench = sub.add_parser("bench", help="speed benchmarks, each against a peer measured in the same run",
                            description="Benchmarks report ratios against a peer measured in the same run.")
     bench_sub = bench.add_subparsers(dest="bench", metavar="BENCH", parser_class=Parser)
@@ -229,6 +232,8 @@ def _run(args: argparse.Namespace) -> int:
     if args.command == "experiment":
         mod = EXPERIMENTS[args.experiment][0]()
         return mod.main(args)
+    if args.command == "gnss":  # registered by sitl.app.gnss.command.add_parser, which set gnss_main
+        return args.gnss_main(args)
     if args.command == "bench":
         mod = BENCHES[args.bench][0]()
         return mod.main(args)

@@ -118,14 +118,41 @@ class GpsEphemerides:
         """The satellites with at least one record, sorted."""
         return sorted(set(self.sat.tolist()))
 
-    def select(self, sat, t_gps_s) -> np.ndarray:
+    def select(self, sat, t_gps_s, usable=None) -> np.ndarray:
         """Index of the record in force for each (satellite, time) pair, -1 where none is.
 
         The record whose Toe is nearest t among those whose fit interval covers t
         (|t - toe| <= fit_h * 1800 s, IS-GPS-200 20.3.4.4), the earliest in the file on a
         tie. Health is not looked at: the caller decides what an unhealthy record in force
-        means (``health[i] != 0``)."""
-        return _select(self.sat, self.toe_gps_s, self.fit_h * 1800.0, sat, t_gps_s)
+        means (``health[i] != 0``). ``usable`` (bool (N,)) leaves records out (e.g.
+        ``~mislabelled()``)."""
+        half = self.fit_h * 1800.0
+        if usable is not None:
+            half = np.where(np.asarray(usable, bool), half, -1.0)
+        return _select(self.sat, self.toe_gps_s, half, sat, t_gps_s)
+
+    def mislabelled(self) -> np.ndarray:
+        """Records that are copies of another satellite's record (bool (N,)).
+
+        Two satellites cannot broadcast the same orbit: records of different PRNs with the same
+        Toe, sqrt(A), e, M0, OMEGA0, i0 and af0 are one satellite's message filed under two
+        PRNs (a merging artefact of daily brdc files: brdc1820.10n has PRN 23's 06:00 record
+        also as PRN 1, health 0). The copy is the one whose eccentricity differs from the median
+        of its own PRN's other records (e changes by ~1e-7 a day); file-internal, no reference
+        orbit is looked at."""
+        key = np.stack([self.toe_gps_s, self.sqrt_a, self.e, self.m0_rad, self.omega0_rad, self.i0_rad,
+                        self.af0_s], axis=1)
+        bad = np.zeros(len(self), bool)
+        _, inv, counts = np.unique(key, axis=0, return_inverse=True, return_counts=True)
+        for g in np.flatnonzero(counts > 1):
+            members = np.flatnonzero(inv.reshape(-1) == g)
+            if len(set(self.sat[members].tolist())) < 2:
+                continue
+            for m in members:
+                others = (self.sat == self.sat[m]) & (inv.reshape(-1) != g)
+                if others.any() and abs(np.median(self.e[others]) - self.e[m]) > 1e-5:
+                    bad[m] = True
+        return bad
 
 
 @dataclass(frozen=True, eq=False)
