@@ -112,6 +112,12 @@ def _integrity_bench():
     return integrity
 
 
+def _gnss_bench():
+    from sitl.app.bench import gnss
+
+    return gnss
+
+
 def _live_bench():
     from sitl.app.bench import live
 
@@ -144,6 +150,7 @@ BENCHES = {
     "sonde": (_sonde_bench, "a 2 h seed 004 sonde flight at 1 Hz (fused tracker) against real time"),
     "beacon": (_beacon_bench, "one 1000 s seed 002 beacon trial (3 UAVs, bus and locator) against real time"),
     "integrity": (_integrity_bench, "the seed 003 integrity monitor's cost on a 10,000-trial EKF step"),
+    "gnss": (_gnss_bench, "the real-file GNSS readers and the day's broadcast-vs-IGS orbit check, against georinex"),
     "live": (_live_bench, "the largest swarm the live SITL keeps at real time (10 Hz), bus latency, CPU per UAV"),
 }
 
