@@ -112,6 +112,12 @@ def _integrity_bench():
     return integrity
 
 
+def _gnss_bench():
+    from sitl.app.bench import gnss
+
+    return gnss
+
+
 def _live_bench():
     from sitl.app.bench import live
 
@@ -144,6 +150,7 @@ BENCHES = {
     "sonde": (_sonde_bench, "a 2 h seed 004 sonde flight at 1 Hz (fused tracker) against real time"),
     "beacon": (_beacon_bench, "one 1000 s seed 002 beacon trial (3 UAVs, bus and locator) against real time"),
     "integrity": (_integrity_bench, "the seed 003 integrity monitor's cost on a 10,000-trial EKF step"),
+    "gnss": (_gnss_bench, "the real-file GNSS readers and the day's broadcast-vs-IGS orbit check, against georinex"),
     "live": (_live_bench, "the largest swarm the live SITL keeps at real time (10 Hz), bus latency, CPU per UAV"),
 }
 
@@ -191,6 +198,9 @@ def build_parser() -> argparse.ArgumentParser:
         # --help printed, so that `skyfuse --help` does not import every experiment
         exp_sub.add_parser(name, help=doc, description=doc, flags=lambda p, _load=load: _load().add_args(p))
 
+    from sitl.app.gnss.command import add_parser as add_gnss_parser  # `gnss`: sitl/app/gnss/ (light)
+    add_gnss_parser(sub)
+
     bench = sub.add_parser("bench", help="speed benchmarks, each against a peer measured in the same run",
                            description="Benchmarks report ratios against a peer measured in the same run.")
     bench_sub = bench.add_subparsers(dest="bench", metavar="BENCH", parser_class=Parser)
@@ -229,6 +239,8 @@ def _run(args: argparse.Namespace) -> int:
     if args.command == "experiment":
         mod = EXPERIMENTS[args.experiment][0]()
         return mod.main(args)
+    if args.command == "gnss":  # registered by sitl.app.gnss.command.add_parser, which set gnss_main
+        return args.gnss_main(args)
     if args.command == "bench":
         mod = BENCHES[args.bench][0]()
         return mod.main(args)

@@ -35,7 +35,6 @@ from __future__ import annotations
 
 import dataclasses
 import math
-import re
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Iterable
@@ -58,6 +57,7 @@ __all__ = [
     "default_constellation",
     "load_yuma_almanac",
     "load_rinex_nav",
+    "kepler_state_ecef",
     "DEFAULT_TOA_GPS_S",
     "SECONDS_PER_WEEK",
     "GPS_A_M",
@@ -292,23 +292,8 @@ def _precompute(c: Constellation) -> dict:
     (S, 1) columns ('col', for satellite-major (S, T) evaluation)."""
     gm = np.where(c.system == "G", _GPS_PARAMS[0], _GLO_PARAMS[0])
     we = np.where(c.system == "G", _GPS_PARAMS[1], _GLO_PARAMS[1])
-    toa_sow = np.mod(c.toa_gps_s, SECONDS_PER_WEEK)
-    row = {
-        "e": c.e,
-        "a": c.a_m,
-        "M0": c.M0_rad,
-        "n": np.sqrt(gm / c.a_m**3) + c.delta_n_rad_s,
-        "sqrt1me2": np.sqrt(1.0 - c.e**2),
-        "cos_w": np.cos(c.omega_rad),
-        "sin_w": np.sin(c.omega_rad),
-        # Node longitude at t_k = 0, reduced to [0, 2 pi) for precision.
-        "node0": np.mod(c.Omega0_rad - we * toa_sow, 2.0 * np.pi),
-        "node_rate": c.OmegaDot_rad_s - we,
-        "i": c.i_rad,
-        "cos_i": np.cos(c.i_rad),
-        "sin_i": np.sin(c.i_rad),
-        **{name: getattr(c, name) for name in _HARMONIC_FIELDS[1:]},
-    }
+    row = _kepler_constants(gm, we, c.toa_gps_s, c.a_m, c.e, c.i_rad, c.Omega0_rad, c.OmegaDot_rad_s,
+                            c.omega_rad, c.M0_rad, **{name: getattr(c, name) for name in _HARMONIC_FIELDS})
     harmonic = any(np.any(getattr(c, name) != 0.0) for name in _HARMONIC_FIELDS[1:])
     return {
         "gm": gm,
@@ -317,6 +302,51 @@ def _precompute(c: Constellation) -> dict:
         "row": row,
         "col": {k: v[:, None] for k, v in row.items()},
     }
+
+
+def _kepler_constants(gm, we, toa_gps_s, a_m, e, i_rad, Omega0_rad, OmegaDot_rad_s, omega_rad, M0_rad,
+                      delta_n_rad_s, idot_rad_s, cuc_rad, cus_rad, crc_m, crs_m, cic_rad, cis_rad) -> dict:
+    """The propagator's constants of N element sets (arrays of shape (N,))."""
+    toa_sow = np.mod(toa_gps_s, SECONDS_PER_WEEK)
+    return {
+        "e": e,
+        "a": a_m,
+        "M0": M0_rad,
+        "n": np.sqrt(gm / a_m**3) + delta_n_rad_s,
+        "sqrt1me2": np.sqrt(1.0 - e**2),
+        "cos_w": np.cos(omega_rad),
+        "sin_w": np.sin(omega_rad),
+        # Node longitude at t_k = 0, reduced to [0, 2 pi) for precision.
+        "node0": np.mod(Omega0_rad - we * toa_sow, 2.0 * np.pi),
+        "node_rate": OmegaDot_rad_s - we,
+        "i": i_rad,
+        "cos_i": np.cos(i_rad),
+        "sin_i": np.sin(i_rad),
+        "idot_rad_s": idot_rad_s, "cuc_rad": cuc_rad, "cus_rad": cus_rad, "crc_m": crc_m,
+        "crs_m": crs_m, "cic_rad": cic_rad, "cis_rad": cis_rad,
+    }
+
+
+def kepler_state_ecef(gm, we, toa_gps_s, a_m, e, i_rad, Omega0_rad, OmegaDot_rad_s, omega_rad, M0_rad,
+                      delta_n_rad_s, idot_rad_s, cuc_rad, cus_rad, crc_m, crs_m, cic_rad, cis_rad, t_gps_s):
+    """IS-GPS-200 Table 20-IV for N element sets at N times (all arguments (N,) arrays or
+    scalars): the same propagator as :func:`sat_state_ecef`, for element sets that are not a
+    :class:`Constellation` (several broadcast records of one satellite).
+
+    t_k = t_gps_s - toa_gps_s in continuous GPS seconds, so the ICD's week crossover rule
+    (t_k +- 604800 when |t_k| > 302400) is never needed.
+
+    Returns (pos_m (N, 3), vel_m_s (N, 3) in the rotating Earth-fixed frame, E_rad (N,) the
+    eccentric anomaly, for the relativistic clock term F e sqrt(A) sin E).
+    """
+    args = np.broadcast_arrays(*(np.asarray(v, dtype=float) for v in (
+        gm, we, toa_gps_s, a_m, e, i_rad, Omega0_rad, OmegaDot_rad_s, omega_rad, M0_rad, delta_n_rad_s,
+        idot_rad_s, cuc_rad, cus_rad, crc_m, crs_m, cic_rad, cis_rad, t_gps_s)))
+    args = [np.atleast_1d(a) for a in args]
+    p = _kepler_constants(*args[:18])
+    tk = args[18] - args[2]
+    x, y, z, vx, vy, vz, E = _propagate_rows(p, True, tk, want_vel=True)
+    return np.stack((x, y, z), axis=-1), np.stack((vx, vy, vz), axis=-1), E
 
 
 # ---------------------------------------------------------------------------
@@ -369,8 +399,13 @@ def _propagate(c: Constellation, tk_s: np.ndarray, want_vel: bool = True, sat_ma
     dy/dt = x'' sin Omega + y'' cos i cos Omega - y' sin i cos Omega di/dt + dOmega/dt x,
     dz/dt = y'' sin i + y' cos i di/dt, with x'' = dx'/dt etc.
     """
-    harmonic = c._prop["harmonic"]
-    p = c._prop["col" if sat_major else "row"]
+    x, y, z, vx, vy, vz, _ = _propagate_rows(c._prop["col" if sat_major else "row"], c._prop["harmonic"],
+                                             tk_s, want_vel)
+    return x, y, z, vx, vy, vz
+
+
+def _propagate_rows(p: dict, harmonic: bool, tk_s, want_vel: bool = True):
+    """:func:`_propagate` on the constants ``p`` of :func:`_kepler_constants`; also returns E."""
     e = p["e"]
     E = _solve_kepler(p["M0"] + p["n"] * tk_s, e)
     sinE, cosE = np.sin(E), np.cos(E)
@@ -400,7 +435,7 @@ def _propagate(c: Constellation, tk_s: np.ndarray, want_vel: bool = True, sat_ma
     y = xp * sO + yp_ci * cO
     z = yp * si
     if not want_vel:
-        return x, y, z, None, None, None
+        return x, y, z, None, None, None, E
     Edot = p["n"] * inv_den
     nudot = p["sqrt1me2"] * Edot * inv_den
     rdot = p["a"] * e * sinE * Edot
@@ -424,7 +459,7 @@ def _propagate(c: Constellation, tk_s: np.ndarray, want_vel: bool = True, sat_ma
         vx = vx + yp_si_idot * sO
         vy = vy - yp_si_idot * cO
         vz = vz + yp_ci * idot
-    return x, y, z, vx, vy, vz
+    return x, y, z, vx, vy, vz, E
 
 
 def _check_constellation(constellation) -> Constellation:
@@ -754,123 +789,54 @@ def load_yuma_almanac(path, reference_t_gps_s: float = DEFAULT_TOA_GPS_S,
     )
 
 
-_RINEX_FLOAT = re.compile(r"^[+-]?(\d+\.?\d*|\.\d+)([EeDd][+-]?\d+)?$")
+def load_rinex_nav(path, harmonics: bool = True, healthy_only: bool = False,
+                   t_gps_s: float | None = None) -> Constellation:
+    """The GPS broadcast ephemerides in force at ``t_gps_s``, from a RINEX 2.x (GPS 'N') or
+    3.x ('N') navigation file, as a :class:`Constellation` (one element set per satellite).
 
-
-def _rinex_float(text: str, path, lineno: int) -> float:
-    s = text.strip()
-    if not s:
-        return 0.0  # RINEX leaves unknown/unused fields blank
-    if not _RINEX_FLOAT.match(s):
-        _fail(path, lineno, f"cannot parse a number from {text!r}")
-    return float(s.replace("D", "E").replace("d", "e"))
-
-
-def load_rinex_nav(path, harmonics: bool = True, healthy_only: bool = False) -> Constellation:
-    """Read the GPS broadcast ephemerides of a RINEX 2.x (GPS 'N' file) or 3.x
-    (GPS or mixed 'N' file) navigation file; non-GPS records are skipped.
-
-    The *first* record of each satellite (file order) is used: sqrt(A), e, i0,
-    OMEGA0, OMEGA DOT, omega, M0 at t_oe, so ``toa_gps_s = week * 604800 + t_oe``
-    (the RINEX week is continuous, not modulo 1024).  With ``harmonics`` (default)
-    Delta_n, IDOT and C_uc, C_us, C_rc, C_rs, C_ic, C_is are kept and used by the
-    propagator (the full IS-GPS-200 Table 20-IV algorithm); with
-    ``harmonics=False`` they are dropped, leaving the almanac-like Keplerian orbit.
-    Clock parameters, TGD and IODE are ignored.  ``healthy_only`` drops records
-    whose SV health word is non-zero.
+    Every record of the file is read (:func:`sitl.gnss.rinex_nav.read_nav`, which keeps them
+    all); per satellite the record in force at ``t_gps_s`` is taken: the one whose Toe is
+    nearest among those whose fit interval covers it (IS-GPS-200; ``GpsEphemerides.select``).
+    ``t_gps_s`` None means the earliest Toe in the file. Satellites with no record in force
+    are left out. sqrt(A), e, i0, OMEGA0, OMEGA DOT, omega, M0 at t_oe, so
+    ``toa_gps_s = week * 604800 + t_oe`` (the RINEX week is continuous, not modulo 1024). With
+    ``harmonics`` (default) Delta_n, IDOT and C_uc .. C_is are kept (the full IS-GPS-200 Table
+    20-IV algorithm); ``harmonics=False`` drops them (the almanac-like Keplerian orbit). A
+    Constellation carries no clock terms: for clocks, TGD and a record per epoch, use
+    ``read_nav`` and :mod:`sitl.gnss.broadcast`. ``healthy_only`` drops satellites whose
+    record in force has a non-zero SV health word. GLONASS and other systems are skipped.
 
     Raises ValueError naming the file and line for a malformed file.
     """
-    lines = _read_lines(path)
-    if not lines:
-        _fail(path, None, "empty file")
-    head = lines[0]
-    if "RINEX VERSION / TYPE" not in head:
-        _fail(path, 1, "first line is not a 'RINEX VERSION / TYPE' header")
+    from sitl.gnss.rinex_common import GnssFileError
+    from sitl.gnss.rinex_nav import read_nav
+
     try:
-        version = float(head[:9])
-    except ValueError:
-        _fail(path, 1, f"cannot parse the RINEX version from {head[:9]!r}")
-    ftype = head[20:21]
-    if ftype != "N":
-        _fail(path, 1, f"not a GPS/GNSS navigation file (type {ftype!r})")
-    major = int(version)
-    if major not in (2, 3):
-        _fail(path, 1, f"unsupported RINEX version {version}")
-    end = next((j for j, ln in enumerate(lines) if "END OF HEADER" in ln[60:]), None)
-    if end is None:
-        _fail(path, None, "no 'END OF HEADER' line")
-
-    # Split the body into records (start line index, list of lines).
-    records: list[tuple[int, list[str]]] = []
-    for j in range(end + 1, len(lines)):
-        ln = lines[j]
-        if not ln.strip():
-            continue
-        starts = (ln[:1] != " ") if major == 3 else bool(ln[:2].strip())
-        if starts:
-            records.append((j + 1, [ln]))
-        elif not records:
-            _fail(path, j + 1, "continuation line before the first record")
-        else:
-            records[-1][1].append(ln)
-
-    first_col = 23 if major == 3 else 22
-    orbit_col = 4 if major == 3 else 3
-    seen: dict[str, dict] = {}
-    for start, rec in records:
-        head_ln = rec[0]
-        if major == 3:
-            sysc = head_ln[0]
-            if sysc != "G":
-                continue
-            prn_txt = head_ln[1:3]
-        else:
-            prn_txt = head_ln[0:2]
-        try:
-            prn = int(prn_txt)
-        except ValueError:
-            _fail(path, start, f"cannot parse the satellite number from {prn_txt!r}")
-        sid = f"G{prn:02d}"
-        if len(rec) < 8:
-            _fail(path, start, f"GPS record for {sid} has {len(rec)} lines, expected 8")
-        if sid in seen:
-            continue
-        vals = []
-        for k in range(1, 7):
-            ln = rec[k]
-            lineno = start + k
-            if ln[:orbit_col].strip():
-                _fail(path, lineno, "broadcast orbit line must start with blanks")
-            vals.append([_rinex_float(ln[orbit_col + 19 * q: orbit_col + 19 * (q + 1)], path, lineno)
-                         for q in range(4)])
-        _rinex_float(head_ln[first_col:first_col + 19], path, start)  # clock bias: validate only
-        (_, crs, dn, m0), (cuc, e, cus, sqrt_a), (toe, cic, om0, cis), (i0, crc, w, omd), \
-            (idot, _, week, _), (_, health, _, _) = vals
-        if not 0.0 <= e < 1.0:
-            _fail(path, start + 2, f"eccentricity {e} out of [0, 1)")
-        if sqrt_a <= 0.0:
-            _fail(path, start + 2, f"sqrt(A) {sqrt_a} must be positive")
-        if not 0.0 <= toe < SECONDS_PER_WEEK:
-            _fail(path, start + 3, f"Toe {toe} outside the week")
-        if week != int(week) or week <= 0:
-            _fail(path, start + 5, f"bad GPS week {week}")
-        if healthy_only and health != 0.0:
-            continue
-        seen[sid] = dict(
-            toa_gps_s=int(week) * SECONDS_PER_WEEK + toe, a_m=sqrt_a**2, e=e, i_rad=i0,
-            Omega0_rad=om0, OmegaDot_rad_s=omd, omega_rad=w, M0_rad=m0,
-            delta_n_rad_s=dn, idot_rad_s=idot, cuc_rad=cuc, cus_rad=cus, crc_m=crc, crs_m=crs,
-            cic_rad=cic, cis_rad=cis,
-        )
-    if not seen:
+        nav = read_nav(path)
+    except GnssFileError as exc:
+        if exc.line is None and exc.reason.startswith("cannot read the file"):
+            raise ValueError(f"path: cannot read {path}: {exc.reason}") from None
+        raise
+    g = nav.gps
+    if g is None:
         _fail(path, None, "no (healthy) GPS navigation records found")
-    ids = list(seen)
-    cols = {k: np.array([seen[s][k] for s in ids]) for k in seen[ids[0]]}
-    if not harmonics:
-        for k in _HARMONIC_FIELDS:
-            cols[k] = np.zeros(len(ids))
-    return Constellation(
-        sat_id=np.array(ids), system=np.full(len(ids), "G"),
-        glonass_k=np.zeros(len(ids), dtype=int), **cols,
+    t = float(np.min(g.toe_gps_s)) if t_gps_s is None else _scalar_time("t_gps_s", t_gps_s)
+    ids = g.sats
+    idx = g.select(ids, np.full(len(ids), t))
+    keep = idx >= 0
+    if healthy_only:
+        keep &= np.where(idx >= 0, g.health[idx] == 0, False)
+    if not keep.any():
+        _fail(path, None, "no (healthy) GPS navigation records found")
+    sel = idx[keep]
+    cols = dict(
+        toa_gps_s=g.toe_gps_s[sel], a_m=g.sqrt_a[sel] ** 2, e=g.e[sel], i_rad=g.i0_rad[sel],
+        Omega0_rad=g.omega0_rad[sel], OmegaDot_rad_s=g.omega_dot_rad_s[sel], omega_rad=g.omega_rad[sel],
+        M0_rad=g.m0_rad[sel],
     )
+    if harmonics:
+        cols.update(delta_n_rad_s=g.delta_n_rad_s[sel], idot_rad_s=g.idot_rad_s[sel], cuc_rad=g.cuc_rad[sel],
+                    cus_rad=g.cus_rad[sel], crc_m=g.crc_m[sel], crs_m=g.crs_m[sel], cic_rad=g.cic_rad[sel],
+                    cis_rad=g.cis_rad[sel])
+    n = int(sel.size)
+    return Constellation(sat_id=g.sat[sel], system=np.full(n, "G"), glonass_k=np.zeros(n, dtype=int), **cols)

@@ -1,0 +1,101 @@
+"""`skyfuse bench gnss`: the real-file readers and the day's orbit check against the clock, with
+georinex (the peer reader) timed on the same files in the same run.
+
+Targets (issue 24): reading the 1 h station file <= 5 s; the orbit comparison over a day
+<= 10 s. Best of ``--rounds`` wall-clock timings (time.perf_counter), each a fresh read.
+"""
+from __future__ import annotations
+
+import json
+import time
+import warnings
+from dataclasses import dataclass
+from pathlib import Path
+
+from sitl.app.args import OUTPUT_FILE
+from sitl.params import add_flags, integer, optional, param, validate, from_text
+
+_DATA = Path(__file__).resolve().parents[3] / "tests" / "data" / "gnss"
+
+
+def _data_dir(text: str) -> Path:
+    p = Path(text)
+    if not (p / "07590920.05o").is_file():
+        import argparse
+
+        raise argparse.ArgumentTypeError(f"{text} does not hold 07590920.05o (the data of tests/data/gnss)")
+    return p
+
+
+@dataclass(frozen=True)
+class GnssBenchOptions:
+    """`skyfuse bench gnss`' options, declared once (sitl.params)."""
+
+    data: Path = param(_DATA, check=from_text(_data_dir), metavar="DIR", doc="the real GNSS files (tests/data/gnss)")
+    rounds: int = param(3, check=integer(lo=1), doc="timings per item (the best is reported)")
+    json: Path | None = param(None, check=optional(OUTPUT_FILE), metavar="FILE", doc="also write the result as JSON")
+
+    __post_init__ = validate
+
+
+def add_args(p) -> None:
+    add_flags(p, GnssBenchOptions)
+
+
+def _best(fn, rounds):
+    best = float("inf")
+    for _ in range(rounds):
+        t = time.perf_counter()
+        fn()
+        best = min(best, time.perf_counter() - t)
+    return best
+
+
+def run(data: Path, rounds: int) -> dict:
+    from sitl.gnss.orbit_check import check_orbits
+    from sitl.gnss.rinex_clk import read_clk
+    from sitl.gnss.rinex_nav import read_nav
+    from sitl.gnss.rinex_obs import read_obs
+    from sitl.gnss.sp3 import read_sp3
+
+    res = {
+        "read_obs_1h_s": _best(lambda: read_obs(data / "07590920.05o"), rounds),
+        "read_nav_gps_day_s": _best(lambda: read_nav(data / "brdc1820.10n"), rounds),
+        "read_nav_glonass_day_s": _best(lambda: read_nav(data / "brdc0910.09g"), rounds),
+        "read_sp3_s": _best(lambda: read_sp3(data / "igs15904.sp3"), rounds),
+        "read_clk_s": _best(lambda: read_clk(data / "igs15904.clk"), rounds),
+        "orbit_check_gps_day_s": _best(lambda: check_orbits(read_nav(data / "brdc1820.10n"), read_sp3(
+            data / "igs15904.sp3"), read_clk(data / "igs15904.clk")), rounds),
+        "orbit_check_glonass_day_s": _best(lambda: check_orbits(read_nav(data / "brdc0910.09g"),
+                                                                read_sp3(data / "igl15253.sp3")), rounds),
+    }
+    try:
+        import georinex as gr
+    except ImportError:
+        res["georinex"] = None
+    else:
+        warnings.simplefilter("ignore")
+        res["georinex"] = {
+            "version": getattr(gr, "__version__", None),
+            "read_obs_1h_s": _best(lambda: gr.load(data / "07590920.05o"), rounds),
+            "read_nav_gps_day_s": _best(lambda: gr.load(data / "brdc1820.10n"), rounds),
+            "read_nav_glonass_day_s": _best(lambda: gr.load(data / "brdc0910.09g"), rounds),
+            "read_sp3_s": _best(lambda: gr.load_sp3(data / "igs15904.sp3", None), rounds),
+        }
+    res["targets"] = {"read_obs_1h_s": 5.0, "orbit_check_day_s": 10.0}
+    return res
+
+
+def main(args) -> int:
+    from sitl.app.args import options_of
+
+    opts = options_of(GnssBenchOptions, args)
+    res = run(Path(opts.data), opts.rounds)
+    peer = res.get("georinex") or {}
+    for k, v in res.items():
+        if isinstance(v, float):
+            p = peer.get(k)
+            print(f"{k:28s} {v:8.3f} s" + (f"   georinex {p:8.3f} s" if p is not None else ""))
+    if opts.json is not None:
+        Path(opts.json).write_text(json.dumps(res, indent=1))
+    return 0
