@@ -73,8 +73,8 @@ from sitl.app.experiments.common import (measurement_faults, prepare_out, progre
 from sitl.scenario import SondeSection
 from sitl.app.args import OUTPUT_DIR
 from sitl.params import (
-    add_flags, backend_option, choice, default_of, integer, number, optional, param, quiet_option, several,
-    string, switch, validate,
+    ParamError, add_flags, backend_option, choice, default_of, integer, number, optional, param, quiet_option,
+    require, several, string, switch, validate,
 )
 
 MODES = ("fused", "radar_only", "relay_only")
@@ -103,77 +103,107 @@ SONDE_INTEGRITY = {"jump_sigma": 3.5, "window": 30, "window_alpha": 1e-4, "bias_
                    "readmit_after": 10}
 
 
+def _window(finite_end: bool = True):
+    """A check: a (start, end) window of seconds since launch, 0 <= start < end, start finite (and
+    end too unless ``finite_end`` is False: a fault that lasts to the end of the flight); stored
+    as a tuple of floats."""
+    what = "(start, end) with 0 <= start < end, s since launch"
+    real = number(finite=False)
+
+    def check(key, value):
+        try:
+            a, b = value
+            a, b = real(key, a), real(key, b)
+        except (TypeError, ValueError):  # not a pair of numbers (a ParamError is a ValueError)
+            raise ParamError(key, f"expected {what}, got {value!r}") from None
+        if not (math.isfinite(a) and (math.isfinite(b) or not finite_end) and 0 <= a < b):
+            raise ParamError(key, f"expected {what}, got {value!r}")
+        return (a, b)
+
+    return check
+
+
+def _relayed_satellite(key, value):
+    """A check: "" (the first satellite delivered to trial 0 at the onset) or the id of a satellite
+    of the relay's constellation (GPS + GLONASS)."""
+    value = string()(key, value)
+    if value:
+        from sitl.gnss.orbits import default_constellation
+
+        ids = [str(v) for v in default_constellation("GR").sat_id]
+        if value not in ids:
+            raise ParamError(key, f"expected a satellite of the relay's constellation (e.g. {ids[0]}), got {value!r}")
+    return value
+
+
+_POSITIVE = number(0, lo_open=True)
+
+
 @dataclass(frozen=True)
 class SondeScenario:
     """The seed 004 experiment (times relative to launch, seconds; SI units)."""
 
-    duration_s: float = 7200.0
-    dt_s: float = 1.0
-    wind_scale: float = SondeSection.wind_scale  # x the default winter jet profile (58 -> 67 m/s at 11 km)
-    gcpp_offset_m: float = 300.0  # radar / ground receiver from the launch pad
-    gcpp_bearing_deg: float = 140.0  # across the surface wind (from 230 deg)
-    radar_loss_s: tuple = (30.0, 330.0)  # angular auto-tracking lost (side wind at launch)
-    gnss_outage_s: tuple = (3600.0, 3720.0)  # relay delivers nothing
-    acquire_s: float = 0.0  # the measurement links come up this long after launch (the trackers pick the sonde up in flight)
-    bin_km: float = 25.0
-    max_range_km: float = 250.0
-    white_baseline: bool = True  # also run fused / radar_only with naive white radar noise
-    filter: str = "auto"  # "auto": EKF, UKF per sonde-epoch where the radar geometry needs it; "ekf"; "ukf"
-    # the trackers' sonde kinematics (SondeTrackerParams.kinematics): "relaxed" (the sonde model's
-    # structure: the velocity relaxes to a wind the tracker estimates) or "singer" (eq 20 as printed)
-    kinematics: str = "relaxed"
-    # the integrity monitor: "off"; "on" (every tracker monitored); "compare" (the three main
-    # trackers plain, and each again with the monitor, "<mode>_monitored", on the same messages)
-    integrity: str = "off"
-    # measurement faults (sitl.measfault, world side; times since launch): a clock step on one relayed
-    # satellite's pseudorange (relay_step_sat "": the first satellite delivered to trial 0 at the onset)
-    relay_step_m: float = 0.0
-    relay_step_sat: str = ""
-    relay_step_s: tuple = (1200.0, 1800.0)
-    # a burst of heavy-tailed radar azimuth outliers (probability per epoch, scale in azimuth sigmas,
-    # Student-t with 2 dof) and a radar azimuth step (rad)
-    az_outlier_prob: float = 0.0
-    az_outlier_sigmas: float = 10.0
-    az_outlier_s: tuple = (900.0, 1000.0)
-    az_step_rad: float = 0.0
-    az_step_s: tuple = (2400.0, 2700.0)
+    duration_s: float = param(7200.0, check=_POSITIVE, doc="flight time simulated, s")
+    dt_s: float = param(1.0, check=_POSITIVE, doc="epoch interval of the world, the bus and the trackers, s")
+    wind_scale: float = param(default_of(SondeSection, "wind_scale"), check=_POSITIVE,
+                              doc="factor on the default winter jet-stream wind profile (1.15: 58 -> 67 m/s at "
+                                  "11 km, so that every sonde reaches 250 km ground range inside the 2 h)")
+    gcpp_offset_m: float = param(300.0, check=_POSITIVE,
+                                 doc="distance of the GCPP (the radar and the relay's ground receiver) from the "
+                                     "launch pad, m")
+    gcpp_bearing_deg: float = param(140.0, check=number(),
+                                    doc="bearing of the GCPP from the launch pad, degrees from north (140: across "
+                                        "the surface wind, from 230 deg)")
+    radar_loss_s: tuple = param((30.0, 330.0), check=_window(),
+                                doc="the radar's angular auto-tracking lost (range only) from start to end, s since "
+                                    "launch (the side wind at launch)")
+    gnss_outage_s: tuple = param((3600.0, 3720.0), check=_window(),
+                                 doc="GNSS outage (the relay delivers nothing) from start to end, s since launch")
+    acquire_s: float = param(0.0, check=number(0, what="a finite number >= 0 (below duration_s)"),
+                             doc="the measurement links come up this long after launch (the trackers pick the sonde "
+                                 "up in flight), s; below duration_s")
+    bin_km: float = param(25.0, check=_POSITIVE, doc="width of the ground-range bins of the RMSE by range, km")
+    max_range_km: float = param(250.0, check=_POSITIVE,
+                                doc="operating radius: epochs are scored while the ground range is below it and the "
+                                    "slant range from the GCPP within it, km")
+    white_baseline: bool = param(True, check=switch(),
+                                 doc="also run fused and radar-only trackers with the naive white radar-noise model "
+                                     "(the NEES comparison)")
+    filter: str = param("auto", check=choice("auto", "ekf", "ukf"),
+                        doc="the trackers' filter: auto (the EKF, the UKF per sonde-epoch where the radar geometry "
+                            "needs it), ekf or ukf")
+    kinematics: str = param("relaxed", check=choice("relaxed", "singer"),
+                            doc="the trackers' sonde kinematics (SondeTrackerParams.kinematics): relaxed (the sonde "
+                                "model's structure: the velocity relaxes to a wind the tracker estimates) or singer "
+                                "(eq 20 as printed)")
+    integrity: str = param("off", check=choice(*INTEGRITY),
+                           doc="the integrity monitor: off; on (every tracker monitored); compare (the three main "
+                               "trackers plain, and each again with the monitor, <mode>_monitored, on the same "
+                               "messages)")
+    # measurement faults (sitl.measfault, world side; times since launch)
+    relay_step_m: float = param(0.0, check=number(),
+                                doc="fault: a clock step on one relayed satellite's pseudorange, m (0: none)")
+    relay_step_sat: str = param("", check=_relayed_satellite,
+                                doc="the satellite of the relay step (\"\": the first satellite delivered to trial 0 "
+                                    "at the onset)")
+    relay_step_s: tuple = param((1200.0, 1800.0), check=_window(finite_end=False),
+                                doc="start and end of the relay step, s since launch")
+    az_outlier_prob: float = param(0.0, check=number(0, what="a probability in [0, 1]"),
+                                   doc="fault: a burst of heavy-tailed radar azimuth outliers (Student-t, 2 dof), "
+                                       "probability per epoch in [0, 1] (0: none)")
+    az_outlier_sigmas: float = param(10.0, check=_POSITIVE, doc="scale of the azimuth outliers, azimuth sigmas")
+    az_outlier_s: tuple = param((900.0, 1000.0), check=_window(finite_end=False),
+                                doc="start and end of the outlier burst, s since launch")
+    az_step_rad: float = param(0.0, check=number(), doc="fault: a radar azimuth step, rad (0: none)")
+    az_step_s: tuple = param((2400.0, 2700.0), check=_window(finite_end=False),
+                             doc="start and end of the azimuth step, s since launch")
 
     def __post_init__(self):
-        for name in ("duration_s", "dt_s", "wind_scale", "gcpp_offset_m", "bin_km", "max_range_km"):
-            v = getattr(self, name)
-            if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
-                raise ValueError(f"{name} must be a finite number > 0, got {v!r}")
-        if not (isinstance(self.acquire_s, (int, float)) and math.isfinite(self.acquire_s)
-                and 0.0 <= self.acquire_s < self.duration_s):
-            raise ValueError(f"acquire_s must be a finite number in [0, duration_s), got {self.acquire_s!r}")
-        for name in ("radar_loss_s", "gnss_outage_s"):
-            a, b = getattr(self, name)
-            if not (math.isfinite(a) and math.isfinite(b) and 0 <= a < b):
-                raise ValueError(f"{name} must be (start, end) with 0 <= start < end, got {getattr(self, name)!r}")
-        if self.filter not in ("auto", "ekf", "ukf"):
-            raise ValueError(f"filter must be 'auto', 'ekf' or 'ukf', got {self.filter!r}")
-        if self.kinematics not in ("relaxed", "singer"):
-            raise ValueError(f"kinematics must be 'relaxed' or 'singer', got {self.kinematics!r}")
-        if self.integrity not in INTEGRITY:
-            raise ValueError(f"integrity must be one of {', '.join(INTEGRITY)}, got {self.integrity!r}")
-        for name in ("relay_step_m", "az_step_rad"):
-            if not (isinstance(getattr(self, name), (int, float)) and math.isfinite(getattr(self, name))):
-                raise ValueError(f"{name} must be a finite number, got {getattr(self, name)!r}")
-        if not 0.0 <= self.az_outlier_prob <= 1.0:
-            raise ValueError(f"az_outlier_prob must lie in [0, 1], got {self.az_outlier_prob!r}")
-        if not (math.isfinite(self.az_outlier_sigmas) and self.az_outlier_sigmas > 0):
-            raise ValueError(f"az_outlier_sigmas must be a finite number > 0, got {self.az_outlier_sigmas!r}")
-        for name in ("relay_step_s", "az_outlier_s", "az_step_s"):
-            a, b = getattr(self, name)
-            if not (math.isfinite(a) and 0 <= a < b):
-                raise ValueError(f"{name} must be (start, end) with 0 <= start < end, got {getattr(self, name)!r}")
-        if self.relay_step_sat:
-            from sitl.gnss.orbits import default_constellation
-
-            ids = [str(v) for v in default_constellation("GR").sat_id]
-            if self.relay_step_sat not in ids:
-                raise ValueError(f"relay_step_sat must be a satellite of the relay's constellation (e.g. {ids[0]}), "
-                                 f"got {self.relay_step_sat!r}")
+        validate(self)
+        require(self.acquire_s < self.duration_s, "acquire_s",
+                f"expected a finite number in [0, duration_s), got {self.acquire_s!r}")
+        require(self.az_outlier_prob <= 1.0, "az_outlier_prob",
+                f"expected a probability in [0, 1], got {self.az_outlier_prob!r}")
 
     def filter_for(self, mode: str) -> str:
         """The trackers' filter: "auto" lets each tracker take the UKF for a sonde while its
