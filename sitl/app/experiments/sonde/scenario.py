@@ -30,7 +30,7 @@ def integrity_config():
     return IntegrityConfig(**SONDE_INTEGRITY)
 
 
-# the trackers' monitor settings (see sitl/app/experiments/sonde.py's integrity note in the report)
+# the trackers' monitor settings (see the sonde experiment's integrity note in the report)
 SONDE_INTEGRITY = {"jump_sigma": 3.5, "window": 30, "window_alpha": 1e-4, "bias_alpha": None, "persist": 2,
                    "readmit_after": 10}
 
