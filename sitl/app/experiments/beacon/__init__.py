@@ -63,20 +63,20 @@ epochs, with the 99 % chi-square band of one epoch's average.
 
 Writes DIR/result.json (strict JSON) and PNG figures.  Progress on stderr.
 
-The package: ``options`` (the constants and the command's options), ``world`` (truth tracks, prior,
-satellites, the world side epoch by epoch), ``case`` (one case over the bus), ``scoring``,
-``figures``, ``cli`` (the command); every public name of the experiment is here.
+The package: ``constants``, ``world`` (truth tracks, prior, satellites, the world side epoch by
+epoch), ``case`` (one case over the bus), ``scoring``, ``figures``, ``cli`` (the command's
+options and the command); every public name of the experiment is here.
 """
 from __future__ import annotations
 
 from sitl.app.experiments.beacon.case import _Scorer, _bus_stats, _central, locator_config, run_case  # noqa: F401
-from sitl.app.experiments.beacon.cli import check_args, main, run, table  # noqa: F401
+from sitl.app.experiments.beacon.cli import BeaconOptions, _uav_counts, add_args, check_args, main, run, table  # noqa: F401
+from sitl.app.experiments.beacon.constants import (_BLOCK, _BLOCK_ROWS, AXES, AXIS_ECEF, BEACON_ID,  # noqa: F401
+                                                   CASES, CENTRAL_START_PRIOR_S, DT_S, FAULT_DEFAULTS, FIGURES,
+                                                   GEOMETRIES, INTEGRITY_MODES, LOCATORS, MEASUREMENT_KEYS,
+                                                   PAPER_ERRORS_M, PRIOR_POS_SIGMA_M, PRIOR_UPDATE_ITERATIONS,
+                                                   PRIOR_VEL_SIGMA_M_S, PRODUCTION, SETTLE_S)
 from sitl.app.experiments.beacon.figures import plot  # noqa: F401
-from sitl.app.experiments.beacon.options import (_BLOCK, _BLOCK_ROWS, AXES, AXIS_ECEF, BEACON_ID, CASES,  # noqa: F401
-                                                 CENTRAL_START_PRIOR_S, DT_S, FAULT_DEFAULTS, FIGURES, GEOMETRIES,
-                                                 INTEGRITY_MODES, LOCATORS, MEASUREMENT_KEYS, PAPER_ERRORS_M,
-                                                 PRIOR_POS_SIGMA_M, PRIOR_UPDATE_ITERATIONS, PRIOR_VEL_SIGMA_M_S,
-                                                 PRODUCTION, SETTLE_S, BeaconOptions, _uav_counts, add_args)
 from sitl.app.experiments.beacon.scoring import (_scores, _series, _truth3, integrity_summary,  # noqa: F401
                                                  pcrb_series, summarise_case, uav_nav_rmse)
 from sitl.app.experiments.beacon.world import (beacon_prior, constellation_for, draw_beacon_starts,  # noqa: F401

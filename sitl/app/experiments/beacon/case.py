@@ -7,8 +7,8 @@ import time
 
 import numpy as np
 
-from sitl.app.experiments.beacon.options import (BEACON_ID, CASES, CENTRAL_START_PRIOR_S, FAULT_DEFAULTS, LOCATORS,
-                                                 MEASUREMENT_KEYS, PRIOR_UPDATE_ITERATIONS, PRODUCTION)
+from sitl.app.experiments.beacon.constants import (BEACON_ID, CASES, CENTRAL_START_PRIOR_S, FAULT_DEFAULTS,
+                                                   LOCATORS, MEASUREMENT_KEYS, PRIOR_UPDATE_ITERATIONS, PRODUCTION)
 from sitl.app.experiments.beacon.world import constellation_for, world_epochs
 from sitl.app.experiments.common import measurement_faults
 

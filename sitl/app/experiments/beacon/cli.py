@@ -1,7 +1,9 @@
-"""`skyfuse experiment beacon`: the range checks of its options, the whole experiment (the main
-cases, the sweep over the number of UAVs, result.json) and its summary table."""
+"""`skyfuse experiment beacon`: its options (declared once, sitl.params) and their range checks,
+the whole experiment (the main cases, the sweep over the number of UAVs, result.json) and its
+summary table."""
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import time
@@ -10,17 +12,73 @@ from pathlib import Path
 
 import numpy as np
 
+from sitl.app.args import OUTPUT_DIR
 from sitl.app.experiments.beacon.case import locator_config, run_case
+from sitl.app.experiments.beacon.constants import (AXES, AXIS_ECEF, CASES, CENTRAL_START_PRIOR_S, DT_S,
+                                                   FAULT_DEFAULTS, GEOMETRIES, INTEGRITY_MODES, LOCATORS,
+                                                   PAPER_ERRORS_M, PRIOR_POS_SIGMA_M, PRIOR_VEL_SIGMA_M_S,
+                                                   PRODUCTION, SETTLE_S)
 from sitl.app.experiments.beacon.figures import plot
-from sitl.app.experiments.beacon.options import (AXES, AXIS_ECEF, CASES, CENTRAL_START_PRIOR_S, DT_S,
-                                                 FAULT_DEFAULTS, INTEGRITY_MODES, LOCATORS, PAPER_ERRORS_M,
-                                                 PRIOR_POS_SIGMA_M, PRIOR_VEL_SIGMA_M_S, PRODUCTION, SETTLE_S,
-                                                 BeaconOptions)
 from sitl.app.experiments.beacon.scoring import (_scores, _series, integrity_summary, pcrb_series, summarise_case,
                                                  uav_nav_rmse)
 from sitl.app.experiments.beacon.world import beacon_prior, scenario
 from sitl.app.experiments.common import prepare_out, progress_printer, strict
-from sitl.params import default_of
+from sitl.params import add_flags, choice, default_of, from_text, integer, number, param, quiet_option, validate
+
+
+def _uav_counts(text: str) -> list[int]:
+    import argparse
+
+    try:
+        values = [int(v) for v in text.split(",") if v.strip()]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected comma-separated integers, got {text!r}") from None
+    if not values or any(v < 3 for v in values):
+        raise argparse.ArgumentTypeError(f"expected comma-separated integers >= 3, got {text!r}")
+    return values
+
+
+@dataclasses.dataclass(frozen=True)
+class BeaconOptions:
+    """`skyfuse experiment beacon`'s options, declared once (sitl.params); the fault options
+    default to run_case's (FAULT_DEFAULTS)."""
+
+    uavs: int = param(3, check=integer(lo=3, what="an integer >= 3 (three UAVs at least)"),
+                      doc="UAVs of the two main cases", note=", as in the seed")
+    duration: float = param(1000.0, check=number(0, lo_open=True), metavar="S",
+                            doc="simulated time, s at 1 Hz; > 105 (errors are scored after the first 100 s)")
+    seed: int = param(1, check=integer(lo=0), doc="seed of the numpy Generators")
+    out: Path = param(Path("out/beacon"), check=OUTPUT_DIR, metavar="DIR", doc="output directory for result.json and PNG figures")
+    trials: int = param(20, check=integer(lo=1), doc="Monte Carlo trials of the main cases")
+    sweep_trials: int = param(5, check=integer(lo=1), doc="Monte Carlo trials of each by_uav_count run")
+    uav_counts: list = param(default_factory=lambda: [3, 5, 10, 30], check=from_text(_uav_counts, show=lambda v: ",".join(map(str, v))),
+                              metavar="N,N,...", doc="UAV counts of by_uav_count, GPS constellation")
+    geometry: str = param("printed", check=choice(*GEOMETRIES),
+                          doc="printed: the paper's laws and common start point as printed, the beacon's start drawn "
+                              "about it and the locator started from that prior; geodetic: the prose's lat/lon start "
+                              "points, northward flight, blind start")
+    integrity: str = param("off", check=choice(*INTEGRITY_MODES),
+                           doc="integrity monitors: on = the production locator per UAV link and the UAVs' onboard "
+                               "filters per satellite; compare = each main case again, monitored, on the same data")
+    range_step_m: float = param(FAULT_DEFAULTS["range_step_m"], check=number(), flag="--range-step", metavar="M",
+                                doc="fault: a range step of M m on one UAV's beacon link from --fault-at",
+                                note=": none")
+    range_step_uav: int = param(FAULT_DEFAULTS["range_step_uav"], check=integer(lo=1), metavar="I",
+                                doc="UAV number (1..--uavs) of the range step")
+    pr_step_m: float = param(FAULT_DEFAULTS["pr_step_m"], check=number(), flag="--pr-step", metavar="M",
+                             doc="fault: a pseudorange step of M m on the first satellite UAV --pr-step-uav tracks at "
+                                 "--fault-at", note=": none")
+    pr_step_uav: int = param(FAULT_DEFAULTS["pr_step_uav"], check=integer(lo=1), metavar="I",
+                             doc="UAV number of the pseudorange step")
+    fault_at_s: float = param(FAULT_DEFAULTS["fault_at_s"], check=number(0), flag="--fault-at", metavar="S",
+                              doc="start of the injected faults, s since the run's start")
+    quiet: bool = quiet_option()
+
+    __post_init__ = validate
+
+
+def add_args(p) -> None:
+    add_flags(p, BeaconOptions)
 
 
 def check_args(args):

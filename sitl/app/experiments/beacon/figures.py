@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
-from sitl.app.experiments.beacon.options import AXES, AXIS_ECEF, FIGURES, PAPER_ERRORS_M, PRODUCTION, SETTLE_S
+from sitl.app.experiments.beacon.constants import AXES, AXIS_ECEF, FIGURES, PAPER_ERRORS_M, PRODUCTION, SETTLE_S
 from sitl.app.experiments.beacon.scoring import _truth3
 from sitl.app.experiments.common import save_figure
 

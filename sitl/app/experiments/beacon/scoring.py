@@ -7,7 +7,7 @@ import warnings
 
 import numpy as np
 
-from sitl.app.experiments.beacon.options import AXIS_ECEF, BEACON_ID, PAPER_ERRORS_M, PRODUCTION, SETTLE_S
+from sitl.app.experiments.beacon.constants import AXIS_ECEF, BEACON_ID, PAPER_ERRORS_M, PRODUCTION, SETTLE_S
 from sitl.app.experiments.beacon.world import gnss_information
 
 

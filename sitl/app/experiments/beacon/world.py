@@ -8,8 +8,8 @@ import time
 
 import numpy as np
 
-from sitl.app.experiments.beacon.options import (_BLOCK, _BLOCK_ROWS, DT_S, GEOMETRIES, PRIOR_POS_SIGMA_M,
-                                                 PRIOR_VEL_SIGMA_M_S)
+from sitl.app.experiments.beacon.constants import (_BLOCK, _BLOCK_ROWS, DT_S, GEOMETRIES, PRIOR_POS_SIGMA_M,
+                                                   PRIOR_VEL_SIGMA_M_S)
 
 
 def uav_starts(n: int):
