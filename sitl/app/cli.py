@@ -53,13 +53,13 @@ def _iono_tropo_experiments():
 
 
 def _sonde_experiments():
-    from sitl.app.experiments import sonde
+    from sitl.app.experiments.sonde import cli as sonde
 
     return sonde
 
 
 def _beacon_experiments():
-    from sitl.app.experiments import beacon
+    from sitl.app.experiments.beacon import cli as beacon
 
     return beacon
 

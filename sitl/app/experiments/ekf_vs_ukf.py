@@ -49,37 +49,46 @@ from sitl.constants import C_M_S
 from sitl.gnss import orbits, ranging
 from sitl.app.args import OUTPUT_DIR
 from sitl.params import (
-    add_flags, backend_option, choice, default_of, integer, number, optional, param, quiet_option, validate,
+    add_flags, backend_option, choice, default_of, integer, number, optional, param, quiet_option, require, validate,
 )
 
 N_STATE = 11
 POS = [0, 1, 2]
+_POSITIVE = number(0, lo_open=True)
 
 
 @dataclass(frozen=True)
 class EkfVsUkfScenario:
     """Parameters of the seed 001 simulation table (defaults are the seed's)."""
 
-    steps: int = 600
-    dt_s: float = 0.01
-    n_sats: int = 4
-    sigma_pr_m: float = 100.0  # table: "mean square ..., m: 100" read as a deviation
-    sigma_prr_m_s: float = 15.0  # table: "mean square ..., m/s: 15" read as a deviation
-    sigma_clock_drift_m_s: float = 3.0
-    alpha_1_s: float = 0.2
-    mu_1_s: float = 0.1
-    speed0_m_s: float = 100.0
-    accel0_m_s2: float = 5.0
-    sigma_a_m_s2: float = 1.0  # Singer manoeuvre sigma (not in the seed's table)
-    lat_deg: float = 53.9
-    lon_deg: float = 27.57
-    h_m: float = 3000.0
-    t0_gps_s: float = orbits.DEFAULT_TOA_GPS_S + 3600.0
-    el_mask_deg: float = 10.0
-    # Prior (initial estimate) standard deviations, per axis.
-    sigma0_pos_m: float = 100.0
-    sigma0_clock_bias_m: float = 100.0
-    sigma0_vel_m_s: float = 10.0
+    steps: int = param(600, check=integer(lo=1), doc="update steps per trial")
+    dt_s: float = param(0.01, check=_POSITIVE, doc="update interval, s")
+    n_sats: int = param(4, check=integer(lo=4, what="an integer >= 4 (n_sats must be >= 4: position and clock "
+                                                    "need 4 satellites)"),
+                        doc="satellites the receiver tracks (the highest above the mask at the start)")
+    sigma_pr_m: float = param(100.0, check=_POSITIVE,
+                              doc="pseudorange noise (1 sigma), m; the table's \"mean square ..., m: 100\" read as a "
+                                  "deviation")
+    sigma_prr_m_s: float = param(15.0, check=_POSITIVE,
+                                 doc="pseudo-velocity (pseudorange rate) noise (1 sigma), m/s; the table's \"mean "
+                                     "square ..., m/s: 15\" read as a deviation")
+    sigma_clock_drift_m_s: float = param(3.0, check=_POSITIVE, doc="receiver clock drift std (in range rate), m/s")
+    alpha_1_s: float = param(0.2, check=_POSITIVE, doc="Singer manoeuvre (acceleration decorrelation) rate, 1/s")
+    mu_1_s: float = param(0.1, check=_POSITIVE, doc="receiver clock drift decorrelation rate, 1/s")
+    speed0_m_s: float = param(100.0, check=number(), doc="the receiver's initial speed (eastward), m/s")
+    accel0_m_s2: float = param(5.0, check=number(), doc="the receiver's initial acceleration (eastward), m/s^2")
+    sigma_a_m_s2: float = param(1.0, check=_POSITIVE, doc="Singer manoeuvre sigma, m/s^2 (not in the seed's table)")
+    lat_deg: float = param(53.9, check=number(-90.0, what="a latitude in [-90, 90] deg"),
+                           doc="the receiver's initial latitude, degrees")
+    lon_deg: float = param(27.57, check=number(), doc="the receiver's initial longitude, degrees")
+    h_m: float = param(3000.0, check=number(), doc="the receiver's initial height above the ellipsoid, m")
+    t0_gps_s: float = param(orbits.DEFAULT_TOA_GPS_S + 3600.0, check=number(),
+                            doc="GPS time of the first epoch, s (an hour after the almanac's time of applicability)")
+    el_mask_deg: float = param(10.0, check=number(), doc="elevation mask of the satellites chosen, degrees")
+    # the prior (initial estimate) standard deviations, per axis
+    sigma0_pos_m: float = param(100.0, check=_POSITIVE, doc="prior position std per axis, m")
+    sigma0_clock_bias_m: float = param(100.0, check=_POSITIVE, doc="prior clock bias std (in range), m")
+    sigma0_vel_m_s: float = param(10.0, check=_POSITIVE, doc="prior velocity std per axis, m/s")
 
     NOISE_READINGS = {"sigma": (100.0, 15.0), "variance": (10.0, math.sqrt(15.0))}
 
@@ -93,19 +102,8 @@ class EkfVsUkfScenario:
         return cls(**{"sigma_pr_m": pr, "sigma_prr_m_s": prr, **kw})
 
     def __post_init__(self):
-        for name in ("steps", "n_sats"):
-            v = getattr(self, name)
-            if int(v) != v or v < 1:
-                raise ValueError(f"{name} must be a positive integer, got {v!r}")
-        if self.n_sats < 4:
-            raise ValueError(f"n_sats must be >= 4 (position and clock need 4 satellites), got {self.n_sats}")
-        for name in ("dt_s", "sigma_pr_m", "sigma_prr_m_s", "sigma_clock_drift_m_s", "alpha_1_s", "mu_1_s",
-                     "sigma_a_m_s2", "sigma0_pos_m", "sigma0_clock_bias_m", "sigma0_vel_m_s"):
-            v = getattr(self, name)
-            if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
-                raise ValueError(f"{name} must be a positive finite number, got {v!r}")
-        if not -90.0 <= self.lat_deg <= 90.0:
-            raise ValueError(f"lat_deg must be in [-90, 90], got {self.lat_deg!r}")
+        validate(self)
+        require(self.lat_deg <= 90.0, "lat_deg", f"expected a latitude in [-90, 90] deg, got {self.lat_deg!r}")
 
     # ------------------------------------------------------------------ the model
     def transition(self):

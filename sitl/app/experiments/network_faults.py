@@ -59,7 +59,8 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from sitl.app.args import OUTPUT_DIR
-from sitl.params import add_flags, default_of, integer, number, optional, param, quiet_option, string, switch, validate
+from sitl.params import (ParamError, add_flags, choice, default_of, integer, number, optional, param, quiet_option,
+                         require, string, switch, validate)
 from sitl.app.experiments.common import prepare_out, progress_printer, save_figure, strict
 
 # numpy and the components are imported inside the functions: the CLI imports this module to
@@ -77,35 +78,54 @@ LOSS_TARGET = {"scenario": "beacon", "fault": "loss", "value": 0.2, "max_ratio":
 RECOVERY_TARGET = {"partition_s": 30.0, "max_recovery_s": 30.0}
 
 
+def _levels(hi: float, what: str):
+    """A check: a tuple of fault levels, each in (0, hi) (loss fractions, hi = 1) or (0, hi] (what
+    says which); stored as a tuple of floats."""
+    closed = hi != 1.0
+
+    def check(key, value):
+        try:
+            levels = tuple(value)
+            ok = all(not isinstance(v, bool) and 0.0 < v and (v <= hi if closed else v < hi) for v in levels)
+        except TypeError:
+            ok = False
+        if not ok:
+            raise ParamError(key, f"expected {what}, got {value!r}")
+        return tuple(float(v) for v in levels)
+
+    return check
+
+
 @dataclass(frozen=True)
 class Plan:
     """The sweep: fault levels (0 = the baseline, always run), and the recovery criterion."""
 
-    loss: tuple = (0.1, 0.2, 0.3, 0.5)
-    burst_loss: tuple = (0.1, 0.2, 0.3, 0.5)
-    delay_s: tuple = (0.25, 0.5, 1.0, 2.0)
-    partition_s: tuple = (5.0, 10.0, 30.0, 60.0)
-    burst_len: float = 4.0  # mean Gilbert-Elliott burst, packets (= epochs: one packet per link and epoch)
-    jitter_frac: float = 0.2  # delay jitter (normal, sigma) as a fraction of the delay
-    window_s: float = 10.0
-    recovery_factor: float = 2.0
-    duplicate_check: float = 0.2  # one extra run with this duplication: no duplicate counted twice (0: none)
-    faults_from_s: float = 0.0  # loss, burst loss and delay act on packets sent from here (0: acquisition included)
+    loss: tuple = param((0.1, 0.2, 0.3, 0.5), check=_levels(1.0, "loss fractions in (0, 1)"),
+                        doc="random (Bernoulli) packet loss levels, fractions of the packets")
+    burst_loss: tuple = param((0.1, 0.2, 0.3, 0.5), check=_levels(1.0, "loss fractions in (0, 1)"),
+                              doc="burst (Gilbert-Elliott) packet loss levels, stationary fractions of the packets")
+    delay_s: tuple = param((0.25, 0.5, 1.0, 2.0), check=_levels(60.0, "delays in (0, 60] s"),
+                           doc="packet delay levels, s")
+    partition_s: tuple = param((5.0, 10.0, 30.0, 60.0), check=_levels(3600.0, "lengths in (0, 3600] s"),
+                               doc="partition lengths (every measurement link cut), s")
+    burst_len: float = param(4.0, check=number(1.0, finite=False, what="a burst length >= 1 packet"),
+                             doc="mean Gilbert-Elliott burst length, packets (= epochs: one packet per link and epoch)")
+    jitter_frac: float = param(0.2, check=number(0.0, what="a fraction in [0, 1]"),
+                               doc="delay jitter (normal, sigma) as a fraction of the delay")
+    window_s: float = param(10.0, check=number(1.0, finite=False, what="a window >= 1 s"),
+                            doc="length of the window over which the recovery after a partition is judged, s")
+    recovery_factor: float = param(2.0, check=number(1.0, lo_open=True, finite=False, what="a factor > 1"),
+                                   doc="recovered: the windowed error back within this factor of the baseline's")
+    duplicate_check: float = param(0.2, check=number(0.0, what="a duplication fraction >= 0"),
+                                   doc="one extra run with this packet duplication: no duplicate counted twice "
+                                       "(0: none)")
+    faults_from_s: float = param(0.0, check=number(0.0, what="a time >= 0"),
+                                 doc="loss, burst loss and delay act on packets sent from here, s since the run's "
+                                     "start (0: the acquisition included)")
 
     def __post_init__(self):
-        for name in ("loss", "burst_loss"):
-            if any(not (0.0 < v < 1.0) for v in getattr(self, name)):
-                raise ValueError(f"{name}: loss fractions in (0, 1), got {getattr(self, name)}")
-        if any(not (0.0 < v <= 60.0) for v in self.delay_s):
-            raise ValueError(f"delay_s: delays in (0, 60] s, got {self.delay_s}")
-        if any(not (0.0 < v <= 3600.0) for v in self.partition_s):
-            raise ValueError(f"partition_s: lengths in (0, 3600] s, got {self.partition_s}")
-        if not self.burst_len >= 1.0:
-            raise ValueError(f"burst_len: >= 1 packet, got {self.burst_len}")
-        if not (math.isfinite(self.faults_from_s) and self.faults_from_s >= 0.0):
-            raise ValueError(f"faults_from_s: a time >= 0, got {self.faults_from_s}")
-        if not (0.0 <= self.jitter_frac <= 1.0 and self.window_s >= 1.0 and self.recovery_factor > 1.0):
-            raise ValueError("jitter_frac in [0, 1], window_s >= 1, recovery_factor > 1")
+        validate(self)
+        require(self.jitter_frac <= 1.0, "jitter_frac", f"expected a fraction in [0, 1], got {self.jitter_frac!r}")
 
     def conditions(self):
         """(fault, value) of every faulty run, in order."""
@@ -120,18 +140,23 @@ QUICK_PLAN = Plan(loss=(0.2, 0.5), burst_loss=(0.2,), delay_s=(1.0,), partition_
 class Setup:
     """A scenario's run: simulated duration, scored epochs, where partitions start."""
 
-    name: str
-    duration_s: float
-    settle_s: float  # scored from here
-    partition_at_s: float
-    margin_s: float = 60.0  # simulated after the longest partition heals (recovery is judged there)
+    name: str = param(check=choice(*SCENARIOS), doc="the scenario: beacon or sonde")
+    duration_s: float = param(check=number(0, lo_open=True), doc="simulated time of every run, s at 1 Hz")
+    settle_s: float = param(check=number(0), doc="the errors are scored from here, s since the run's start")
+    partition_at_s: float = param(check=number(0), doc="start of every partition, s since the run's start")
+    margin_s: float = param(60.0, check=number(0),
+                            doc="simulated after the longest partition heals (recovery is judged there), s")
+
+    def __post_init__(self):
+        validate(self)
 
     def check(self, plan: Plan) -> None:
+        """The run is long enough for the plan: partitions from partition_at_s up to the plan's longest,
+        then margin_s to recover (and faults_from_s inside the run)."""
         need = max(self.partition_at_s + max(plan.partition_s, default=0.0), plan.faults_from_s + 1.0) + self.margin_s
-        if self.duration_s < need:
-            raise ValueError(f"{self.name}: duration {self.duration_s:g} s is too short: partitions from "
-                             f"{self.partition_at_s:g} s up to {max(plan.partition_s, default=0):g} s long and "
-                             f"{self.margin_s:g} s to recover need >= {need:g} s")
+        require(self.duration_s >= need, self.name,
+                f"duration {self.duration_s:g} s is too short: partitions from {self.partition_at_s:g} s up to "
+                f"{max(plan.partition_s, default=0):g} s long and {self.margin_s:g} s to recover need >= {need:g} s")
 
 
 SETUPS = {
