@@ -92,9 +92,10 @@ from sitl.gnss.receiver import Receiver, ReceiverConfig
 from sitl.gnss.world import elevation_grid, ephemeris_for_filter, geometry_track
 from sitl.measfault import FAULT_KINDS, Fault, FaultInjector, GaussMarkov
 from sitl.app.args import OUTPUT_DIR
+from sitl.app.experiments.ranges import within
 from sitl.params import (
-    add_flags, backend_option, choice, default_of, integer, number, optional, param, quiet_option, switch,
-    validate,
+    ParamError, add_flags, backend_option, choice, default_of, integer, number, optional, param, quiet_option,
+    require, switch, validate,
 )
 
 __all__ = ["IntegrityScenario", "run", "FILTERS", "MIN_CHANNELS", "main"]
@@ -124,24 +125,6 @@ FLAGS = {"duration_s": "--duration", "sigma_pr_m": "--sigma-pr", "sigma_prr_m_s"
          "jump_sigma": "--jump-sigma", "window": "--window", "window_alpha": "--window-alpha",
          "bias_alpha": "--bias-alpha", "huber_c": "--huber-c", "outlier_prob": "--outlier-prob",
          "onset_min_s": "--duration", "warmup_s": "--duration"}
-
-
-def _num(name, v, lo=0.0, strict_lo=True):
-    if isinstance(v, bool) or not isinstance(v, (int, float, np.integer, np.floating)) or not math.isfinite(v):
-        raise ValueError(f"{name} must be a finite number, got {v!r}")
-    if (strict_lo and not v > lo) or (not strict_lo and not v >= lo):
-        raise ValueError(f"{name} must be {'>' if strict_lo else '>='} {lo:g}, got {v!r}")
-    return float(v)
-
-
-def _range(name, v, lo=0.0):
-    try:
-        a, b = (float(u) for u in v)
-    except (TypeError, ValueError):
-        raise ValueError(f"{name} must be a (low, high) pair, got {v!r}") from None
-    if not (math.isfinite(a) and math.isfinite(b) and lo <= a <= b):
-        raise ValueError(f"{name} must be a pair {lo:g} <= low <= high, got {v!r}")
-    return (a, b)
 
 
 class GaussMarkovBank:
@@ -188,99 +171,129 @@ class BiasedPseudorangeDoppler(JointMeasurement):
         return d[..., None] * np.eye(d.shape[-1])
 
 
+_POSITIVE = number(0, lo_open=True)
+_NON_NEGATIVE = number(0)
+_FINITE = number()
+_PROBABILITY_OPEN = within(0, 1, lo_open=True, hi_open=True)
+
+
+def _pair(lo_open: bool = False):
+    """A (low, high) pair of finite numbers, 0 <= low <= high (0 < low if lo_open), stored as a tuple
+    of floats: a uniform draw's range."""
+    what = f"a pair 0 {'<' if lo_open else '<='} low <= high"
+    end = number(0, lo_open=lo_open, what=what)
+
+    def check(key, v):
+        try:
+            a, b = v
+        except (TypeError, ValueError):
+            raise ParamError(key, f"expected a (low, high) pair, got {v!r}") from None
+        try:
+            a, b = end("", a), end("", b)
+        except ParamError:
+            a = b = None
+        if a is None or not a <= b:
+            raise ParamError(key, f"expected {what}, got {v!r}")
+        return (a, b)
+
+    return check
+
+
 @dataclass(frozen=True)
 class IntegrityScenario:
     """Seed 003 integrity scenario (documented choices in the module docstring)."""
 
-    duration_s: float = 300.0
-    dt_s: float = 0.1
-    sigma_pr_m: float = 6.0
-    sigma_prr_m_s: float = 0.064
-    el_mask_deg: float = 10.0
-    systems: str = "G"
-    lat_deg: float = 55.0
-    lon_deg: float = 37.0
-    h_m: float = 1000.0
-    speed_m_s: float = 50.0
-    heading_deg: float = 90.0
-    t0_gps_s: float = orbits.DEFAULT_TOA_GPS_S + 3600.0
+    duration_s: float = param(300.0, check=_POSITIVE, doc="simulated time, s")
+    dt_s: float = param(0.1, check=_POSITIVE, doc="epoch interval of the receiver and the filters, s (10 Hz)")
+    sigma_pr_m: float = param(6.0, check=_POSITIVE, doc="pseudorange white noise (1 sigma), m (seed 000)")
+    sigma_prr_m_s: float = param(0.064, check=_POSITIVE, doc="pseudorange-rate white noise (1 sigma), m/s (seed 000)")
+    el_mask_deg: float = param(10.0, check=within(5, 90, hi_open=True),
+                               doc="elevation mask, deg; the channels are the satellites above it all through "
+                                   f"the run (>= {MIN_CHANNELS} needed)")
+    systems: str = param("G", check=choice("G", "R", "GR"), doc="constellations: G (GPS), R (GLONASS) or GR")
+    lat_deg: float = param(55.0, check=_FINITE, doc="latitude of the trajectory's start, deg")
+    lon_deg: float = param(37.0, check=_FINITE, doc="longitude of the trajectory's start, deg")
+    h_m: float = param(1000.0, check=_FINITE, doc="height of the trajectory above the ellipsoid, m")
+    speed_m_s: float = param(50.0, check=_POSITIVE, doc="ground speed along the great circle, m/s")
+    heading_deg: float = param(90.0, check=_FINITE, doc="initial heading of the great circle from north, deg")
+    t0_gps_s: float = param(orbits.DEFAULT_TOA_GPS_S + 3600.0, check=_FINITE,
+                            doc="GPS time of the first epoch, s (an hour after the almanac's reference time)")
     # sensor errors: per-satellite GM pseudorange errors
-    gm_sigma_m: float = 2.0
-    gm_tau_s: float = 100.0
+    gm_sigma_m: float = param(2.0, check=_NON_NEGATIVE,
+                              doc="sigma of the per-satellite Gauss-Markov pseudorange error (the lumped residual "
+                                  "of iono/tropo corrections, SISRE and multipath), m")
+    gm_tau_s: float = param(100.0, check=_POSITIVE, doc="correlation time of that Gauss-Markov error, s")
     # faults
-    faults: bool = True
-    step_sigma: tuple = (5.0, 20.0)  # |step| / sigma_ref
-    step_duration_s: tuple = (30.0, 120.0)
-    ramp_rate_m_s: tuple = (0.5, 2.0)
-    # "code": the pseudorange alone drifts (code multipath / signal distortion: no Doppler trace);
-    # "clock": a satellite clock frequency fault, so the pseudorange rate carries the rate too
-    ramp_kind: str = "code"
-    outlier_prob: float = 0.002
-    outlier_dof: float = 2.0
-    dropout_s: tuple = (1.0, 5.0)
-    onset_min_s: float = 60.0
-    onset_max_frac: float = 0.7
-    warmup_s: float = 30.0
-    ramp_detect_s: float = 10.0
+    faults: bool = param(True, check=switch(), doc="inject the faults (step, ramp, outliers, dropout); false: the "
+                                                  "same world without them")
+    step_sigma: tuple = param((5.0, 20.0), check=_pair(),
+                              doc="range of the step's |magnitude| (uniform), in units of sigma_ref = "
+                                  "sqrt(sigma_pr^2 + gm_sigma^2)")
+    step_duration_s: tuple = param((30.0, 120.0), check=_pair(lo_open=True),
+                                   doc="range of the step's duration (uniform), s")
+    ramp_rate_m_s: tuple = param((0.5, 2.0), check=_pair(), doc="range of the ramp's |rate| (uniform), m/s")
+    ramp_kind: str = param("code", check=choice(*RAMP_KINDS),
+                           doc="code: the pseudorange alone drifts (code multipath / signal distortion: no Doppler "
+                               "trace); clock: a satellite clock frequency fault, so the pseudorange rate carries "
+                               "the rate too")
+    outlier_prob: float = param(0.002, check=within(0, 1),
+                                doc="probability of a multipath outlier per pseudorange-epoch")
+    outlier_dof: float = param(2.0, check=_POSITIVE,
+                               doc="degrees of freedom of the outliers' Student-t (scale sigma_pr_m)")
+    dropout_s: tuple = param((1.0, 5.0), check=_pair(lo_open=True),
+                             doc="range of the dropout's length (uniform; both rows of one satellite missing), s")
+    onset_min_s: float = param(60.0, check=_NON_NEGATIVE, doc="earliest fault onset, s")
+    onset_max_frac: float = param(0.7, check=within(0, 1, lo_open=True),
+                                  doc="latest fault onset as a fraction of duration_s")
+    warmup_s: float = param(30.0, check=_NON_NEGATIVE, doc="warm-up before the scoring starts, s")
+    ramp_detect_s: float = param(10.0, check=_POSITIVE, doc="a ramp counts as detected within this time of "
+                                                           "its onset, s")
     # filter
-    q_accel_m2_s3: float = 0.01
-    sigma0_pos_m: float = 30.0
-    sigma0_vel_m_s: float = 1.0
-    sigma0_clock_bias_m: float = 300.0
-    sigma0_clock_drift_m_s: float = 3.0
-    adaptive_q_decay: float = 0.1
-    adaptive_q_gain: float = 0.7
+    q_accel_m2_s3: float = param(0.01, check=_NON_NEGATIVE,
+                                 doc="white-acceleration PSD of the filters' constant-velocity model, m^2/s^3")
+    sigma0_pos_m: float = param(30.0, check=_POSITIVE, doc="prior position sigma per axis (a coarse fix), m")
+    sigma0_vel_m_s: float = param(1.0, check=_POSITIVE, doc="prior velocity sigma per axis, m/s")
+    sigma0_clock_bias_m: float = param(300.0, check=_POSITIVE,
+                                       doc="receiver clock bias sigma (the truth's draw and the prior), m")
+    sigma0_clock_drift_m_s: float = param(3.0, check=_POSITIVE,
+                                          doc="receiver clock drift sigma (the truth's draw and the prior), m/s")
+    adaptive_q_decay: float = param(0.1, check=within(0, 1, hi_open=True),
+                                    doc="decay of the eq 7 adaptive Q (filters.adaptive) on the dynamic states")
+    adaptive_q_gain: float = param(0.7, check=_NON_NEGATIVE, doc="gain of the eq 7 adaptive Q")
     # the monitor (IntegrityConfig)
-    jump_sigma: float = 3.3
-    window: int = 50
-    window_alpha: float = 1e-4
-    bias_alpha: float = 2e-4
-    persist: int = 2
+    jump_sigma: float = param(3.3, check=number(0, lo_open=True, finite=False, what="a positive number"),
+                              doc="the monitor's jump test threshold on |beta| (inf: no jump test)")
+    window: int = param(50, check=integer(lo=1), doc="window of the monitor's drift tests, epochs")
+    window_alpha: float = param(1e-4, check=_PROBABILITY_OPEN,
+                                doc="false-alarm probability of the mean-square window test per row-epoch")
+    bias_alpha: float | None = param(2e-4, check=optional(_PROBABILITY_OPEN),
+                                     doc="false-alarm probability of the bias window test per row-epoch "
+                                         "(None: no bias test)")
+    persist: int = param(2, check=integer(lo=1), doc="consecutive jump epochs that exclude a channel")
     # 10 s of quarantine without a jump: a pseudorange ramp that is still there (and that the
     # bias-state filter partly absorbs) grows into a jump before the channel comes back. Picked
     # from 20 / 100 / 300 / 450 epochs on 60 trials (seed 3): bias-state RMSE 8.97 / 3.47 / 3.41 /
     # 3.41 m, adaptive-robust 3.88 / 3.99 / 4.49 / 5.09 m, Pfa 1.0e-3 / 1.3e-3 / 3.2e-3 / 5.6e-3
-    readmit_after: int = 100
-    huber_c: float = 2.0
-    r_forget: float = 0.02
+    readmit_after: int = param(100, check=integer(lo=1),
+                               doc="consecutive clean epochs before an excluded channel comes back")
+    huber_c: float | None = param(2.0, check=optional(_POSITIVE),
+                                  doc="Huber threshold on |beta| (None: plain quadratic update)")
+    r_forget: float = param(0.02, check=within(0, 1, lo_open=True),
+                            doc="forgetting factor of the monitor's innovation-based R estimate")
 
     def __post_init__(self):
-        for name in ("duration_s", "dt_s", "sigma_pr_m", "sigma_prr_m_s", "gm_tau_s", "outlier_dof",
-                     "sigma0_pos_m", "sigma0_vel_m_s", "sigma0_clock_bias_m", "sigma0_clock_drift_m_s",
-                     "ramp_detect_s", "speed_m_s"):
-            object.__setattr__(self, name, _num(name, getattr(self, name)))
-        for name in ("gm_sigma_m", "onset_min_s", "warmup_s", "q_accel_m2_s3", "adaptive_q_gain"):
-            object.__setattr__(self, name, _num(name, getattr(self, name), strict_lo=False))
-        for name in ("lat_deg", "lon_deg", "h_m", "heading_deg", "t0_gps_s"):
-            object.__setattr__(self, name, _num(name, getattr(self, name), lo=-math.inf))
-        for name, lo in (("step_sigma", 0.0), ("step_duration_s", 0.0), ("ramp_rate_m_s", 0.0), ("dropout_s", 0.0)):
-            object.__setattr__(self, name, _range(name, getattr(self, name), lo))
-        if self.step_duration_s[0] <= 0 or self.dropout_s[0] <= 0:
-            raise ValueError("step_duration_s and dropout_s must be > 0")
-        if self.ramp_kind not in RAMP_KINDS:
-            raise ValueError(f"ramp_kind must be one of {', '.join(RAMP_KINDS)}, got {self.ramp_kind!r}")
-        if not 0.0 <= self.outlier_prob <= 1.0:
-            raise ValueError(f"outlier_prob must be in [0, 1], got {self.outlier_prob!r}")
-        if not 0.0 < self.onset_max_frac <= 1.0:
-            raise ValueError(f"onset_max_frac must be in (0, 1], got {self.onset_max_frac!r}")
-        if not 0.0 <= self.adaptive_q_decay < 1.0:
-            raise ValueError(f"adaptive_q_decay must be in [0, 1), got {self.adaptive_q_decay!r}")
-        if not 5.0 <= self.el_mask_deg < 90.0:
-            raise ValueError(f"el_mask_deg must be in [5, 90), got {self.el_mask_deg!r}")
-        if self.systems not in ("G", "R", "GR"):
-            raise ValueError(f"systems must be G, R or GR, got {self.systems!r}")
-        if self.dt_s > self.duration_s:
-            raise ValueError(f"duration_s must be >= dt_s = {self.dt_s!r}, got {self.duration_s!r}")
-        if self.faults and self.onset_min_s >= self.onset_max_frac * self.duration_s:
-            raise ValueError(f"duration_s must leave room for the fault onsets: onset_min_s {self.onset_min_s:g} s >= "
-                             f"{self.onset_max_frac:g} x duration_s {self.duration_s:g} s")
-        if self.warmup_s >= self.duration_s:
-            raise ValueError(f"duration_s must be > warmup_s = {self.warmup_s:g} s, got {self.duration_s:g}")
+        validate(self)
+        require(self.dt_s <= self.duration_s, "duration_s", f"must be >= dt_s = {self.dt_s!r}, got {self.duration_s!r}")
+        require(not self.faults or self.onset_min_s < self.onset_max_frac * self.duration_s, "duration_s",
+                f"must leave room for the fault onsets: onset_min_s {self.onset_min_s:g} s >= "
+                f"{self.onset_max_frac:g} x duration_s {self.duration_s:g} s")
+        require(self.warmup_s < self.duration_s, "duration_s",
+                f"must be > warmup_s = {self.warmup_s:g} s, got {self.duration_s:g}")
         self.monitor_config()  # its own validation; messages name the field
         n = len(self.channel_sats())
-        if n < MIN_CHANNELS:
-            raise ValueError(f"el_mask_deg = {self.el_mask_deg!r}: only {n} satellites in view all through the run "
-                             f"(>= {MIN_CHANNELS} needed for isolation with redundancy)")
+        require(n >= MIN_CHANNELS, "el_mask_deg",
+                f"{self.el_mask_deg!r} leaves only {n} satellites in view all through the run "
+                f"(>= {MIN_CHANNELS} needed for isolation with redundancy)")
 
     # ------------------------------------------------------------------ derived
     @property
@@ -579,9 +592,7 @@ def _pfa_only(n_fa, n):
 # ------------------------------------------------------------------ the run
 def run(scn: IntegrityScenario, trials: int, seed: int, progress=None, backend=None, clean=True) -> dict:
     """All filters on the same simulated data; returns a dict (numpy arrays for the series)."""
-    if isinstance(trials, bool) or int(trials) != trials or trials < 1:
-        raise ValueError(f"trials must be an integer >= 1, got {trials!r}")
-    trials = int(trials)
+    trials = integer(lo=1)("trials", trials)
     t_wall = time.perf_counter()
     ss = np.random.SeedSequence(seed)
     rng_w, rng_f, rng_p = (np.random.default_rng(s) for s in ss.spawn(3))

@@ -128,6 +128,8 @@ from sitl.gnss import orbits
 from sitl.gnss.clock import ClockModel
 from sitl.gnss.receiver import Receiver, ReceiverConfig
 from sitl.gnss.world import elevation_grid, ephemeris_for_filter, geometry_track
+from sitl.app.experiments.ranges import within
+from sitl.params import choice, integer, number, param, require, switch, validate
 
 __all__ = ["MIN_SATS", "IonoTropoScenario", "run_carrier_phase", "run_cmc_increments", "run_code_doppler",
            "run_streamed"]
@@ -140,116 +142,109 @@ CB = [IDX_CLOCK, IDX_DRIFT]
 CMC_NOISE = ("states", "whitened")
 
 
-def _num(name, v, positive=True, allow_zero=False):
-    if isinstance(v, bool) or not isinstance(v, (int, float, np.integer, np.floating)) or not math.isfinite(v):
-        raise ValueError(f"{name} must be a finite number, got {v!r}")
-    if positive and not (v > 0 or (allow_zero and v == 0)):
-        raise ValueError(f"{name} must be {'>= 0' if allow_zero else '> 0'}, got {v!r}")
-    return float(v)
+_POSITIVE = number(0, lo_open=True)
+_NON_NEGATIVE = number(0)
+_FINITE = number()
 
 
 @dataclass(frozen=True)
 class IonoTropoScenario:
     """Seed 000 variant-1 scenario (defaults: the seed's experiment)."""
 
-    duration_s: float = 1200.0
-    dt_s: float = 0.1
+    duration_s: float = param(1200.0, check=_POSITIVE, doc="observation time, s")
+    dt_s: float = param(0.1, check=_POSITIVE, doc="epoch interval of the receiver and the filter, s (10 Hz)")
     # receiver (seed 000)
-    sigma_pr_m: float = 6.0
-    sigma_prr_m_s: float = 0.064
-    sigma_phase_m: float = 0.003  # not used by variant 1; passed to the receiver
-    iono_zenith_m: float = 15.0
-    tropo_zenith_m: float = 2.5
-    gps_glonass_offset_m: float = 5.0
-    el_mask_deg: float = 10.0
+    sigma_pr_m: float = param(6.0, check=_POSITIVE, doc="pseudorange noise (1 sigma), m (seed 000)")
+    sigma_prr_m_s: float = param(0.064, check=_POSITIVE, doc="pseudorange-rate noise (1 sigma), m/s (seed 000)")
+    sigma_phase_m: float = param(0.003, check=_POSITIVE,
+                                 doc="carrier-phase noise (1 sigma), m; not used by variant 1, passed to the receiver")
+    iono_zenith_m: float = param(15.0, check=_NON_NEGATIVE, doc="true zenith ionospheric delay I_g at L1, m")
+    tropo_zenith_m: float = param(2.5, check=_NON_NEGATIVE, doc="true zenith tropospheric delay U_g, m")
+    gps_glonass_offset_m: float = param(5.0, check=_FINITE, doc="true GPS-GLONASS receiver bias Delta_A, m")
+    el_mask_deg: float = param(10.0, check=within(5, 90, hi_open=True,
+                                                  what="a number in [5, 90) (the seed's 1/sin(el) troposphere "
+                                                       "mapping, eq 11, does not hold nearer the horizon)"),
+                               doc=f"elevation mask, deg; >= {MIN_SATS} satellites must stay in view all along the run")
     # trajectory: great circle at constant speed from (lat, lon, h), heading from north
-    lat_deg: float = 55.0
-    lon_deg: float = 37.0
-    h_m: float = 1000.0
-    speed_m_s: float = 50.0
-    heading_deg: float = 90.0
-    t0_gps_s: float = orbits.DEFAULT_TOA_GPS_S + 3600.0
-    systems: str = "GR"
+    lat_deg: float = param(55.0, check=within(-90, 90, lo_open=True, hi_open=True),
+                           doc="latitude of the trajectory's start, deg")
+    lon_deg: float = param(37.0, check=_FINITE, doc="longitude of the trajectory's start, deg")
+    h_m: float = param(1000.0, check=within(-500, 1e5, what="a number in [-500, 1e5] (a receiver near the ground)"),
+                       doc="height of the trajectory above the ellipsoid, m")
+    speed_m_s: float = param(50.0, check=_NON_NEGATIVE, doc="ground speed along the great circle, m/s")
+    heading_deg: float = param(90.0, check=_FINITE, doc="initial heading of the great circle from north, deg")
+    t0_gps_s: float = param(orbits.DEFAULT_TOA_GPS_S + 3600.0, check=_FINITE,
+                            doc="GPS time of the first epoch, s (an hour after the almanac's reference time)")
+    systems: str = param("GR", check=choice("GR", "RG", "G", "R"),
+                         doc="constellations, in this order: G (GPS) and/or R (GLONASS)")
     # prior (1-sigma) and filter process noise
-    sigma0_pos_m: float = 100.0
-    sigma0_vel_m_s: float = 5.0
-    sigma0_clock_bias_m: float = 300.0
-    sigma0_clock_drift_m_s: float = 3.0
-    sigma0_gps_glo_m: float = 10.0
-    iono_prior_m: float = 0.0
-    sigma0_iono_m: float = 20.0
-    tropo_prior_m: float = 0.0
-    sigma0_tropo_m: float = 5.0
-    q_accel_m2_s3: float = 0.01
-    q_atmo_m2_s: float = 1e-10  # random-walk PSD of Delta_A, I_g, U_g in the filter
-    final_window_s: float = 60.0
+    sigma0_pos_m: float = param(100.0, check=_POSITIVE,
+                                doc="prior position sigma per axis (the prior mean is the truth plus such a draw), m")
+    sigma0_vel_m_s: float = param(5.0, check=_POSITIVE, doc="prior velocity sigma per axis (likewise), m/s")
+    sigma0_clock_bias_m: float = param(300.0, check=_POSITIVE,
+                                       doc="receiver clock bias sigma (the truth's draw; the prior is 0 with it), m")
+    sigma0_clock_drift_m_s: float = param(3.0, check=_POSITIVE,
+                                          doc="receiver clock drift sigma (the truth's draw; the prior is 0 with it), "
+                                              "m/s")
+    sigma0_gps_glo_m: float = param(10.0, check=_POSITIVE, doc="prior sigma of Delta_A (prior mean 0), m")
+    iono_prior_m: float = param(0.0, check=_FINITE, doc="prior mean of I_g, m")
+    sigma0_iono_m: float = param(20.0, check=_POSITIVE, doc="prior sigma of I_g, m")
+    tropo_prior_m: float = param(0.0, check=_FINITE, doc="prior mean of U_g, m")
+    sigma0_tropo_m: float = param(5.0, check=_POSITIVE, doc="prior sigma of U_g, m")
+    q_accel_m2_s3: float = param(0.01, check=_NON_NEGATIVE,
+                                 doc="white-acceleration PSD of the filter's motion model, m^2/s^3")
+    q_atmo_m2_s: float = param(1e-10, check=_NON_NEGATIVE,
+                               doc="random-walk PSD of Delta_A, I_g and U_g in the filter (constant in the truth), "
+                                   "m^2/s")
+    final_window_s: float = param(60.0, check=_POSITIVE,
+                                  doc="the final errors and ANEES are scored over the last this many seconds")
     # variant 2: code-minus-carrier increments (eqs 29-33)
-    cmc_window_s: float = 90.0  # increment interval (seed: 90 s); a multiple of dt_s
-    cycle_slip_rate_hz: float = 0.0  # random cycle slips per tracked satellite (receiver), 1/s
+    cmc_window_s: float = param(90.0, check=_POSITIVE,
+                                doc="variant 2: the increment interval W, s (seed: 90 s); a multiple of dt_s")
+    cycle_slip_rate_hz: float = param(0.0, check=_NON_NEGATIVE,
+                                      doc="random cycle slips per tracked satellite in the simulated receiver, 1/s")
     # how E_j's code noise is handled: "states" (exact: eps_D,j at the window start is a state,
     # see the module docstring) or "whitened" (against the same epoch's pr_j only; the
     # correlation with the already-used pr_j(t - W) ignored)
-    cmc_noise: str = "states"
+    cmc_noise: str = param("states", check=choice(*CMC_NOISE),
+                           doc="variant 2, the code noise of the increments: states (exact: the code noise at the "
+                               "window start is a filter state) or whitened (decorrelated from the same epoch's "
+                               "pseudorange only)")
     # variant 3: carrier-phase ambiguity states
-    sigma0_amb_m: float = 1000.0  # prior / reset sigma of a new K_j, m (flat; see module docstring)
-    phase_max_sats: int = 0  # carrier phase of at most this many satellites (0: every tracked one)
+    sigma0_amb_m: float = param(1000.0, check=_POSITIVE,
+                                doc="variant 3: prior / reset sigma of a new ambiguity state K_j (flat), m")
+    phase_max_sats: int = param(0, check=integer(lo=0, what="an integer >= 0 (0: every satellite)"),
+                                doc="variant 3: the carrier phase of at most this many satellites (0: every tracked "
+                                    "one)")
     # adaptive process noise (eq 7): Q(i+1) = Q_min + decay Q(i) + gain diag((W nu)(W nu)')
-    adaptive_q: bool = False
-    adaptive_q_decay: float = 0.1
-    adaptive_q_gain: float = 0.7
+    adaptive_q: bool = param(False, check=switch(), doc="the adaptive process noise of the seed's eq 7")
+    adaptive_q_decay: float = param(0.1, check=within(0, 1, hi_open=True,
+                                                      what="a number in [0, 1) (Q would grow without bound)"),
+                                    doc="eq 7's decay of the previous Q")
+    adaptive_q_gain: float = param(0.7, check=_NON_NEGATIVE, doc="eq 7's gain on diag((W nu)(W nu)')")
     # which states adapt: "all" (the seed: diag over the whole state) or "dynamic" (position,
     # velocity, clock bias and drift only; Delta_A, I_g, U_g and K_j are constants)
-    adaptive_q_scope: str = "all"
+    adaptive_q_scope: str = param("all", check=choice(*ADAPTIVE_Q_SCOPES),
+                                  doc="which states adapt: all (the seed) or dynamic (position, velocity, clock bias "
+                                      "and drift only)")
     # truth clock: N_eps of the simulated clock = truth_clock_psd_scale x the filter's N_eps
     # (1 = correctly modelled; > 1 a mismodelled, noisier clock than the filter assumes)
-    truth_clock_psd_scale: float = 1.0
+    truth_clock_psd_scale: float = param(1.0, check=_POSITIVE,
+                                         doc="the simulated clock's PSD / the filter's (1: correctly modelled)")
 
     def __post_init__(self):
-        for name in ("duration_s", "dt_s", "sigma_pr_m", "sigma_prr_m_s", "sigma_phase_m",
-                     "sigma0_pos_m", "sigma0_vel_m_s", "sigma0_clock_bias_m", "sigma0_clock_drift_m_s",
-                     "sigma0_gps_glo_m", "sigma0_iono_m", "sigma0_tropo_m", "final_window_s", "cmc_window_s",
-                     "sigma0_amb_m", "truth_clock_psd_scale"):
-            object.__setattr__(self, name, _num(name, getattr(self, name)))
-        for name in ("iono_zenith_m", "tropo_zenith_m", "speed_m_s", "q_accel_m2_s3", "q_atmo_m2_s",
-                     "cycle_slip_rate_hz", "adaptive_q_decay", "adaptive_q_gain"):
-            object.__setattr__(self, name, _num(name, getattr(self, name), allow_zero=True))
-        for name in ("gps_glonass_offset_m", "lat_deg", "lon_deg", "h_m", "heading_deg", "t0_gps_s",
-                     "iono_prior_m", "tropo_prior_m"):
-            object.__setattr__(self, name, _num(name, getattr(self, name), positive=False))
-        if isinstance(self.phase_max_sats, bool) or not isinstance(self.phase_max_sats, (int, np.integer)) \
-                or self.phase_max_sats < 0:
-            raise ValueError(f"phase_max_sats must be an integer >= 0 (0: every satellite), got {self.phase_max_sats!r}")
-        if self.cmc_noise not in CMC_NOISE:
-            raise ValueError(f"cmc_noise must be one of {', '.join(CMC_NOISE)}, got {self.cmc_noise!r}")
-        if not isinstance(self.adaptive_q, (bool, np.bool_)):
-            raise ValueError(f"adaptive_q must be true or false, got {self.adaptive_q!r}")
-        object.__setattr__(self, "adaptive_q", bool(self.adaptive_q))
-        if self.adaptive_q_scope not in ADAPTIVE_Q_SCOPES:
-            raise ValueError(f"adaptive_q_scope must be one of {', '.join(ADAPTIVE_Q_SCOPES)}, "
-                             f"got {self.adaptive_q_scope!r}")
-        if not self.adaptive_q_decay < 1.0:
-            raise ValueError(f"adaptive_q_decay must be in [0, 1) (Q would grow without bound), "
-                             f"got {self.adaptive_q_decay!r}")
-        if not 5.0 <= self.el_mask_deg < 90.0:
-            raise ValueError(f"el_mask_deg must be in [5, 90): the seed's 1/sin(el) troposphere mapping (eq 11) "
-                             f"does not hold nearer the horizon, got {self.el_mask_deg!r}")
-        if not -90.0 < self.lat_deg < 90.0:
-            raise ValueError(f"lat_deg must be in (-90, 90), got {self.lat_deg!r}")
-        if not -500.0 <= self.h_m <= 1e5:
-            raise ValueError(f"h_m must be in [-500, 1e5] (a receiver near the ground), got {self.h_m!r}")
-        if self.dt_s > self.duration_s:
-            raise ValueError(f"dt_s must be <= duration_s, got {self.dt_s!r} > {self.duration_s!r}")
+        validate(self)
+        require(self.dt_s <= self.duration_s, "dt_s", f"must be <= duration_s, got {self.dt_s!r} > {self.duration_s!r}")
         w = self.cmc_window_s / self.dt_s
-        if abs(w - round(w)) > 1e-6 * max(1.0, w) or round(w) < 1:
-            raise ValueError(f"cmc_window_s must be a positive multiple of dt_s = {self.dt_s!r}, "
-                             f"got {self.cmc_window_s!r}")
+        require(abs(w - round(w)) <= 1e-6 * max(1.0, w) and round(w) >= 1, "cmc_window_s",
+                f"must be a positive multiple of dt_s = {self.dt_s!r}, got {self.cmc_window_s!r}")
         # the receiver's own validation (sigma, mask, atmosphere), message names the field
         self.receiver_config()
         # visibility: at least MIN_SATS satellites above the mask all along the run
         n = self.visible_counts()
-        if n.min() < MIN_SATS:
-            raise ValueError(f"el_mask_deg = {self.el_mask_deg!r}: only {int(n.min())} satellites in view at some "
-                             f"epoch (>= {MIN_SATS} needed all along the run)")
+        require(n.min() >= MIN_SATS, "el_mask_deg",
+                f"{self.el_mask_deg!r} leaves only {int(n.min())} satellites in view at some epoch "
+                f"(>= {MIN_SATS} needed all along the run)")
 
     # ------------------------------------------------------------------ the world
     @property
@@ -304,12 +299,6 @@ class IonoTropoScenario:
         sd[IDX_IONO] = self.sigma0_iono_m
         sd[IDX_TROPO] = self.sigma0_tropo_m
         return sd
-
-
-def _check_trials(trials):
-    if isinstance(trials, bool) or int(trials) != trials or trials < 1:
-        raise ValueError(f"trials must be an integer >= 1, got {trials!r}")
-    return int(trials)
 
 
 class _CmcIncrementModel(JointMeasurement):
@@ -471,7 +460,7 @@ def run_streamed(scn: IonoTropoScenario, trials: int, seed: int, variant: int = 
         raise ValueError(f"variant must be 1, 2 or 3, got {variant!r}")
     if not isinstance(scn, IonoTropoScenario):
         raise ValueError(f"scn must be an IonoTropoScenario, got {type(scn).__name__}")  # noqa: TRY004
-    trials = _check_trials(trials)
+    trials = integer(lo=1)("trials", trials)
     t_wall = time.perf_counter()
     rng = np.random.default_rng(seed)
     const = scn.constellation()
