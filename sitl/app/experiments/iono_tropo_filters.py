@@ -53,27 +53,9 @@ kept per satellite in a ring buffer of W epochs with B_j. Used only where the cy
 detector (filters.cycleslip, fed the receiver's phase and Doppler only -- not its
 lock_count, which the simulator resets at the slips it generates) reports the carrier arc
 slip-free over the whole window.
-Noise bookkeeping: code and phase noise are white per epoch. E_j(t) = 2 I_g k_j dm_j +
-eps_D,j(t) - eps_D,j(t - W) + (phase noise): its code noise is the *same* noise as that of
-pr_j(t) and of pr_j(t - W), which the filter also uses. Two treatments (`cmc_noise`):
-* "states" (default, exact): all satellites' windows run on one grid of W epochs. At a
-  window start the code noise eps_D,j of every tracked satellite becomes a state e_j (prior
-  N(0, sigma_D^2), constant) and pr_j's row carries it (h += e_j, R = 0: marginally the
-  usual pr_j). At the window end, E_j = 2 k_j dm_j I_g + e_j(new) - e_j(old) with variance
-  2 sigma_Phi^2 only; then the old e_j are marginalised (dropped) and the new ones start the
-  next window. A satellite that sets inside its window just loses its e_j. All correlations
-  are carried by the states, so the increment is worth what it is really worth: with pr_j(t)
-  and pr_j(t - W) it pins down the carrier-phase change over the window (3 mm) -- the
-  information the seed's "noise 2 sigma_D^2" reading throws away (_CodeNoiseStateModel; the
-  test checks it against one batch GLS solve with the full noise covariance).
-* "whitened" (close to the seed): every B sample enters at most one increment (each
-  satellite's epochs alternate between W-long "start" and "end" blocks, staggered across
-  satellites; at an end epoch E pairs B(t) with B(t - W) from the preceding start block),
-  and E_j(t) is decorrelated from the same epoch's pr_j(t) (row E_j - pr_j, variance
-  sigma_D^2 + 2 sigma_Phi^2, see _CmcIncrementModel). Ignored: the correlation with the
-  already-processed pr_j(t - W); E then carries only 2 I_g dm_j against ~6 m of noise.
-Both: the dm_I error from the filter's position/geocentric elevation (the truth maps with the
-geodetic elevation) is ignored.
+The code noise of E_j is the same noise as that of pr_j(t) and pr_j(t - W); its two treatments
+(`cmc_noise`: "states", exact, the default; "whitened", close to the seed) are
+sitl.app.experiments.iono_tropo_models' (its docstring: the noise bookkeeping).
 
 Variant 3 (run_carrier_phase = run_streamed(variant=3); same world and draws again): the
 ambiguous carrier phase in metres (eqs 35-37, sigma_phase_m) of every tracked satellite is
@@ -101,7 +83,7 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import asdict
 
 import numpy as np
 
@@ -110,287 +92,21 @@ from filters.adaptive import AdaptiveQ
 from filters.cycleslip import CycleSlipConfig, CycleSlipDetector
 from filters.ekf import ekf_predict, ekf_step, ekf_update
 from filters.iono_tropo import (
-    F_REF_HZ,
-    IDX_CLOCK,
-    IDX_DRIFT,
-    IDX_GPS_GLO,
-    IDX_IONO,
-    IDX_TROPO,
-    N_BASE,
-    IonoTropoGnss,
-    IonoTropoTransition,
-    elevation_rad,
-    iono_mapping,
+    F_REF_HZ, IDX_CLOCK, IDX_DRIFT, IDX_IONO, IDX_TROPO, N_BASE, IonoTropoGnss, elevation_rad, iono_mapping,
 )
-from filters.models import JointMeasurement
-from sitl import geodesy
-from sitl.gnss import orbits
+from sitl.app.experiments.iono_tropo_models import (
+    _append_states, _CmcIncrementModel, _CodeNoiseStateModel, _drop_states,
+)
+from sitl.app.experiments.iono_tropo_scenario import (  # noqa: F401  (CB, CMC_NOISE, IB: re-exported)
+    ADAPTIVE_Q_SCOPES, CB, CMC_NOISE, IB, MIN_SATS, IonoTropoScenario,
+)
 from sitl.gnss.clock import ClockModel
-from sitl.gnss.receiver import Receiver, ReceiverConfig
-from sitl.gnss.world import elevation_grid, ephemeris_for_filter, geometry_track
-from sitl.app.experiments.ranges import within
-from sitl.params import choice, integer, number, param, require, switch, validate
+from sitl.gnss.receiver import Receiver
+from sitl.gnss.world import ephemeris_for_filter, geometry_track
+from sitl.params import integer
 
 __all__ = ["MIN_SATS", "IonoTropoScenario", "run_carrier_phase", "run_cmc_increments", "run_code_doppler",
            "run_streamed"]
-
-MIN_SATS = 4  # position + clock need at least 4 satellites at every epoch
-_CHECK_EVERY_S = 10.0  # visibility pre-check grid
-IB = [IDX_IONO, IDX_TROPO]
-ADAPTIVE_Q_SCOPES = {"all": None, "dynamic": (0, 1, 2, IDX_CLOCK, 4, 5, 6, IDX_DRIFT)}
-CB = [IDX_CLOCK, IDX_DRIFT]
-CMC_NOISE = ("states", "whitened")
-
-
-_POSITIVE = number(0, lo_open=True)
-_NON_NEGATIVE = number(0)
-_FINITE = number()
-
-
-@dataclass(frozen=True)
-class IonoTropoScenario:
-    """Seed 000 variant-1 scenario (defaults: the seed's experiment)."""
-
-    duration_s: float = param(1200.0, check=_POSITIVE, doc="observation time, s")
-    dt_s: float = param(0.1, check=_POSITIVE, doc="epoch interval of the receiver and the filter, s (10 Hz)")
-    # receiver (seed 000)
-    sigma_pr_m: float = param(6.0, check=_POSITIVE, doc="pseudorange noise (1 sigma), m (seed 000)")
-    sigma_prr_m_s: float = param(0.064, check=_POSITIVE, doc="pseudorange-rate noise (1 sigma), m/s (seed 000)")
-    sigma_phase_m: float = param(0.003, check=_POSITIVE,
-                                 doc="carrier-phase noise (1 sigma), m; not used by variant 1, passed to the receiver")
-    iono_zenith_m: float = param(15.0, check=_NON_NEGATIVE, doc="true zenith ionospheric delay I_g at L1, m")
-    tropo_zenith_m: float = param(2.5, check=_NON_NEGATIVE, doc="true zenith tropospheric delay U_g, m")
-    gps_glonass_offset_m: float = param(5.0, check=_FINITE, doc="true GPS-GLONASS receiver bias Delta_A, m")
-    el_mask_deg: float = param(10.0, check=within(5, 90, hi_open=True,
-                                                  what="a number in [5, 90) (the seed's 1/sin(el) troposphere "
-                                                       "mapping, eq 11, does not hold nearer the horizon)"),
-                               doc=f"elevation mask, deg; >= {MIN_SATS} satellites must stay in view all along the run")
-    # trajectory: great circle at constant speed from (lat, lon, h), heading from north
-    lat_deg: float = param(55.0, check=within(-90, 90, lo_open=True, hi_open=True),
-                           doc="latitude of the trajectory's start, deg")
-    lon_deg: float = param(37.0, check=_FINITE, doc="longitude of the trajectory's start, deg")
-    h_m: float = param(1000.0, check=within(-500, 1e5, what="a number in [-500, 1e5] (a receiver near the ground)"),
-                       doc="height of the trajectory above the ellipsoid, m")
-    speed_m_s: float = param(50.0, check=_NON_NEGATIVE, doc="ground speed along the great circle, m/s")
-    heading_deg: float = param(90.0, check=_FINITE, doc="initial heading of the great circle from north, deg")
-    t0_gps_s: float = param(orbits.DEFAULT_TOA_GPS_S + 3600.0, check=_FINITE,
-                            doc="GPS time of the first epoch, s (an hour after the almanac's reference time)")
-    systems: str = param("GR", check=choice("GR", "RG", "G", "R"),
-                         doc="constellations, in this order: G (GPS) and/or R (GLONASS)")
-    # prior (1-sigma) and filter process noise
-    sigma0_pos_m: float = param(100.0, check=_POSITIVE,
-                                doc="prior position sigma per axis (the prior mean is the truth plus such a draw), m")
-    sigma0_vel_m_s: float = param(5.0, check=_POSITIVE, doc="prior velocity sigma per axis (likewise), m/s")
-    sigma0_clock_bias_m: float = param(300.0, check=_POSITIVE,
-                                       doc="receiver clock bias sigma (the truth's draw; the prior is 0 with it), m")
-    sigma0_clock_drift_m_s: float = param(3.0, check=_POSITIVE,
-                                          doc="receiver clock drift sigma (the truth's draw; the prior is 0 with it), "
-                                              "m/s")
-    sigma0_gps_glo_m: float = param(10.0, check=_POSITIVE, doc="prior sigma of Delta_A (prior mean 0), m")
-    iono_prior_m: float = param(0.0, check=_FINITE, doc="prior mean of I_g, m")
-    sigma0_iono_m: float = param(20.0, check=_POSITIVE, doc="prior sigma of I_g, m")
-    tropo_prior_m: float = param(0.0, check=_FINITE, doc="prior mean of U_g, m")
-    sigma0_tropo_m: float = param(5.0, check=_POSITIVE, doc="prior sigma of U_g, m")
-    q_accel_m2_s3: float = param(0.01, check=_NON_NEGATIVE,
-                                 doc="white-acceleration PSD of the filter's motion model, m^2/s^3")
-    q_atmo_m2_s: float = param(1e-10, check=_NON_NEGATIVE,
-                               doc="random-walk PSD of Delta_A, I_g and U_g in the filter (constant in the truth), "
-                                   "m^2/s")
-    final_window_s: float = param(60.0, check=_POSITIVE,
-                                  doc="the final errors and ANEES are scored over the last this many seconds")
-    # variant 2: code-minus-carrier increments (eqs 29-33)
-    cmc_window_s: float = param(90.0, check=_POSITIVE,
-                                doc="variant 2: the increment interval W, s (seed: 90 s); a multiple of dt_s")
-    cycle_slip_rate_hz: float = param(0.0, check=_NON_NEGATIVE,
-                                      doc="random cycle slips per tracked satellite in the simulated receiver, 1/s")
-    # how E_j's code noise is handled: "states" (exact: eps_D,j at the window start is a state,
-    # see the module docstring) or "whitened" (against the same epoch's pr_j only; the
-    # correlation with the already-used pr_j(t - W) ignored)
-    cmc_noise: str = param("states", check=choice(*CMC_NOISE),
-                           doc="variant 2, the code noise of the increments: states (exact: the code noise at the "
-                               "window start is a filter state) or whitened (decorrelated from the same epoch's "
-                               "pseudorange only)")
-    # variant 3: carrier-phase ambiguity states
-    sigma0_amb_m: float = param(1000.0, check=_POSITIVE,
-                                doc="variant 3: prior / reset sigma of a new ambiguity state K_j (flat), m")
-    phase_max_sats: int = param(0, check=integer(lo=0, what="an integer >= 0 (0: every satellite)"),
-                                doc="variant 3: the carrier phase of at most this many satellites (0: every tracked "
-                                    "one)")
-    # adaptive process noise (eq 7): Q(i+1) = Q_min + decay Q(i) + gain diag((W nu)(W nu)')
-    adaptive_q: bool = param(False, check=switch(), doc="the adaptive process noise of the seed's eq 7")
-    adaptive_q_decay: float = param(0.1, check=within(0, 1, hi_open=True,
-                                                      what="a number in [0, 1) (Q would grow without bound)"),
-                                    doc="eq 7's decay of the previous Q")
-    adaptive_q_gain: float = param(0.7, check=_NON_NEGATIVE, doc="eq 7's gain on diag((W nu)(W nu)')")
-    # which states adapt: "all" (the seed: diag over the whole state) or "dynamic" (position,
-    # velocity, clock bias and drift only; Delta_A, I_g, U_g and K_j are constants)
-    adaptive_q_scope: str = param("all", check=choice(*ADAPTIVE_Q_SCOPES),
-                                  doc="which states adapt: all (the seed) or dynamic (position, velocity, clock bias "
-                                      "and drift only)")
-    # truth clock: N_eps of the simulated clock = truth_clock_psd_scale x the filter's N_eps
-    # (1 = correctly modelled; > 1 a mismodelled, noisier clock than the filter assumes)
-    truth_clock_psd_scale: float = param(1.0, check=_POSITIVE,
-                                         doc="the simulated clock's PSD / the filter's (1: correctly modelled)")
-
-    def __post_init__(self):
-        validate(self)
-        require(self.dt_s <= self.duration_s, "dt_s", f"must be <= duration_s, got {self.dt_s!r} > {self.duration_s!r}")
-        w = self.cmc_window_s / self.dt_s
-        require(abs(w - round(w)) <= 1e-6 * max(1.0, w) and round(w) >= 1, "cmc_window_s",
-                f"must be a positive multiple of dt_s = {self.dt_s!r}, got {self.cmc_window_s!r}")
-        # the receiver's own validation (sigma, mask, atmosphere), message names the field
-        self.receiver_config()
-        # visibility: at least MIN_SATS satellites above the mask all along the run
-        n = self.visible_counts()
-        require(n.min() >= MIN_SATS, "el_mask_deg",
-                f"{self.el_mask_deg!r} leaves only {int(n.min())} satellites in view at some epoch "
-                f"(>= {MIN_SATS} needed all along the run)")
-
-    # ------------------------------------------------------------------ the world
-    @property
-    def cmc_window_epochs(self) -> int:
-        """The increment interval in epochs (cmc_window_s / dt_s)."""
-        return round(self.cmc_window_s / self.dt_s)
-
-    @property
-    def n_epochs(self) -> int:
-        return round(self.duration_s / self.dt_s) + 1
-
-    def times(self) -> np.ndarray:
-        """Epoch times relative to the start, s (epoch 0 at 0)."""
-        return np.arange(self.n_epochs) * self.dt_s
-
-    def constellation(self):
-        return orbits.default_constellation(self.systems)
-
-    def receiver_config(self) -> ReceiverConfig:
-        return ReceiverConfig(sigma_pr_m=self.sigma_pr_m, sigma_prr_m_s=self.sigma_prr_m_s,
-                              sigma_phase_m=self.sigma_phase_m, el_mask_rad=math.radians(self.el_mask_deg),
-                              iono_zenith_m=self.iono_zenith_m, tropo_zenith_m=self.tropo_zenith_m,
-                              gps_glonass_offset_m=self.gps_glonass_offset_m,
-                              cycle_slip_rate_hz=self.cycle_slip_rate_hz)
-
-    def trajectory(self, t_rel_s):
-        """True ECEF position and velocity (..., 3) at t_rel_s: a great circle at constant
-        speed on the geocentric sphere through the start point."""
-        return geodesy.great_circle_track(self.lat_deg, self.lon_deg, self.h_m, self.speed_m_s, self.heading_deg,
-                                          t_rel_s)
-
-    def visible_counts(self, every_s: float = _CHECK_EVERY_S) -> np.ndarray:
-        """Satellites above the mask (geodetic horizon, no light time) on a coarse grid."""
-        t = np.unique(np.append(np.arange(0.0, self.duration_s, every_s), self.duration_s))
-        pos, _ = self.trajectory(t)
-        el = elevation_grid(self.constellation(), self.t0_gps_s + t, pos)
-        return np.sum(el >= math.radians(self.el_mask_deg), axis=1)
-
-    # ------------------------------------------------------------------ the filter
-    def transition(self, n_amb: int = 0) -> IonoTropoTransition:
-        q = self.q_atmo_m2_s
-        return IonoTropoTransition(n_amb=n_amb, q_accel_m2_s3=self.q_accel_m2_s3, q_gps_glo_m2_s=q,
-                                   q_iono_m2_s=q, q_tropo_m2_s=q)
-
-    def prior_sigmas(self) -> np.ndarray:
-        sd = np.empty(N_BASE)
-        sd[0:3] = self.sigma0_pos_m
-        sd[IDX_CLOCK] = self.sigma0_clock_bias_m
-        sd[4:7] = self.sigma0_vel_m_s
-        sd[IDX_DRIFT] = self.sigma0_clock_drift_m_s
-        sd[IDX_GPS_GLO] = self.sigma0_gps_glo_m
-        sd[IDX_IONO] = self.sigma0_iono_m
-        sd[IDX_TROPO] = self.sigma0_tropo_m
-        return sd
-
-
-class _CmcIncrementModel(JointMeasurement):
-    """Seed 000 variant 2: the variant-1 model plus one code-minus-carrier increment row per
-    satellite in ``rows`` (local indices into the base model's satellites).
-
-    Increment (eq 33): E_j = B_j(t) - B_j(t - W), B_j = pr_j - phase_j, modelled as
-    2 k_j dm_j I_g (only the I_g column; dm_j = m_I(eta_j(t)) - m_I(eta_j(t - W)) from the
-    filter's own mapping values, treated as known). E_j shares the code noise eps_D,j(t)
-    with the same epoch's pseudorange row, cov(pr_j, E_j) = sigma_D^2, var(E_j) =
-    2 sigma_D^2 + 2 sigma_Phi^2. That 2x2 block is whitened exactly (Gram-Schmidt, the
-    Cholesky factor done by hand) so R stays diagonal: the row carries
-        E'_j = E_j - pr_j,  h = 2 k_j dm_j I_g - h_pr,j(x),  H = 2 k_j dm_j e_Ig - H_pr,j,
-        var = sigma_D^2 + 2 sigma_Phi^2.
-    Where ``used`` (trials, R) is False (not slip-free over the window) the row is inert:
-    z = h = 0, H = 0 (no information, no NIS).
-    """
-
-    def __init__(self, base, rows, coef, used, var_e):
-        self.base = base
-        self.rows = rows
-        self.coef = np.where(used, coef, 0.0)
-        self.used = used
-        self.var_e = var_e
-
-    def h_and_H(self, x):
-        z, H = self.base.h_and_H(x)
-        r, used = self.rows, self.used
-        hE = np.where(used, self.coef * x[..., IDX_IONO, None] - z[..., r], 0.0)
-        HE = np.where(used[..., None], -H[..., r, :], 0.0)
-        HE[..., IDX_IONO] += self.coef
-        return np.concatenate([z, hE], axis=-1), np.concatenate([H, HE], axis=-2)
-
-    def R_diag(self):
-        rb = self.base.R_diag()
-        batch = self.used.shape[:-1]
-        rb = np.broadcast_to(rb, batch + rb.shape[-1:])
-        re = np.broadcast_to(self.var_e, self.used.shape)
-        return np.concatenate([rb, re], axis=-1)
-
-
-class _CodeNoiseStateModel(JointMeasurement):
-    """Seed 000 variant 2 with the code noise at the window start as states (cmc_noise="states").
-
-    x = [11 base states, e_1 .. e_M]: e_i is the code noise eps_D of one satellite at the
-    epoch its window started (a constant once drawn; prior N(0, sigma_D^2)). Rows:
-    * pr_j, prr_j as in IonoTropoGnss (``base``, built with n_state = len(x)); where
-      ``pr_cols[j] >= 0`` the window of satellite j starts now, pr_j's noise is the state
-      e = x[pr_cols[j]] (h += e, H[e] = 1) and its R entry is 0: marginalised over e that is
-      exactly the usual pr_j with variance sigma_D^2;
-    * one increment row per (local satellite ``inc_rows[r]``) whose window ends now:
-        E_j = B_j(t) - B_j(t - W) = 2 k_j dm_j I_g + e_new - e_old + (phase noise),
-      e_new = x[inc_new[r]] the code noise of this epoch (the same state as pr_j's, so the
-      correlation with pr_j(t) is carried), e_old = x[inc_old[r]] the one at the window
-      start (correlated with everything that pr_j(t - W) told the filter), variance
-      var_e = 2 sigma_Phi^2. Where ``used`` is False (a slip in the window) the row is inert.
-    """
-
-    def __init__(self, base, pr_cols, inc_rows, inc_new, inc_old, coef, used, var_e):
-        self.base = base
-        self.pr_cols = pr_cols
-        self.inc_rows, self.inc_new, self.inc_old = inc_rows, inc_new, inc_old
-        self.coef = np.where(used, coef, 0.0)
-        self.used = used
-        self.var_e = var_e
-
-    def h_and_H(self, x):
-        z, H = self.base.h_and_H(x)
-        z = np.array(z, dtype=float)
-        H = np.array(np.broadcast_to(H, x.shape[:-1] + H.shape[-2:]), dtype=float)
-        rows = np.flatnonzero(self.pr_cols >= 0)
-        cols = self.pr_cols[rows]
-        z[..., rows] += x[..., cols]
-        H[..., rows, cols] = 1.0
-        if self.inc_rows.size == 0:
-            return z, H
-        used = self.used
-        R = self.inc_rows.size
-        hE = np.where(used, self.coef * x[..., IDX_IONO, None] + x[..., self.inc_new] - x[..., self.inc_old], 0.0)
-        HE = np.zeros(x.shape[:-1] + (R, x.shape[-1]))
-        HE[..., IDX_IONO] = self.coef
-        r = np.arange(R)
-        HE[..., r, self.inc_new] = np.where(used, 1.0, 0.0)
-        HE[..., r, self.inc_old] = np.where(used, -1.0, 0.0)
-        return np.concatenate([z, hE], axis=-1), np.concatenate([H, HE], axis=-2)
-
-    def R_diag(self):
-        batch = self.used.shape[:-1]
-        rb = np.array(np.broadcast_to(self.base.R_diag(), batch + np.shape(self.base.R_diag())[-1:]), dtype=float)
-        rb[..., np.flatnonzero(self.pr_cols >= 0)] = 0.0
-        re = np.broadcast_to(self.var_e, self.used.shape)
-        return np.concatenate([rb, re], axis=-1)
 
 
 def run_code_doppler(scn: IonoTropoScenario, trials: int, seed: int, progress=None, backend=None) -> dict:
@@ -412,20 +128,6 @@ def _nees2(e0, e1, P, i, j):
     """NEES of a 2-state block (i, j) in closed form, (N,): the scoring runs every epoch."""
     a, b, c = P[:, i, i], P[:, i, j], P[:, j, j]
     return (c * e0 * e0 - 2.0 * b * e0 * e1 + a * e1 * e1) / (a * c - b * b)
-
-
-def _drop_states(x, P, cols):
-    keep = np.setdiff1d(np.arange(x.shape[-1]), cols)
-    return x[:, keep], P[:, keep][:, :, keep]
-
-
-def _append_states(x, P, m):
-    n = x.shape[-1]
-    x2 = np.zeros((x.shape[0], n + m))
-    x2[:, :n] = x
-    P2 = np.zeros((x.shape[0], n + m, n + m))
-    P2[:, :n, :n] = P
-    return x2, P2
 
 
 def run_streamed(scn: IonoTropoScenario, trials: int, seed: int, variant: int = 1, progress=None,
@@ -450,7 +152,7 @@ def run_streamed(scn: IonoTropoScenario, trials: int, seed: int, variant: int = 
       anees_bounds_99_one_epoch; wall_s.
     Variant 2 also: increments {candidates, used, rejected_slip, spanning_true_slip,
       used_spanning_true_slip, detector_slips} (counts over trials, satellites, epochs;
-      see the module docstring for the pairing rule) and n_increments_used (T,) per epoch.
+      see sitl.app.experiments.iono_tropo_models for the pairing rule) and n_increments_used (T,) per epoch.
     Variant 3 also: n_state (T,) (state dimension after the epoch's update = 11 + number of
       K states = 11 + n_visible), ambiguity {rises, sets, k_resets (detector slips on
       satellites with a K state, summed over trials), true_slips, missed_true_slips (true
