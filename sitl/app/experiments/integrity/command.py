@@ -12,17 +12,11 @@ from sitl.app.experiments.integrity.monte_carlo import run
 from sitl.app.experiments.integrity.report import plot, result_document, summary
 from sitl.app.experiments.integrity.scenario import IntegrityScenario
 from sitl.params import (
-    add_flags, backend_option, choice, default_of, integer, number, optional, param, quiet_option, switch, validate,
+    add_flags, backend_option, choice, default_of, flag_of, integer, number, optional, param, quiet_option, switch,
+    validate,
 )
 
-__all__ = ["IntegrityOptions", "add_args", "scenario_from_args", "main", "FLAGS"]
-
-# scenario field -> command-line flag, to name the flag in a usage error
-FLAGS = {"duration_s": "--duration", "sigma_pr_m": "--sigma-pr", "sigma_prr_m_s": "--sigma-prr",
-         "el_mask_deg": "--el-mask-deg", "gm_sigma_m": "--gm-sigma", "gm_tau_s": "--gm-tau",
-         "jump_sigma": "--jump-sigma", "window": "--window", "window_alpha": "--window-alpha",
-         "bias_alpha": "--bias-alpha", "huber_c": "--huber-c", "outlier_prob": "--outlier-prob",
-         "onset_min_s": "--duration", "warmup_s": "--duration"}
+__all__ = ["IntegrityOptions", "add_args", "scenario_from_args", "main", "FLAGS", "OPTION_FIELDS"]
 
 
 def _scn(name):
@@ -75,17 +69,26 @@ class IntegrityOptions:
     __post_init__ = validate
 
 
+# option -> the scenario field it sets (a None option keeps the scenario's default)
+OPTION_FIELDS = {"duration": "duration_s", "sigma_pr": "sigma_pr_m", "sigma_prr": "sigma_prr_m_s",
+                 "el_mask_deg": "el_mask_deg", "gm_sigma": "gm_sigma_m", "gm_tau": "gm_tau_s",
+                 "jump_sigma": "jump_sigma", "window": "window", "window_alpha": "window_alpha",
+                 "bias_alpha": "bias_alpha", "huber_c": "huber_c", "outlier_prob": "outlier_prob",
+                 "ramp_kind": "ramp_kind"}
+# scenario field -> command-line flag, to name the flag in a usage error (the fault onsets and the
+# warm-up must fit in --duration)
+FLAGS = {**{field: flag_of(IntegrityOptions, opt) for opt, field in OPTION_FIELDS.items()},
+         "onset_min_s": flag_of(IntegrityOptions, "duration"), "warmup_s": flag_of(IntegrityOptions, "duration")}
+
+
 def add_args(p) -> None:
     add_flags(p, IntegrityOptions)
 
 
 def scenario_from_args(args) -> IntegrityScenario:
     kw = {"duration_s": args.duration}
-    for flag, field in (("sigma_pr", "sigma_pr_m"), ("sigma_prr", "sigma_prr_m_s"), ("el_mask_deg", "el_mask_deg"),
-                        ("gm_sigma", "gm_sigma_m"), ("gm_tau", "gm_tau_s"), ("jump_sigma", "jump_sigma"),
-                        ("window", "window"), ("window_alpha", "window_alpha"), ("bias_alpha", "bias_alpha"),
-                        ("huber_c", "huber_c"), ("outlier_prob", "outlier_prob"), ("ramp_kind", "ramp_kind")):
-        v = getattr(args, flag, None)
+    for opt, field in OPTION_FIELDS.items():
+        v = getattr(args, opt, None)
         if v is not None:
             kw[field] = v
     if getattr(args, "no_faults", False):
