@@ -46,9 +46,10 @@ def _pair(lo_open: bool = False):
             raise ParamError(key, f"expected a (low, high) pair, got {v!r}") from None
         try:
             a, b = end("", a), end("", b)
+            ok = a <= b
         except ParamError:
-            a = b = None
-        if a is None or not a <= b:
+            ok = False
+        if not ok:
             raise ParamError(key, f"expected {what}, got {v!r}")
         return (a, b)
 
@@ -57,7 +58,7 @@ def _pair(lo_open: bool = False):
 
 @dataclass(frozen=True)
 class IntegrityScenario:
-    """Seed 003 integrity scenario (documented choices in the module docstring)."""
+    """Seed 003 integrity scenario (documented choices in sitl.app.experiments.integrity's docstring)."""
 
     duration_s: float = param(300.0, check=_POSITIVE, doc="simulated time, s")
     dt_s: float = param(0.1, check=_POSITIVE, doc="epoch interval of the receiver and the filters, s (10 Hz)")
