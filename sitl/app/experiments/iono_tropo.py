@@ -28,7 +28,7 @@ from sitl.app.experiments.common import prepare_out, progress_printer, save_figu
 from sitl.app.experiments import iono_tropo_filters
 from sitl.app.args import OUTPUT_DIR
 from sitl.params import (
-    add_flags, backend_option, choice, default_of, integer, number, optional, param, quiet_option, validate,
+    add_flags, backend_option, choice, default_of, flag_of, integer, number, optional, param, quiet_option, validate,
 )
 
 VARIANTS = {"code_doppler": 1, "phase_increments": 2, "carrier_phase": 3}  # name -> seed000 variant
@@ -48,13 +48,6 @@ SCALAR_KEYS = ("time_to_1m_s", "final_error_m", "final_bias_m", "anees", "anees_
 EXTRA_KEYS = ("increments", "ambiguity", "anees_clock")  # when the run returns them
 INFO_KEYS = ("variant", "epochs", "n_visible_min", "n_visible_max", "prior_error")
 FIGURES = ("iono_tropo_estimates.png", "iono_tropo_errors.png", "iono_tropo_time_to_1m.png")
-
-# scenario field -> command-line flag, to name the flag in a usage error
-FLAGS = {"duration_s": "--duration", "dt_s": "--duration", "sigma_pr_m": "--sigma-pr", "sigma_prr_m_s": "--sigma-prr",
-         "sigma_phase_m": "--sigma-phase", "el_mask_deg": "--el-mask-deg", "adaptive_q": "--adaptive-q", "adaptive_q_scope": "--adaptive-q",
-         "adaptive_q_decay": "--adaptive-q-decay", "adaptive_q_gain": "--adaptive-q-gain",
-         "truth_clock_psd_scale": "--truth-clock-psd-scale", "cycle_slip_rate_hz": "--slip-rate",
-         "cmc_noise": "--cmc-noise", "phase_max_sats": "--phase-sats"}
 
 
 # ------------------------------------------------------------------ scenario and runs
@@ -119,6 +112,16 @@ class IonoTropoOptions:
     quiet: bool = quiet_option()
 
     __post_init__ = validate
+
+
+# scenario field -> the option that sets it, to name the flag in a usage error (dt_s must fit in
+# --duration; --adaptive-q sets adaptive_q and its scope)
+OPTION_OF = {"duration_s": "duration", "dt_s": "duration", "sigma_pr_m": "sigma_pr", "sigma_prr_m_s": "sigma_prr",
+             "sigma_phase_m": "sigma_phase", "el_mask_deg": "el_mask_deg", "adaptive_q": "adaptive_q",
+             "adaptive_q_scope": "adaptive_q", "adaptive_q_decay": "adaptive_q_decay",
+             "adaptive_q_gain": "adaptive_q_gain", "truth_clock_psd_scale": "truth_clock_psd_scale",
+             "cycle_slip_rate_hz": "slip_rate", "cmc_noise": "cmc_noise", "phase_max_sats": "phase_sats"}
+FLAGS = {field: flag_of(IonoTropoOptions, opt) for field, opt in OPTION_OF.items()}
 
 
 def add_args(p) -> None:

@@ -53,27 +53,9 @@ kept per satellite in a ring buffer of W epochs with B_j. Used only where the cy
 detector (filters.cycleslip, fed the receiver's phase and Doppler only -- not its
 lock_count, which the simulator resets at the slips it generates) reports the carrier arc
 slip-free over the whole window.
-Noise bookkeeping: code and phase noise are white per epoch. E_j(t) = 2 I_g k_j dm_j +
-eps_D,j(t) - eps_D,j(t - W) + (phase noise): its code noise is the *same* noise as that of
-pr_j(t) and of pr_j(t - W), which the filter also uses. Two treatments (`cmc_noise`):
-* "states" (default, exact): all satellites' windows run on one grid of W epochs. At a
-  window start the code noise eps_D,j of every tracked satellite becomes a state e_j (prior
-  N(0, sigma_D^2), constant) and pr_j's row carries it (h += e_j, R = 0: marginally the
-  usual pr_j). At the window end, E_j = 2 k_j dm_j I_g + e_j(new) - e_j(old) with variance
-  2 sigma_Phi^2 only; then the old e_j are marginalised (dropped) and the new ones start the
-  next window. A satellite that sets inside its window just loses its e_j. All correlations
-  are carried by the states, so the increment is worth what it is really worth: with pr_j(t)
-  and pr_j(t - W) it pins down the carrier-phase change over the window (3 mm) -- the
-  information the seed's "noise 2 sigma_D^2" reading throws away (_CodeNoiseStateModel; the
-  test checks it against one batch GLS solve with the full noise covariance).
-* "whitened" (close to the seed): every B sample enters at most one increment (each
-  satellite's epochs alternate between W-long "start" and "end" blocks, staggered across
-  satellites; at an end epoch E pairs B(t) with B(t - W) from the preceding start block),
-  and E_j(t) is decorrelated from the same epoch's pr_j(t) (row E_j - pr_j, variance
-  sigma_D^2 + 2 sigma_Phi^2, see _CmcIncrementModel). Ignored: the correlation with the
-  already-processed pr_j(t - W); E then carries only 2 I_g dm_j against ~6 m of noise.
-Both: the dm_I error from the filter's position/geocentric elevation (the truth maps with the
-geodetic elevation) is ignored.
+The code noise of E_j is the same noise as that of pr_j(t) and pr_j(t - W); its two treatments
+(`cmc_noise`: "states", exact, the default; "whitened", close to the seed) are
+sitl.app.experiments.iono_tropo_models' (its docstring: the noise bookkeeping).
 
 Variant 3 (run_carrier_phase = run_streamed(variant=3); same world and draws again): the
 ambiguous carrier phase in metres (eqs 35-37, sigma_phase_m) of every tracked satellite is
@@ -101,7 +83,7 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import asdict
 
 import numpy as np
 
@@ -110,298 +92,21 @@ from filters.adaptive import AdaptiveQ
 from filters.cycleslip import CycleSlipConfig, CycleSlipDetector
 from filters.ekf import ekf_predict, ekf_step, ekf_update
 from filters.iono_tropo import (
-    F_REF_HZ,
-    IDX_CLOCK,
-    IDX_DRIFT,
-    IDX_GPS_GLO,
-    IDX_IONO,
-    IDX_TROPO,
-    N_BASE,
-    IonoTropoGnss,
-    IonoTropoTransition,
-    elevation_rad,
-    iono_mapping,
+    F_REF_HZ, IDX_CLOCK, IDX_DRIFT, IDX_IONO, IDX_TROPO, N_BASE, IonoTropoGnss, elevation_rad, iono_mapping,
 )
-from filters.models import JointMeasurement
-from sitl import geodesy
-from sitl.gnss import orbits
+from sitl.app.experiments.iono_tropo_models import (
+    _append_states, _CmcIncrementModel, _CodeNoiseStateModel, _drop_states,
+)
+from sitl.app.experiments.iono_tropo_scenario import (  # noqa: F401  (CB, CMC_NOISE, IB: re-exported)
+    ADAPTIVE_Q_SCOPES, CB, CMC_NOISE, IB, MIN_SATS, IonoTropoScenario,
+)
 from sitl.gnss.clock import ClockModel
-from sitl.gnss.receiver import Receiver, ReceiverConfig
-from sitl.gnss.world import elevation_grid, ephemeris_for_filter, geometry_track
+from sitl.gnss.receiver import Receiver
+from sitl.gnss.world import ephemeris_for_filter, geometry_track
+from sitl.params import integer
 
 __all__ = ["MIN_SATS", "IonoTropoScenario", "run_carrier_phase", "run_cmc_increments", "run_code_doppler",
            "run_streamed"]
-
-MIN_SATS = 4  # position + clock need at least 4 satellites at every epoch
-_CHECK_EVERY_S = 10.0  # visibility pre-check grid
-IB = [IDX_IONO, IDX_TROPO]
-ADAPTIVE_Q_SCOPES = {"all": None, "dynamic": (0, 1, 2, IDX_CLOCK, 4, 5, 6, IDX_DRIFT)}
-CB = [IDX_CLOCK, IDX_DRIFT]
-CMC_NOISE = ("states", "whitened")
-
-
-def _num(name, v, positive=True, allow_zero=False):
-    if isinstance(v, bool) or not isinstance(v, (int, float, np.integer, np.floating)) or not math.isfinite(v):
-        raise ValueError(f"{name} must be a finite number, got {v!r}")
-    if positive and not (v > 0 or (allow_zero and v == 0)):
-        raise ValueError(f"{name} must be {'>= 0' if allow_zero else '> 0'}, got {v!r}")
-    return float(v)
-
-
-@dataclass(frozen=True)
-class IonoTropoScenario:
-    """Seed 000 variant-1 scenario (defaults: the seed's experiment)."""
-
-    duration_s: float = 1200.0
-    dt_s: float = 0.1
-    # receiver (seed 000)
-    sigma_pr_m: float = 6.0
-    sigma_prr_m_s: float = 0.064
-    sigma_phase_m: float = 0.003  # not used by variant 1; passed to the receiver
-    iono_zenith_m: float = 15.0
-    tropo_zenith_m: float = 2.5
-    gps_glonass_offset_m: float = 5.0
-    el_mask_deg: float = 10.0
-    # trajectory: great circle at constant speed from (lat, lon, h), heading from north
-    lat_deg: float = 55.0
-    lon_deg: float = 37.0
-    h_m: float = 1000.0
-    speed_m_s: float = 50.0
-    heading_deg: float = 90.0
-    t0_gps_s: float = orbits.DEFAULT_TOA_GPS_S + 3600.0
-    systems: str = "GR"
-    # prior (1-sigma) and filter process noise
-    sigma0_pos_m: float = 100.0
-    sigma0_vel_m_s: float = 5.0
-    sigma0_clock_bias_m: float = 300.0
-    sigma0_clock_drift_m_s: float = 3.0
-    sigma0_gps_glo_m: float = 10.0
-    iono_prior_m: float = 0.0
-    sigma0_iono_m: float = 20.0
-    tropo_prior_m: float = 0.0
-    sigma0_tropo_m: float = 5.0
-    q_accel_m2_s3: float = 0.01
-    q_atmo_m2_s: float = 1e-10  # random-walk PSD of Delta_A, I_g, U_g in the filter
-    final_window_s: float = 60.0
-    # variant 2: code-minus-carrier increments (eqs 29-33)
-    cmc_window_s: float = 90.0  # increment interval (seed: 90 s); a multiple of dt_s
-    cycle_slip_rate_hz: float = 0.0  # random cycle slips per tracked satellite (receiver), 1/s
-    # how E_j's code noise is handled: "states" (exact: eps_D,j at the window start is a state,
-    # see the module docstring) or "whitened" (against the same epoch's pr_j only; the
-    # correlation with the already-used pr_j(t - W) ignored)
-    cmc_noise: str = "states"
-    # variant 3: carrier-phase ambiguity states
-    sigma0_amb_m: float = 1000.0  # prior / reset sigma of a new K_j, m (flat; see module docstring)
-    phase_max_sats: int = 0  # carrier phase of at most this many satellites (0: every tracked one)
-    # adaptive process noise (eq 7): Q(i+1) = Q_min + decay Q(i) + gain diag((W nu)(W nu)')
-    adaptive_q: bool = False
-    adaptive_q_decay: float = 0.1
-    adaptive_q_gain: float = 0.7
-    # which states adapt: "all" (the seed: diag over the whole state) or "dynamic" (position,
-    # velocity, clock bias and drift only; Delta_A, I_g, U_g and K_j are constants)
-    adaptive_q_scope: str = "all"
-    # truth clock: N_eps of the simulated clock = truth_clock_psd_scale x the filter's N_eps
-    # (1 = correctly modelled; > 1 a mismodelled, noisier clock than the filter assumes)
-    truth_clock_psd_scale: float = 1.0
-
-    def __post_init__(self):
-        for name in ("duration_s", "dt_s", "sigma_pr_m", "sigma_prr_m_s", "sigma_phase_m",
-                     "sigma0_pos_m", "sigma0_vel_m_s", "sigma0_clock_bias_m", "sigma0_clock_drift_m_s",
-                     "sigma0_gps_glo_m", "sigma0_iono_m", "sigma0_tropo_m", "final_window_s", "cmc_window_s",
-                     "sigma0_amb_m", "truth_clock_psd_scale"):
-            object.__setattr__(self, name, _num(name, getattr(self, name)))
-        for name in ("iono_zenith_m", "tropo_zenith_m", "speed_m_s", "q_accel_m2_s3", "q_atmo_m2_s",
-                     "cycle_slip_rate_hz", "adaptive_q_decay", "adaptive_q_gain"):
-            object.__setattr__(self, name, _num(name, getattr(self, name), allow_zero=True))
-        for name in ("gps_glonass_offset_m", "lat_deg", "lon_deg", "h_m", "heading_deg", "t0_gps_s",
-                     "iono_prior_m", "tropo_prior_m"):
-            object.__setattr__(self, name, _num(name, getattr(self, name), positive=False))
-        if isinstance(self.phase_max_sats, bool) or not isinstance(self.phase_max_sats, (int, np.integer)) \
-                or self.phase_max_sats < 0:
-            raise ValueError(f"phase_max_sats must be an integer >= 0 (0: every satellite), got {self.phase_max_sats!r}")
-        if self.cmc_noise not in CMC_NOISE:
-            raise ValueError(f"cmc_noise must be one of {', '.join(CMC_NOISE)}, got {self.cmc_noise!r}")
-        if not isinstance(self.adaptive_q, (bool, np.bool_)):
-            raise ValueError(f"adaptive_q must be true or false, got {self.adaptive_q!r}")
-        object.__setattr__(self, "adaptive_q", bool(self.adaptive_q))
-        if self.adaptive_q_scope not in ADAPTIVE_Q_SCOPES:
-            raise ValueError(f"adaptive_q_scope must be one of {', '.join(ADAPTIVE_Q_SCOPES)}, "
-                             f"got {self.adaptive_q_scope!r}")
-        if not self.adaptive_q_decay < 1.0:
-            raise ValueError(f"adaptive_q_decay must be in [0, 1) (Q would grow without bound), "
-                             f"got {self.adaptive_q_decay!r}")
-        if not 5.0 <= self.el_mask_deg < 90.0:
-            raise ValueError(f"el_mask_deg must be in [5, 90): the seed's 1/sin(el) troposphere mapping (eq 11) "
-                             f"does not hold nearer the horizon, got {self.el_mask_deg!r}")
-        if not -90.0 < self.lat_deg < 90.0:
-            raise ValueError(f"lat_deg must be in (-90, 90), got {self.lat_deg!r}")
-        if not -500.0 <= self.h_m <= 1e5:
-            raise ValueError(f"h_m must be in [-500, 1e5] (a receiver near the ground), got {self.h_m!r}")
-        if self.dt_s > self.duration_s:
-            raise ValueError(f"dt_s must be <= duration_s, got {self.dt_s!r} > {self.duration_s!r}")
-        w = self.cmc_window_s / self.dt_s
-        if abs(w - round(w)) > 1e-6 * max(1.0, w) or round(w) < 1:
-            raise ValueError(f"cmc_window_s must be a positive multiple of dt_s = {self.dt_s!r}, "
-                             f"got {self.cmc_window_s!r}")
-        # the receiver's own validation (sigma, mask, atmosphere), message names the field
-        self.receiver_config()
-        # visibility: at least MIN_SATS satellites above the mask all along the run
-        n = self.visible_counts()
-        if n.min() < MIN_SATS:
-            raise ValueError(f"el_mask_deg = {self.el_mask_deg!r}: only {int(n.min())} satellites in view at some "
-                             f"epoch (>= {MIN_SATS} needed all along the run)")
-
-    # ------------------------------------------------------------------ the world
-    @property
-    def cmc_window_epochs(self) -> int:
-        """The increment interval in epochs (cmc_window_s / dt_s)."""
-        return round(self.cmc_window_s / self.dt_s)
-
-    @property
-    def n_epochs(self) -> int:
-        return round(self.duration_s / self.dt_s) + 1
-
-    def times(self) -> np.ndarray:
-        """Epoch times relative to the start, s (epoch 0 at 0)."""
-        return np.arange(self.n_epochs) * self.dt_s
-
-    def constellation(self):
-        return orbits.default_constellation(self.systems)
-
-    def receiver_config(self) -> ReceiverConfig:
-        return ReceiverConfig(sigma_pr_m=self.sigma_pr_m, sigma_prr_m_s=self.sigma_prr_m_s,
-                              sigma_phase_m=self.sigma_phase_m, el_mask_rad=math.radians(self.el_mask_deg),
-                              iono_zenith_m=self.iono_zenith_m, tropo_zenith_m=self.tropo_zenith_m,
-                              gps_glonass_offset_m=self.gps_glonass_offset_m,
-                              cycle_slip_rate_hz=self.cycle_slip_rate_hz)
-
-    def trajectory(self, t_rel_s):
-        """True ECEF position and velocity (..., 3) at t_rel_s: a great circle at constant
-        speed on the geocentric sphere through the start point."""
-        return geodesy.great_circle_track(self.lat_deg, self.lon_deg, self.h_m, self.speed_m_s, self.heading_deg,
-                                          t_rel_s)
-
-    def visible_counts(self, every_s: float = _CHECK_EVERY_S) -> np.ndarray:
-        """Satellites above the mask (geodetic horizon, no light time) on a coarse grid."""
-        t = np.unique(np.append(np.arange(0.0, self.duration_s, every_s), self.duration_s))
-        pos, _ = self.trajectory(t)
-        el = elevation_grid(self.constellation(), self.t0_gps_s + t, pos)
-        return np.sum(el >= math.radians(self.el_mask_deg), axis=1)
-
-    # ------------------------------------------------------------------ the filter
-    def transition(self, n_amb: int = 0) -> IonoTropoTransition:
-        q = self.q_atmo_m2_s
-        return IonoTropoTransition(n_amb=n_amb, q_accel_m2_s3=self.q_accel_m2_s3, q_gps_glo_m2_s=q,
-                                   q_iono_m2_s=q, q_tropo_m2_s=q)
-
-    def prior_sigmas(self) -> np.ndarray:
-        sd = np.empty(N_BASE)
-        sd[0:3] = self.sigma0_pos_m
-        sd[IDX_CLOCK] = self.sigma0_clock_bias_m
-        sd[4:7] = self.sigma0_vel_m_s
-        sd[IDX_DRIFT] = self.sigma0_clock_drift_m_s
-        sd[IDX_GPS_GLO] = self.sigma0_gps_glo_m
-        sd[IDX_IONO] = self.sigma0_iono_m
-        sd[IDX_TROPO] = self.sigma0_tropo_m
-        return sd
-
-
-def _check_trials(trials):
-    if isinstance(trials, bool) or int(trials) != trials or trials < 1:
-        raise ValueError(f"trials must be an integer >= 1, got {trials!r}")
-    return int(trials)
-
-
-class _CmcIncrementModel(JointMeasurement):
-    """Seed 000 variant 2: the variant-1 model plus one code-minus-carrier increment row per
-    satellite in ``rows`` (local indices into the base model's satellites).
-
-    Increment (eq 33): E_j = B_j(t) - B_j(t - W), B_j = pr_j - phase_j, modelled as
-    2 k_j dm_j I_g (only the I_g column; dm_j = m_I(eta_j(t)) - m_I(eta_j(t - W)) from the
-    filter's own mapping values, treated as known). E_j shares the code noise eps_D,j(t)
-    with the same epoch's pseudorange row, cov(pr_j, E_j) = sigma_D^2, var(E_j) =
-    2 sigma_D^2 + 2 sigma_Phi^2. That 2x2 block is whitened exactly (Gram-Schmidt, the
-    Cholesky factor done by hand) so R stays diagonal: the row carries
-        E'_j = E_j - pr_j,  h = 2 k_j dm_j I_g - h_pr,j(x),  H = 2 k_j dm_j e_Ig - H_pr,j,
-        var = sigma_D^2 + 2 sigma_Phi^2.
-    Where ``used`` (trials, R) is False (not slip-free over the window) the row is inert:
-    z = h = 0, H = 0 (no information, no NIS).
-    """
-
-    def __init__(self, base, rows, coef, used, var_e):
-        self.base = base
-        self.rows = rows
-        self.coef = np.where(used, coef, 0.0)
-        self.used = used
-        self.var_e = var_e
-
-    def h_and_H(self, x):
-        z, H = self.base.h_and_H(x)
-        r, used = self.rows, self.used
-        hE = np.where(used, self.coef * x[..., IDX_IONO, None] - z[..., r], 0.0)
-        HE = np.where(used[..., None], -H[..., r, :], 0.0)
-        HE[..., IDX_IONO] += self.coef
-        return np.concatenate([z, hE], axis=-1), np.concatenate([H, HE], axis=-2)
-
-    def R_diag(self):
-        rb = self.base.R_diag()
-        batch = self.used.shape[:-1]
-        rb = np.broadcast_to(rb, batch + rb.shape[-1:])
-        re = np.broadcast_to(self.var_e, self.used.shape)
-        return np.concatenate([rb, re], axis=-1)
-
-
-class _CodeNoiseStateModel(JointMeasurement):
-    """Seed 000 variant 2 with the code noise at the window start as states (cmc_noise="states").
-
-    x = [11 base states, e_1 .. e_M]: e_i is the code noise eps_D of one satellite at the
-    epoch its window started (a constant once drawn; prior N(0, sigma_D^2)). Rows:
-    * pr_j, prr_j as in IonoTropoGnss (``base``, built with n_state = len(x)); where
-      ``pr_cols[j] >= 0`` the window of satellite j starts now, pr_j's noise is the state
-      e = x[pr_cols[j]] (h += e, H[e] = 1) and its R entry is 0: marginalised over e that is
-      exactly the usual pr_j with variance sigma_D^2;
-    * one increment row per (local satellite ``inc_rows[r]``) whose window ends now:
-        E_j = B_j(t) - B_j(t - W) = 2 k_j dm_j I_g + e_new - e_old + (phase noise),
-      e_new = x[inc_new[r]] the code noise of this epoch (the same state as pr_j's, so the
-      correlation with pr_j(t) is carried), e_old = x[inc_old[r]] the one at the window
-      start (correlated with everything that pr_j(t - W) told the filter), variance
-      var_e = 2 sigma_Phi^2. Where ``used`` is False (a slip in the window) the row is inert.
-    """
-
-    def __init__(self, base, pr_cols, inc_rows, inc_new, inc_old, coef, used, var_e):
-        self.base = base
-        self.pr_cols = pr_cols
-        self.inc_rows, self.inc_new, self.inc_old = inc_rows, inc_new, inc_old
-        self.coef = np.where(used, coef, 0.0)
-        self.used = used
-        self.var_e = var_e
-
-    def h_and_H(self, x):
-        z, H = self.base.h_and_H(x)
-        z = np.array(z, dtype=float)
-        H = np.array(np.broadcast_to(H, x.shape[:-1] + H.shape[-2:]), dtype=float)
-        rows = np.flatnonzero(self.pr_cols >= 0)
-        cols = self.pr_cols[rows]
-        z[..., rows] += x[..., cols]
-        H[..., rows, cols] = 1.0
-        if self.inc_rows.size == 0:
-            return z, H
-        used = self.used
-        R = self.inc_rows.size
-        hE = np.where(used, self.coef * x[..., IDX_IONO, None] + x[..., self.inc_new] - x[..., self.inc_old], 0.0)
-        HE = np.zeros(x.shape[:-1] + (R, x.shape[-1]))
-        HE[..., IDX_IONO] = self.coef
-        r = np.arange(R)
-        HE[..., r, self.inc_new] = np.where(used, 1.0, 0.0)
-        HE[..., r, self.inc_old] = np.where(used, -1.0, 0.0)
-        return np.concatenate([z, hE], axis=-1), np.concatenate([H, HE], axis=-2)
-
-    def R_diag(self):
-        batch = self.used.shape[:-1]
-        rb = np.array(np.broadcast_to(self.base.R_diag(), batch + np.shape(self.base.R_diag())[-1:]), dtype=float)
-        rb[..., np.flatnonzero(self.pr_cols >= 0)] = 0.0
-        re = np.broadcast_to(self.var_e, self.used.shape)
-        return np.concatenate([rb, re], axis=-1)
 
 
 def run_code_doppler(scn: IonoTropoScenario, trials: int, seed: int, progress=None, backend=None) -> dict:
@@ -423,20 +128,6 @@ def _nees2(e0, e1, P, i, j):
     """NEES of a 2-state block (i, j) in closed form, (N,): the scoring runs every epoch."""
     a, b, c = P[:, i, i], P[:, i, j], P[:, j, j]
     return (c * e0 * e0 - 2.0 * b * e0 * e1 + a * e1 * e1) / (a * c - b * b)
-
-
-def _drop_states(x, P, cols):
-    keep = np.setdiff1d(np.arange(x.shape[-1]), cols)
-    return x[:, keep], P[:, keep][:, :, keep]
-
-
-def _append_states(x, P, m):
-    n = x.shape[-1]
-    x2 = np.zeros((x.shape[0], n + m))
-    x2[:, :n] = x
-    P2 = np.zeros((x.shape[0], n + m, n + m))
-    P2[:, :n, :n] = P
-    return x2, P2
 
 
 def run_streamed(scn: IonoTropoScenario, trials: int, seed: int, variant: int = 1, progress=None,
@@ -461,7 +152,7 @@ def run_streamed(scn: IonoTropoScenario, trials: int, seed: int, variant: int = 
       anees_bounds_99_one_epoch; wall_s.
     Variant 2 also: increments {candidates, used, rejected_slip, spanning_true_slip,
       used_spanning_true_slip, detector_slips} (counts over trials, satellites, epochs;
-      see the module docstring for the pairing rule) and n_increments_used (T,) per epoch.
+      see sitl.app.experiments.iono_tropo_models for the pairing rule) and n_increments_used (T,) per epoch.
     Variant 3 also: n_state (T,) (state dimension after the epoch's update = 11 + number of
       K states = 11 + n_visible), ambiguity {rises, sets, k_resets (detector slips on
       satellites with a K state, summed over trials), true_slips, missed_true_slips (true
@@ -471,7 +162,7 @@ def run_streamed(scn: IonoTropoScenario, trials: int, seed: int, variant: int = 
         raise ValueError(f"variant must be 1, 2 or 3, got {variant!r}")
     if not isinstance(scn, IonoTropoScenario):
         raise ValueError(f"scn must be an IonoTropoScenario, got {type(scn).__name__}")  # noqa: TRY004
-    trials = _check_trials(trials)
+    trials = integer(lo=1)("trials", trials)
     t_wall = time.perf_counter()
     rng = np.random.default_rng(seed)
     const = scn.constellation()
