@@ -62,9 +62,11 @@ class Autopilot(Operations):
             return a
 
         self.n = n
-        self.cfg = config if config is not None else AutopilotConfig()
-        if not isinstance(self.cfg, AutopilotConfig):
+        config = config if config is not None else AutopilotConfig()
+        if not isinstance(config, AutopilotConfig):
             raise ValueError(f"config must be an AutopilotConfig, got {type(config).__name__}")
+        self.cfgs: list[AutopilotConfig] = [config] * n
+        self._config_arrays()
         self.ell = ellipsoid(ell)
         self.pos = np.stack([vec("lat_rad", lat), vec("lon_rad", lon_rad), vec("alt_m", alt_m)], axis=-1)
         self.psi = vec("heading_rad", heading_rad)
@@ -133,12 +135,51 @@ class Autopilot(Operations):
     def _emit(self, i: int, kind: str, value: int = 0, text: str = "", severity: int = _INFO) -> None:
         self._events.append(Event(int(i), kind, int(value), int(severity), text))
 
-    def _max_rate(self, speed):
-        return self.cfg.max_turn_rate_rad_s(speed)
+    # ------------------------------------------------------------------ configuration (per UAV)
+    @property
+    def cfg(self) -> AutopilotConfig:
+        """UAV 0's configuration (every UAV's unless :meth:`set_config` gave one its own);
+        assigning it configures every UAV."""
+        return self.cfgs[0]
+
+    @cfg.setter
+    def cfg(self, config: AutopilotConfig) -> None:
+        self.set_config(None, config)
+
+    def set_config(self, i, config: AutopilotConfig) -> None:
+        """UAV i's configuration (its parameters: WP_RADIUS, ...; i None: every UAV's), from its
+        next step; ValueError for something that is not an AutopilotConfig or no such UAV."""
+        if not isinstance(config, AutopilotConfig):
+            raise ValueError(f"config must be an AutopilotConfig, got {type(config).__name__}")
+        if i is None:
+            self.cfgs = [config] * self.n
+        else:
+            v = self._vehicle(i)
+            if v is None:
+                raise ValueError(f"no UAV {i!r}")
+            self.cfgs[v] = config
+        self._config_arrays()
+
+    def _config_arrays(self) -> None:
+        """(N,) arrays of every configuration field (the batched step reads them)."""
+        import dataclasses
+        import types
+        self.C = types.SimpleNamespace(**{f.name: np.array([float(getattr(c, f.name)) for c in self.cfgs])
+                                          for f in dataclasses.fields(AutopilotConfig)})
+
+    def _max_rate(self, speed, idx=slice(None)):
+        """The bank-limited turn rate of UAVs idx at speed (vehicles.autopilot.config)."""
+        c = self.cfgs[0]
+        if all(x is c for x in self.cfgs):
+            return c.max_turn_rate_rad_s(speed)
+        from .config import G_M_S2
+        return G_M_S2 * np.tan(np.radians(self.C.roll_limit_deg[idx])) / np.maximum(speed, 1.0)
 
     def _orbit_radius(self, r, speed):
         """The radius flown: r, widened to 1.1 x the bank-limited turn radius at speed."""
-        tight = np.asarray(speed, float) / self._max_rate(np.maximum(speed, self.cfg.airspeed_min_m_s))
+        c = self.cfgs[0]
+        v_min = c.airspeed_min_m_s if all(x is c for x in self.cfgs) else self.C.airspeed_min_m_s
+        tight = np.asarray(speed, float) / self._max_rate(np.maximum(speed, v_min))
         return np.maximum(r, 1.1 * tight)
 
     def _offsets(self, pos, tgt):
@@ -169,7 +210,7 @@ class Autopilot(Operations):
     def _set_orbit(self, i, centre, radius=None) -> None:
         self.kind[i], self.task[i] = gd.ORBIT, T_NONE
         self.tgt[i] = centre
-        self.radius[i] = self.cfg.wp_loiter_rad_m if radius is None or not radius > 0 else radius
+        self.radius[i] = self.cfgs[i].wp_loiter_rad_m if radius is None or not radius > 0 else radius
 
     def _set_approach(self, i, point, radius, after=T_NONE) -> None:
         """Fly to point, then circle it (radius) with task ``after``."""
@@ -190,7 +231,7 @@ class Autopilot(Operations):
         self.tgt[i] = (point[0], point[1], point[2] - _FLARE_M)  # aims below the ground: it touches down
         self.prev[i] = self.pos[i]
         self.ground[i] = point[2]
-        self.airspeed[i] = self.cfg.airspeed_min_m_s
+        self.airspeed[i] = self.cfgs[i].airspeed_min_m_s
 
     def _enter(self, i: int, mode: int, reason_text: str = "") -> None:
         """Mode entry of UAV i (mode already valid): set the behaviour registers."""
@@ -206,7 +247,7 @@ class Autopilot(Operations):
             return
         if ph == cv.LANDING and self.task[i] == T_LAND and mode != cv.AUTOLAND:
             self.phase[i] = cv.FLYING  # a go-around
-            self.airspeed[i] = self.cfg.airspeed_cruise_m_s
+            self.airspeed[i] = self.cfgs[i].airspeed_cruise_m_s
         if ph == cv.LANDING and self.task[i] == T_GLIDE:
             return  # motor off (a forced disarm): it glides whatever the mode
         if ph in (cv.ON_GROUND, cv.LANDED) or self.task[i] == T_ROLLOUT or not self.armed[i]:
@@ -219,7 +260,7 @@ class Autopilot(Operations):
         elif mode == cv.GUIDED:
             if self.guided_pending[i]:  # a target given while it could not be flown (a take-off)
                 self.guided_pending[i] = False
-                self._set_approach(i, self.guided[i].copy(), self.cfg.wp_radius_m)
+                self._set_approach(i, self.guided[i].copy(), self.cfgs[i].wp_radius_m)
             else:  # ArduPlane: GUIDED without a target circles the current position
                 self.guided[i] = pos
                 self._set_orbit(i, pos, self.guided_radius[i] or None)
@@ -229,7 +270,7 @@ class Autopilot(Operations):
             self._rtl(i)
         elif mode == cv.TAKEOFF:
             alt = self.home[i, 2] + self._takeoff_rel(i)
-            self._set_orbit(i, self._ahead(i, self.cfg.tkoff_dist_m, max(alt, pos[2])))
+            self._set_orbit(i, self._ahead(i, self.cfgs[i].tkoff_dist_m, max(alt, pos[2])))
             self._emit(i, "text", 0, "Above TKOFF alt - loitering" if pos[2] >= alt else
                        "Climbing to TKOFF alt then loitering")
         elif mode == cv.AUTOLAND:
@@ -239,12 +280,12 @@ class Autopilot(Operations):
 
     def _takeoff_rel(self, i) -> float:
         r = self.takeoff_alt_req[i]
-        return float(r) if r == r else self.cfg.tkoff_alt_m
+        return float(r) if r == r else self.cfgs[i].tkoff_alt_m
 
     def _rtl(self, i) -> None:
-        alt = self.pos[i, 2] if self.cfg.rtl_altitude_m < 0 else self.home[i, 2] + self.cfg.rtl_altitude_m
+        alt = self.pos[i, 2] if self.cfgs[i].rtl_altitude_m < 0 else self.home[i, 2] + self.cfgs[i].rtl_altitude_m
         c = np.array([self.home[i, 0], self.home[i, 1], alt])
-        self._set_approach(i, c, self.cfg.rtl_radius_eff_m)
+        self._set_approach(i, c, self.cfgs[i].rtl_radius_eff_m)
 
     def _auto_enter(self, i) -> None:
         if self.m_count[i] <= 1:
@@ -347,22 +388,22 @@ class Autopilot(Operations):
             if ci == NAV_WAYPOINT:
                 self.kind[i], self.task[i] = gd.GOTO, T_WP
                 self.tgt[i] = pt
-                self.accept[i] = pi[1] if pi[1] > 0 else self.cfg.wp_radius_m
+                self.accept[i] = pi[1] if pi[1] > 0 else self.cfgs[i].wp_radius_m
             elif ci in (LOITER_UNLIM, LOITER_TURNS, LOITER_TIME, LOITER_TO_ALT):
                 r = abs(pi[1] if ci == LOITER_TO_ALT else pi[2])
-                r = r if r > 0 else self.cfg.wp_loiter_rad_m
+                r = r if r > 0 else self.cfgs[i].wp_loiter_rad_m
                 after = {LOITER_UNLIM: T_NONE, LOITER_TURNS: T_TURNS, LOITER_TIME: T_TIME, LOITER_TO_ALT: T_ALT}[ci]
                 self.loiter_turns[i] = pi[0] if ci == LOITER_TURNS else 0.0
                 self.loiter_time[i] = pi[0] if ci == LOITER_TIME else 0.0
                 self._set_approach(i, pt, r, after)
                 self.prev[i] = prev[k]
             elif ci == NAV_TAKEOFF:  # in the air: climb along the heading to its altitude
-                self._set_leg(i, self.psi[i], max(pt[2], self.pos[i, 2]) + self.cfg.climb_max_m_s / gd.K_CLIMB_1_S,
+                self._set_leg(i, self.psi[i], max(pt[2], self.pos[i, 2]) + self.cfgs[i].climb_max_m_s / gd.K_CLIMB_1_S,
                               T_CLIMB)
                 self.takeoff_alt[i] = pt[2]
             elif ci == NAV_LAND:
                 here = not np.isfinite(self.m_lat[i, cur[k]])
-                point = pt if not here else self._ahead(i, max(self.pos[i, 2] - pt[2], 0.0) / self.cfg.land_slope,
+                point = pt if not here else self._ahead(i, max(self.pos[i, 2] - pt[2], 0.0) / self.cfgs[i].land_slope,
                                                         pt[2])
                 self._set_land(i, point)
             elif ci == NAV_RTL:
@@ -383,9 +424,9 @@ class Autopilot(Operations):
         """DO_CHANGE_SPEED (param1 speed type, param2 speed m/s, -1: no change, -2: default)."""
         s = float(p[1])
         if s == -2.0:
-            self.airspeed[i] = self.cfg.airspeed_cruise_m_s
+            self.airspeed[i] = self.cfgs[i].airspeed_cruise_m_s
             return True
-        if s > 0 and self.cfg.airspeed_min_m_s <= s <= self.cfg.airspeed_max_m_s:
+        if s > 0 and self.cfgs[i].airspeed_min_m_s <= s <= self.cfgs[i].airspeed_max_m_s:
             self.airspeed[i] = s
             self._emit(i, "text", 0, f"Set airspeed {s:.0f} m/s")
             return True
@@ -409,7 +450,7 @@ class Autopilot(Operations):
         self.pos = np.where(ok[:, None], new, self.pos)
         self.psi = np.where(ok, psi, self.psi)
         self.t = t
-        cfg = self.cfg
+        cfg = self.C  # (N,) per UAV
         pos, h = self.pos, self.pos[:, 2]
 
         # landed UAVs disarm after LAND_DISARMDELAY
@@ -426,7 +467,7 @@ class Autopilot(Operations):
         # the take-off roll and climb-out
         roll = (self.task == T_ROLL) & (self.speed_cmd >= cfg.airspeed_min_m_s - _EPS)
         for i in np.flatnonzero(roll).tolist():  # rotate
-            self._set_leg(i, self.leg_heading[i], self.takeoff_alt[i] + cfg.climb_max_m_s / gd.K_CLIMB_1_S, T_TKOFF)
+            self._set_leg(i, self.leg_heading[i], self.takeoff_alt[i] + cfg.climb_max_m_s[i] / gd.K_CLIMB_1_S, T_TKOFF)
         climbed = ((self.task == T_TKOFF) | (self.task == T_CLIMB)) & (h >= self.takeoff_alt - _TAKEOFF_ALT_TOL_M)
         for i in np.flatnonzero(climbed).tolist():
             self._takeoff_done(i)
@@ -435,7 +476,7 @@ class Autopilot(Operations):
         if ap.any():
             idx = np.flatnonzero(ap)
             d = self._dist(pos[idx], self.tgt[idx])
-            reach = (d < np.where(self.after[idx] == T_NONE, np.maximum(self.radius[idx], cfg.wp_radius_m),
+            reach = (d < np.where(self.after[idx] == T_NONE, np.maximum(self.radius[idx], cfg.wp_radius_m[idx]),
                                   self.radius[idx])) | self._past(idx)
             for i in idx[reach].tolist():
                 self._approach_done(i)
@@ -461,7 +502,7 @@ class Autopilot(Operations):
         ld = (self.task == T_LAND) & (self.kind == gd.LAND)
         if ld.any():
             idx = np.flatnonzero(ld)
-            over = (self._dist(pos[idx], self.tgt[idx]) < cfg.wp_radius_m) | self._past(idx)
+            over = (self._dist(pos[idx], self.tgt[idx]) < cfg.wp_radius_m[idx]) | self._past(idx)
             for i in idx[over].tolist():
                 self.kind[i] = gd.FINAL
                 self.leg_heading[i] = self.psi[i]
@@ -491,7 +532,7 @@ class Autopilot(Operations):
         return g, ev
 
     def _guidance(self) -> gd.Guidance:
-        cfg, n = self.cfg, self.n
+        cfg, n = self.C, self.n
         speed = self.speed_cmd.copy()
         radius = np.where(self.kind == gd.ORBIT, self._orbit_radius(self.radius, np.maximum(speed, 1.0)), self.radius)
         rate = self._max_rate(np.maximum(speed, cfg.airspeed_min_m_s))
@@ -500,7 +541,7 @@ class Autopilot(Operations):
         sink = np.where(self.task == T_ROLL, 0.0, cfg.sink_max_m_s)
         return gd.Guidance(self.kind.copy(), speed, self.tgt[:, 0].copy(), self.tgt[:, 1].copy(), self.tgt[:, 2].copy(),
                            radius, self.leg_heading.copy(), rate, np.broadcast_to(climb, (n,)).copy(),
-                           np.broadcast_to(sink, (n,)).copy(), np.full(n, cfg.land_slope))
+                           np.broadcast_to(sink, (n,)).copy(), cfg.land_slope.copy())
 
     def _past(self, idx) -> np.ndarray:
         """Past the finish line: the line through the target perpendicular to prev -> target."""
@@ -516,14 +557,14 @@ class Autopilot(Operations):
         d_e, d_n = self._offsets(self.pos[[i]], self.tgt[[i]])
         self.last_brg[i] = float(np.arctan2(-d_e, -d_n)[0])
         if self.mode[i] == cv.GUIDED:
-            self.radius[i] = self.guided_radius[i] or self.cfg.wp_loiter_rad_m
+            self.radius[i] = self.guided_radius[i] or self.cfgs[i].wp_loiter_rad_m
             self._emit(i, "text", 0, "Reached destination")
         elif self.mode[i] == cv.RTL:
-            self.radius[i] = self.cfg.rtl_radius_eff_m
+            self.radius[i] = self.cfgs[i].rtl_radius_eff_m
             self._emit(i, "text", 0, "Reached RTL location")
 
     def _takeoff_start(self, i: int) -> None:
-        cfg = self.cfg
+        cfg = self.cfgs[i]
         rel = self._takeoff_rel(i)
         if self.mode[i] == cv.AUTO:
             if self.m_state[i] != mavlink.MISSION_STATE_ACTIVE:
@@ -565,7 +606,7 @@ class Autopilot(Operations):
                 self._start_item(np.array([i]), self.pos[[i]])
         elif mode == cv.TAKEOFF:  # loiter TKOFF_DIST from the take-off point along the take-off heading
             p = self.prev[i]
-            self._set_orbit(i, self._project(p[0], p[1], p[2], self.leg_heading[i], self.cfg.tkoff_dist_m,
+            self._set_orbit(i, self._project(p[0], p[1], p[2], self.leg_heading[i], self.cfgs[i].tkoff_dist_m,
                                              self.takeoff_alt[i]))
         else:
             self._enter(i, mode)
@@ -575,7 +616,7 @@ class Autopilot(Operations):
         self.kind[i], self.task[i] = gd.HOLD, T_NONE
         self.t_landed[i] = self.t
         self.speed_cmd[i] = 0.0
-        self.airspeed[i] = self.cfg.airspeed_cruise_m_s
+        self.airspeed[i] = self.cfgs[i].airspeed_cruise_m_s
         self._emit(i, "landed", 0, "Landed")
         if self.mode[i] == cv.AUTO and self.m_state[i] == mavlink.MISSION_STATE_ACTIVE \
                 and int(self.m_cmd[i, self.cur[i]]) == NAV_LAND:

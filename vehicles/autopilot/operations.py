@@ -31,7 +31,7 @@ class Operations:
             self.armed[v] = True
             if self.task[v] == T_GLIDE:  # motor on again in the glide: fly the mode
                 self.phase[v] = cv.FLYING
-                self.airspeed[v] = self.cfg.airspeed_cruise_m_s
+                self.airspeed[v] = self.cfgs[v].airspeed_cruise_m_s
                 self._enter(v, int(self.mode[v]))
             if self.phase[v] in (cv.ON_GROUND, cv.LANDED):
                 if self.m_state[v] == mavlink.MISSION_STATE_COMPLETE:
@@ -51,7 +51,7 @@ class Operations:
         if self.airborne[v]:
             self.phase[v] = cv.LANDING
             self.ground[v] = self.home[v, 2]
-            self.airspeed[v] = self.cfg.airspeed_min_m_s
+            self.airspeed[v] = self.cfgs[v].airspeed_min_m_s
             self._set_leg(v, self.psi[v], self.home[v, 2] - 1e4, T_GLIDE)
         elif self.phase[v] == cv.TAKING_OFF or self.task[v] == T_ROLLOUT:
             self.phase[v] = cv.ON_GROUND
@@ -128,7 +128,7 @@ class Operations:
                                 f"reposition without CHANGE_MODE in {cv.mode_name(self.mode[v])}")
         if speed_m_s is not None and _finite(speed_m_s) and float(speed_m_s) > 0:
             s = float(speed_m_s)
-            if not self.cfg.airspeed_min_m_s <= s <= self.cfg.airspeed_max_m_s:
+            if not self.cfgs[v].airspeed_min_m_s <= s <= self.cfgs[v].airspeed_max_m_s:
                 return self._refuse("bad_param", mavlink.MAV_RESULT_DENIED,
                                     f"speed {s:g} m/s outside AIRSPEED_MIN..AIRSPEED_MAX")
             self.airspeed[v] = s
@@ -140,7 +140,7 @@ class Operations:
         self.guided[v] = pt
         if self.airborne[v] and self.phase[v] != cv.TAKING_OFF:
             self.phase[v] = cv.FLYING
-            self._set_approach(v, pt, self.cfg.wp_radius_m, T_NONE)
+            self._set_approach(v, pt, self.cfgs[v].wp_radius_m, T_NONE)
         else:  # on the ground or taking off: flown once it flies in GUIDED
             self.guided_pending[v] = True
         return Result(mavlink.MAV_RESULT_ACCEPTED)
@@ -177,7 +177,7 @@ class Operations:
         if la == la:
             pt = np.array([la, lo, ground])
         else:
-            pt = self._ahead(v, max(self.pos[v, 2] - ground, 0.0) / self.cfg.land_slope, ground)
+            pt = self._ahead(v, max(self.pos[v, 2] - ground, 0.0) / self.cfgs[v].land_slope, ground)
         self._enter(v, cv.AUTOLAND)
         if self.phase[v] != cv.TAKING_OFF:
             self._set_land(v, pt)
