@@ -321,3 +321,38 @@ def test_a_ground_start_is_disarmed_until_armed_and_taken_off(tmp_path):
         assert grp.g.autopilot.pos[1, 2] == h0  # the others did not move
     finally:
         grp.close()
+
+
+def test_ten_uavs_from_the_ground_armed_taken_off_and_flown_through_a_5_item_mission(tmp_path):
+    """Issue 21: 10 UAVs started on the ground, all armed, taken off and flown through a 5-item
+    mission (home + 4 waypoints) by the GCS, concurrently (pymavlink, the worker's group)."""
+    n = 10
+    grp = Group(tmp_path, start="ground", count=n, sonde=False)
+    try:
+        ap = grp.g.autopilot
+        grp.step(2)
+        for s in range(1, n + 1):
+            lat, lon, _h = _pos(grp, s)
+            items = [_item(grp.peer, 0, lat, lon, 0.0, frame=mav.MAV_FRAME_GLOBAL_INT, sysid=s),
+                     _item(grp.peer, 1, lat + 0.005, lon, 300.0, cmd=mav.MAV_CMD_NAV_TAKEOFF, sysid=s,
+                           p=(10, 0, 0, 0))]
+            items += [_item(grp.peer, k, lat + 0.01 * k, lon + 0.01 * (k % 2), 300.0, sysid=s) for k in (2, 3, 4)]
+            assert upload(grp, s, items) == mav.MAV_MISSION_ACCEPTED, s
+        for s in range(1, n + 1):
+            assert grp.ack(s, grp.cmd(s, mav.MAV_CMD_COMPONENT_ARM_DISARM, 1))[1] == mav.MAV_RESULT_ACCEPTED, s
+        for s in range(1, n + 1):
+            assert grp.ack(s, grp.peer.mav.set_mode_encode(s, mav.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, cv.AUTO))[1] == \
+                mav.MAV_RESULT_ACCEPTED, s
+        assert ap.armed.all() and (ap.mode == cv.AUTO).all()
+        reached = {s: [] for s in range(1, n + 1)}
+        airborne_seen = np.zeros(n, bool)
+        for _ in range(300):  # <= 300 s simulated
+            for m in of_type(grp.step(10), "MISSION_ITEM_REACHED"):
+                reached[m.get_srcSystem()].append(m.seq)
+            airborne_seen |= ap.pos[:, 2] > 100.0
+            if all(r[-1:] == [4] for r in reached.values()):
+                break
+        assert airborne_seen.all()
+        assert all(r == [1, 2, 3, 4] for r in reached.values()), reached
+    finally:
+        grp.close()
