@@ -41,6 +41,7 @@ from sitl.gnss.orbits import DEFAULT_TOA_GPS_S
 DEFAULT_T0_GPS_S = DEFAULT_TOA_GPS_S + 3600.0
 SPEC_VERSION = 2  # 2: params (the component's parameters the composition root built)
 UAV_PATTERNS = ("orbit", "north")  # [uavs].pattern (module docstring; vehicles/process.py flies them)
+UAV_STARTS = ("in-flight", "ground")  # [uavs].start (vehicles/process.py: the autopilots' initial state)
 BEACON_MODES = ("seed", "legs", "static", "racetrack")  # [beacon].mode (vehicles/beacon.py)
 # "orbit": the UAVs' guidance turns at most this fast (vehicles.uav.Racetrack's max_turn_rate_rad_s)
 ORBIT_MAX_TURN_RATE_RAD_S = math.radians(3.0)
@@ -219,6 +220,12 @@ class UavSection:
                          doc='how they fly from their starts at speed_m_s: "orbit" (level clockwise circles about '
                              'center, each through its start, held by guidance, for ever) or "north" (the seed 002 '
                              'sinusoidal law heading north: the formation leaves the area at ~100 m/s)')
+    start: str = param("in-flight", check=lambda k, v: _str(k, v, choices=UAV_STARTS),
+                       doc='"in-flight": armed, in AUTO, flying the pattern from their starts (the seed scenarios); '
+                           '"ground": disarmed in MANUAL on the ground below their starts (at ground_alt_m) until a '
+                           'GCS arms them and takes them off (TAKEOFF, or AUTO with a mission)')
+    ground_alt_m: float = param(0.0, check=_n(lo=-500, hi=10000),
+                                doc='height of the ground the UAVs stand on with start = "ground", m')
 
     def start_points(self) -> list[tuple]:
         """(lat deg, lon deg, h m) of every UAV: ``starts``, or a ring of radius_m about center

@@ -139,6 +139,7 @@ class VehicleGroup:
         # start, held by guidance (vehicles.uav.Racetrack); "north", the seed 002 sinusoidal law
         # (speed +- 10 m/s, climb 15 cos(0.01 t)) heading north
         self.swarm = None
+        self.fleet = None
         if self.n:
             pts = np.array(scn.uavs.start_points())[self.idx]
             if scn.uavs.pattern == "orbit":
@@ -149,7 +150,12 @@ class VehicleGroup:
                 law = uav_mod.SinusoidalLaw(speed_mean_m_s=np.full(self.n, scn.uavs.speed_m_s), speed_amp_m_s=10.0,
                                             speed_omega_rad_s=0.02, heading0_rad=0.0, climb_amp_m_s=15.0,
                                             climb_omega_rad_s=0.01)
+            ground = scn.uavs.start == "ground"
+            if ground:  # [uavs] start = "ground": on the ground below their starts, disarmed
+                pts = pts.copy()
+                pts[:, 2] = scn.uavs.ground_alt_m
             self.swarm = uav_mod.UavSwarm(law, np.radians(pts[:, 0]), np.radians(pts[:, 1]), pts[:, 2])
+            self.fleet = self._autopilots(scn, in_flight=not ground)
             self.const = orbits.gps_constellation()
             self.nav_cfg = uav_nav.NavConfig()
             self.nav = uav_nav.OnboardNav(self.const, self.nav_cfg)
@@ -164,7 +170,8 @@ class VehicleGroup:
         self.src = [f"uav{i + 1}" for i in self.idx]
         self.last_uav_truth = None
         self.last_nav = None
-        self.missions: dict = {}  # local UAV index -> its own swarm flying an uploaded mission
+        self.ap_events: list = []  # the autopilots' events of the last epoch (the endpoints take theirs)
+        self.ap_epoch = -1  # the epoch those events belong to
         # the 1 Hz-ish traffic (UavNav at nav_rate_hz, the UAVs' truth at 1 Hz) is spread over the
         # epochs of its period by UAV index: all of it in one epoch made every tenth epoch ~3x the
         # others' work (bench live: vehicle step p99 150-180 ms against p50 35-45 ms at 200 UAVs)
@@ -233,13 +240,8 @@ class VehicleGroup:
 
     def _step_uavs(self, t, k, trel, B, VB) -> None:
         un = self._uav_nav
-        tu = self.swarm.step(trel)
-        if self.missions:  # UAVs flying an uploaded mission: their own truth replaces the law's
-            tu = tu._replace(**{f: np.array(getattr(tu, f)) for f in tu._fields[1:]})
-            for j, sw in self.missions.items():
-                tm = sw.step(trel)
-                for f in tu._fields[1:]:
-                    getattr(tu, f)[j] = np.asarray(getattr(tm, f))[0]
+        tu = self.fleet.step(trel)  # the scenario's flight, bit-for-bit, until a GCS commands
+        self.ap_events, self.ap_epoch = self.fleet.events, k
         U, V = tu.pos_ecef_m, tu.vel_ecef_m_s
         self.last_uav_truth = tu
         ep = un.gnss_measure(self.rng, t, U, V, self.const, self.nav_cfg)
@@ -311,6 +313,8 @@ class VehicleGroup:
         d = dict(self.__dict__)
         d.pop("bus", None)
         d.pop("_uav_nav", None)
+        d.pop("endpoints", None)  # the worker's sockets: rebuilt after a resume (build_endpoints)
+        d.pop("param_stores", None)
         return d
 
     def __setstate__(self, d: dict) -> None:
@@ -347,13 +351,53 @@ class VehicleGroup:
         return n
 
     # ------------------------------------------------------------------ MAVLink side
+    def _autopilots(self, scn, in_flight: bool):
+        """The group's autopilots (vehicles.autopilot, ArduPlane's convention) over its swarm: each
+        UAV in AUTO flying the scenario's pattern (in flight) or disarmed on the ground, home
+        where it starts; cruise at [uavs].speed_m_s; detached UAVs integrated at 0.1 s."""
+        from vehicles.autopilot import Autopilot, AutopilotConfig, AutopilotSwarm
+        st = self.swarm.state
+        y = np.asarray(st.y, float).reshape(-1, 4)
+        v = float(scn.uavs.speed_m_s)
+        base = AutopilotConfig()
+        cfg = AutopilotConfig(airspeed_cruise_m_s=v if v > 0 else base.airspeed_cruise_m_s,
+                              airspeed_min_m_s=min(base.airspeed_min_m_s, v) if v > 0 else base.airspeed_min_m_s,
+                              airspeed_max_m_s=max(base.airspeed_max_m_s, v))
+        ap = Autopilot(*y.T, in_flight=in_flight, config=cfg, t0_s=float(st.t_s), ell=self.swarm.ell)
+        return AutopilotSwarm(self.swarm, ap, dt_s=0.1)
+
+    @property
+    def autopilot(self):
+        """The group's vehicles.autopilot.Autopilot (UAV j = local index j), None without UAVs."""
+        return self.fleet.ap if self.fleet is not None else None
+
+    def take_events(self, j: int, seen_epoch: int):
+        """(epoch, the last epoch's autopilot events of local UAV j) if newer than seen_epoch."""
+        if self.ap_epoch <= seen_epoch:
+            return seen_epoch, []
+        return self.ap_epoch, [e for e in self.ap_events if e.vehicle == j]
+
     def on_mission(self, i: int):
-        """The callback of UAV i's (global index) mission upload: from the next epoch on the
-        UAV flies the waypoints (vehicles.uav.WaypointMission at the scenario's speed) from its
-        current position and heading; a clear (no waypoints) keeps what it flies."""
+        """UAV i's (global index) waypoints [(lat_rad, lon_rad, h_m)] as an AUTO mission (home at
+        item 0, NAV_WAYPOINTs at absolute heights), flown from the next epoch; returns the
+        autopilot's MissionResult.  (The MAVLink endpoint hands the autopilot the items.)"""
+        from pymavlink.dialects.v20 import ardupilotmega as mavlink
+
+        from vehicles.mavlink.mission import MissionItem
+
         def accept(waypoints):
-            if waypoints:
-                self.fly_mission(i, waypoints)
+            j = self.idx.index(i)
+            ap = self.fleet.ap
+            home = ap.home[j]
+            rows = [(home[0], home[1], home[2])] + [tuple(w) for w in waypoints]
+            items = [MissionItem(k, mavlink.MAV_FRAME_GLOBAL_INT, mavlink.MAV_CMD_NAV_WAYPOINT, 0, 1, 0.0, 0.0, 0.0,
+                                 0.0, int(round(math.degrees(la) * 1e7)), int(round(math.degrees(lo) * 1e7)), float(h))
+                     for k, (la, lo, h) in enumerate(rows)]
+            res = ap.set_mission(j, items if waypoints else [])
+            if res.ok and waypoints:
+                from vehicles.autopilot import convention as cv
+                ap.set_mode(j, cv.AUTO)
+            return res
         return accept
 
     def on_nav_param(self, store):
@@ -367,16 +411,32 @@ class VehicleGroup:
             self.nav.config = cfg
         return apply
 
-    def fly_mission(self, i: int, waypoints) -> None:
-        """UAV i (global index) leaves the scenario's law for these waypoints [(lat_rad, lon_rad, h_m)]."""
-        from vehicles import uav as uav_mod
-        j = self.idx.index(i)
-        st = self.swarm.state if j not in self.missions else self.missions[j].state
-        y = np.asarray(st.y).reshape(-1, 4)[0 if j in self.missions else j]
-        wp = np.asarray(waypoints, dtype=float).reshape(-1, 3)
-        speed = max(self.scn.uavs.speed_m_s, 10.0)
-        law = uav_mod.WaypointMission([wp], speed_m_s=speed, max_climb_m_s=min(5.0, 0.5 * speed))
-        self.missions[j] = uav_mod.KinematicSwarm(law, y[0], y[1], y[2], t0_s=float(st.t_s), heading0_rad=y[3])
+    def on_uav_param(self, j: int, store, stores: dict):
+        """UAV j's (local index) store's change callback: an autopilot parameter configures that
+        UAV's autopilot (vehicles.autopilot.config.with_param; a refused combination vetoes);
+        SYSID_THISMAV is vetoed (read-only); a navigation parameter applies to the group's
+        batch of filters and is mirrored into the group's other stores, which re-announce it."""
+        from vehicles.autopilot.config import PARAM_NAMES, with_param
+        ap_names = set(PARAM_NAMES.values())
+        nav_apply = self.on_nav_param(store)
+
+        def apply(name, value):
+            if name == "SYSID_THISMAV":
+                raise ValueError("SYSID_THISMAV is read-only: the system id is the UAV's index + 1")
+            if name in ap_names:
+                try:
+                    self.fleet.ap.set_config(j, with_param(self.fleet.ap.cfgs[j], name, value))
+                except Exception as e:  # filters.params.ParamError and the checks: a veto
+                    raise ValueError(str(e)) from None
+                return
+            nav_apply(name, value)
+            eps = getattr(self, "endpoints", None) or {}
+            for i, other in stores.items():
+                if other is not store:
+                    other.assign(name, value)  # the group's value (the simulation took it above)
+                    if i in eps:
+                        eps[i].announce_param(name)
+        return apply
 
     def telemetry(self) -> list[Telemetry]:
         """Each vehicle's state as its autopilot would report it: the onboard estimate (the
@@ -479,12 +539,13 @@ def build_endpoints(group: VehicleGroup, scn, out_dir, name: str = "vehicles", *
     from pathlib import Path
 
     from vehicles.mavlink import EndpointGroup, ParamStore, TlogWriter, VehicleEndpoint, load_signing_key
-    from vehicles.mavlink.params import sonde_param_specs, uav_param_specs
+    from vehicles.mavlink.endpoint.handlers import AutopilotPort
+    from vehicles.mavlink.params import autopilot_param_specs, sonde_param_specs, uav_param_specs
 
     m = scn.mavlink
     if not m.enabled:
         return None
-    host, port = m.gcs.rsplit(":", 1)
+    host, port_ = m.gcs.rsplit(":", 1)
     key = load_signing_key(m.signing_key_file) if m.signing_key_file else None
     vehicles = [("uav", i) for i in group.idx]
     if group.sonde is not None:
@@ -496,24 +557,29 @@ def build_endpoints(group: VehicleGroup, scn, out_dir, name: str = "vehicles", *
             k += 1
             path = Path(out_dir) / f"mav_{name}.r{k}.tlog"
         tlog = TlogWriter(path)
-    # the UAVs of a group share one receiver / onboard-filter configuration (their filters
-    # run as one batch): one parameter store for all of them, a PARAM_SET on any applies to
-    # the group from the next epoch; the sonde's flight model is fixed at launch (sets vetoed)
-    uav_store = sonde_store = None
-    if group.n:
-        uav_store = ParamStore(uav_param_specs(None, group.nav_cfg, 0))
-        uav_store.on_change(group.on_nav_param(uav_store))
+    # each UAV has its own store: its autopilot's parameters (WP_RADIUS, RTL_ALTITUDE, ...: a set
+    # changes that UAV only, from its next step) and SYSID_THISMAV (read-only), and the onboard
+    # navigation's (GNSS_*, NAV_Q): the group's filters run as one batch, so a set there applies
+    # to the whole group and every UAV of the group re-announces it (PARAM_VALUE); the sonde's
+    # flight model is fixed at launch (sets vetoed)
+    uav_stores = {}
+    for j, i in enumerate(group.idx):
+        uav_stores[i] = ParamStore(uav_param_specs(None, group.nav_cfg, 0) + autopilot_param_specs(
+            group.autopilot.cfgs[j], sysid=i + 1))
+    for j, i in enumerate(group.idx):
+        uav_stores[i].on_change(group.on_uav_param(j, uav_stores[i], uav_stores))
+    sonde_store = None
     if group.sonde is not None:
         sonde_store = ParamStore(sonde_param_specs(group.flight.params))
         sonde_store.on_change(_veto_sonde_param)
     eps = []
     try:
         for kind, i in vehicles:
-            params = uav_store if kind == "uav" else sonde_store
-            eps.append(VehicleEndpoint(sysid=i + 1, kind=kind, gcs=(host, int(port)),
+            params = uav_stores[i] if kind == "uav" else sonde_store
+            port = AutopilotPort(group, group.idx.index(i)) if kind == "uav" else None
+            eps.append(VehicleEndpoint(sysid=i + 1, kind=kind, gcs=(host, int(port_)),
                                        listen=("127.0.0.1", m.base_port + 10 * i), params=params,
-                                       on_mission=group.on_mission(i) if kind == "uav" else None,
-                                       signing_key=key, tlog=tlog, clock=clock,
+                                       signing_key=key, tlog=tlog, clock=clock, autopilot=port,
                                        signing_state=(Path(out_dir) / f"mav_signing_{i + 1}.json"
                                                       if key is not None else None)))
     except Exception:
@@ -522,6 +588,8 @@ def build_endpoints(group: VehicleGroup, scn, out_dir, name: str = "vehicles", *
         if tlog is not None:
             tlog.close()
         raise
+    group.param_stores = uav_stores
+    group.endpoints = {ep.sysid - 1: ep for ep in eps}
     eg = EndpointGroup(eps, timer=timer)
     eg.tlog_writer = tlog  # shared by the endpoints: closed by the worker after them
     return eg

@@ -12,7 +12,10 @@ convention  the identity: MAV_AUTOPILOT_ARDUPILOTMEGA / MAV_TYPE_FIXED_WING, mod
             pymavlink's table, base_mode / system_status / landed_state, mission_total
 config      AutopilotConfig (WP_RADIUS, WP_LOITER_RAD, RTL_ALTITUDE, AIRSPEED_*, TKOFF_*, ...),
             param_rows / with_param for the MAVLink parameter layer
-core        Autopilot: the batched state and its operations; Result, MissionResult, Event
+rules       the vocabulary: task codes, item kinds, REFUSALS, Result, MissionResult, Event,
+            MissionStatus, check_item (one mission item's check)
+core        Autopilot: the batched state, its mode / mission sequencing and the step
+operations  Operations (Autopilot's base): arm, set_mode, goto, set_mission, command, ... (the API below)
 guidance    Guidance (per-UAV kind + targets), AutopilotLaw (a vehicles.uav guidance law)
 swarm       AutopilotSwarm: the scenario's swarm + the autopilots, bit-for-bit the scenario's
             flight until a GCS commands

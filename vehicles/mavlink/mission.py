@@ -20,6 +20,13 @@ position, LAND, SPLINE_WAYPOINT), in order; relative-altitude frames are convert
 home height.  Other items (DO_*, CONDITION_*, RETURN_TO_LAUNCH) are kept for download and not
 flown.  A clear calls ``on_mission([])``.  ``on_mission`` raising ValueError rejects the
 upload (MAV_MISSION_ERROR) and the previous plan stays.
+
+With an autopilot (``on_items``, the UAVs' vehicles.autopilot: ArduPlane's convention), an
+accepted upload's items themselves go to ``on_items(items) -> (code, reason)``: its code is
+the MISSION_ACK type (MAV_MISSION_UNSUPPORTED for an item it cannot fly, ...), and the plan is
+stored only when it is ACCEPTED.  Item 0 is home: ``home_item()`` gives the stored item 0 on
+download (ArduPilot's rule: the GCS reads home there), and a vehicle without a mission
+downloads one item, home.
 """
 from __future__ import annotations
 
@@ -102,7 +109,8 @@ class MissionServer:
 
     def __init__(self, accepts_missions: bool, send: Callable, count: Callable[[str], None],
                  on_mission: Callable | None = None, home_alt: Callable[[], float] = lambda: 0.0,
-                 timeout_s: float = 1.5, retries: int = 5):
+                 timeout_s: float = 1.5, retries: int = 5, on_items: Callable | None = None,
+                 home_item: Callable[[], MissionItem | None] | None = None):
         if not (timeout_s > 0 and math.isfinite(timeout_s)):
             raise ValueError(f"mission timeout_s must be > 0, got {timeout_s!r}")
         if int(retries) < 0:
@@ -112,9 +120,12 @@ class MissionServer:
         self._count = count
         self._on_mission = on_mission
         self._home_alt = home_alt
+        self._on_items = on_items
+        self._home_item = home_item
         self.timeout_s = float(timeout_s)
         self.retries = int(retries)
         self.items: list[MissionItem] = []
+        self.last_reason = ""  # why the last upload was refused (on_items)
         # upload in progress: (addr, sysid, compid, n, received list, deadline, retries left)
         self._up = None
 
@@ -131,15 +142,16 @@ class MissionServer:
         mtype = getattr(msg, "mission_type", 0)
         ours = self.accepts and mtype == mavlink.MAV_MISSION_TYPE_MISSION
         if name == "MISSION_REQUEST_LIST":
-            self._send(addr, "mission_count_send", src_sys, src_comp, len(self.items) if ours else 0, mtype)
+            self._send(addr, "mission_count_send", src_sys, src_comp, len(self._download()) if ours else 0, mtype)
         elif name in ("MISSION_REQUEST_INT", "MISSION_REQUEST"):
             if self._up is not None and self._up[0] == addr:
                 return  # a GCS that uploads does not also download; ignore crossed traffic
-            if not ours or not 0 <= msg.seq < len(self.items):
+            items = self._download() if ours else []
+            if not 0 <= msg.seq < len(items):
                 self._ack(addr, src_sys, src_comp, mavlink.MAV_MISSION_INVALID_SEQUENCE, mtype)
                 self._count("mission_rejected")
                 return
-            it = self.items[msg.seq]
+            it = items[msg.seq]
             if name == "MISSION_REQUEST_INT":
                 self._send(addr, "mission_item_int_send", src_sys, src_comp, it.seq, it.frame, it.command,
                            it.current, it.autocontinue, it.param1, it.param2, it.param3, it.param4,
@@ -198,8 +210,22 @@ class MissionServer:
         addr, sys_, comp, _n, rx = self._up[:5]
         self._send(addr, "mission_request_int_send", sys_, comp, len(rx), mavlink.MAV_MISSION_TYPE_MISSION)
 
+    def _download(self) -> list:
+        """The items a GCS downloads: the stored plan, item 0 = home now (with an autopilot)."""
+        home = self._home_item() if self._home_item is not None else None
+        if home is None:
+            return self.items
+        return [home._replace(seq=0)] + list(self.items[1:])
+
     def _commit(self, items, addr, sys_, comp) -> None:
-        if self._on_mission is not None:
+        if self._on_items is not None:
+            code, reason = self._on_items(list(items))
+            if code != mavlink.MAV_MISSION_ACCEPTED:
+                self._ack(addr, sys_, comp, code, mavlink.MAV_MISSION_TYPE_MISSION)
+                self._count("mission_rejected")
+                self.last_reason = reason
+                return
+        elif self._on_mission is not None:
             try:
                 self._on_mission(waypoints_from_items(items, self._home_alt()))
             except ValueError:

@@ -152,6 +152,15 @@ class ParamStore(Mapping):
             raise ParamError("param_rejected", f"{name}: value {v} vetoed by the simulation: {e}") from None
         return v
 
+    def assign(self, name: str, value) -> None:
+        """Store a value the simulation already uses (a group-wide quantity set through another
+        vehicle's store): no checks beyond the bounds, no callbacks."""
+        spec = self._specs[name]
+        v = float(value)
+        if not (math.isfinite(v) and spec.min <= v <= spec.max):
+            raise ParamError("param_rejected", f"{name}: value {v!r} outside [{spec.min}, {spec.max}]")
+        self._values[name] = v
+
     def replace_into(self, obj):
         """``dataclasses.replace(obj, field=value, ...)`` for every spec mirroring a field of obj."""
         names = {f.name for f in dataclasses.fields(obj)}
@@ -196,6 +205,24 @@ def uav_param_specs(mission=None, nav=None, i: int = 0) -> list[ParamSpec]:
         ParamSpec("NAV_Q", nav.q_m2_s3, 0.0, 1e4,
                   "onboard filter acceleration PSD, m^2/s^3", "q_m2_s3"),
     ]
+    return specs
+
+
+def autopilot_param_specs(config=None, sysid: int | None = None) -> list[ParamSpec]:
+    """Parameters of a UAV's autopilot (vehicles.autopilot.config.AutopilotConfig: ArduPlane's
+    names where ArduPlane has the quantity, SF_* otherwise), with the values of ``config``;
+    SYSID_THISMAV (the MAVLink system id, read-only: the endpoint vetoes a set) when sysid is
+    given.  The bounds here are the plain ones; AutopilotConfig's checks (AIRSPEED_MIN <=
+    AIRSPEED_CRUISE <= AIRSPEED_MAX, ...) veto the rest when a set is applied."""
+    from vehicles.autopilot.config import AutopilotConfig, param_rows
+    cfg = config if config is not None else AutopilotConfig()
+    specs = []
+    for name, value, unit, doc, _ardupilot in param_rows(cfg):
+        lo = -1.0 if name == "RTL_ALTITUDE" else 0.0  # RTL_ALTITUDE -1: return at the current height
+        specs.append(ParamSpec(name, value, lo, math.inf, f"{doc}, {unit}" if unit else doc))
+    if sysid is not None:
+        specs.append(ParamSpec("SYSID_THISMAV", float(sysid), 1.0, 255.0,
+                               "this vehicle's MAVLink system id (read-only: the UAV's index + 1)"))
     return specs
 
 

@@ -104,9 +104,9 @@ def test_autopilot_version_on_request(use_int):
             assert (ack.target_system, ack.target_component) == (255, 190)
             v = of_type(got, "AUTOPILOT_VERSION")[0]
             assert v.capabilities == CAPABILITIES
-            for bit in ("MAVLINK2", "PARAM_FLOAT", "MISSION_INT", "COMMAND_INT"):
+            for bit in ("MAVLINK2", "PARAM_FLOAT", "MISSION_INT", "COMMAND_INT", "FTP", "SET_POSITION_TARGET_GLOBAL_INT"):
                 assert v.capabilities & getattr(mav, "MAV_PROTOCOL_CAPABILITY_" + bit), bit
-            for bit in ("MISSION_FENCE", "MISSION_RALLY", "FTP", "PARAM_ENCODE_BYTEWISE", "TERRAIN"):
+            for bit in ("MISSION_FENCE", "MISSION_RALLY", "PARAM_ENCODE_BYTEWISE", "TERRAIN"):
                 assert not v.capabilities & getattr(mav, "MAV_PROTOCOL_CAPABILITY_" + bit), bit
             assert v.uid != 0 and (v.flight_sw_version >> 16) & 0xFF == 1
 
@@ -522,19 +522,37 @@ def test_qgc_initial_connect_sequence_completes_without_waiting():
             int(np.rint(L.tel.alt_msl_m * 1e3)))
 
 
-def test_mavproxy_ftp_parameter_download_is_refused_at_once():
-    """MAVProxy tries MAVLink FTP (OpenFileRO @PARAM/param.pck) before PARAM_REQUEST_LIST:
-    a NAK right away lets it fall back without its timeouts."""
-    with Link() as L:
-        name = b"@PARAM/param.pck"
-        payload = (7).to_bytes(2, "little") + bytes([3, 4, len(name), 0, 0, 0]) + bytes(4) + name
-        req = L.peer.mav.file_transfer_protocol_encode(0, 1, 1, list(payload.ljust(251, b"\x00")))
-        got = L.exchange(req, lambda g: of_type(g, "FILE_TRANSFER_PROTOCOL"), max_steps=1)
-        p = bytes(of_type(got, "FILE_TRANSFER_PROTOCOL")[0].payload)
-        seq, session, opcode, size, req_opcode = int.from_bytes(p[:2], "little"), p[2], p[3], p[4], p[5]
-        assert (seq, session, opcode, size, req_opcode, p[12]) == (8, 3, 129, 1, 4, 10)  # NAK FileNotFound
-        got = L.exchange(_cmd(L, mav.MAV_CMD_GET_HOME_POSITION), lambda g: of_type(g, "HOME_POSITION"), max_steps=1)
-        assert of_type(got, "COMMAND_ACK")[0].result == mav.MAV_RESULT_ACCEPTED
+def test_ftp_parameter_download_of_param_pck():
+    """MAVProxy's first parameter request, OpenFileRO @PARAM/param.pck, then a burst read: the
+    file decodes (MAVProxy's own param.pck decoder) to the vehicle's parameters; a path that
+    does not exist is a Nak FileNotFound; every request is counted ("ftp")."""
+    param_ftp = pytest.importorskip("MAVProxy.modules.lib.param_ftp")
+    store = ParamStore([ParamSpec("WP_RADIUS", 200.0, 1.0, 1e5, "m"), ParamSpec("NAV_Q", 0.5, 0.0, 10.0, "q")])
+    with Link(params=store) as L:
+        def ftp(seq, session, opcode, data=b"", offset=0, size=None):
+            size = len(data) if size is None else size
+            payload = seq.to_bytes(2, "little") + bytes([session, opcode, size, 0, 0, 0]) + \
+                offset.to_bytes(4, "little") + data
+            req = L.peer.mav.file_transfer_protocol_encode(0, L.ep.sysid, 1, list(payload.ljust(251, b"\x00")))
+            got = L.exchange(req, lambda g: of_type(g, "FILE_TRANSFER_PROTOCOL"), max_steps=1)
+            return [bytes(m.payload) for m in of_type(got, "FILE_TRANSFER_PROTOCOL")]
+
+        p = ftp(7, 3, 4, b"@PARAM/param.pck")[0]  # OpenFileRO
+        assert (int.from_bytes(p[:2], "little"), p[2], p[3], p[5]) == (8, 3, 128, 4)  # Ack of the open
+        size = int.from_bytes(p[12:16], "little")
+        data = b""
+        for r in ftp(9, 3, 15, size=239):  # BurstReadFile from 0
+            if r[3] == 128:
+                off, n = int.from_bytes(r[8:12], "little"), r[4]
+                data = data[:off] + r[12:12 + n]
+        assert len(data) == size
+        pdata = param_ftp.ftp_param_decode(data)
+        got = {name.decode(): value for name, value, _ptype in pdata.params}
+        assert got == pytest.approx({"WP_RADIUS": 200.0, "NAV_Q": 0.5})
+        assert ftp(20, 3, 1)[0][3] == 128  # TerminateSession: Ack
+        p = ftp(22, 4, 4, b"@PARAM/nothing.pck")[0]
+        assert (p[3], p[12]) == (129, 10)  # Nak FileNotFound
+        assert L.ep.counters["ftp"] == 4
 
 
 def test_a_gcs_connecting_to_the_vehicle_port_gets_the_streams_until_it_goes_quiet():

@@ -17,13 +17,15 @@ DEFAULT_GCS = ("127.0.0.1", 14550)
 FRAME_REJECT_REASONS = ("garbage", "truncated", "bad_crc", "unknown_msgid", "malformed", "unsupported_flags",
                         "unsigned", "bad_signature", "replayed", "future")
 #: a valid request refused
-PROTOCOL_REJECT_REASONS = ("param_unknown", "param_rejected", "mission_rejected", "mission_timeout")
+#: (cmd_refused: the autopilot answered a command / SET_MODE / guided request with a code other
+#: than ACCEPTED; its reason goes out as STATUSTEXT and stays in ``last_error``)
+PROTOCOL_REJECT_REASONS = ("param_unknown", "param_rejected", "mission_rejected", "mission_timeout", "cmd_refused")
 #: counters that count rejected inputs (the rest count traffic)
 REJECT_REASONS = FRAME_REJECT_REASONS + PROTOCOL_REJECT_REASONS
 #: a datagram's verdict when it is not accepted: its first failure ("empty": zero bytes)
 DATAGRAM_REJECT_REASONS = ("empty",) + FRAME_REJECT_REASONS
 TRAFFIC_COUNTERS = ("rx_datagrams", "rx_bytes", "received", "not_for_us", "sent", "tx_bytes", "send_errors",
-                    "cmd_unsupported", "ftp_refused", "handler_errors", "input_deferred", "signing_saves",
+                    "cmd_unsupported", "ftp", "handler_errors", "input_deferred", "signing_saves",
                     "signing_state_errors")
 
 KINDS = {
@@ -49,15 +51,14 @@ _DATA_STREAM_GROUPS = {
 
 CAPABILITIES = (mavlink.MAV_PROTOCOL_CAPABILITY_MAVLINK2 | mavlink.MAV_PROTOCOL_CAPABILITY_PARAM_FLOAT
                 | mavlink.MAV_PROTOCOL_CAPABILITY_PARAM_ENCODE_C_CAST | mavlink.MAV_PROTOCOL_CAPABILITY_MISSION_INT
-                | mavlink.MAV_PROTOCOL_CAPABILITY_MISSION_FLOAT | mavlink.MAV_PROTOCOL_CAPABILITY_COMMAND_INT)
+                | mavlink.MAV_PROTOCOL_CAPABILITY_MISSION_FLOAT | mavlink.MAV_PROTOCOL_CAPABILITY_COMMAND_INT
+                | mavlink.MAV_PROTOCOL_CAPABILITY_SET_POSITION_TARGET_GLOBAL_INT | mavlink.MAV_PROTOCOL_CAPABILITY_FTP)
+#: MISSION_CURRENT at least this often (s) from a vehicle with an autopilot, and at every change
+MISSION_CURRENT_PERIOD_S = 1.0
 #: skyfuse 0.1.0, FIRMWARE_VERSION_TYPE_DEV (major << 24 | minor << 16 | patch << 8 | type)
 FLIGHT_SW_VERSION = (0 << 24) | (1 << 16) | (0 << 8) | mavlink.FIRMWARE_VERSION_TYPE_DEV
 
 _SENSORS = mavlink.MAV_SYS_STATUS_SENSOR_GPS
-# MAVLink FTP (mavlink.io "File Transfer Protocol"): opcodes and errors used to refuse it
-_FTP_TERMINATE_SESSION, _FTP_RESET_SESSIONS, _FTP_LIST_DIRECTORY, _FTP_OPEN_FILE_RO = 1, 2, 3, 4
-_FTP_ACK, _FTP_NAK = 128, 129
-_FTP_ERR_UNKNOWN_COMMAND, _FTP_ERR_FILE_NOT_FOUND = 7, 10
 _MAX_PARAMS_PER_STEP = 64
 _MAX_PEERS = 8
 _PEER_TIMEOUT_S = 60.0

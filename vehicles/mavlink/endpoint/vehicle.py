@@ -12,13 +12,14 @@ from pymavlink.dialects.v20 import ardupilotmega as mavlink
 from sitl.mavlink.framing import SIGNING_TICKS_PER_S, SignatureChecker, SigningStateFile, TlogWriter
 
 from .. import telemetry as tm
+from ..ftp import FtpServer
 from ..mission import MissionServer
 from ..params import ParamStore
 from ..telemetry import VehicleTelemetry
 from .constants import (_FUTURE_TICKS, _PEER_TIMEOUT_S, _SO_RXQ_OVFL, DATAGRAM_REJECT_REASONS, DEFAULT_GCS,
                         DEFAULT_RCVBUF_BYTES, DEFAULT_STREAM_RATES_HZ, KINDS, REJECT_REASONS, SIGNING_RESERVE_S,
-                        STREAMS, TRAFFIC_COUNTERS, _check_addr, listen_port)
-from .handlers import RequestHandlers
+                        HEARTBEAT, STREAMS, TRAFFIC_COUNTERS, _check_addr, listen_port)
+from .handlers import AutopilotPort, RequestHandlers
 from .receive import DatagramInput, _drain
 from .signing import SigningClock
 from .streams import StreamOutput
@@ -38,6 +39,9 @@ class VehicleEndpoint(SigningClock, DatagramInput, StreamOutput, RequestHandlers
     clock: our signing clock, unix seconds (None: the simulated clock); signing_state: the
     file that keeps the signing state across restarts (None: kept in memory only); see
     signing.py.  rcvbuf_bytes: the receive buffer to ask for (None: the OS default).
+    autopilot: a UAV's handlers.AutopilotPort (its vehicles.autopilot): HEARTBEAT, home, the
+    flight commands and missions are the autopilot's (None: no flight control, missions go to
+    on_mission).
     """
 
     def __init__(self, sysid: int, kind: str = "uav", gcs=DEFAULT_GCS, listen=None, params: ParamStore | None = None,
@@ -45,7 +49,7 @@ class VehicleEndpoint(SigningClock, DatagramInput, StreamOutput, RequestHandlers
                  instance: int | None = None, compid: int = mavlink.MAV_COMP_ID_AUTOPILOT1, link_id: int = 0,
                  stream_rates_hz: dict | None = None, mission_timeout_s: float = 1.5, mission_retries: int = 5,
                  clock: Callable[[], float] | None = None, signing_state=None,
-                 rcvbuf_bytes: int | None = DEFAULT_RCVBUF_BYTES):
+                 rcvbuf_bytes: int | None = DEFAULT_RCVBUF_BYTES, autopilot: AutopilotPort | None = None):
         if isinstance(sysid, bool) or int(sysid) != sysid or not 1 <= sysid <= 255:
             raise ValueError(f"sysid must be an integer in 1..255, got {sysid!r}")
         if kind not in KINDS:
@@ -56,7 +60,12 @@ class VehicleEndpoint(SigningClock, DatagramInput, StreamOutput, RequestHandlers
             raise ValueError("on_mission must be callable or None")
         if clock is not None and not callable(clock):
             raise ValueError("clock must be callable (unix seconds) or None")
+        if autopilot is not None and not isinstance(autopilot, AutopilotPort):
+            raise ValueError(f"autopilot must be an AutopilotPort or None, got {type(autopilot).__name__}")
         self.sysid, self.compid, self.kind = int(sysid), int(compid), kind
+        self.autopilot = autopilot
+        self._heartbeat_now = False
+        self._mission_current_due = -math.inf
         self.instance = int(sysid) - 1 if instance is None else int(instance)
         self.gcs = _check_addr("gcs", gcs)
         listen = ("127.0.0.1", listen_port(self.instance)) if listen is None else _check_addr("listen", listen)
@@ -142,7 +151,10 @@ class VehicleEndpoint(SigningClock, DatagramInput, StreamOutput, RequestHandlers
         self._param_queue: list[tuple[tuple, int]] = []
         self.mission = MissionServer(kind == "uav", self._send_to, self._count, on_mission,
                                      home_alt=lambda: self.home_alt_msl_m or 0.0,
-                                     timeout_s=mission_timeout_s, retries=mission_retries)
+                                     timeout_s=mission_timeout_s, retries=mission_retries,
+                                     on_items=self._mission_items if autopilot is not None else None,
+                                     home_item=self._home_item if autopilot is not None else None)
+        self.ftp = FtpServer(self.params)
         self._t = None
         self._t_boot = None
         self._unix_s = 0.0
@@ -158,6 +170,9 @@ class VehicleEndpoint(SigningClock, DatagramInput, StreamOutput, RequestHandlers
             "TIMESYNC": self._on_timesync,
             "REQUEST_DATA_STREAM": self._on_request_data_stream,
             "FILE_TRANSFER_PROTOCOL": self._on_ftp,
+            "SET_MODE": self._on_set_mode,
+            "MISSION_SET_CURRENT": self._on_mission_set_current,
+            "SET_POSITION_TARGET_GLOBAL_INT": self._on_set_position_target,
         }
         for name in ("MISSION_REQUEST_LIST", "MISSION_COUNT", "MISSION_REQUEST_INT", "MISSION_REQUEST",
                      "MISSION_ITEM_INT", "MISSION_ITEM", "MISSION_CLEAR_ALL", "MISSION_ACK"):
@@ -196,7 +211,10 @@ class VehicleEndpoint(SigningClock, DatagramInput, StreamOutput, RequestHandlers
 
     def _advance(self, telemetry) -> None:
         self.telemetry = telemetry  # None: nothing to report now (never a stale position)
-        if telemetry is not None and self.home is None:  # home: the first position reported
+        if self.autopilot is not None:  # home: the autopilot's (ArduPilot: set at arming, DO_SET_HOME)
+            la, lo, h = (float(v) for v in self.autopilot.ap.home[self.autopilot.index])
+            self.home, self.home_alt_msl_m = (la, lo, h), h
+        elif telemetry is not None and self.home is None:  # home: the first position reported
             self.home = (float(telemetry.lat_rad), float(telemetry.lon_rad), float(telemetry.alt_msl_m))
             self.home_alt_msl_m = self.home[2]
         t = self._t
@@ -206,7 +224,16 @@ class VehicleEndpoint(SigningClock, DatagramInput, StreamOutput, RequestHandlers
             self._dest = self._stream_dest()
         self.mission.step(t)
         self._send_params()
+        self._autopilot_out(t)
         self._send_streams(t)
+
+    def _send_message(self, msgid: int) -> bool:
+        """The streams' messages; HEARTBEAT from the autopilot when there is one (ArduPlane's
+        type, autopilot, base_mode, custom mode and system status)."""
+        if msgid == HEARTBEAT and self.autopilot is not None:
+            self.mav.heartbeat_send(*self.autopilot.ap.heartbeat(self.autopilot.index))
+            return True
+        return super()._send_message(msgid)
 
     # ------------------------------------------------------------------ close
     def close(self) -> None:
