@@ -2,7 +2,10 @@
 requester), the tlog, and the streams that fall due at a step."""
 from __future__ import annotations
 
+import functools
 import math
+import subprocess
+from pathlib import Path
 
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
@@ -10,6 +13,22 @@ from .. import telemetry as tm
 from .constants import (ATTITUDE, AUTOPILOT_VERSION, CAPABILITIES, FLIGHT_SW_VERSION, FRAME_REJECT_REASONS,
                         GLOBAL_POSITION_INT, GPS_RAW_INT, HEARTBEAT, HOME_POSITION, STREAMS, SYS_STATUS, SYSTEM_TIME,
                         _DUE_TOL_S, _SENSORS)
+
+
+#: the fastest stream: one message per vehicle epoch (run.rate_hz); an endpoint may set epoch_s
+DEFAULT_EPOCH_S = 0.1
+
+
+@functools.cache
+def flight_custom_version() -> list[int]:
+    """flight_custom_version: the first 8 bytes of the source's git commit hash (as ArduPilot
+    puts its git hash there), zeros outside a git checkout. Read once, at the first use."""
+    try:
+        out = subprocess.run(["git", "rev-parse", "HEAD"], cwd=Path(__file__).resolve().parent,
+                             capture_output=True, text=True, timeout=2.0).stdout.strip()
+        return list(bytes.fromhex(out[:16])) if len(out) >= 16 else [0] * 8
+    except (OSError, ValueError, subprocess.SubprocessError):
+        return [0] * 8
 
 
 class StreamOutput:
@@ -72,6 +91,51 @@ class StreamOutput:
             nxt = min(nxt, due)
         self._next_due = nxt
 
+    # ------------------------------------------------------------------ stream requests
+    def set_interval(self, msg_id, interval_us) -> int:
+        """MAV_CMD_SET_MESSAGE_INTERVAL / SET_MESSAGE_INTERVAL semantics -> MAV_RESULT.
+        interval_us: -1 stops the stream, 0 restores its default, > 0 sets it (us), clamped to
+        one vehicle epoch (``epoch_s``, 0.1 s unless set). NaN, other negatives: DENIED; a message
+        id that is not a stream: UNSUPPORTED; both counted. Never raises."""
+        try:
+            msgid = int(msg_id) if math.isfinite(float(msg_id)) else -1
+            iv_us = float(interval_us)
+        except (TypeError, ValueError, OverflowError):
+            self._count("interval_bad")
+            return mavlink.MAV_RESULT_DENIED
+        if msgid not in STREAMS:
+            self._count("cmd_unsupported")
+            return mavlink.MAV_RESULT_UNSUPPORTED
+        if not math.isfinite(iv_us) or (iv_us < 0 and iv_us != -1):
+            self._count("interval_bad")
+            return mavlink.MAV_RESULT_DENIED
+        if iv_us == -1:
+            self._interval[msgid] = None
+        elif iv_us == 0:
+            self._interval[msgid] = self._default_interval[msgid]
+        else:
+            self._interval[msgid] = max(iv_us * 1e-6, getattr(self, "epoch_s", DEFAULT_EPOCH_S))
+        self._streams_changed(msgid)
+        return mavlink.MAV_RESULT_ACCEPTED
+
+    def request_message(self, msg_id, addr=None) -> int:
+        """MAV_CMD_REQUEST_MESSAGE -> MAV_RESULT; on ACCEPTED the message is sent at once (to addr,
+        or to the stream destinations). Unknown id: UNSUPPORTED (counted); no data yet (no
+        telemetry, no home): TEMPORARILY_REJECTED. Never raises."""
+        try:
+            msgid = int(msg_id) if math.isfinite(float(msg_id)) else -1
+        except (TypeError, ValueError, OverflowError):
+            msgid = -1
+        if msgid not in STREAMS and msgid not in (AUTOPILOT_VERSION, HOME_POSITION):
+            self._count("cmd_unsupported")
+            return mavlink.MAV_RESULT_UNSUPPORTED
+        if addr is None:
+            self._dest = self._stream_dest()
+            ok = self._send_message(msgid)
+        else:
+            ok = self._send_message_to(addr, msgid)
+        return mavlink.MAV_RESULT_ACCEPTED if ok else mavlink.MAV_RESULT_TEMPORARILY_REJECTED
+
     def _streams_changed(self, msgid: int) -> None:
         self._due.pop(msgid, None)
         self._next_due = -math.inf
@@ -94,7 +158,7 @@ class StreamOutput:
             mav.sys_status_send(_SENSORS, _SENSORS, _SENSORS if gps_ok else 0, 0, mv, -1, pct, 0,
                                 min(errors, tm.UINT16_MAX), 0, 0, 0, 0)
         elif msgid == AUTOPILOT_VERSION:
-            mav.autopilot_version_send(CAPABILITIES, FLIGHT_SW_VERSION, 0, 0, 0, list(b"skyfuse\x00"), [0] * 8,
+            mav.autopilot_version_send(CAPABILITIES, FLIGHT_SW_VERSION, 0, 0, 0, flight_custom_version(), [0] * 8,
                                        [0] * 8, 0, 0, 0x534B_5946_0000_0000 | self.sysid)
         elif msgid == HOME_POSITION:
             if self.home is None:
