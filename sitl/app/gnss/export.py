@@ -274,7 +274,8 @@ def score(out: Path, pos_file, systems: str = "GR", corrections: bool = False) -
 
     t_sol, x_sol = read_pos(pos_file)
     truth = np.genfromtxt(out / "truth.csv", delimiter=",", names=True)
-    geo = np.load(out / "truth_geometry.npz")
+    with np.load(out / "truth_geometry.npz") as z:  # read each array once (an NpzFile decompresses per access)
+        geo = {name: z[name] for name in z.files}
     meta = json.loads((out / "export.json").read_text())
     sigma = meta["receiver_config"]["sigma_pr_m"]
     t_true = truth["t_gps_s"]
