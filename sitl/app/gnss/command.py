@@ -14,8 +14,15 @@ def _orbits():
 
 
 # name -> (loader of its module, one-line help)
+def _export():
+    from sitl.app.gnss import export
+
+    return export
+
+
 SUBCOMMANDS = {
     "orbits": (_orbits, "broadcast GPS/GLONASS orbits and clocks against IGS precise orbits (SP3) and clocks"),
+    "export": (_export, "the simulated world as RINEX 3.04 observation and navigation files plus truth"),
 }
 
 
