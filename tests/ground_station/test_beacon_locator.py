@@ -515,6 +515,7 @@ def test_printed_sweep_trials_that_diverged_with_one_linearisation():
     point the wrong way.  The experiment's locator (iterated updates) tracks every trial;
     with update_iterations = 1 the same data diverge (so the test can fail)."""
     from sitl.app.experiments import beacon as E
+    from sitl.app.experiments.beacon import case as beacon_case  # where locator_config reads the constant
 
     worst = {}
     for n, bad in ((3, 0), (10, 2)):
@@ -528,14 +529,14 @@ def test_printed_sweep_trials_that_diverged_with_one_linearisation():
         assert cfg1.update_iterations > 1
     # the same data with one linearisation: the reported divergence
     # (and without the unresolved-formation limit, which skips those first epochs altogether)
-    saved = E.PRIOR_UPDATE_ITERATIONS, dict(E.LOCATORS["inflate"])
+    saved = beacon_case.PRIOR_UPDATE_ITERATIONS, dict(E.LOCATORS["inflate"])
     try:
-        E.PRIOR_UPDATE_ITERATIONS = 1
+        beacon_case.PRIOR_UPDATE_ITERATIONS = 1
         E.LOCATORS["inflate"]["min_formation_sigmas"] = 0.0
         tr, prior = E.scenario("printed", 10, 60.0, 5, np.random.default_rng([1, 77, 10, 5]))
         res = E.run_case("constellation", tr, 5, 1011, locators=("inflate",), central=False, prior=prior)
     finally:
-        E.PRIOR_UPDATE_ITERATIONS = saved[0]
+        beacon_case.PRIOR_UPDATE_ITERATIONS = saved[0]
         E.LOCATORS["inflate"] = saved[1]
     err1 = np.linalg.norm(res["x"]["inflate"][-1, :, 0:3] - res["truth"][-1, :, 0:3], axis=-1)
     assert err1[2] > 300.0, err1

@@ -147,7 +147,7 @@ def test_gnss_help(words, capsys):
 
 
 def test_gnss_bench_runs(tmp_path, capsys):
-    rc = main(["bench", "gnss", "--rounds", "1", "--json", str(tmp_path / "b.json")])
+    rc = main(["bench", "gnss", "--data", str(DATA), "--rounds", "1", "--json", str(tmp_path / "b.json")])
     assert rc == 0
     res = json.loads((tmp_path / "b.json").read_text())
     assert {"read_obs_1h_s", "orbit_check_gps_day_s", "orbit_check_glonass_day_s"} <= set(res)  # no timing asserts
