@@ -18,7 +18,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .rinex_common import calendar_seconds, fail, fortran_float, read_lines
+from .rinex_common import calendar_seconds, fail, fortran_float, read_lines, version_line
 
 __all__ = ["ClockFile", "read_clk"]
 
@@ -61,15 +61,8 @@ def read_clk(path) -> ClockFile:
     """Read a RINEX clock file; :class:`~sitl.gnss.rinex_common.GnssFileError` naming the file
     and line if it is malformed, of another version or has no satellite clock."""
     lines = read_lines(path)
-    if not lines:
-        fail(path, None, "empty file")
+    version, _ = version_line(path, lines)
     h = lines[0]
-    if "RINEX VERSION / TYPE" not in h:
-        fail(path, 1, "first line is not a 'RINEX VERSION / TYPE' header")
-    try:
-        version = float(h[:9])
-    except ValueError:
-        fail(path, 1, f"cannot read the RINEX version from {h[:9].strip()!r}")
     if h[20:21] != "C":
         fail(path, 1, f"not a clock file: type {h[20:21]!r}")
     if not 2.0 <= version < 4.0:

@@ -49,6 +49,21 @@ def read_lines(path) -> list[str]:
 _NUMBER = re.compile(r"^[+-]?(\d+\.?\d*|\.\d+)([EeDd][+-]?\d+)?$")
 
 
+def version_line(path, lines: list[str]) -> tuple[float, str]:
+    """(version, file-type letter) of a RINEX file's first line, 'RINEX VERSION / TYPE';
+    GnssFileError naming line 1 if the file is empty or that line is not such a header."""
+    if not lines:
+        fail(path, None, "empty file")
+    head = lines[0]
+    if "RINEX VERSION / TYPE" not in head:
+        fail(path, 1, "first line is not a 'RINEX VERSION / TYPE' header")
+    try:
+        version = float(head[:9])
+    except ValueError:
+        fail(path, 1, f"cannot read the RINEX version from {head[:9].strip()!r}")
+    return version, head[20:21]
+
+
 def fortran_float(text: str, path, line: int, blank: float = 0.0) -> float:
     """A RINEX/SP3 number ('D' exponents allowed); a blank field is ``blank`` (RINEX leaves
     unknown fields empty)."""

@@ -28,7 +28,7 @@ from dataclasses import dataclass, field, fields
 
 import numpy as np
 
-from .rinex_common import (
+from .rinex_common import (version_line, 
     GnssFileError,
     calendar_seconds,
     fail,
@@ -236,15 +236,8 @@ def _select(rec_sat, rec_t, rec_half, sat, t_gps_s) -> np.ndarray:
 # ---------------------------------------------------------------------------------------------
 
 def _header(path, lines):
-    if not lines:
-        fail(path, None, "empty file")
+    version, _ = version_line(path, lines)
     head = lines[0]
-    if "RINEX VERSION / TYPE" not in head:
-        fail(path, 1, "first line is not a 'RINEX VERSION / TYPE' header")
-    try:
-        version = float(head[:9])
-    except ValueError:
-        fail(path, 1, f"cannot read the RINEX version from {head[:9].strip()!r}")
     if int(version) not in (2, 3):
         fail(path, 1, f"unsupported RINEX version {version:g} (2.x and 3.x are read)")
     ftype = head[20:21]

@@ -28,7 +28,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .rinex_common import calendar_seconds, fail, fortran_float, read_lines, two_digit_year
+from .rinex_common import calendar_seconds, fail, fortran_float, read_lines, two_digit_year, version_line
 
 __all__ = ["ObsFile", "read_obs"]
 
@@ -73,15 +73,8 @@ def read_obs(path) -> ObsFile:
     naming the file and line if it is malformed, truncated, of another version or has no
     observation."""
     lines = read_lines(path)
-    if not lines:
-        fail(path, None, "empty file")
+    version, _ = version_line(path, lines)
     h = lines[0]
-    if "RINEX VERSION / TYPE" not in h:
-        fail(path, 1, "first line is not a 'RINEX VERSION / TYPE' header")
-    try:
-        version = float(h[:9])
-    except ValueError:
-        fail(path, 1, f"cannot read the RINEX version from {h[:9].strip()!r}")
     if h[20:21] != "O":
         fail(path, 1, f"not an observation file: type {h[20:21]!r}")
     major = int(version)
