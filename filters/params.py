@@ -29,7 +29,7 @@ import numpy as np
 
 __all__ = ["param", "checks", "docs", "ParamError", "Check", "integer", "number", "choice", "switch", "string",
            "optional", "several", "from_text", "array", "vec3", "reworded", "default_of", "flag_of", "validate",
-           "require"]
+           "require", "instance_of", "as_given"]
 
 
 def param(default=MISSING, *, check, doc: str, default_factory=MISSING, kw_only=MISSING, flag=None, metavar=None,
@@ -199,6 +199,29 @@ def string() -> Check:
     def test(v):
         if not isinstance(v, str):
             raise ParamError("", f"expected a string, got {v!r}")
+        return v
+
+    return Check(test)
+
+
+def instance_of(cls: type, *, none: bool = False, what: str | None = None) -> Check:
+    """An instance of ``cls`` (or None if ``none``), stored as it is: a nested settings object.
+    ``what`` names it in the message (default: the class's module and name)."""
+    what = (what or f"a {cls.__module__}.{cls.__name__}") + (" or None" if none else "")
+
+    def test(v):
+        if not (isinstance(v, cls) or (none and v is None)):
+            raise ParamError("", f"expected {what}, got {_brief(v)}")
+        return v
+
+    return Check(test)
+
+
+def as_given(check: Check) -> Check:
+    """``check``'s test, the value stored as given (a tuple stays a tuple, so a frozen
+    settings object stays hashable and comparable field by field)."""
+    def test(v):
+        check("", v)
         return v
 
     return Check(test)

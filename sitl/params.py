@@ -20,14 +20,14 @@ import math
 import textwrap
 from dataclasses import MISSING
 
-from filters.params import (Check, ParamError, _declared, array, checks, choice, default_of, docs, flag_of,  # noqa: F401
-                            from_text, integer, number, optional, param, require, several, string, switch,
-                            validate, vec3)
+from filters.params import (Check, ParamError, _declared, array, as_given, checks, choice, default_of,  # noqa: F401
+                            docs, flag_of, from_text, instance_of, integer, number, optional, param, require,
+                            several, string, switch, validate, vec3)
 
 __all__ = ["param", "checks", "docs", "toml_value", "toml_table", "ParamError", "Check", "integer", "number",
            "choice", "switch", "string", "optional", "several", "from_text", "cli_type", "default_of", "flag_of",
            "add_flags", "options_from_args", "validate", "help_text", "require", "array", "vec3",
-           "quiet_option", "backend_option"]
+           "instance_of", "as_given", "quiet_option", "backend_option"]
 
 
 def toml_value(v) -> str:

@@ -7,7 +7,7 @@ Modes (see the docstring of vehicles/uav/__init__.py for how the seed's laws are
   w' = w_r = 0.02), a :class:`vehicles.uav.PrintedSwarm` integrated by RK4 at 0.01 s from
   the printed start point (the same as the UAVs') or from given ECEF start points (one
   beacon per Monte Carlo trial: the experiment draws each trial's start about the printed
-  point, see sitl/app/experiments/beacon.py).
+  point, see sitl/app/experiments/beacon/world.py).
 * ``mode="seed"`` -- the geodetic reading: start lat 47.3, lon 31, h 3200 m (the OCR:
   longitude 31, latitude 47.3), heading north at 115 + 10 sin(0.02 t) m/s with climb
   15 cos(0.01 t) (:func:`example_beacon_law`), a :class:`vehicles.uav.KinematicSwarm`.

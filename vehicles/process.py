@@ -5,7 +5,7 @@ EKFs of vehicles.uav_nav), the beacon (vehicles.beacon) and the beacon links
 (sitl.radio.beacon_link) at each of its UAVs; the first group also flies the radiosonde
 (vehicles.sonde) with its relay and radar (sitl.radio). Every epoch (1 / run.rate_hz of
 simulated time) it publishes on the bus what the batch experiments publish on the in-memory
-bus (sitl/app/experiments/beacon.py and sonde.py build the same objects):
+bus (sitl/app/experiments/beacon/ and sonde/ build the same objects):
 
     <run>/uav/<i>/nav               UavNav               each UAV's onboard estimate
     <run>/uav/<i>/beacon/<b>        BeaconMeasurement    range / Doppler + the UAV's nav snapshot

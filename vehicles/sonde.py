@@ -87,7 +87,7 @@ from typing import NamedTuple
 import numpy as np
 import scipy.linalg
 
-from filters.params import Check, ParamError, array, number, param, require, validate
+from filters.params import ParamError, array, as_given, number, param, require, validate
 from sitl.atmosphere_std import RHO0_KG_M3, Z_MAX_M, Z_MIN_M, us76_density
 from sitl.constants import WGS84
 from sitl.geodesy import enu_rotation, geodetic_to_ecef
@@ -195,16 +195,6 @@ _POSITIVE = number(0.0, lo_open=True)
 _NONNEG = number(0.0)
 
 
-def _kept(check: Check) -> Check:
-    """``check``'s test, the value stored as given: a tuple stays a tuple (SondeParams stays
-    hashable and comparable field by field)."""
-    def test(v):
-        check("", v)
-        return v
-
-    return Check(test)
-
-
 def _burst_range(key, value):
     """A pair (low, high) of heights, 0 < low <= high <= 50 km, stored as given."""
     try:
@@ -249,10 +239,10 @@ class SondeParams:
                                            doc="rate at which the vertical speed relaxes to its target, 1/s (0.2: in 5 s)")
     wind_alt_m: tuple = param(_WIND_ALT_M, check=_altitude_knots,
                               doc="altitude knots of the mean wind profile, strictly increasing, m")
-    wind_speed_m_s: tuple = param(_WIND_SPEED_M_S, check=_kept(array(lo=0.0, what="finite wind speeds >= 0")),
+    wind_speed_m_s: tuple = param(_WIND_SPEED_M_S, check=as_given(array(lo=0.0, what="finite wind speeds >= 0")),
                                   doc="mean wind speed at each altitude knot, m/s (>= 0)")
     wind_from_rad: tuple = param(tuple(math.radians(d) for d in _WIND_FROM_DEG),
-                                 check=_kept(array(what="finite directions")),
+                                 check=as_given(array(what="finite directions")),
                                  doc="direction the wind blows FROM, clockwise from north (meteorological), rad: a "
                                      "scalar or one per altitude knot")
 

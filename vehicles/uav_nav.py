@@ -64,7 +64,7 @@ Integrity (seed 003, opt-in: ``NavConfig(integrity=IntegrityConfig(...))``): the
 runs under filters.integrity.IntegrityMonitor with one channel per satellite (its pseudorange
 and rate rows; :func:`nav_step_monitored`); OnboardNav keeps the Report and, given a
 sitl.integrity_events.IntegrityEventPublisher, publishes the events (channel
-``<uav id>.<satellite id>``). Off by default, measured (tests/test_integrity_wiring.py and
+``<uav id>.<satellite id>``). Off by default, measured (tests/app/test_integrity_wiring.py and
 the integrity experiment's report): with the seed's three satellites there is no redundancy -- excluding
 one satellite leaves the position unobservable (fault-free RMSE 6.0 m -> 42 m, 100 trials x 3
 UAVs, 300 s, before the rule below); :data:`RECOMMENDED_INTEGRITY` therefore has
@@ -94,7 +94,7 @@ import numpy as np
 from filters.ekf import ekf_predict, ekf_step, ekf_update
 from filters.integrity import IntegrityConfig, IntegrityMonitor
 from filters.models import ClockFreePseudorangeDoppler, ConstantVelocity
-from filters.params import ParamError, integer, number, param, switch, validate
+from filters.params import ParamError, integer, number, param, instance_of, switch, validate
 from sitl import geodesy
 from sitl.gnss import orbits, ranging, world
 from sitl.gnss.orbits import Constellation
@@ -152,18 +152,6 @@ def _check_constellation(constellation) -> Constellation:
 _POSITIVE = number(0.0, lo_open=True)
 
 
-def _instance_of(cls, *, none: bool = False):
-    """A check: an instance of ``cls`` (or None if ``none``), stored as it is."""
-    what = f"a {cls.__module__}.{cls.__name__}" + (" or None" if none else "")
-
-    def check(key, value):
-        if not (isinstance(value, cls) or (none and value is None)):
-            raise ParamError(key, f"expected {what}, got {type(value).__name__}")
-        return value
-
-    return check
-
-
 def _elevation(key, value) -> float:
     """An elevation angle in [-pi/2, pi/2) rad, as a float."""
     el = number()(key, value)
@@ -199,7 +187,7 @@ class GnssNoise:
 class NavConfig:
     """Receiver and onboard-filter settings."""
 
-    noise: GnssNoise = param(default_factory=GnssNoise, check=_instance_of(GnssNoise),
+    noise: GnssNoise = param(default_factory=GnssNoise, check=instance_of(GnssNoise),
                              doc="the receiver's noise (and the variances the filter assumes: the same numbers)")
     q_m2_s3: float = param(0.035, check=number(0.0),
                            doc="acceleration PSD of the constant-velocity model, m^2/s^3 (see the module docstring)")
@@ -208,7 +196,7 @@ class NavConfig:
     light_time: bool = param(True, check=switch(),
                              doc="light-time geometry with Earth rotation (True) or instantaneous (False)")
     ls_iterations: int = param(10, check=integer(1), doc="Gauss-Newton iterations of the initial least-squares fix")
-    integrity: IntegrityConfig | None = param(None, check=_instance_of(IntegrityConfig, none=True),
+    integrity: IntegrityConfig | None = param(None, check=instance_of(IntegrityConfig, none=True),
                                               doc="the integrity monitor around the EKF update (filters.integrity, one "
                                                   "channel per satellite: its pseudorange and rate rows), or None for "
                                                   "the plain EKF")

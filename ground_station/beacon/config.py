@@ -10,7 +10,7 @@ import scipy.stats
 from filters import kernels
 from filters.beacon import OBSERVER_UNCERTAINTY
 from filters.integrity import IntegrityConfig
-from filters.params import ParamError, choice, integer, number, param, require, switch, validate
+from filters.params import ParamError, choice, instance_of, integer, number, param, require, switch, validate
 from sitl.scenario import GroundStationSection
 
 __all__ = ["LocatorConfig", "MOTIONS", "INITS", "INTEGRITY"]
@@ -34,14 +34,6 @@ _FRACTION_OPEN = "a number in (0, 1)"
 _FRACTION_HALF_OPEN = "a number in (0, 1]"
 _PRIOR_MEAN = "6 finite numbers [B, V_B] (ECEF)"
 _PRIOR_COV = "a finite symmetric positive definite 6 x 6 matrix"
-
-
-def _integrity(key, value):
-    """An IntegrityConfig or None (a check (key, value) -> value of the filters.params kind)."""
-    if value is not None and not isinstance(value, IntegrityConfig):
-        raise ParamError(key, f"expected a filters.integrity.IntegrityConfig or None (integrity must be a "
-                              f"monitor's settings or off), got {value!r}")
-    return value
 
 
 def _backend(key, value):
@@ -160,7 +152,7 @@ class LocatorConfig:
                                         doc="an epoch whose >= 3 UAVs span less than this many times their RMS "
                                             "position sigma gives no beacon measurement (0: off)")
     integrity: IntegrityConfig | None = param(
-        None, check=_integrity,
+        None, check=instance_of(IntegrityConfig, none=True),
         doc="the integrity monitor (filters.integrity) on each UAV link's range and Doppler "
             "(ground_station.beacon.integrity); None: off")
     integrity_max_links: int = param(32, check=integer(1),

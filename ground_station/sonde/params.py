@@ -11,7 +11,7 @@ from typing import NamedTuple
 import numpy as np
 
 from filters.integrity import IntegrityConfig
-from filters.params import Check, ParamError, choice, integer, number, optional, param, require, several, switch, validate
+from filters.params import Check, ParamError, choice, instance_of, integer, number, optional, param, require, several, switch, validate
 from sitl.atmosphere_std import Z_MAX_M
 from sitl.bus import is_valid_id
 from sitl.radio.radar import RadarParams
@@ -31,15 +31,6 @@ _RELAY_DEFAULT = RelayParams()
 
 _POSITIVE = number(0, lo_open=True)
 _NONNEGATIVE = number(0)
-
-
-def _instance_or_none(cls, what: str):
-    """A check (key, value) -> value of the filters.params kind: an instance of ``cls`` or None."""
-    def check(key, value):
-        if value is not None and not isinstance(value, cls):
-            raise ParamError(key, f"expected {what} or None, got {value!r}")
-        return value
-    return check
 
 
 def _label(value):
@@ -148,7 +139,7 @@ class SondeTrackerParams:
                                                    "initialisation, m/s")
     prior_sigma_delta_d_m: float = param(3000.0, check=_POSITIVE, doc="prior std of dd at initialisation, m")
     relay_errors: RelayErrorBudget | None = param(_RELAY_DEFAULT.errors,
-                                                  check=_instance_or_none(RelayErrorBudget, "a RelayErrorBudget"),
+                                                  check=instance_of(RelayErrorBudget, none=True, what="a RelayErrorBudget"),
                                                   doc="the relay's error budget; None: white noise only")
     bias_slots: int = param(24, check=integer(1),
                             doc="per-satellite error states (relay modes with relay_errors); >= satellites in view")
@@ -159,7 +150,7 @@ class SondeTrackerParams:
     backend: str | None = param(None, check=optional(choice("auto", "numpy", "numba")),
                                 doc="the filters.kernels backend (None: the default)")
     integrity: IntegrityConfig | None = param(
-        None, check=_instance_or_none(IntegrityConfig, "a filters.integrity.IntegrityConfig"),
+        None, check=instance_of(IntegrityConfig, none=True),
         doc="the integrity monitor (filters.integrity) around the updates; None: off")
     integrity_sat_channels: int = param(48, check=integer(1),
                                         doc="relayed-satellite channels of the monitor (>= satellites seen in its "

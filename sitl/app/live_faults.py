@@ -33,7 +33,7 @@ from pathlib import Path
 from sitl.app.args import add_positional, repeatable
 from sitl.app.launcher import DemoOptions, RunOptions
 from sitl.pacing import wall_now
-from sitl.params import Check, ParamError, add_flags, default_of, from_text, optional, param, several, string, validate
+from sitl.params import Check, add_flags, default_of, from_text, number, optional, param, several, string, validate
 
 PRESTART_OFFSET_S = 1e6  # simulated seconds below zero before the start (module text)
 # the proxies' receiver-side MAVLink tap (pymavlink parses every forwarded datagram: measured
@@ -55,21 +55,7 @@ TIMEOUT_MAX_S = 3600.0
 
 def _timeout_s() -> Check:
     """Seconds in (0, TIMEOUT_MAX_S): how long `fault` waits for the launcher."""
-    what = f"seconds in (0, {TIMEOUT_MAX_S:g})"
-
-    def test(v):
-        if isinstance(v, bool) or not isinstance(v, (int, float)) or not 0 < v < TIMEOUT_MAX_S:
-            raise ParamError("", f"expected {what}, got {v!r}")
-        return float(v)
-
-    def parse(text):
-        try:
-            v = float(text)
-        except ValueError:
-            raise ParamError("", f"expected {what}, got {text!r}") from None
-        return test(v)
-
-    return Check(test, parse)
+    return number(0, lo_open=True, hi=TIMEOUT_MAX_S, hi_open=True, what=f"seconds in (0, {TIMEOUT_MAX_S:g})")
 
 
 @dataclass(frozen=True, kw_only=True)

@@ -56,15 +56,26 @@ _SECONDS_PER_WEEK = 604_800.0
 _V3_RECORD_LINES = {"G": 8, "R": 4, "E": 8, "C": 8, "J": 8, "I": 8, "S": 4}
 
 
-def _freeze(obj) -> None:
-    for f in fields(obj):
-        v = getattr(obj, f.name)
-        if isinstance(v, np.ndarray):
-            v.setflags(write=False)
+class _Records:
+    """What both systems' record tables share: read-only columns, a length, the satellites."""
+
+    def __post_init__(self):
+        for f in fields(self):
+            v = getattr(self, f.name)
+            if isinstance(v, np.ndarray):
+                v.setflags(write=False)
+
+    def __len__(self) -> int:
+        return int(self.sat.shape[0])
+
+    @property
+    def sats(self) -> list[str]:
+        """The satellites with at least one record, sorted."""
+        return sorted(set(self.sat.tolist()))
 
 
 @dataclass(frozen=True, eq=False)
-class GpsEphemerides:
+class GpsEphemerides(_Records):
     """Every GPS broadcast record of a file (N rows, file order; IS-GPS-200 Table 20-III names).
 
     sat 'Gnn'; toc_gps_s (clock epoch); toe_gps_s = week * 604800 + Toe; af0_s, af1, af2
@@ -107,17 +118,6 @@ class GpsEphemerides:
     fit_h: np.ndarray
     line: np.ndarray
 
-    def __post_init__(self):
-        _freeze(self)
-
-    def __len__(self) -> int:
-        return int(self.sat.shape[0])
-
-    @property
-    def sats(self) -> list[str]:
-        """The satellites with at least one record, sorted."""
-        return sorted(set(self.sat.tolist()))
-
     def select(self, sat, t_gps_s, usable=None) -> np.ndarray:
         """Index of the record in force for each (satellite, time) pair, -1 where none is.
 
@@ -156,7 +156,7 @@ class GpsEphemerides:
 
 
 @dataclass(frozen=True, eq=False)
-class GlonassEphemerides:
+class GlonassEphemerides(_Records):
     """Every GLONASS broadcast record of a file (N rows, file order; GLONASS ICD 5.1 names).
 
     sat 'Rnn' (slot); toc_gps_s (t_b, converted from UTC); tau_n_s (the ICD's tau_n: RINEX
@@ -179,16 +179,6 @@ class GlonassEphemerides:
     freq_num: np.ndarray
     age_days: np.ndarray
     line: np.ndarray
-
-    def __post_init__(self):
-        _freeze(self)
-
-    def __len__(self) -> int:
-        return int(self.sat.shape[0])
-
-    @property
-    def sats(self) -> list[str]:
-        return sorted(set(self.sat.tolist()))
 
     def select(self, sat, t_gps_s, max_age_s: float = GLONASS_MAX_AGE_S) -> np.ndarray:
         """Index of the record nearest in t_b for each (satellite, time), within ``max_age_s``

@@ -1,6 +1,6 @@
 """The signing clock of a MAVLink 2 sender that only sends (the ground station's output).
 
-The timestamp rules are the vehicles' (vehicles/mavlink/endpoint.py, "Signing timestamps"),
+The timestamp rules are the vehicles' (vehicles/mavlink/endpoint/signing.py, "Signing timestamps"),
 minus the receiving side: mavlink.io "Message Signing" / "Timestamp Handling" --
 
 * a timestamp is 10 us since 2015-01-01 (framing.SIGNING_EPOCH_UNIX_S), 48 bits;

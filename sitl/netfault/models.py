@@ -55,7 +55,7 @@ Rate: ``len(payload) * 8 / rate`` per packet, the payload as given (netem counts
 frame and optional overheads; a caller that wants headers counted adds them to the rate).
 Pareto's t has standard deviation 2/sqrt(3) ~ 1.15 (netem's table is not unit-variance).
 
-The models, their parameters, their netem equivalent and what tests/test_netfault_models.py
+The models, their parameters, their netem equivalent and what tests/sitl/netfault/test_models.py
 checks (100,000 packets for each model's statistics, 50,000 for some of the rules):
 
 ==============  =====================  ======================  ===============================

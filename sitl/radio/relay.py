@@ -137,7 +137,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from filters.params import ParamError, number, param, require, switch, validate
+from filters.params import instance_of, number, param, require, switch, validate
 from sitl.constants import C_M_S, F_GPS_L1_HZ, WGS84
 from sitl.geodesy import ecef_to_aer, ecef_to_geodetic
 from sitl.gnss.orbits import Constellation
@@ -260,13 +260,6 @@ class RelayErrorBudget:
                                                    np.asarray(el_rad, dtype=float))
 
 
-def _budget_or_none(key, value):
-    """A RelayErrorBudget or None (a check (key, value) -> value of the filters.params kind)."""
-    if value is not None and not isinstance(value, RelayErrorBudget):
-        raise ParamError(key, f"expected a RelayErrorBudget or None, got {value!r}")
-    return value
-
-
 _GCPP_OFFSET = "a finite number below 1 ms in size"
 
 
@@ -294,7 +287,7 @@ class RelayParams:
                                    doc="((t_start, t_end), ...) GPS s: nothing is delivered in these intervals")
     downlink_sagnac: bool = param(True, check=switch(),
                                   doc="the Sagnac correction of the sonde-to-ground downlink is in the simulated delay")
-    errors: RelayErrorBudget | None = param(RelayErrorBudget(), check=_budget_or_none,
+    errors: RelayErrorBudget | None = param(RelayErrorBudget(), check=instance_of(RelayErrorBudget, none=True, what="a RelayErrorBudget"),
                                             doc="the propagation and relay error budget; None: white noise only "
                                                 "(the old world)")
 

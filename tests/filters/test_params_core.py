@@ -8,8 +8,8 @@ from dataclasses import dataclass
 import numpy as np
 import pytest
 
-from filters.params import (ParamError, array, checks, choice, docs, integer, number, optional, param, require,
-                            several, string, switch, validate, vec3)
+from filters.params import (ParamError, array, as_given, checks, choice, docs, instance_of, integer, number, optional,
+                            param, require, several, string, switch, validate, vec3)
 
 
 def _rejects(check, value, key="k"):
@@ -108,6 +108,26 @@ class _Cfg:
     def __post_init__(self):
         validate(self)
         require(self.lo < self.hi, "hi", f"expected > lo = {self.lo:g}, got {self.hi:g}")
+
+
+def test_instance_of_stores_the_object_and_names_the_class():
+    class Settings:
+        pass
+
+    one = Settings()
+    assert instance_of(Settings)("s", one) is one
+    assert instance_of(Settings, none=True)("s", None) is None
+    assert "expected a tests" not in _rejects(instance_of(Settings, what="a Settings"), {"a": 1}, "s")
+    assert _rejects(instance_of(Settings), None, "s").endswith("Settings, got None")
+    text = _rejects(instance_of(Settings, none=True, what="a Settings"), "x" * 200, "s")
+    assert text.startswith("s: expected a Settings or None, got 'xxx") and len(text) < 120  # one short line
+
+
+def test_as_given_keeps_the_value_and_the_checks_message():
+    t = (1.0, 2.0)
+    assert as_given(array(lo=0.0))("w", t) is t  # a tuple stays the caller's tuple (hashable)
+    assert _rejects(as_given(array(lo=0.0, what="finite speeds >= 0")), (1.0, -2.0), "w") == \
+        _rejects(array(lo=0.0, what="finite speeds >= 0"), (1.0, -2.0), "w")
 
 
 def test_validate_on_a_frozen_dataclass_stores_what_the_checks_return():

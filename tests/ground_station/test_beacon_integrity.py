@@ -263,7 +263,7 @@ def test_config_checks():
 
 @pytest.mark.slow
 def test_experiment_case_isolates_the_injected_faults_and_summarises():
-    """sitl/app/experiments/beacon.py with integrity on: a 100 m range step on UAV 2's link and a
+    """sitl/app/experiments/beacon/ with integrity on: a 100 m range step on UAV 2's link and a
     100 m pseudorange step on one of UAV 1's satellites (GPS constellation, printed geometry):
     both isolated on their channels (locator: within 2 epochs; UAV 1's filter: within 10 s),
     the events on the bus reach the summary."""

@@ -1,4 +1,4 @@
-"""UAV kinematics (vehicles/uav.py): RK4 truth of the seed 002 law and the waypoint mode.
+"""UAV kinematics (vehicles/uav/): RK4 truth of the seed 002 law and the waypoint mode.
 
 * RK4 against scipy's solve_ivp (DOP853, tight tolerances) on the same ODE, and its 4th order;
 * the compiled integrator against the numpy reference, for every guidance law;

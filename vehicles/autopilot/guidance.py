@@ -7,7 +7,7 @@ heading rate rad/s), ``initial_heading``, ``target``, ``advance``), so
 ``vehicles.uav.propagate(state, t1, AutopilotLaw(g), dt_s)`` integrates it with the same RK4
 and the same ODE (vehicles.uav.geodetic_rates) as every other law; the commands are
 evaluated at every RK4 stage from the stage's state, as the existing laws are.  The formulas
-are the existing laws' own (vehicles/uav.py):
+are the existing laws' own (vehicles/uav/):
 
   GOTO    WaypointMission's pursuit:  psi' = clip(k_goto wrap(bearing - psi), +-w_max),
           v_u = clip(k_climb (alt - h), -sink_max, +climb_max)
@@ -41,7 +41,7 @@ HOLD, SCENARIO, GOTO, ORBIT, LEG, LAND, FINAL = 0, 1, 2, 3, 4, 5, 6
 KIND_NAMES = {HOLD: "hold", SCENARIO: "scenario", GOTO: "goto", ORBIT: "orbit", LEG: "leg", LAND: "land",
               FINAL: "final"}
 
-#: gains: WaypointMission's turn and climb gains, Racetrack's turn and radial gains (vehicles/uav.py defaults)
+#: gains: WaypointMission's turn and climb gains, Racetrack's turn and radial gains (vehicles/uav/ defaults)
 K_GOTO_1_S, K_CLIMB_1_S, K_ORBIT_1_S, K_RADIAL = 0.5, 0.05, 0.1, 1.0
 
 

@@ -5,20 +5,9 @@ payload (the message's 251-byte ``payload`` field, or its bytes) and returns the
 payloads (251 bytes each) to send back, in order; ``now_s`` is the simulation time, used
 only for the session timeouts.  One :class:`FtpServer` per vehicle.
 
-Wiring it into the endpoint (vehicles/mavlink/endpoint.py; the lead's step)::
-
-    from vehicles.mavlink.ftp import FtpServer, addressed_to, advertised_capabilities
-    self.ftp = FtpServer(self.params)                       # in __init__
-    CAPABILITIES -> advertised_capabilities(CAPABILITIES)   # AUTOPILOT_VERSION.capabilities
-
-    def _on_ftp(self, msg, addr):                           # replaces the refusing handler
-        if not addressed_to(msg.target_system, msg.target_component, self.sysid, self.compid):
-            self.counters["not_for_us"] += 1
-            return
-        for args in self.ftp.handle_message(msg, self._t or 0.0, peer=addr):
-            self._send_to(addr, "file_transfer_protocol_send", *args)
-
-    (and drop the ``ftp_refused`` counter and the _FTP_* constants of the refusing handler)
+The endpoint (vehicles/mavlink/endpoint/vehicle.py) holds one per vehicle, answers the
+FILE_TRANSFER_PROTOCOL messages addressed to it and advertises the capability bits of
+:func:`advertised_capabilities` in AUTOPILOT_VERSION.
 
 ``handle_message`` returns ``(target_network, target_system, target_component, payload)``
 tuples for ``file_transfer_protocol_send``: network 0, the requester's system and component

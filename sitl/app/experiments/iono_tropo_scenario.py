@@ -19,7 +19,6 @@ from filters.iono_tropo import (
     IonoTropoTransition,
 )
 from sitl import geodesy
-from sitl.app.experiments.ranges import within
 from sitl.gnss import orbits
 from sitl.gnss.receiver import ReceiverConfig
 from sitl.gnss.world import elevation_grid
@@ -54,15 +53,15 @@ class IonoTropoScenario:
     iono_zenith_m: float = param(15.0, check=_NON_NEGATIVE, doc="true zenith ionospheric delay I_g at L1, m")
     tropo_zenith_m: float = param(2.5, check=_NON_NEGATIVE, doc="true zenith tropospheric delay U_g, m")
     gps_glonass_offset_m: float = param(5.0, check=_FINITE, doc="true GPS-GLONASS receiver bias Delta_A, m")
-    el_mask_deg: float = param(10.0, check=within(5, 90, hi_open=True,
+    el_mask_deg: float = param(10.0, check=number(5, hi=90, hi_open=True,
                                                   what="a number in [5, 90) (the seed's 1/sin(el) troposphere "
                                                        "mapping, eq 11, does not hold nearer the horizon)"),
                                doc=f"elevation mask, deg; >= {MIN_SATS} satellites must stay in view all along the run")
     # trajectory: great circle at constant speed from (lat, lon, h), heading from north
-    lat_deg: float = param(55.0, check=within(-90, 90, lo_open=True, hi_open=True),
+    lat_deg: float = param(55.0, check=number(-90, hi=90, lo_open=True, hi_open=True),
                            doc="latitude of the trajectory's start, deg")
     lon_deg: float = param(37.0, check=_FINITE, doc="longitude of the trajectory's start, deg")
-    h_m: float = param(1000.0, check=within(-500, 1e5, what="a number in [-500, 1e5] (a receiver near the ground)"),
+    h_m: float = param(1000.0, check=number(-500, hi=1e5, what="a number in [-500, 1e5] (a receiver near the ground)"),
                        doc="height of the trajectory above the ellipsoid, m")
     speed_m_s: float = param(50.0, check=_NON_NEGATIVE, doc="ground speed along the great circle, m/s")
     heading_deg: float = param(90.0, check=_FINITE, doc="initial heading of the great circle from north, deg")
@@ -111,7 +110,7 @@ class IonoTropoScenario:
                                     "one)")
     # adaptive process noise (eq 7): Q(i+1) = Q_min + decay Q(i) + gain diag((W nu)(W nu)')
     adaptive_q: bool = param(False, check=switch(), doc="the adaptive process noise of the seed's eq 7")
-    adaptive_q_decay: float = param(0.1, check=within(0, 1, hi_open=True,
+    adaptive_q_decay: float = param(0.1, check=number(0, hi=1, hi_open=True,
                                                       what="a number in [0, 1) (Q would grow without bound)"),
                                     doc="eq 7's decay of the previous Q")
     adaptive_q_gain: float = param(0.7, check=_NON_NEGATIVE, doc="eq 7's gain on diag((W nu)(W nu)')")

@@ -9,8 +9,7 @@ import pytest
 
 from sitl.app.experiments.integrity import IntegrityScenario
 from sitl.app.experiments.iono_tropo_filters import IonoTropoScenario
-from sitl.app.experiments.ranges import within
-from sitl.params import ParamError, docs
+from sitl.params import ParamError, docs, number
 
 
 @pytest.mark.parametrize("cls", [IntegrityScenario, IonoTropoScenario])
@@ -60,8 +59,8 @@ def test_what_the_checks_store():
     assert type(it.el_mask_deg) is float and type(it.phase_max_sats) is int and it.systems == "RG"
 
 
-def test_within_bounds_open_and_closed():
-    closed, half = within(0, 1), within(5, 90, hi_open=True)
+def test_bounded_number_open_and_closed():
+    closed, half = number(0, hi=1), number(5, hi=90, hi_open=True)
     assert closed("p", 0) == 0.0 and closed("p", 1) == 1.0
     assert half("m", 5) == 5.0 and half.parse("89.5") == 89.5
     for v in (1.5, -0.1, float("nan")):
@@ -73,4 +72,4 @@ def test_within_bounds_open_and_closed():
     with pytest.raises(ParamError, match=r"got 90$"):
         half.parse("90")
     with pytest.raises(ParamError, match="^q: expected a probability, got 2$"):
-        within(0, 1, what="a probability")("q", 2)
+        number(0, hi=1, what="a probability")("q", 2)

@@ -177,7 +177,7 @@ def test_udp_seeded_loss_duplicates_equal_truth_replay_and_mavlink_tap(up, down)
             lf = LinkFault(spec, rng=rng)
             expect = [0] + [i for i, b in enumerate(sent[name][1:n], 1) for _ in lf.process(0.0, b)] + [n]
             assert got == expect
-            if spec != "none":  # the spec did act (the model's rates are tested in test_netfault_models)
+            if spec != "none":  # the spec did act (the model's rates are tested in tests/sitl/netfault/test_models.py)
                 assert tr.dropped_loss > 0
             if "duplicate" in spec:
                 assert tr.duplicated > 0

@@ -21,7 +21,7 @@ seed's position-only filter) are scored from their states (result.json
 against ignoring it).  The centralised filter (ground_station.beacon.central) is then
 replayed on the same receiver outputs and links, and the PCRB computed at the truth.
 
-Geometry (``--geometry``; vehicles/uav.py says how the seed's laws are read):
+Geometry (``--geometry``; vehicles/uav/__init__.py says how the seed's laws are read):
 
 * ``printed`` (default) -- the paper's example as printed: UAV-1..3 and the beacon fly the
   printed velocity laws (RK4, 0.01 s) from the printed start point (xi0, eta0, zeta0) =

@@ -12,7 +12,6 @@ from filters.integrity import IntegrityConfig
 from filters.models import ClockRandomWalk, Composite, ConstantVelocity
 from sitl import geodesy
 from sitl.app.experiments.integrity.models import GaussMarkovBank
-from sitl.app.experiments.ranges import within
 from sitl.gnss import orbits
 from sitl.gnss.clock import ClockModel
 from sitl.gnss.receiver import ReceiverConfig
@@ -30,7 +29,7 @@ RAMP_KINDS = ("code", "clock")
 _POSITIVE = number(0, lo_open=True)
 _NON_NEGATIVE = number(0)
 _FINITE = number()
-_PROBABILITY_OPEN = within(0, 1, lo_open=True, hi_open=True)
+_PROBABILITY_OPEN = number(0, hi=1, lo_open=True, hi_open=True)
 
 
 def _pair(lo_open: bool = False):
@@ -64,7 +63,7 @@ class IntegrityScenario:
     dt_s: float = param(0.1, check=_POSITIVE, doc="epoch interval of the receiver and the filters, s (10 Hz)")
     sigma_pr_m: float = param(6.0, check=_POSITIVE, doc="pseudorange white noise (1 sigma), m (seed 000)")
     sigma_prr_m_s: float = param(0.064, check=_POSITIVE, doc="pseudorange-rate white noise (1 sigma), m/s (seed 000)")
-    el_mask_deg: float = param(10.0, check=within(5, 90, hi_open=True),
+    el_mask_deg: float = param(10.0, check=number(5, hi=90, hi_open=True),
                                doc="elevation mask, deg; the channels are the satellites above it all through "
                                    f"the run (>= {MIN_CHANNELS} needed)")
     systems: str = param("G", check=choice("G", "R", "GR"), doc="constellations: G (GPS), R (GLONASS) or GR")
@@ -93,14 +92,14 @@ class IntegrityScenario:
                            doc="code: the pseudorange alone drifts (code multipath / signal distortion: no Doppler "
                                "trace); clock: a satellite clock frequency fault, so the pseudorange rate carries "
                                "the rate too")
-    outlier_prob: float = param(0.002, check=within(0, 1),
+    outlier_prob: float = param(0.002, check=number(0, hi=1),
                                 doc="probability of a multipath outlier per pseudorange-epoch")
     outlier_dof: float = param(2.0, check=_POSITIVE,
                                doc="degrees of freedom of the outliers' Student-t (scale sigma_pr_m)")
     dropout_s: tuple = param((1.0, 5.0), check=_pair(lo_open=True),
                              doc="range of the dropout's length (uniform; both rows of one satellite missing), s")
     onset_min_s: float = param(60.0, check=_NON_NEGATIVE, doc="earliest fault onset, s")
-    onset_max_frac: float = param(0.7, check=within(0, 1, lo_open=True),
+    onset_max_frac: float = param(0.7, check=number(0, hi=1, lo_open=True),
                                   doc="latest fault onset as a fraction of duration_s")
     warmup_s: float = param(30.0, check=_NON_NEGATIVE, doc="warm-up before the scoring starts, s")
     ramp_detect_s: float = param(10.0, check=_POSITIVE, doc="a ramp counts as detected within this time of "
@@ -114,7 +113,7 @@ class IntegrityScenario:
                                        doc="receiver clock bias sigma (the truth's draw and the prior), m")
     sigma0_clock_drift_m_s: float = param(3.0, check=_POSITIVE,
                                           doc="receiver clock drift sigma (the truth's draw and the prior), m/s")
-    adaptive_q_decay: float = param(0.1, check=within(0, 1, hi_open=True),
+    adaptive_q_decay: float = param(0.1, check=number(0, hi=1, hi_open=True),
                                     doc="decay of the eq 7 adaptive Q (filters.adaptive) on the dynamic states")
     adaptive_q_gain: float = param(0.7, check=_NON_NEGATIVE, doc="gain of the eq 7 adaptive Q")
     # the monitor (IntegrityConfig)
@@ -135,7 +134,7 @@ class IntegrityScenario:
                                doc="consecutive clean epochs before an excluded channel comes back")
     huber_c: float | None = param(2.0, check=optional(_POSITIVE),
                                   doc="Huber threshold on |beta| (None: plain quadratic update)")
-    r_forget: float = param(0.02, check=within(0, 1, lo_open=True),
+    r_forget: float = param(0.02, check=number(0, hi=1, lo_open=True),
                             doc="forgetting factor of the monitor's innovation-based R estimate")
 
     def __post_init__(self):
