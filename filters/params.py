@@ -206,8 +206,9 @@ def string() -> Check:
 
 def instance_of(cls: type, *, none: bool = False, what: str | None = None) -> Check:
     """An instance of ``cls`` (or None if ``none``), stored as it is: a nested settings object.
-    ``what`` names it in the message (default: the class's module and name)."""
-    what = (what or f"a {cls.__module__}.{cls.__name__}") + (" or None" if none else "")
+    ``what`` words the message as given (default: the class's module and name, "or None")."""
+    if what is None:
+        what = f"a {cls.__module__}.{cls.__name__}" + (" or None" if none else "")
 
     def test(v):
         if not (isinstance(v, cls) or (none and v is None)):

@@ -152,7 +152,8 @@ class LocatorConfig:
                                         doc="an epoch whose >= 3 UAVs span less than this many times their RMS "
                                             "position sigma gives no beacon measurement (0: off)")
     integrity: IntegrityConfig | None = param(
-        None, check=instance_of(IntegrityConfig, none=True),
+        None, check=instance_of(IntegrityConfig, none=True, what="a filters.integrity.IntegrityConfig or None "
+                                                     "(integrity must be a monitor's settings or off)"),
         doc="the integrity monitor (filters.integrity) on each UAV link's range and Doppler "
             "(ground_station.beacon.integrity); None: off")
     integrity_max_links: int = param(32, check=integer(1),

@@ -139,7 +139,7 @@ class SondeTrackerParams:
                                                    "initialisation, m/s")
     prior_sigma_delta_d_m: float = param(3000.0, check=_POSITIVE, doc="prior std of dd at initialisation, m")
     relay_errors: RelayErrorBudget | None = param(_RELAY_DEFAULT.errors,
-                                                  check=instance_of(RelayErrorBudget, none=True, what="a RelayErrorBudget"),
+                                                  check=instance_of(RelayErrorBudget, none=True, what="a RelayErrorBudget or None"),
                                                   doc="the relay's error budget; None: white noise only")
     bias_slots: int = param(24, check=integer(1),
                             doc="per-satellite error states (relay modes with relay_errors); >= satellites in view")

@@ -287,7 +287,7 @@ class RelayParams:
                                    doc="((t_start, t_end), ...) GPS s: nothing is delivered in these intervals")
     downlink_sagnac: bool = param(True, check=switch(),
                                   doc="the Sagnac correction of the sonde-to-ground downlink is in the simulated delay")
-    errors: RelayErrorBudget | None = param(RelayErrorBudget(), check=instance_of(RelayErrorBudget, none=True, what="a RelayErrorBudget"),
+    errors: RelayErrorBudget | None = param(RelayErrorBudget(), check=instance_of(RelayErrorBudget, none=True, what="a RelayErrorBudget or None"),
                                             doc="the propagation and relay error budget; None: white noise only "
                                                 "(the old world)")
 

@@ -119,7 +119,7 @@ def test_instance_of_stores_the_object_and_names_the_class():
     assert instance_of(Settings, none=True)("s", None) is None
     assert "expected a tests" not in _rejects(instance_of(Settings, what="a Settings"), {"a": 1}, "s")
     assert _rejects(instance_of(Settings), None, "s").endswith("Settings, got None")
-    text = _rejects(instance_of(Settings, none=True, what="a Settings"), "x" * 200, "s")
+    text = _rejects(instance_of(Settings, none=True, what="a Settings or None"), "x" * 200, "s")
     assert text.startswith("s: expected a Settings or None, got 'xxx") and len(text) < 120  # one short line
 
 
