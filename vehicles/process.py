@@ -528,7 +528,8 @@ def load_checkpoint(path, spec, scn) -> VehicleGroup | None:
 
 def build_endpoints(group: VehicleGroup, scn, out_dir, name: str = "vehicles", *, clock=None, timer=None):
     """vehicles.mavlink endpoints for this group's vehicles: UAV i (global index) has sysid
-    i + 1 and listens on udp base_port + 10 i; the sonde comes after the UAVs. Parameters:
+    i + 1 and listens on udp base_port + 10 i (and tcp base_port + 10 i with [mavlink] tcp,
+    ArduPilot SITL's SERIAL0); the sonde comes after the UAVs. Parameters:
     the UAV's onboard navigation settings and the sonde's flight model (their real values).
     All the group's traffic goes to one .tlog, OUT/mav_<name>.tlog (a restarted worker starts
     a new file, mav_<name>.r<k>.tlog: nothing recorded is overwritten). With signing, each
@@ -579,6 +580,7 @@ def build_endpoints(group: VehicleGroup, scn, out_dir, name: str = "vehicles", *
             port = AutopilotPort(group, group.idx.index(i)) if kind == "uav" else None
             eps.append(VehicleEndpoint(sysid=i + 1, kind=kind, gcs=(host, int(port_)),
                                        listen=("127.0.0.1", m.base_port + 10 * i), params=params,
+                                       tcp_listen=("127.0.0.1", m.base_port + 10 * i) if m.tcp else None,
                                        signing_key=key, tlog=tlog, clock=clock, autopilot=port,
                                        signing_state=(Path(out_dir) / f"mav_signing_{i + 1}.json"
                                                       if key is not None else None)))
