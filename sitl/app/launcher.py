@@ -63,8 +63,21 @@ END_GRACE_WALL_S = 20.0  # after the last epoch: how long workers may take to fi
 
 
 def _scenario_gcs() -> str:
+    return _scenario_mavlink("gcs")
+
+
+def _scenario_mavlink(key: str):
     from sitl.scenario import MavlinkSection  # the help text's; imported when the flags are added
-    return default_of(MavlinkSection, "gcs")
+    return default_of(MavlinkSection, key)
+
+
+#: ArduPilot SITL's instance stride: instance N's ports are the base ports + 10 N
+INSTANCE_PORT_STRIDE = 10
+
+
+def _shift_port(hostport: str, by: int) -> str:
+    host, _, port = hostport.rpartition(":")
+    return f"{host}:{int(port) + by}" if port.isdigit() and int(port) != 0 else hostport
 
 
 def _out_option(default: str):
@@ -88,7 +101,14 @@ class DemoOptions:
     zenoh: list | None = param(None, check=repeatable(string()), metavar="tcp/HOST:PORT",
                                doc="connect to this Zenoh router instead of starting one (repeatable)")
     gcs: str | None = param(None, check=optional(string()), metavar="HOST:PORT", shown=_scenario_gcs,
-                            doc="ground-control endpoint")
+                            doc="ground-control endpoint (taken as given: --instance does not shift it)")
+    instance: int | None = param(None, check=optional(integer(lo=0, hi=5000)), metavar="N", default_help="default: 0",
+                                 doc="ArduPilot SITL's -I N: every port of the run shifted by 10 N (the vehicles' "
+                                     "UDP/TCP base port, the scenario's GCS port, the router's listen port unless 0), "
+                                     "so that N runs side by side do not collide")
+    base_port: int | None = param(None, check=optional(integer(lo=1024, hi=65000)), metavar="P",
+                                  shown=lambda: _scenario_mavlink("base_port"),
+                                  doc="vehicle i listens on P + 10 i (UDP, and TCP with [mavlink] tcp), before --instance")
     no_mavlink: bool = param(False, check=switch(), doc="no MAVLink endpoints")
     batch: bool = param(False, check=switch(),
                         doc="batch mode: the same components in one process, simulated time, in-memory bus")
@@ -143,6 +163,13 @@ def _scenario_with_overrides(scn, args: DemoOptions):
         d["run"]["seed"] = args.seed
     if args.zenoh:
         d["bus"]["zenoh"] = list(args.zenoh)
+    if args.base_port is not None:
+        d["mavlink"]["base_port"] = args.base_port
+    shift = INSTANCE_PORT_STRIDE * (args.instance or 0)
+    if shift:  # ArduPilot's -I N: every port the run owns, + 10 N
+        d["mavlink"]["base_port"] += shift
+        d["mavlink"]["gcs"] = _shift_port(d["mavlink"]["gcs"], shift)
+        d["bus"]["listen"] = _shift_port(d["bus"]["listen"], shift)
     if args.gcs is not None:
         d["mavlink"]["gcs"] = args.gcs
     if args.no_mavlink:
@@ -151,8 +178,10 @@ def _scenario_with_overrides(scn, args: DemoOptions):
     try:
         return scenario_from_dict(to_toml_like(d), scn.source + " + command line")
     except ScenarioError as e:
-        raise UsageError(str(e).replace("scenario: bus.zenoh", "--zenoh").replace("scenario: mavlink.gcs", "--gcs")
-                       ) from None
+        msg = str(e).replace("scenario: bus.zenoh", "--zenoh").replace("scenario: mavlink.gcs", "--gcs")
+        if args.instance or args.base_port is not None:
+            msg = msg.replace("scenario: mavlink.base_port", "--base-port / --instance")
+        raise UsageError(msg) from None
 
 
 def run_main(args) -> int:

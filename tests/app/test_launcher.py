@@ -350,3 +350,53 @@ def test_batch_mode_applies_the_scenarios_bus_fault_rules():
     f = lossy["faults"]
     assert f["not_in_batch"] == ["zenoh:gs"] and f["injected"]["dropped_loss"] == 7
     assert "faults" not in plain
+
+
+# ------------------------------------------------------------------ --instance / --base-port
+
+
+def _opts(cls, **kw):
+    from sitl.app.launcher import RunOptions
+    if cls is RunOptions:
+        kw.setdefault("scenario", "x.toml")
+    return cls(**kw)
+
+
+@pytest.mark.parametrize("cls", ["DemoOptions", "RunOptions"])
+def test_instance_shifts_every_port_by_ten_n_as_ardupilot_sitl(cls):
+    from sitl.app import launcher as la
+    from sitl.scenario import default_scenario
+    cls = getattr(la, cls)
+    base = default_scenario().replace(bus={"listen": "tcp/127.0.0.1:7447"})
+    scn = la._scenario_with_overrides(base, _opts(cls, instance=3))
+    assert scn.mavlink.base_port == 5760 + 30 and scn.mavlink.gcs == "127.0.0.1:14580"
+    assert scn.bus.listen == "tcp/127.0.0.1:7477"
+    scn = la._scenario_with_overrides(default_scenario(), _opts(cls, instance=2))
+    assert scn.bus.listen == "tcp/127.0.0.1:0"  # any free port stays any free port
+    scn = la._scenario_with_overrides(default_scenario(), _opts(cls, base_port=6000, instance=1,
+                                                                gcs="127.0.0.1:15000"))
+    assert scn.mavlink.base_port == 6010 and scn.mavlink.gcs == "127.0.0.1:15000"  # --gcs as given
+    scn = la._scenario_with_overrides(default_scenario(), _opts(cls, base_port=7000))
+    assert scn.mavlink.base_port == 7000 and scn.mavlink.gcs == "127.0.0.1:14550"
+
+
+@pytest.mark.parametrize("argv, text", [
+    (["--instance", "-1"], "--instance: expected an integer in 0..5000"),
+    (["--instance", "two"], "--instance: expected an integer"),
+    (["--base-port", "80"], "--base-port: expected an integer in 1024..65000"),
+    (["--base-port", "64000", "--instance", "200"], "--base-port / --instance: expected an integer in 1024..65000"),
+])
+@pytest.mark.parametrize("cmd", ["demo", "run"])
+def test_bad_instance_or_base_port_is_one_line_exit_2_before_anything_starts(tmp_path, capsys, cmd, argv, text):
+    from sitl.app.cli import main
+    from sitl.scenario import DEFAULT_SCENARIO_TOML
+    out = tmp_path / "out"
+    pre = [cmd]
+    if cmd == "run":
+        (tmp_path / "s.toml").write_text(DEFAULT_SCENARIO_TOML)
+        pre.append(str(tmp_path / "s.toml"))
+    assert main(pre + ["--out", str(out)] + argv) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0 and text in err, err
+    assert not out.exists() or not any(out.iterdir())
+
