@@ -786,6 +786,7 @@ def main(argv=None) -> int:
         step_s = deque(maxlen=2000)  # wall time of each world epoch's tick (world + bus + MAVLink)
         mav_s = deque(maxlen=2000)  # wall time of each tick between them (MAVLink only)
         k_next = k0  # the next world epoch, t0 + k_next dt
+        pace = {"late_epochs": 0, "skipped_epochs": 0}  # world epochs more than one epoch late; jumped over
         sub = SubEpochTelemetry()
         for t in pacer.epochs(t_first, dt_tick, t_end, max_lag_s=5 * dt):
             w0 = perf_now()
@@ -793,6 +794,9 @@ def main(argv=None) -> int:
             if world:
                 k = max(k_next, math.floor((t - t0) / dt + 1e-6))  # the latest due (skipped ones: lost)
                 tw = t0 + k * dt
+                if k_next > k0:  # the status line's late / skipped epochs are the world's
+                    pace["skipped_epochs"] += k - k_next
+                pace["late_epochs"] += pacer.sim_now() - tw > dt
                 k_next = k + 1
                 try:
                     group.step(tw)
@@ -820,8 +824,8 @@ def main(argv=None) -> int:
                 except OSError as e:  # the run goes on; a restart would cold-start
                     print(f"{spec.name}: checkpoint not written: {e}", file=sys.stderr)
             if rt.status_due():
-                rt.emit(_status(group, bus, pacer, endpoints, errors, t, step_s, mav_s))
-        rt.emit({**_status(group, bus, pacer, endpoints, errors, group.t_last, step_s, mav_s), "event": "done"})
+                rt.emit(_status(group, bus, pacer, endpoints, errors, t, step_s, mav_s, pace))
+        rt.emit({**_status(group, bus, pacer, endpoints, errors, group.t_last, step_s, mav_s, pace), "event": "done"})
         return 0
     finally:
         if endpoints is not None:
@@ -842,12 +846,16 @@ def _warm_up(scn, spec) -> None:
     bus.close()
 
 
-def _status(group, bus, pacer, endpoints, errors, t, step_s=(), mav_s=()) -> dict:
+def _status(group, bus, pacer, endpoints, errors, t, step_s=(), mav_s=(), pace=None) -> dict:
+    """The worker's status line. pace: the world epochs' late / skipped counts (the pacer's
+    count the loop's ticks: ``late_ticks``, ``skipped_ticks``)."""
     from sitl.pacing import cpu_now
     from sitl.live.worker import bus_counters
     d = {"event": "status", "t_sim_s": t, "cpu_s": cpu_now(), "epochs": group.epoch, "vehicles": group.n + (group.sonde is not None),
          "uavs": group.n, "lag_s": max(0.0, pacer.sim_now() - (t or 0.0)), "late_epochs": pacer.late_epochs,
          "skipped_epochs": pacer.skipped_epochs, "step_errors": errors, **bus_counters(bus)}
+    if pace is not None:
+        d.update(late_ticks=pacer.late_epochs, skipped_ticks=pacer.skipped_epochs, **pace)
     if endpoints is not None:
         d["mavlink"] = _mavlink_status(endpoints)
     for name, xs in (("step_ms", step_s), ("mav_step_ms", mav_s)):  # world epochs; MAVLink-only ticks

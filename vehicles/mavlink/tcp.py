@@ -95,9 +95,9 @@ class TcpServer:
         self.counters = {"accepted": 0, "refused": 0, "closed": 0, "dropped": 0, "rx_bytes": 0, "tx_bytes": 0}
 
     @property
-    def clients(self) -> list[tuple]:
-        """The connected clients' addresses."""
-        return list(self._clients)
+    def clients(self):
+        """The connected clients' addresses (a live view: copy it to keep it)."""
+        return self._clients.keys()
 
     def fileno(self) -> int:
         return self.sock.fileno()

@@ -224,14 +224,14 @@ class VehicleEndpoint(SigningClock, DatagramInput, StreamOutput, RequestHandlers
 
     def _stream_dest(self) -> tuple:
         dest = super()._stream_dest()
-        if self.tcp is None:
+        if self.tcp is None or not self.tcp.clients:
             return dest
         return (*dest, *[("tcp", *a) for a in self.tcp.clients])
 
     def write(self, buf: bytes) -> None:
         """pymavlink's MAVLink.send writes here: UDP destinations (streams.py), TCP clients here."""
         dest = self._dest
-        if self.tcp is None or not any(len(a) == 3 for a in dest):
+        if self.tcp is None or not self.tcp.clients or not any(len(a) == 3 for a in dest):
             return super().write(buf)
         self._dest = tuple(a for a in dest if len(a) != 3)
         try:
