@@ -191,11 +191,19 @@ class BusSection:
 
 @dataclass(frozen=True)
 class MavlinkSection:
-    """The vehicles as MAVLink 2 endpoints over UDP."""
+    """The vehicles as MAVLink 2 endpoints over UDP (and TCP, as ArduPilot SITL's SERIAL0)."""
 
     enabled: bool = param(True, check=_bool, doc="vehicles speak MAVLink 2 over UDP")
     gcs: str = param("127.0.0.1:14550", check=_hostport, doc='the ground-control station\'s address "HOST:PORT"')
-    base_port: int = param(5760, check=_i(lo=1024, hi=65000), doc="vehicle i listens on base_port + 10 i")
+    base_port: int = param(5760, check=_i(lo=1024, hi=65000),
+                           doc="vehicle i listens on base_port + 10 i (UDP, and TCP when tcp = true)")
+    rate_hz: float = param(10.0, check=_n(lo=0, lo_open=True, hi=100),
+                           doc="the endpoints' epochs per second of simulated time: sockets read, replies and "
+                               "streams sent (streams up to this rate; telemetry between the world's epochs is "
+                               "the vehicles' state propagated by their motion); at least run.rate_hz is used")
+    tcp: bool = param(True, check=_bool,
+                      doc="each vehicle also serves MAVLink on TCP base_port + 10 i (ArduPilot SITL's SERIAL0: "
+                          "mavproxy.py --master tcp:127.0.0.1:5760)")
     signing_key_file: str = param("", check=_str, doc="a MAVLink 2 signing key file (32 raw bytes, 64 hex digits or a passphrase); empty: unsigned")
     tlog: bool = param(True, check=_bool, doc="write .tlog files of the MAVLink traffic (MAVProxy's format)")
 

@@ -528,7 +528,8 @@ def load_checkpoint(path, spec, scn) -> VehicleGroup | None:
 
 def build_endpoints(group: VehicleGroup, scn, out_dir, name: str = "vehicles", *, clock=None, timer=None):
     """vehicles.mavlink endpoints for this group's vehicles: UAV i (global index) has sysid
-    i + 1 and listens on udp base_port + 10 i; the sonde comes after the UAVs. Parameters:
+    i + 1 and listens on udp base_port + 10 i (and tcp base_port + 10 i with [mavlink] tcp,
+    ArduPilot SITL's SERIAL0); the sonde comes after the UAVs. Parameters:
     the UAV's onboard navigation settings and the sonde's flight model (their real values).
     All the group's traffic goes to one .tlog, OUT/mav_<name>.tlog (a restarted worker starts
     a new file, mav_<name>.r<k>.tlog: nothing recorded is overwritten). With signing, each
@@ -579,6 +580,7 @@ def build_endpoints(group: VehicleGroup, scn, out_dir, name: str = "vehicles", *
             port = AutopilotPort(group, group.idx.index(i)) if kind == "uav" else None
             eps.append(VehicleEndpoint(sysid=i + 1, kind=kind, gcs=(host, int(port_)),
                                        listen=("127.0.0.1", m.base_port + 10 * i), params=params,
+                                       tcp_listen=("127.0.0.1", m.base_port + 10 * i) if m.tcp else None,
                                        signing_key=key, tlog=tlog, clock=clock, autopilot=port,
                                        signing_state=(Path(out_dir) / f"mav_signing_{i + 1}.json"
                                                       if key is not None else None)))
@@ -588,6 +590,9 @@ def build_endpoints(group: VehicleGroup, scn, out_dir, name: str = "vehicles", *
         if tlog is not None:
             tlog.close()
         raise
+    epoch_s = 1.0 / max(scn.run.rate_hz, m.rate_hz)  # the worker steps the endpoints this often
+    for ep in eps:
+        ep.epoch_s = epoch_s  # the fastest stream (streams.py)
     group.param_stores = uav_stores
     group.endpoints = {ep.sysid - 1: ep for ep in eps}
     eg = EndpointGroup(eps, timer=timer)
@@ -618,6 +623,95 @@ def _mavlink_status(endpoints) -> dict:
 
 def _veto_sonde_param(name, value):
     raise ValueError("the sonde's flight model is fixed at launch")
+
+
+def turn_rates_rad_s(fleet) -> np.ndarray:
+    """(N,) each UAV's heading rate now (rad/s, clockwise from north positive), as its guidance
+    commands it: the kinematic model's own psi-dot (vehicles.uav: the heading rate is a
+    command), for the UAVs flying the scenario's law and those the autopilot flies."""
+    from vehicles.autopilot import guidance as gd
+    from vehicles.uav import kinematics as kin
+    sw = fleet.swarm
+    w = np.zeros(fleet.n)
+    own = fleet.own
+    if not own.all():
+        st = sw.state
+        y = np.asarray(st.y, float).reshape(-1, 4)
+        _, _, r = kin._commands(sw.guidance, st.t_s, st.y, sw.guidance.target(st, st.t_s), kin.ellipsoid(sw.ell))
+        r = np.broadcast_to(np.asarray(r, float).reshape(-1), (y.shape[0],))
+        w[~own] = r[~own]
+    if own.any() and fleet.last_guidance is not None:
+        idx = np.flatnonzero(own)
+        law = gd.AutopilotLaw(fleet.last_guidance.subset(idx), fleet._scenario_for(idx), sw.ell)
+        _, _, r = kin._commands(law, fleet.t_s, fleet.y[idx], None, kin.ellipsoid(sw.ell))
+        w[idx] = np.broadcast_to(np.asarray(r, float).reshape(-1), (idx.size,))
+    return w
+
+
+class SubEpochTelemetry:
+    """The vehicles' telemetry at the MAVLink epochs between two world epochs.
+
+    ``reset(tel, turn_rate_rad_s)`` at each world epoch: the group's telemetry (VehicleGroup
+    .telemetry: the onboard estimate at that epoch) and each vehicle's heading rate (None or
+    0: straight flight); ``at(t_gps_s)`` the same vehicles propagated to t by their motion:
+    constant speed and climb, the horizontal velocity turning at the vehicle's heading rate
+    (the arc the kinematic model flies while its commands hold) -- what an autopilot's EKF
+    reports between two GNSS fixes by dead reckoning, not a held position. At a world epoch
+    (t = the telemetry's own time) it is the telemetry unchanged."""
+
+    def __init__(self):
+        self.tel: list = []
+        self._arr = None
+
+    def reset(self, tel: list, turn_rate_rad_s=None) -> None:
+        self.tel = list(tel)
+        n = len(self.tel)
+        if not n:
+            self._arr = None
+            return
+        w = np.zeros(n)
+        if turn_rate_rad_s is not None:
+            r = np.asarray(turn_rate_rad_s, float).reshape(-1)
+            w[:r.size] = np.where(np.isfinite(r[:n]), r[:n], 0.0)
+        v = np.array([tuple(x.vel_ned_m_s) for x in self.tel], float).reshape(n, 3)
+        self._arr = (np.array([x.t_gps_s for x in self.tel], float), np.array([x.lat_rad for x in self.tel], float),
+                     np.array([x.lon_rad for x in self.tel], float), np.array([x.alt_msl_m for x in self.tel], float),
+                     v, np.array([x.yaw_rad for x in self.tel], float), w)
+
+    def at(self, t_gps_s: float) -> list:
+        if self._arr is None:
+            return []
+        t0, lat, lon, h, v, yaw, w = self._arr
+        tau = np.maximum(float(t_gps_s) - t0, 0.0)
+        if not tau.any():
+            return self.tel
+        import dataclasses
+        a = w * tau
+        small = np.abs(a) < 1e-9
+        # the horizontal displacement along the arc: integral of R(w s) v0 ds over [0, tau]
+        s_ = np.where(small, tau, np.sin(a) / np.where(small, 1.0, w))
+        c_ = np.where(small, 0.5 * w * tau * tau, (1.0 - np.cos(a)) / np.where(small, 1.0, w))
+        vn, ve, vd = v[:, 0], v[:, 1], v[:, 2]
+        dn = vn * s_ - ve * c_
+        de = ve * s_ + vn * c_
+        ca, sa = np.cos(a), np.sin(a)
+        vn1, ve1 = vn * ca - ve * sa, ve * ca + vn * sa
+        h1 = h - vd * tau
+        # WGS-84 radii of curvature at the epoch's latitude (sub-second steps: the change is nil)
+        e2 = 6.69437999014e-3
+        sl = np.sin(lat)
+        den = np.sqrt(1.0 - e2 * sl * sl)
+        rn = 6378137.0 / den
+        rm = rn * (1.0 - e2) / (den * den)
+        lat1 = lat + dn / (rm + h)
+        lon1 = lon + de / ((rn + h) * np.cos(lat))
+        lon1 = (lon1 + math.pi) % (2 * math.pi) - math.pi
+        yaw1 = yaw + a
+        rows = zip(self.tel, tau.tolist(), lat1.tolist(), lon1.tolist(), h1.tolist(), vn1.tolist(), ve1.tolist(),
+                   vd.tolist(), yaw1.tolist())
+        return [x if ta == 0.0 else dataclasses.replace(x, t_gps_s=x.t_gps_s + ta, lat_rad=la, lon_rad=lo,
+                                                       alt_msl_m=hh, vel_ned_m_s=(a_, b_, c_), yaw_rad=yw)
+                for x, ta, la, lo, hh, a_, b_, c_, yw in rows]
 
 
 def _mav_telemetry(tel: list[Telemetry], n_endpoints: int):
@@ -668,51 +762,70 @@ def main(argv=None) -> int:
             return 0
         pacer = rt.pacer()
         dt = 1.0 / scn.run.rate_hz
-        t_end = scn.run.t0_gps_s + scn.run.duration_s
+        t0 = scn.run.t0_gps_s
+        t_end = t0 + scn.run.duration_s
         # a (re)started group joins at the current epoch
-        k0 = max(0, math.ceil((pacer.sim_now() - scn.run.t0_gps_s) / dt - 1e-9))
+        k0 = max(0, math.ceil((pacer.sim_now() - t0) / dt - 1e-9))
         if resumed:  # the world through the gap, unpublished (VehicleGroup.catch_up)
-            k0 = max(k0, round((group.t_last - scn.run.t0_gps_s) / dt) + 1)
-            caught = group.catch_up(scn.run.t0_gps_s + (k0 - 1) * dt)
-            print(f"{spec.name}: resumed from the checkpoint of t = {group.t_last - caught * dt - scn.run.t0_gps_s:.1f} s, "
+            k0 = max(k0, round((group.t_last - t0) / dt) + 1)
+            caught = group.catch_up(t0 + (k0 - 1) * dt)
+            print(f"{spec.name}: resumed from the checkpoint of t = {group.t_last - caught * dt - t0:.1f} s, "
                   f"{caught} epochs caught up", file=sys.stderr)
-        t_first = scn.run.t0_gps_s + k0 * dt
+        t_first = t0 + k0 * dt
         next_ckpt = 0.0
         errors = 0
         from collections import deque
-
-        from sitl.pacing import perf_now
-        # MAVLink input may take this share of an epoch's wall time, shared over the group's
+        # the loop's tick: the MAVLink epoch ([mavlink] rate_hz, at least the world's), so that
+        # replies wait at most one MAVLink epoch and streams run up to its rate; the world (its
+        # measurements, the bus) steps at its own epochs t0 + k / run.rate_hz, each at the first
+        # tick at or after it; between them the endpoints report the vehicles propagated
+        dt_tick = dt if endpoints is None else min(dt, 1.0 / scn.mavlink.rate_hz)
+        # MAVLink input may take this share of a tick's wall time, shared over the group's
         # sockets (what does not fit waits in the kernel queue; what overflows it is counted)
-        mav_budget_s = _MAV_INPUT_SHARE * dt / scn.run.speed
-        step_s = deque(maxlen=2000)  # wall time of each epoch's work (world + bus + MAVLink)
-        for t in pacer.epochs(t_first, dt, t_end, max_lag_s=5 * dt):
+        mav_budget_s = _MAV_INPUT_SHARE * dt_tick / scn.run.speed
+        step_s = deque(maxlen=2000)  # wall time of each world epoch's tick (world + bus + MAVLink)
+        mav_s = deque(maxlen=2000)  # wall time of each tick between them (MAVLink only)
+        k_next = k0  # the next world epoch, t0 + k_next dt
+        pace = {"late_epochs": 0, "skipped_epochs": 0}  # world epochs more than one epoch late; jumped over
+        sub = SubEpochTelemetry()
+        for t in pacer.epochs(t_first, dt_tick, t_end, max_lag_s=5 * dt):
             w0 = perf_now()
-            try:
-                group.step(t)
-            except Exception as e:  # one bad epoch must not end the run: counted, reported
-                errors += 1
-                if errors <= 10 or errors % 100 == 0:  # the log stays readable
-                    print(f"{spec.name}: epoch {t:.3f} failed ({errors} so far): {type(e).__name__}: {e}",
-                          file=sys.stderr)
+            world = t >= t0 + k_next * dt - 1e-6
+            if world:
+                k = max(k_next, math.floor((t - t0) / dt + 1e-6))  # the latest due (skipped ones: lost)
+                tw = t0 + k * dt
+                if k_next > k0:  # the status line's late / skipped epochs are the world's
+                    pace["skipped_epochs"] += k - k_next
+                pace["late_epochs"] += pacer.sim_now() - tw > dt
+                k_next = k + 1
+                try:
+                    group.step(tw)
+                except Exception as e:  # one bad epoch must not end the run: counted, reported
+                    errors += 1
+                    if errors <= 10 or errors % 100 == 0:  # the log stays readable
+                        print(f"{spec.name}: epoch {tw:.3f} failed ({errors} so far): {type(e).__name__}: {e}",
+                              file=sys.stderr)
             if endpoints is not None:
                 try:
-                    endpoints.step(t, _mav_telemetry(group.telemetry(), len(endpoints)), budget_s=mav_budget_s)
+                    if world:
+                        sub.reset(group.telemetry(), turn_rates_rad_s(group.fleet) if group.fleet is not None
+                                  else None)
+                    endpoints.step(t, _mav_telemetry(sub.at(t), len(endpoints)), budget_s=mav_budget_s)
                 except Exception as e:
                     errors += 1
                     if errors <= 10 or errors % 100 == 0:
                         print(f"{spec.name}: MAVLink step failed ({errors} so far): {type(e).__name__}: {e}",
                               file=sys.stderr)
-            step_s.append(perf_now() - w0)
-            if perf_now() >= next_ckpt and group.t_last is not None:
+            (step_s if world else mav_s).append(perf_now() - w0)
+            if world and perf_now() >= next_ckpt and group.t_last is not None:
                 next_ckpt = perf_now() + CHECKPOINT_WALL_S
                 try:
                     write_checkpoint(group, ckpt)
                 except OSError as e:  # the run goes on; a restart would cold-start
                     print(f"{spec.name}: checkpoint not written: {e}", file=sys.stderr)
             if rt.status_due():
-                rt.emit(_status(group, bus, pacer, endpoints, errors, t, step_s))
-        rt.emit({**_status(group, bus, pacer, endpoints, errors, group.t_last, step_s), "event": "done"})
+                rt.emit(_status(group, bus, pacer, endpoints, errors, t, step_s, mav_s, pace))
+        rt.emit({**_status(group, bus, pacer, endpoints, errors, group.t_last, step_s, mav_s, pace), "event": "done"})
         return 0
     finally:
         if endpoints is not None:
@@ -733,18 +846,23 @@ def _warm_up(scn, spec) -> None:
     bus.close()
 
 
-def _status(group, bus, pacer, endpoints, errors, t, step_s=()) -> dict:
+def _status(group, bus, pacer, endpoints, errors, t, step_s=(), mav_s=(), pace=None) -> dict:
+    """The worker's status line. pace: the world epochs' late / skipped counts (the pacer's
+    count the loop's ticks: ``late_ticks``, ``skipped_ticks``)."""
     from sitl.pacing import cpu_now
     from sitl.live.worker import bus_counters
     d = {"event": "status", "t_sim_s": t, "cpu_s": cpu_now(), "epochs": group.epoch, "vehicles": group.n + (group.sonde is not None),
          "uavs": group.n, "lag_s": max(0.0, pacer.sim_now() - (t or 0.0)), "late_epochs": pacer.late_epochs,
          "skipped_epochs": pacer.skipped_epochs, "step_errors": errors, **bus_counters(bus)}
+    if pace is not None:
+        d.update(late_ticks=pacer.late_epochs, skipped_ticks=pacer.skipped_epochs, **pace)
     if endpoints is not None:
         d["mavlink"] = _mavlink_status(endpoints)
-    if step_s:
-        a = np.sort(np.array(step_s))
-        d["step_ms"] = {"p50": 1e3 * float(a[len(a) // 2]), "p99": 1e3 * float(a[min(len(a) - 1, int(0.99 * len(a)))]),
-                        "max": 1e3 * float(a[-1])}
+    for name, xs in (("step_ms", step_s), ("mav_step_ms", mav_s)):  # world epochs; MAVLink-only ticks
+        if xs:
+            a = np.sort(np.array(xs))
+            d[name] = {"p50": 1e3 * float(a[len(a) // 2]), "p99": 1e3 * float(a[min(len(a) - 1, int(0.99 * len(a)))]),
+                       "max": 1e3 * float(a[-1])}
     return d
 
 

@@ -4,7 +4,7 @@ one, each retried once under the manoeuvre hypothesis; EKF, UKF or per sonde ("a
 from __future__ import annotations
 
 import numpy as np
-from scipy.stats import chi2
+from scipy.special import gammaincinv  # chi2.ppf(q, k) = 2 gammaincinv(k / 2, q), without scipy.stats
 
 from filters import kernels
 from filters.ekf import ekf_predicted_step, ekf_update
@@ -25,7 +25,7 @@ class Updates:
         for i, mi in enumerate(m.tolist()):
             g = self._gates.get(mi)
             if g is None:
-                g = self._gates[mi] = float(chi2.ppf(self.params.gate_prob, mi))
+                g = self._gates[mi] = float(2.0 * gammaincinv(0.5 * mi, self.params.gate_prob))
             out[i] = g
         return out
 

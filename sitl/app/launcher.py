@@ -63,8 +63,21 @@ END_GRACE_WALL_S = 20.0  # after the last epoch: how long workers may take to fi
 
 
 def _scenario_gcs() -> str:
+    return _scenario_mavlink("gcs")
+
+
+def _scenario_mavlink(key: str):
     from sitl.scenario import MavlinkSection  # the help text's; imported when the flags are added
-    return default_of(MavlinkSection, "gcs")
+    return default_of(MavlinkSection, key)
+
+
+#: ArduPilot SITL's instance stride: instance N's ports are the base ports + 10 N
+INSTANCE_PORT_STRIDE = 10
+
+
+def _shift_port(hostport: str, by: int) -> str:
+    host, _, port = hostport.rpartition(":")
+    return f"{host}:{int(port) + by}" if port.isdigit() and int(port) != 0 else hostport
 
 
 def _out_option(default: str):
@@ -88,7 +101,14 @@ class DemoOptions:
     zenoh: list | None = param(None, check=repeatable(string()), metavar="tcp/HOST:PORT",
                                doc="connect to this Zenoh router instead of starting one (repeatable)")
     gcs: str | None = param(None, check=optional(string()), metavar="HOST:PORT", shown=_scenario_gcs,
-                            doc="ground-control endpoint")
+                            doc="ground-control endpoint (taken as given: --instance does not shift it)")
+    instance: int | None = param(None, check=optional(integer(lo=0, hi=5000)), metavar="N", default_help="default: 0",
+                                 doc="ArduPilot SITL's -I N: every port of the run shifted by 10 N (the vehicles' "
+                                     "UDP/TCP base port, the scenario's GCS port, the router's listen port unless 0), "
+                                     "so that N runs side by side do not collide")
+    base_port: int | None = param(None, check=optional(integer(lo=1024, hi=65000)), metavar="P",
+                                  shown=lambda: _scenario_mavlink("base_port"),
+                                  doc="vehicle i listens on P + 10 i (UDP, and TCP with [mavlink] tcp), before --instance")
     no_mavlink: bool = param(False, check=switch(), doc="no MAVLink endpoints")
     batch: bool = param(False, check=switch(),
                         doc="batch mode: the same components in one process, simulated time, in-memory bus")
@@ -143,6 +163,13 @@ def _scenario_with_overrides(scn, args: DemoOptions):
         d["run"]["seed"] = args.seed
     if args.zenoh:
         d["bus"]["zenoh"] = list(args.zenoh)
+    if args.base_port is not None:
+        d["mavlink"]["base_port"] = args.base_port
+    shift = INSTANCE_PORT_STRIDE * (args.instance or 0)
+    if shift:  # ArduPilot's -I N: every port the run owns, + 10 N
+        d["mavlink"]["base_port"] += shift
+        d["mavlink"]["gcs"] = _shift_port(d["mavlink"]["gcs"], shift)
+        d["bus"]["listen"] = _shift_port(d["bus"]["listen"], shift)
     if args.gcs is not None:
         d["mavlink"]["gcs"] = args.gcs
     if args.no_mavlink:
@@ -151,8 +178,10 @@ def _scenario_with_overrides(scn, args: DemoOptions):
     try:
         return scenario_from_dict(to_toml_like(d), scn.source + " + command line")
     except ScenarioError as e:
-        raise UsageError(str(e).replace("scenario: bus.zenoh", "--zenoh").replace("scenario: mavlink.gcs", "--gcs")
-                       ) from None
+        msg = str(e).replace("scenario: bus.zenoh", "--zenoh").replace("scenario: mavlink.gcs", "--gcs")
+        if args.instance or args.base_port is not None:
+            msg = msg.replace("scenario: mavlink.base_port", "--base-port / --instance")
+        raise UsageError(msg) from None
 
 
 def run_main(args) -> int:
@@ -241,7 +270,7 @@ def launch(scn, out: Path, *, quiet: bool = False, stop: threading.Event | None 
     restore = _install_signals(stop)
     run = scn.run
     t_wall0 = perf_now()
-    router = bus = recorder = sup = warm = live_faults = None
+    router = bus = recorder = sup = live_faults = None
     audit = PayloadAudit()  # every payload of the run, on every key, counted once
     paced: list = []  # the run's Pacer once it has started: the launcher's simulation clock
 
@@ -251,6 +280,10 @@ def launch(scn, out: Path, *, quiet: bool = False, stop: threading.Event | None 
     report: dict = {"mode": "live", "scenario": scn.to_dict(), "ok": False, "events": []}
     shutdown = {}
     try:
+        if warm_up and not _cold_warm_up(scn, out, stop, None if quiet else status_stream):
+            report["error"] = ("stopped while compiling the kernels" if stop.is_set()
+                               else f"the kernels' warm-up failed (see {out / 'logs' / 'warm_up.stderr.log'})")
+            return report
         from sitl.bus.zconfig import ZenohConfigError
         from sitl.bus.router import Router, RouterError
         from sitl.bus.zenoh_transport import ZenohTransportError
@@ -287,7 +320,6 @@ def launch(scn, out: Path, *, quiet: bool = False, stop: threading.Event | None 
             recorder = BusRecorder(bus, out / "bus.log", key_expr=f"{run.id}/**", append=False,
                                    clock=lambda: max(sim_clock(), run.t0_gps_s))
         (out / "scenario.json").write_text(json.dumps(scn.to_dict(), indent=1))
-        warm = _start_warm_up(out / "scenario.json", out / "logs") if warm_up else None
         spec_dir = out / "specs"
         spec_dir.mkdir(exist_ok=True)
         sup = Supervisor(out / "logs", grace_s=3.0)  # closing a Zenoh session + interpreter exit: ~1 s
@@ -302,8 +334,6 @@ def launch(scn, out: Path, *, quiet: bool = False, stop: threading.Event | None 
             fault_board.on_change = lambda: (run_json.write(), live_faults.respec(spec_paths))
         sup.start_all()
         ready = sup.wait_ready(ready_timeout_s, stop)
-        if warm is not None:
-            _finish_warm_up(warm, stop)
         if not ready:
             sup.poll()
             fatal = [f"{c.name}: {c.fatal}" for c in sup.children.values() if c.fatal]
@@ -359,9 +389,6 @@ def launch(scn, out: Path, *, quiet: bool = False, stop: threading.Event | None 
         report["stopped_early"] = stop.is_set()
         report["last_status"] = last_line
     finally:
-        if warm is not None and warm.poll() is None:
-            warm.kill()
-            warm.wait()
         if sup is not None:
             shutdown = sup.stop()
         if live_faults is not None:
@@ -413,27 +440,49 @@ class _RunJson:
             print(f"[launcher] cannot write {self.path}: {e}", file=sys.stderr)
 
 
-def _start_warm_up(scenario_json: Path, log_dir: Path):
-    """A few batch epochs of the scenario in a subprocess, beside the workers' start-up:
-    numba's on-disk caches are filled (compiled if a kernel's source changed) before the run
-    starts, so that no worker compiles in the middle of the run (its first calls come after
-    the start, which waits for this)."""
+def _cold_warm_up(scn, out: Path, stop: threading.Event, say) -> bool:
+    """numba's on-disk cache warm (sitl.app.kernel_cache): nothing to do, the workers load
+    their kernels in a second. Cold (first run, caches deleted, a source changed): a few batch
+    epochs of the scenario in a subprocess fill it before any worker starts (so that no worker
+    compiles in the middle of the run, nor three processes the same kernels at once), with a
+    line at once saying so and how long it will take, and its progress. False if it failed or
+    a stop came."""
     import subprocess
-    log_dir.mkdir(parents=True, exist_ok=True)
-    with open(log_dir / "warm_up.stderr.log", "ab") as err:
-        return subprocess.Popen([sys.executable, "-m", "sitl.app.batch", str(scenario_json), "--warm-up"],
-                                stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=err)
 
-
-def _finish_warm_up(p, stop: threading.Event) -> None:
+    from sitl.app import kernel_cache as kc
+    if kc.is_warm():
+        return True
+    est_s, est_n = kc.estimate()
+    (out / "logs").mkdir(parents=True, exist_ok=True)
+    (out / "scenario.json").write_text(json.dumps(scn.to_dict(), indent=1))
+    if say is not None:
+        _say(say, False, f"[launcher] compiling the numba kernels (the first run after an install or a source "
+                         f"change; later starts skip this): about {est_s:.0f} s ...")
+    t0, w0 = perf_now(), wall_now() - 1.0
+    with open(out / "logs" / "warm_up.stderr.log", "ab") as err:
+        p = subprocess.Popen([sys.executable, "-m", "sitl.app.batch", str(out / "scenario.json"), "--warm-up"],
+                             stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=err)
+    next_line = perf_now() + 5.0
     try:
         while p.poll() is None:
-            if stop.wait(0.1):
-                break
+            if stop.wait(0.2):
+                return False
+            if say is not None and perf_now() >= next_line:
+                next_line += 5.0
+                el = perf_now() - t0
+                _say(say, False, f"[launcher] compiling: {kc.written_since(w0)}/~{est_n} kernels, {el:.0f} s of "
+                                 f"about {max(est_s, el):.0f} s")
     finally:
         if p.poll() is None:
             p.kill()
         p.wait()
+    if p.returncode != 0:
+        return False
+    el, n = perf_now() - t0, kc.written_since(w0)
+    kc.mark_warm(el, n)
+    if say is not None:
+        _say(say, False, f"[launcher] kernels compiled ({n}) in {el:.0f} s")
+    return True
 
 
 def _fill_report(report, sup, scorer, audit, recorder) -> None:

@@ -5,8 +5,8 @@ costs one line and exit status 2 at once, never a half-started run or lost data:
   ``OUT/.skyfuse.lock`` (``fcntl.flock``: released by the kernel when the process ends, even
   by kill -9) for as long as it writes there, so a second run into the same directory is
   refused instead of truncating the first one's bus log;
-* every port the run will bind is free: each vehicle's MAVLink UDP port (``[mavlink]
-  base_port`` + 10 x instance) and the embedded Zenoh router's listen port (``[bus] listen``,
+* every port the run will bind is free: each vehicle's MAVLink UDP port and, with ``[mavlink]
+  tcp``, its TCP port (``[mavlink] base_port`` + 10 x instance) and the embedded Zenoh router's listen port (``[bus] listen``,
   unless it asks for port 0);
 * the MAVLink signing key file (``[mavlink] signing_key_file``) can be read and is not empty
   (every other content is a valid key: 32 raw bytes, 64 hex characters, or a passphrase).
@@ -96,13 +96,16 @@ def check_ports(scn) -> None:
     if m.enabled:
         for i in range(scn.n_vehicles):
             port = m.base_port + 10 * i
-            why = _bind_error(socket.SOCK_DGRAM, "127.0.0.1", port)
-            if why is not None:
-                what = f"vehicle {i} (system id {i + 1})" if i < scn.uavs.count else f"the sonde (system id {i + 1})"
-                raise PreflightError(
-                    f"UDP port {port} ({what}'s MAVLink) cannot be bound: {why}; vehicle i listens on "
-                    f"[mavlink] base_port + 10 i (base_port = {m.base_port}): set another base_port in the "
-                    f"scenario, or --no-mavlink")
+            for kind, proto in ((socket.SOCK_DGRAM, "UDP"), (socket.SOCK_STREAM, "TCP")):
+                if kind == socket.SOCK_STREAM and not m.tcp:
+                    continue
+                why = _bind_error(kind, "127.0.0.1", port)
+                if why is not None:
+                    what = f"vehicle {i} (system id {i + 1})" if i < scn.uavs.count else f"the sonde (system id {i + 1})"
+                    raise PreflightError(
+                        f"{proto} port {port} ({what}'s MAVLink) cannot be bound: {why}; vehicle i listens on "
+                        f"[mavlink] base_port + 10 i (base_port = {m.base_port}): --instance N or --base-port P "
+                        f"moves them, or --no-mavlink")
     if not scn.bus.zenoh:
         proto, _, rest = scn.bus.listen.partition("/")
         host, _, port = rest.rpartition(":")

@@ -350,3 +350,117 @@ def test_batch_mode_applies_the_scenarios_bus_fault_rules():
     f = lossy["faults"]
     assert f["not_in_batch"] == ["zenoh:gs"] and f["injected"]["dropped_loss"] == 7
     assert "faults" not in plain
+
+
+# ------------------------------------------------------------------ --instance / --base-port
+
+
+def _opts(cls, **kw):
+    from sitl.app.launcher import RunOptions
+    if cls is RunOptions:
+        kw.setdefault("scenario", "x.toml")
+    return cls(**kw)
+
+
+@pytest.mark.parametrize("cls", ["DemoOptions", "RunOptions"])
+def test_instance_shifts_every_port_by_ten_n_as_ardupilot_sitl(cls):
+    from sitl.app import launcher as la
+    from sitl.scenario import default_scenario
+    cls = getattr(la, cls)
+    base = default_scenario().replace(bus={"listen": "tcp/127.0.0.1:7447"})
+    scn = la._scenario_with_overrides(base, _opts(cls, instance=3))
+    assert scn.mavlink.base_port == 5760 + 30 and scn.mavlink.gcs == "127.0.0.1:14580"
+    assert scn.bus.listen == "tcp/127.0.0.1:7477"
+    scn = la._scenario_with_overrides(default_scenario(), _opts(cls, instance=2))
+    assert scn.bus.listen == "tcp/127.0.0.1:0"  # any free port stays any free port
+    scn = la._scenario_with_overrides(default_scenario(), _opts(cls, base_port=6000, instance=1,
+                                                                gcs="127.0.0.1:15000"))
+    assert scn.mavlink.base_port == 6010 and scn.mavlink.gcs == "127.0.0.1:15000"  # --gcs as given
+    scn = la._scenario_with_overrides(default_scenario(), _opts(cls, base_port=7000))
+    assert scn.mavlink.base_port == 7000 and scn.mavlink.gcs == "127.0.0.1:14550"
+
+
+@pytest.mark.parametrize("argv, text", [
+    (["--instance", "-1"], "--instance: expected an integer in 0..5000"),
+    (["--instance", "two"], "--instance: expected an integer"),
+    (["--base-port", "80"], "--base-port: expected an integer in 1024..65000"),
+    (["--base-port", "64000", "--instance", "200"], "--base-port / --instance: expected an integer in 1024..65000"),
+])
+@pytest.mark.parametrize("cmd", ["demo", "run"])
+def test_bad_instance_or_base_port_is_one_line_exit_2_before_anything_starts(tmp_path, capsys, cmd, argv, text):
+    from sitl.app.cli import main
+    from sitl.scenario import DEFAULT_SCENARIO_TOML
+    out = tmp_path / "out"
+    pre = [cmd]
+    if cmd == "run":
+        (tmp_path / "s.toml").write_text(DEFAULT_SCENARIO_TOML)
+        pre.append(str(tmp_path / "s.toml"))
+    assert main(pre + ["--out", str(out)] + argv) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0 and text in err, err
+    assert not out.exists() or not any(out.iterdir())
+
+
+
+# ------------------------------------------------------------------ start-up: the kernels' cache
+
+
+@pytest.fixture
+def fake_tree(tmp_path, monkeypatch):
+    """A package tree and a numba cache dir of the test's own (the real sources are not touched)."""
+    from sitl.app import kernel_cache as kc
+    pkg = tmp_path / "pkg"
+    (pkg / "__pycache__").mkdir(parents=True)
+    (pkg / "mod.py").write_text("x = 1\n")
+    cache = tmp_path / "numba_cache"
+    cache.mkdir()
+    monkeypatch.setattr(kc, "_roots", lambda: [pkg])
+    monkeypatch.setenv("NUMBA_CACHE_DIR", str(cache))
+    return kc, pkg, cache
+
+
+def test_kernel_cache_is_warm_only_while_sources_and_cache_are_as_stamped(fake_tree):
+    kc, pkg, cache = fake_tree
+    assert not kc.is_warm()  # never warmed here
+    assert kc.estimate() == (kc.DEFAULT_COLD_S, kc.DEFAULT_KERNELS)
+    for k in range(3):
+        (cache / f"mod.f{k}-1.py311.nbi").write_bytes(b"i")
+    kc.mark_warm(42.0, 3)
+    assert kc.is_warm() and kc.stamp_path().parent == cache
+    assert kc.estimate()[0] in (42.0, kc.DEFAULT_COLD_S)
+    st = (pkg / "mod.py").stat()
+    os.utime(pkg / "mod.py", ns=(st.st_atime_ns, st.st_mtime_ns + 10**9))  # a source changed
+    assert not kc.is_warm()
+    kc.mark_warm(1.0, 0)
+    assert kc.is_warm()
+    (cache / "mod.f0-1.py311.nbi").unlink()  # a cache file deleted
+    assert not kc.is_warm()
+
+
+def test_kernel_cache_estimate_is_the_last_cold_warm_up(fake_tree):
+    kc, pkg, cache = fake_tree
+    kc.mark_warm(63.4, 20)
+    assert kc.estimate() == (63.4, 20)
+    kc.mark_warm(2.1, 1)  # a warm re-run (one kernel): the cold figure stays
+    assert kc.estimate() == (63.4, 20)
+
+
+@pytest.mark.live
+def test_a_cold_start_says_at_once_that_it_compiles_and_a_warm_one_skips_it(tmp_path, monkeypatch):
+    from sitl.app import kernel_cache as kc
+    from sitl.app.launcher import _cold_warm_up
+    from sitl.scenario import default_scenario
+    scn = default_scenario().replace(uavs={"count": 3}, sonde={"enabled": False})
+    stamp = {}
+    monkeypatch.setattr(kc, "is_warm", lambda: False)
+    monkeypatch.setattr(kc, "mark_warm", lambda el, n: stamp.update(el=el, n=n))
+    out = io.StringIO()
+    assert _cold_warm_up(scn, tmp_path, threading.Event(), out)
+    lines = out.getvalue().strip().splitlines()
+    assert "compiling the numba kernels" in lines[0] and "about" in lines[0] and lines[-1].startswith(
+        "[launcher] kernels compiled")
+    assert stamp["el"] > 0 and stamp["n"] >= 0
+    monkeypatch.setattr(kc, "is_warm", lambda: True)
+    out = io.StringIO()
+    assert _cold_warm_up(scn, tmp_path / "warm", threading.Event(), out) and out.getvalue() == ""
+    assert not (tmp_path / "warm").exists()  # nothing started, nothing written

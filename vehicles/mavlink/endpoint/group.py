@@ -13,7 +13,9 @@ from .vehicle import VehicleEndpoint
 
 
 class EndpointGroup:
-    """Many endpoints stepped together: one selector (epoll) poll per step over all sockets.
+    """Many endpoints stepped together: one selector (epoll) poll per step over all sockets
+    (UDP sockets and TCP listeners; the TCP clients of the endpoints that have some are read
+    every step).
 
     ``step(t_gps_s, telemetry_list, budget_s=None)``: telemetry_list[i] (or None) for
     endpoints[i]; budget_s: the wall seconds the group's input may take this step, shared over
@@ -32,6 +34,9 @@ class EndpointGroup:
         self._sel = selectors.DefaultSelector()
         for ep in self.endpoints:
             self._sel.register(ep.sock, selectors.EVENT_READ, ep)
+        self._tcp = [ep for ep in self.endpoints if getattr(ep, "tcp", None) is not None]
+        for ep in self._tcp:  # the TCP listeners (data: a tuple, to tell them from the UDP sockets)
+            self._sel.register(ep.tcp.sock, selectors.EVENT_READ, (ep,))
 
     def __len__(self) -> int:
         return len(self.endpoints)
@@ -45,10 +50,18 @@ class EndpointGroup:
             raise ValueError(f"budget_s must be None or >= 0 s, got {budget_s!r}")
         for ep in self.endpoints:
             ep._update_clock(t_gps_s)
-        ready = [key.data for key, _ in self._sel.select(0)]
+        keys = [key.data for key, _ in self._sel.select(0)]
+        ready = [d for d in keys if not isinstance(d, tuple)]
         if ready:
             _drain(ready, budget_s, self._timer, self._round)
             self._round += 1
+        if self._tcp:  # a TCP listener with a client waiting, and the endpoints with clients
+            for ep in {id(d[0]): d[0] for d in keys if isinstance(d, tuple)}.values():
+                if not ep.tcp.clients:
+                    ep.poll_tcp()
+            for ep in self._tcp:
+                if ep.tcp.clients:
+                    ep.poll_tcp()
         for ep, tel in zip(self.endpoints, telemetry_list):
             ep._advance(tel)
 

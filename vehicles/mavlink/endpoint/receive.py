@@ -132,10 +132,11 @@ class DatagramInput:
         if (ts_ not in (0, self.sysid)) or (tc_ not in (0, self.compid)):
             self.counters["not_for_us"] += 1  # valid traffic, for someone else: accepted, not acted on
             return None
-        if addr not in self._peers and addr != self.gcs and len(self._peers) >= _MAX_PEERS:
-            oldest = min(self._peers, key=self._peers.get)
-            del self._peers[oldest]
-        self._peers[addr] = self._t if self._t is not None else 0.0
+        if len(addr) == 2:  # UDP; a TCP client ("tcp", host, port) is a peer while it is connected
+            if addr not in self._peers and addr != self.gcs and len(self._peers) >= _MAX_PEERS:
+                oldest = min(self._peers, key=self._peers.get)
+                del self._peers[oldest]
+            self._peers[addr] = self._t if self._t is not None else 0.0
         h = self._handlers.get(msg.get_type())
         if h is not None:
             try:

@@ -21,6 +21,7 @@ from .constants import (_FUTURE_TICKS, _PEER_TIMEOUT_S, _SO_RXQ_OVFL, DATAGRAM_R
                         HEARTBEAT, STREAMS, TRAFFIC_COUNTERS, _check_addr, listen_port)
 from .handlers import AutopilotPort, RequestHandlers
 from .receive import DatagramInput, _drain
+from ..tcp import StreamFramer, TcpServer
 from .signing import SigningClock
 from .streams import StreamOutput
 
@@ -42,6 +43,9 @@ class VehicleEndpoint(SigningClock, DatagramInput, StreamOutput, RequestHandlers
     autopilot: a UAV's handlers.AutopilotPort (its vehicles.autopilot): HEARTBEAT, home, the
     flight commands and missions are the autopilot's (None: no flight control, missions go to
     on_mission).
+    tcp_listen: (host, port) of a TCP server beside the UDP socket (ArduPilot SITL's SERIAL0;
+    vehicles.mavlink.tcp): each connected client is a peer like a UDP one (its requests answered
+    on its connection, the streams sent to it while it is connected); None: UDP only.
     """
 
     def __init__(self, sysid: int, kind: str = "uav", gcs=DEFAULT_GCS, listen=None, params: ParamStore | None = None,
@@ -49,7 +53,8 @@ class VehicleEndpoint(SigningClock, DatagramInput, StreamOutput, RequestHandlers
                  instance: int | None = None, compid: int = mavlink.MAV_COMP_ID_AUTOPILOT1, link_id: int = 0,
                  stream_rates_hz: dict | None = None, mission_timeout_s: float = 1.5, mission_retries: int = 5,
                  clock: Callable[[], float] | None = None, signing_state=None,
-                 rcvbuf_bytes: int | None = DEFAULT_RCVBUF_BYTES, autopilot: AutopilotPort | None = None):
+                 rcvbuf_bytes: int | None = DEFAULT_RCVBUF_BYTES, autopilot: AutopilotPort | None = None,
+                 tcp_listen=None):
         if isinstance(sysid, bool) or int(sysid) != sysid or not 1 <= sysid <= 255:
             raise ValueError(f"sysid must be an integer in 1..255, got {sysid!r}")
         if kind not in KINDS:
@@ -121,6 +126,18 @@ class VehicleEndpoint(SigningClock, DatagramInput, StreamOutput, RequestHandlers
                 self._tlog.close()
             raise ValueError(f"sysid {sysid}: cannot listen on udp {listen[0]}:{listen[1]}: {e.strerror}") from None
         self.listen_addr = self.sock.getsockname()
+        self.tcp = None
+        self._framers: dict = {}  # TCP client address -> its StreamFramer
+        if tcp_listen is not None:
+            host, tport = _check_addr("tcp_listen", tcp_listen)
+            try:
+                self.tcp = TcpServer(host, tport)
+            except OSError as e:
+                self.sock.close()
+                if self._own_tlog:
+                    self._tlog.close()
+                raise ValueError(f"sysid {sysid}: cannot listen on tcp {host}:{tport}: {e.strerror}") from None
+            self.tcp_addr = self.tcp.addr
         self.rcvbuf_bytes = self.sock.getsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF)
 
         # encoder (signs when a key is given) and a separate decoder that never checks
@@ -183,6 +200,52 @@ class VehicleEndpoint(SigningClock, DatagramInput, StreamOutput, RequestHandlers
     def fileno(self) -> int:
         return self.sock.fileno()
 
+    # ------------------------------------------------------------------ TCP (SERIAL0)
+    def poll_tcp(self) -> int:
+        """Accept TCP clients, send what is queued for them, handle the frames they sent (their
+        address is ("tcp", host, port)); returns the bytes read."""
+        if self.tcp is None:
+            return 0
+        got = 0
+        for addr, data in self.tcp.poll():
+            got += len(data)
+            self.counters["rx_bytes"] += len(data)
+            peer = ("tcp", *addr)
+            for item in self._framers.setdefault(addr, StreamFramer()).feed(data):
+                if isinstance(item, str):
+                    self._count(item)
+                else:
+                    self._handle_frame(item, peer)
+        if len(self._framers) > len(self.tcp.clients):
+            live = set(self.tcp.clients)
+            for a in [a for a in self._framers if a not in live]:
+                del self._framers[a]
+        return got
+
+    def _stream_dest(self) -> tuple:
+        dest = super()._stream_dest()
+        if self.tcp is None or not self.tcp.clients:
+            return dest
+        return (*dest, *[("tcp", *a) for a in self.tcp.clients])
+
+    def write(self, buf: bytes) -> None:
+        """pymavlink's MAVLink.send writes here: UDP destinations (streams.py), TCP clients here."""
+        dest = self._dest
+        if self.tcp is None or not self.tcp.clients or not any(len(a) == 3 for a in dest):
+            return super().write(buf)
+        self._dest = tuple(a for a in dest if len(a) != 3)
+        try:
+            super().write(buf)  # the UDP destinations, the signing reserve, the tlog
+        finally:
+            self._dest = dest
+        for a in dest:
+            if len(a) == 3:
+                if self.tcp.send(a[1:], buf):
+                    self.counters["sent"] += 1
+                    self.counters["tx_bytes"] += len(buf)
+                else:
+                    self.counters["send_errors"] += 1
+
     def _count(self, reason: str) -> None:
         self.counters[reason] = self.counters.get(reason, 0) + 1
 
@@ -207,6 +270,7 @@ class VehicleEndpoint(SigningClock, DatagramInput, StreamOutput, RequestHandlers
         budget_s: wall seconds the input may take (None: read until the socket is empty)."""
         self._update_clock(t_gps_s)
         _drain((self,), budget_s, time.perf_counter, 0)
+        self.poll_tcp()
         self._advance(telemetry)
 
     def _advance(self, telemetry) -> None:
@@ -245,6 +309,8 @@ class VehicleEndpoint(SigningClock, DatagramInput, StreamOutput, RequestHandlers
             # accepted above it (we follow every accepted frame): the exact bound
             self._save_signing_state(self.mav.signing.timestamp)
         self.sock.close()
+        if self.tcp is not None:
+            self.tcp.close()
         if self._tlog is not None:
             if self._own_tlog:
                 self._tlog.close()
