@@ -88,8 +88,14 @@ class Telemetry:
     yaw_rad: float
     fix_type: int
     satellites_visible: int
-    eph_m: float
+    eph_m: float  # 1-sigma-type horizontal / vertical accuracy, m (GPS_RAW_INT h_acc / v_acc)
     epv_m: float
+    hdop: float | None = None
+    vdop: float | None = None
+    armed: bool = True
+    airspeed_m_s: float | None = None
+    nav: object = None  # vehicles.mavlink.telemetry.NavOutput (NAV_CONTROLLER_OUTPUT)
+    ekf: object = None  # vehicles.mavlink.telemetry.EkfStatus (EKF_STATUS_REPORT)
 
 
 def _ecef_to_ned(vel_ecef, lat, lon):
@@ -156,6 +162,7 @@ class VehicleGroup:
                 pts[:, 2] = scn.uavs.ground_alt_m
             self.swarm = uav_mod.UavSwarm(law, np.radians(pts[:, 0]), np.radians(pts[:, 1]), pts[:, 2])
             self.fleet = self._autopilots(scn, in_flight=not ground)
+            self.batteries = self._batteries()
             self.const = orbits.gps_constellation()
             self.nav_cfg = uav_nav.NavConfig()
             self.nav = uav_nav.OnboardNav(self.const, self.nav_cfg)
@@ -170,6 +177,8 @@ class VehicleGroup:
         self.src = [f"uav{i + 1}" for i in self.idx]
         self.last_uav_truth = None
         self.last_nav = None
+        self.nav_prior = None  # the estimate the last update started from (EKF_STATUS_REPORT's test ratios)
+        self.last_tracked = None  # (n, S) the satellites each receiver tracked at the last epoch (DOP)
         self.ap_events: list = []  # the autopilots' events of the last epoch (the endpoints take theirs)
         self.ap_epoch = -1  # the epoch those events belong to
         # the 1 Hz-ish traffic (UavNav at nav_rate_hz, the UAVs' truth at 1 Hz) is spread over the
@@ -245,8 +254,13 @@ class VehicleGroup:
         U, V = tu.pos_ecef_m, tu.vel_ecef_m_s
         self.last_uav_truth = tu
         ep = un.gnss_measure(self.rng, t, U, V, self.const, self.nav_cfg)
+        self.nav_prior = self.nav.estimate
         est = self.nav.update(ep)
         self.last_nav = est
+        self.last_tracked = ep.tracked
+        # the batteries draw at the flown airspeed (no wind: the truth's speed) while armed
+        ap = self.fleet.ap
+        self.batteries.step(t, tu.speed_m_s, ap.armed, getattr(ap.C, "batt_capacity_mah", None))
         meas = beacon_link.measure(self.rng, U, V, B, VB, self.link_cfg)
         sym = 0.5 * (est.P + np.swapaxes(est.P, -1, -2))
         ntr = est.n_tracked.tolist()
@@ -320,6 +334,10 @@ class VehicleGroup:
     def __setstate__(self, d: dict) -> None:
         self.__dict__.update(d)
         self.bus = None
+        self.__dict__.setdefault("nav_prior", None)
+        self.__dict__.setdefault("last_tracked", None)
+        if self.n and "batteries" not in self.__dict__:  # a checkpoint from before the batteries
+            self.batteries = self._batteries()
         if self.n:
             from vehicles import uav_nav
             self._uav_nav = uav_nav
@@ -365,6 +383,13 @@ class VehicleGroup:
                               airspeed_max_m_s=max(base.airspeed_max_m_s, v))
         ap = Autopilot(*y.T, in_flight=in_flight, config=cfg, t0_s=float(st.t_s), ell=self.swarm.ell)
         return AutopilotSwarm(self.swarm, ap, dt_s=0.1)
+
+    def _batteries(self):
+        """The UAVs' batteries (vehicles.mavlink.battery.BatteryBank), drawing their cruise current
+        at the autopilot's cruise airspeed; capacity each UAV's BATT_CAPACITY, read every step."""
+        from vehicles.mavlink.battery import BatteryBank, BatteryParams
+        cruise = float(self.fleet.ap.cfgs[0].airspeed_cruise_m_s)
+        return BatteryBank(self.n, BatteryParams(cruise_airspeed_m_s=cruise))
 
     @property
     def autopilot(self):
@@ -441,10 +466,20 @@ class VehicleGroup:
     def telemetry(self) -> list[Telemetry]:
         """Each vehicle's state as its autopilot would report it: the onboard estimate (the
         UAVs' EKF; the sonde's relayed fix is the ground's business, so the truth with the
-        receiver's nominal accuracy), attitude from the flight path."""
+        receiver's nominal accuracy), attitude from the flight path.
+
+        UAVs: fix_type 3D with >= 3 tracked satellites (the receivers have no clock: three fix
+        the position), NO_FIX below; satellites_visible the tracked ones; HDOP / VDOP of the
+        tracked satellites' geometry at the estimated position (vehicles.uav_nav.dops_clock_free,
+        ephemeris at t, no truth); h_acc / v_acc (eph_m / epv_m) from the onboard EKF's
+        covariance rotated to NED at the estimate: sqrt(P_nn + P_ee) (the expected RMS of the
+        horizontal error) and sqrt(P_dd); armed and the airspeed from the autopilot's flight;
+        ``nav`` the autopilot's guidance (_nav_outputs), ``ekf`` the filter's status
+        (_ekf_status)."""
         out = []
         from sitl.geodesy import ecef_to_geodetic
         if self.n and self.last_nav is not None:
+            un = self._uav_nav
             est, tu = self.last_nav, self.last_uav_truth
             lat, lon, h = (np.atleast_1d(v) for v in ecef_to_geodetic(est.x[:, 0:3]))
             v = est.x[:, 3:6]  # ECEF -> NED, all UAVs at once
@@ -453,16 +488,30 @@ class VehicleGroup:
             vn = -sl * co * v[:, 0] - sl * so * v[:, 1] + cl * v[:, 2]
             vd = -(cl * co * v[:, 0] + cl * so * v[:, 1] + sl * v[:, 2])
             pitch = np.arctan2(-vd, np.hypot(vn, ve))
-            P = est.P
-            eph = np.sqrt(np.maximum(P[:, 0, 0] + P[:, 1, 1], 0.0) / 2)
-            epv = np.sqrt(np.maximum(P[:, 2, 2], 0.0))
+            Pp, _ = un.ned_covariances(est)
+            eph = np.sqrt(np.maximum(Pp[:, 0, 0] + Pp[:, 1, 1], 0.0))
+            epv = np.sqrt(np.maximum(Pp[:, 2, 2], 0.0))
             ntr = est.n_tracked.tolist()
+            if self.last_tracked is not None:
+                from sitl.gnss.orbits import sat_state_ecef
+                sp, _ = sat_state_ecef(self.const, float(est.t_gps_s))
+                hd, vdp = un.dops_clock_free(est.x[:, 0:3], sp, self.last_tracked)
+            else:
+                hd = vdp = np.full(self.n, np.nan)
+            hdop = [None if not math.isfinite(x) else x for x in hd.tolist()]
+            vdop = [None if not math.isfinite(x) else x for x in vdp.tolist()]
             heading = np.asarray(tu.heading_rad).tolist()
+            ap = self.fleet.ap
+            armed = ap.armed.tolist()
+            air = np.asarray(tu.speed_m_s, float).tolist()
+            nav = _nav_outputs(self.fleet, tu)
+            ekf = _ekf_status(un, self.nav_prior, est, self.nav_cfg)
             rows = zip(self.idx, lat.tolist(), lon.tolist(), h.tolist(), vn.tolist(), ve.tolist(), vd.tolist(),
-                       pitch.tolist(), heading, ntr, eph.tolist(), epv.tolist())
+                       pitch.tolist(), heading, ntr, eph.tolist(), epv.tolist(), hdop, vdop, armed, air, nav, ekf)
             t = float(est.t_gps_s)
-            out.extend(Telemetry("uav", i, t, la, lo, hh, (a, b, c), 0.0, pi, hd, 3 if nt >= 4 else 2, nt, e1, e2)
-                       for i, la, lo, hh, a, b, c, pi, hd, nt, e1, e2 in rows)
+            out.extend(Telemetry("uav", i, t, la, lo, hh, (a, b, c), 0.0, pi, hd_, 3 if nt >= 3 else 1, nt, e1, e2,
+                                 hdop=h1, vdop=v1, armed=bool(arm), airspeed_m_s=sp_, nav=nv, ekf=ek)
+                       for i, la, lo, hh, a, b, c, pi, hd_, nt, e1, e2, h1, v1, arm, sp_, nv, ek in rows)
         if self.sonde is not None and self.last_sonde is not None:
             st = self.last_sonde
             vn = tuple(float(v) for v in (st.vel_enu_m_s[0][1], st.vel_enu_m_s[0][0], -st.vel_enu_m_s[0][2]))
@@ -471,6 +520,92 @@ class VehicleGroup:
                                  float(st.lon_rad[0]), float(st.alt_m[0]), vn, 0.0, 0.0,
                                  math.atan2(vn[1], vn[0]), 3 if sats >= 4 else 0, sats, 5.0, 8.0))
         return out
+
+
+def _nav_outputs(fleet, tu) -> list:
+    """Each UAV's NAV_CONTROLLER_OUTPUT (vehicles.mavlink.telemetry.NavOutput, SI) from its
+    autopilot's guidance of the last step, evaluated at the UAV's state now (the state the
+    autopilot steers by): nav_bearing the heading the guidance steers to (GOTO / LAND: the
+    target's bearing; ORBIT: the circle's reference heading; LEG / FINAL: the held heading; the
+    scenario's own pattern and the ground: the heading now), target_bearing / wp_dist the target
+    point's (the loiter's centre for ORBIT; none for LEG, the scenario, the ground), alt_error the
+    target altitude - altitude, aspd_error the commanded - flown airspeed, xtrack_error off the
+    leg prev -> target (GOTO / LAND) or off the circle (ORBIT, d - r); nav_roll the bank of a
+    coordinated turn at the commanded turn rate, atan(v w / g), nav_pitch the commanded flight
+    path angle.  None for a UAV in MANUAL (ArduPlane sends none there)."""
+    from vehicles.autopilot import convention as cv
+    from vehicles.autopilot import guidance as gd
+    from vehicles.autopilot.config import G_M_S2
+    from vehicles.mavlink.telemetry import NavOutput
+
+    g = fleet.last_guidance
+    ap = fleet.ap
+    if g is None:
+        return [None] * ap.n
+    y = fleet.state_y
+    lat, lon, h, psi = y[:, 0], y[:, 1], y[:, 2], y[:, 3]
+    ell = fleet.swarm.ell
+    speed, climb, rate = gd.commands(g, y, ell)  # the scenario's UAVs: zeros (their law is the scenario's)
+    kind = np.asarray(g.kind)
+    d_e, d_n = gd.offsets(lat, lon, h, g.lat_rad, g.lon_rad, ell)
+    d = np.hypot(d_e, d_n)
+    brg = np.arctan2(d_e, d_n)
+    r = np.maximum(g.radius_m, 1.0)
+    ref_orbit = brg - 0.5 * np.pi + np.arctan(gd.K_RADIAL * (d - r) / r)
+    goto = (kind == gd.GOTO) | (kind == gd.LAND)
+    orbit = kind == gd.ORBIT
+    leg = (kind == gd.LEG) | (kind == gd.FINAL)
+    pointed = goto | orbit | (kind == gd.FINAL)
+    nav_brg = np.where(goto, brg, np.where(orbit, ref_orbit, np.where(leg, g.heading_rad, psi)))
+    tgt_brg = np.where(pointed, brg, nav_brg)
+    wp = np.where(pointed, d, 0.0)
+    flown = np.asarray(tu.speed_m_s, float)
+    guided = (kind != gd.SCENARIO) & (kind != gd.HOLD)
+    alt_err = np.where(guided, g.alt_m - h, 0.0)
+    aspd_err = np.where(guided, g.speed_m_s - flown, 0.0)
+    # cross track: the UAV's offset from the leg's start (prev) crossed with the leg's direction
+    a_e, a_n = gd.offsets(ap.prev[:, 0], ap.prev[:, 1], ap.prev[:, 2], lat, lon, ell)
+    l_e, l_n = gd.offsets(ap.prev[:, 0], ap.prev[:, 1], ap.prev[:, 2], g.lat_rad, g.lon_rad, ell)
+    l_len = np.hypot(l_e, l_n)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        xt_leg = np.where(l_len > 1e-3, (a_n * l_e - a_e * l_n) / l_len, 0.0)
+    xtrack = np.where(goto, xt_leg, np.where(orbit, d - r, 0.0))
+    v = np.where(guided, np.maximum(speed, 1e-9), flown)
+    roll = np.where(guided, np.arctan(v * rate / G_M_S2), 0.0)
+    pitch = np.where(guided, np.arcsin(np.clip(climb / np.maximum(v, 1e-9), -1.0, 1.0)), 0.0)
+    manual = np.asarray(ap.mode) == cv.MANUAL
+    cols = [a.tolist() for a in (roll, pitch, nav_brg, tgt_brg, wp, alt_err, aspd_err, xtrack)]
+    return [None if manual[j] else NavOutput(*(c[j] for c in cols)) for j in range(ap.n)]
+
+
+def _ekf_status(un, prior, est, cfg) -> list:
+    """Each UAV's EKF_STATUS_REPORT (vehicles.mavlink.telemetry.EkfStatus): the test ratios of
+    the last update (vehicles.uav_nav.innovation_test_ratios; 0 at the initial fix, which has no
+    prior); flags: ATTITUDE (from the flight path: known once initialised), and while the
+    receiver tracks >= 3 satellites (the filter is aided) horizontal and vertical velocity,
+    relative and absolute horizontal position, absolute vertical position and their predicted
+    counterparts; with fewer the filter only predicts (no position / velocity flag); GPS_GLITCHING
+    while the position or velocity correction fails ArduPilot's 5-sigma gate (ratio > 1)."""
+    from pymavlink.dialects.v20 import ardupilotmega as mavlink
+
+    from vehicles.mavlink.telemetry import EkfStatus
+
+    n = est.x.shape[0]
+    if prior is None or not est.t_gps_s > prior.t_gps_s:
+        z = np.zeros(n)
+        ratios = (z, z, z)
+    else:
+        r = un.innovation_test_ratios(prior, est, cfg)
+        ratios = tuple(np.nan_to_num(a, nan=0.0) for a in (r.vel, r.pos, r.hgt))
+    aided = np.asarray(est.n_tracked) >= 3
+    nav_bits = (mavlink.EKF_VELOCITY_HORIZ | mavlink.EKF_VELOCITY_VERT | mavlink.EKF_POS_HORIZ_REL
+                | mavlink.EKF_POS_HORIZ_ABS | mavlink.EKF_POS_VERT_ABS | mavlink.EKF_PRED_POS_HORIZ_REL
+                | mavlink.EKF_PRED_POS_HORIZ_ABS)
+    glitch = (ratios[0] > 1.0) | (ratios[1] > 1.0)
+    flags = (mavlink.EKF_ATTITUDE + np.where(aided, nav_bits, 0)
+             + np.where(glitch, mavlink.EKF_GPS_GLITCHING, 0)).astype(int).tolist()
+    rv, rp, rh = (a.tolist() for a in ratios)
+    return [EkfStatus(flags[j], rv[j], rp[j], rh[j]) for j in range(n)]
 
 
 class _Discard:
@@ -526,7 +661,8 @@ def load_checkpoint(path, spec, scn) -> VehicleGroup | None:
 # ---------------------------------------------------------------------- MAVLink glue
 
 
-def build_endpoints(group: VehicleGroup, scn, out_dir, name: str = "vehicles", *, clock=None, timer=None):
+def build_endpoints(group: VehicleGroup, scn, out_dir, name: str = "vehicles", *, clock=None, timer=None,
+                    epoch_s: float | None = None):
     """vehicles.mavlink endpoints for this group's vehicles: UAV i (global index) has sysid
     i + 1 and listens on udp base_port + 10 i (and tcp base_port + 10 i with [mavlink] tcp,
     ArduPilot SITL's SERIAL0); the sonde comes after the UAVs. Parameters:
@@ -536,7 +672,10 @@ def build_endpoints(group: VehicleGroup, scn, out_dir, name: str = "vehicles", *
     vehicle's signing state is kept in OUT/mav_signing_<sysid>.json (loaded by a restarted
     worker: a replay of frames captured before the restart stays rejected); clock: the signing
     clock (unix s; the live worker passes the wall clock; None: simulated time); timer: the
-    duration clock of the input budget. None if MAVLink is off."""
+    duration clock of the input budget; epoch_s: how often the endpoints are stepped, the fastest a
+    stream can go (None: one vehicle epoch, 1 / run.rate_hz). Each UAV endpoint reads its
+    autopilot's flight phase (EXTENDED_SYS_STATE) and its battery (BATTERY_STATUS, SYS_STATUS: the
+    group's BatteryBank, stepped with the flight). None if MAVLink is off."""
     from pathlib import Path
 
     from vehicles.mavlink import EndpointGroup, ParamStore, TlogWriter, VehicleEndpoint, load_signing_key
@@ -590,14 +729,30 @@ def build_endpoints(group: VehicleGroup, scn, out_dir, name: str = "vehicles", *
         if tlog is not None:
             tlog.close()
         raise
-    epoch_s = 1.0 / max(scn.run.rate_hz, m.rate_hz)  # the worker steps the endpoints this often
+    # the worker steps the endpoints this often: the MAVLink epoch ([mavlink] rate_hz), or the
+    # world's when that is faster; epoch_s given (tests) overrides it
+    ep_s = 1.0 / max(scn.run.rate_hz, m.rate_hz) if epoch_s is None else float(epoch_s)
     for ep in eps:
-        ep.epoch_s = epoch_s  # the fastest stream (streams.py)
+        ep.epoch_s = ep_s  # the fastest stream (streams.py)
+        if ep.kind == "uav":
+            j = group.idx.index(ep.sysid - 1)
+            ep.landed_state_fn = _landed_state_of(group, j)
+            ep.battery = group.batteries.cell(j)
     group.param_stores = uav_stores
     group.endpoints = {ep.sysid - 1: ep for ep in eps}
     eg = EndpointGroup(eps, timer=timer)
     eg.tlog_writer = tlog  # shared by the endpoints: closed by the worker after them
     return eg
+
+
+def _landed_state_of(group: VehicleGroup, j: int):
+    """EXTENDED_SYS_STATE.landed_state of local UAV j: its autopilot's flight phase now (on the
+    ground, taking off, in the air, landing)."""
+    from vehicles.autopilot import convention as cv
+
+    def landed_state() -> int:
+        return cv.landed_state(int(group.autopilot.phase[j]))
+    return landed_state
 
 
 #: the share of an epoch's wall time the group's MAVLink input may take (worker main)
@@ -721,7 +876,8 @@ def _mav_telemetry(tel: list[Telemetry], n_endpoints: int):
         out.append(VehicleTelemetry(lat_rad=v.lat_rad, lon_rad=v.lon_rad, alt_msl_m=v.alt_msl_m,
                                     vel_ned_m_s=tuple(v.vel_ned_m_s), roll_rad=v.roll_rad, pitch_rad=v.pitch_rad,
                                     yaw_rad=v.yaw_rad, fix_type=v.fix_type, satellites_visible=v.satellites_visible,
-                                    eph_m=v.eph_m, epv_m=v.epv_m))
+                                    eph_m=v.eph_m, epv_m=v.epv_m, hdop=v.hdop, vdop=v.vdop, armed=v.armed,
+                                    airspeed_m_s=v.airspeed_m_s, nav=v.nav, ekf=v.ekf))
     return (out + [None] * n_endpoints)[:n_endpoints]
 
 

@@ -125,6 +125,12 @@ __all__ = [
     "sat_channels",
     "OnboardNav",
     "nav_track",
+    "EKF_INNOVATION_GATE_SIGMA",
+    "dops_clock_free",
+    "ned_rotation",
+    "ned_covariances",
+    "InnovationTestRatios",
+    "innovation_test_ratios",
 ]
 
 #: Seed 002 GNSS noise intensities (two-sided PSDs): range (30 m)^2 s, Doppler (0.2 m/s)^2 s.
@@ -627,3 +633,90 @@ def nav_track(rng: np.random.Generator, t_gps_s, pos_ecef_m, vel_ecef_m_s, const
         nis.append(est.nis)
         ntr.append(est.n_tracked)
     return NavTrack(t.copy(), np.stack(xs), np.stack(Ps), np.stack(nis), np.stack(ntr))
+
+
+# --------------------------------------------------------------------------- read-only views (telemetry)
+# What a receiver / an autopilot reports about the estimate (vehicles/process.py -> MAVLink):
+# computed from the receivers' and the filters' own state, nothing of the truth.
+
+#: ArduPlane's EK3_VEL_I_GATE / EK3_POS_I_GATE / EK3_HGT_I_GATE default, 500 (centi-sigma): 5 sigma
+EKF_INNOVATION_GATE_SIGMA = 5.0
+
+
+def dops_clock_free(rx_pos_ecef_m, sat_pos_ecef_m, tracked) -> tuple[np.ndarray, np.ndarray]:
+    """(HDOP, VDOP) of each receiver (...,) from the satellites it tracks, in the local
+    east-north-up frame at the receiver: Q = (G'G)^-1 with G the unit lines of sight of the
+    tracked satellites (three unknowns: this receiver has no clock), HDOP = sqrt(Q_ee + Q_nn),
+    VDOP = sqrt(Q_uu).  rx (..., 3); sats (S, 3) or (..., S, 3); tracked (..., S).  NaN where
+    fewer than three satellites are tracked (no fix)."""
+    rx = np.asarray(rx_pos_ecef_m, float)
+    tr = np.asarray(tracked, bool)
+    los = np.asarray(sat_pos_ecef_m, float) - rx[..., None, :]
+    los = los / np.linalg.norm(los, axis=-1, keepdims=True)
+    lat, lon, _ = geodesy.ecef_to_geodetic(rx)
+    R = geodesy.enu_rotation(lat, lon)  # (..., 3, 3): enu = R d
+    g = np.where(tr[..., None], np.einsum("...ij,...sj->...si", R, los), 0.0)
+    A = np.einsum("...si,...sj->...ij", g, g)
+    ok = tr.sum(axis=-1) >= 3
+    A = np.where(ok[..., None, None], A, np.eye(3))
+    Q = np.linalg.inv(A)
+    hdop = np.sqrt(np.maximum(Q[..., 0, 0] + Q[..., 1, 1], 0.0))
+    vdop = np.sqrt(np.maximum(Q[..., 2, 2], 0.0))
+    return np.where(ok, hdop, np.nan), np.where(ok, vdop, np.nan)
+
+
+def ned_rotation(pos_ecef_m) -> np.ndarray:
+    """(..., 3, 3) R with ned = R d_ecef at the geodetic position of pos_ecef_m."""
+    lat, lon, _ = geodesy.ecef_to_geodetic(np.asarray(pos_ecef_m, float))
+    enu = geodesy.enu_rotation(lat, lon)
+    return np.stack([enu[..., 1, :], enu[..., 0, :], -enu[..., 2, :]], axis=-2)
+
+
+def ned_covariances(est: NavEstimate) -> tuple[np.ndarray, np.ndarray]:
+    """The estimate's position and velocity covariances in the local north-east-down frame at
+    the estimated position: (P_pos (..., 3, 3) m^2, P_vel (..., 3, 3) m^2/s^2), R P R'."""
+    R = ned_rotation(est.x[..., 0:3])
+    P = 0.5 * (est.P + np.swapaxes(est.P, -1, -2))
+    rot = lambda B: R @ B @ np.swapaxes(R, -1, -2)  # noqa: E731
+    return rot(P[..., 0:3, 0:3]), rot(P[..., 3:6, 3:6])
+
+
+class InnovationTestRatios(NamedTuple):
+    """ArduPilot's EKF innovation test ratios (NavEKF3 FuseVelPosNED: innovation^2 / (gate^2 x
+    innovation variance); < 1 passes the gate) for this filter, whose measurements are
+    pseudoranges and range rates, not NED positions: the update's correction of the state,
+    dx = x_post - x_pred = K nu, in NED, against its own covariance K S K' = P_pred - P_post, so
+    that E[ratio] = 1 / gate^2 as for ArduPilot's.  vel: |dv|^2 / (gate^2 tr(dP_vel));
+    pos: (dn^2 + de^2) / (gate^2 (dP_nn + dP_ee)); hgt: dd^2 / (gate^2 dP_dd)."""
+
+    vel: np.ndarray
+    pos: np.ndarray
+    hgt: np.ndarray
+
+
+def innovation_test_ratios(prior: NavEstimate, est: NavEstimate, config: NavConfig = NavConfig(),
+                           gate_sigma: float = EKF_INNOVATION_GATE_SIGMA) -> InnovationTestRatios:
+    """The test ratios (:class:`InnovationTestRatios`) of the update that took ``prior`` to
+    ``est`` (one :func:`nav_step`): the prediction is the filter's own (the same linear
+    transition F, Q), so x_pred, P_pred are the ones the update started from.  NaN where the
+    update corrected nothing (no satellite tracked: dP = 0)."""
+    dt = float(est.t_gps_s) - float(prior.t_gps_s)
+    tr = _transition(float(config.q_m2_s3))
+    F, Q = tr.F(None, dt), tr.Q(dt)
+    x_pred = np.einsum("ij,...j->...i", F, prior.x)
+    P_pred = F @ prior.P @ F.T + Q
+    dx = est.x - x_pred
+    dP = P_pred - est.P
+    R = ned_rotation(est.x[..., 0:3])
+    Rt = np.swapaxes(R, -1, -2)
+    dp = np.einsum("...ij,...j->...i", R, dx[..., 0:3])
+    dv = np.einsum("...ij,...j->...i", R, dx[..., 3:6])
+    dPp = R @ dP[..., 0:3, 0:3] @ Rt
+    dPv = R @ dP[..., 3:6, 3:6] @ Rt
+    g2 = float(gate_sigma) ** 2
+    with np.errstate(divide="ignore", invalid="ignore"):
+        vel = np.sum(dv * dv, axis=-1) / (g2 * np.trace(dPv, axis1=-2, axis2=-1))
+        pos = (dp[..., 0] ** 2 + dp[..., 1] ** 2) / (g2 * (dPp[..., 0, 0] + dPp[..., 1, 1]))
+        hgt = dp[..., 2] ** 2 / (g2 * dPp[..., 2, 2])
+    fix = lambda r: np.where(np.isfinite(r) & (r >= 0), r, np.nan)  # noqa: E731
+    return InnovationTestRatios(fix(vel), fix(pos), fix(hgt))

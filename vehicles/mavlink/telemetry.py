@@ -41,6 +41,9 @@ class VehicleTelemetry(NamedTuple):
     alt_rel_m: height above home (None: alt_msl_m - the home height the endpoint recorded).
     battery_voltage_v (None: unknown), battery_remaining_pct (None: unknown).
     armed: flying under its own control (HEARTBEAT SAFETY_ARMED, system_status ACTIVE).
+    airspeed_m_s: the airspeed (None: the ground speed stands in: VFR_HUD, the battery's draw).
+    nav: the autopilot's guidance (:class:`NavOutput`, NAV_CONTROLLER_OUTPUT; None: not sent).
+    ekf: the onboard filter's status (:class:`EkfStatus`, EKF_STATUS_REPORT; None: not sent).
     """
 
     lat_rad: float
@@ -67,6 +70,42 @@ class VehicleTelemetry(NamedTuple):
     battery_voltage_v: float | None = None
     battery_remaining_pct: float | None = None
     armed: bool = True
+    airspeed_m_s: float | None = None
+    nav: "NavOutput | None" = None
+    ekf: "EkfStatus | None" = None
+
+
+class NavOutput(NamedTuple):
+    """The autopilot's guidance at a step, SI (NAV_CONTROLLER_OUTPUT converts).
+
+    nav_roll_rad / nav_pitch_rad: the bank and flight-path angle the guidance demands;
+    nav_bearing_rad: the heading it steers to; target_bearing_rad: the bearing from the UAV to
+    its target point; wp_dist_m: the horizontal distance to it; alt_error_m: target altitude -
+    altitude (positive: below it); aspd_error_m_s: commanded - actual airspeed; xtrack_error_m:
+    the distance off the leg (previous point -> target), positive left of it (ArduPilot's L1
+    sign: the cross product of the UAV's offset from the leg's start with the leg's direction)."""
+
+    nav_roll_rad: float
+    nav_pitch_rad: float
+    nav_bearing_rad: float
+    target_bearing_rad: float
+    wp_dist_m: float
+    alt_error_m: float
+    aspd_error_m_s: float
+    xtrack_error_m: float
+
+
+class EkfStatus(NamedTuple):
+    """The onboard filter's status at a step (EKF_STATUS_REPORT converts).
+
+    flags: EKF_STATUS_FLAGS bits.  vel_test_ratio, pos_test_ratio, hgt_test_ratio: ArduPilot's
+    innovation test ratios (innovation^2 / (gate^2 x its variance); < 1 passes the gate), which
+    EKF_STATUS_REPORT carries as their square roots (NavEKF3_core::getVariances)."""
+
+    flags: int
+    vel_test_ratio: float
+    pos_test_ratio: float
+    hgt_test_ratio: float
 
 
 def unix_s_from_gps(t_gps_s: float) -> float:
@@ -158,3 +197,38 @@ def battery_fields(tel: VehicleTelemetry) -> tuple[int, int]:
                                                                      UINT16_MAX - 1, UINT16_MAX)
     pct = -1 if tel.battery_remaining_pct is None else _clip_int(tel.battery_remaining_pct, 0, 100, -1)
     return mv, pct
+
+
+def _deg_i16(angle_rad: float) -> int:
+    """Angle rad -> int16 degrees in -180..180 (0 if not finite)."""
+    if angle_rad is None or not math.isfinite(angle_rad):
+        return 0
+    return int(round(math.degrees(math.remainder(float(angle_rad), 2.0 * math.pi))))
+
+
+def _finite(x: float) -> float:
+    return float(x) if x is not None and math.isfinite(x) else 0.0
+
+
+def nav_controller_output_fields(nav: NavOutput) -> tuple:
+    """Arguments of nav_controller_output_encode, in its order: nav_roll, nav_pitch deg (float),
+    nav_bearing, target_bearing int16 deg (-180..180), wp_dist uint16 m (saturating),
+    alt_error m, aspd_error m/s (the MAVLink unit; ArduPlane sends cm/s, a historic bug),
+    xtrack_error m."""
+    return (math.degrees(_finite(nav.nav_roll_rad)), math.degrees(_finite(nav.nav_pitch_rad)),
+            _deg_i16(nav.nav_bearing_rad), _deg_i16(nav.target_bearing_rad),
+            _clip_int(nav.wp_dist_m, 0, UINT16_MAX, 0), _finite(nav.alt_error_m), _finite(nav.aspd_error_m_s),
+            _finite(nav.xtrack_error_m))
+
+
+def _sqrt_ratio(r: float) -> float:
+    return math.sqrt(r) if r is not None and math.isfinite(r) and r >= 0 else 0.0
+
+
+def ekf_status_report_fields(ekf: EkfStatus) -> tuple:
+    """Arguments of ekf_status_report_encode, in its order (flags, velocity_variance,
+    pos_horiz_variance, pos_vert_variance, compass_variance, terrain_alt_variance,
+    airspeed_variance): the "variances" are sqrt(test ratio), as NavEKF3_core::send_status_report
+    fills them; no compass, terrain or airspeed fusion here: 0."""
+    return (int(ekf.flags) & 0xFFFF, _sqrt_ratio(ekf.vel_test_ratio), _sqrt_ratio(ekf.pos_test_ratio),
+            _sqrt_ratio(ekf.hgt_test_ratio), 0.0, 0.0, 0.0)

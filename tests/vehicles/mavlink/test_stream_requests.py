@@ -145,3 +145,77 @@ def test_battery_model():
     assert b.consumed_mah == pytest.approx(1000.0) and b.remaining_pct == pytest.approx(0.0, abs=1e-9)
     with pytest.raises(ValueError):
         BatteryParams(voltage_empty_v=13.0)
+
+
+# ---------------------------------------------------------------------- the commands reach the streams
+
+
+def _cmd(L, command, *params):
+    p = list(params) + [0.0] * (7 - len(params))
+    return L.peer.mav.command_long_encode(1, 1, command, 0, *p)
+
+
+def _ack_of(got, command):
+    acks = [m for m in of_type(got, "COMMAND_ACK") if m.command == command]
+    return acks[-1].result if acks else None
+
+
+def test_command_long_set_message_interval_reaches_every_stream_rates_measured():
+    """MAV_CMD_SET_MESSAGE_INTERVAL over the wire (MAVSDK's and QGC's way): ACCEPTED, and the
+    rate received over 20 simulated seconds is the one asked for, for a base stream (ATTITUDE),
+    for streams beside it (VFR_HUD, EXTENDED_SYS_STATE), up to one per vehicle epoch."""
+    with Link() as L:
+        vfr = mav.MAVLINK_MSG_ID_VFR_HUD
+        ess = mav.MAVLINK_MSG_ID_EXTENDED_SYS_STATE
+        for msgid, us in ((ATT, 100_000), (vfr, 250_000), (ess, 500_000)):
+            got = L.exchange(_cmd(L, mav.MAV_CMD_SET_MESSAGE_INTERVAL, msgid, us),
+                             lambda g: _ack_of(g, mav.MAV_CMD_SET_MESSAGE_INTERVAL) is not None, max_steps=5)
+            assert _ack_of(got, mav.MAV_CMD_SET_MESSAGE_INTERVAL) == mav.MAV_RESULT_ACCEPTED
+        got = L.step(200)  # 20 s simulated at 10 Hz steps
+        assert abs(len(of_type(got, "ATTITUDE")) - 200) <= 1  # 10 Hz
+        assert abs(len(of_type(got, "VFR_HUD")) - 80) <= 1  # 4 Hz
+        assert abs(len(of_type(got, "EXTENDED_SYS_STATE")) - 40) <= 1  # 2 Hz
+        # GET_MESSAGE_INTERVAL says what was set
+        got = L.exchange(_cmd(L, mav.MAV_CMD_GET_MESSAGE_INTERVAL, vfr),
+                         lambda g: bool(of_type(g, "MESSAGE_INTERVAL")), max_steps=5)
+        mi = of_type(got, "MESSAGE_INTERVAL")[-1]
+        assert mi.message_id == vfr and mi.interval_us == 250_000
+
+
+def test_command_long_set_message_interval_bad_input_acked_and_counted():
+    with Link() as L:
+        L.step(1)
+        before = dict(L.ep._interval)
+        for msgid, us, want in ((ATT, math.nan, mav.MAV_RESULT_DENIED), (ATT, -7, mav.MAV_RESULT_DENIED),
+                                (397, 100_000, mav.MAV_RESULT_UNSUPPORTED)):
+            got = L.exchange(_cmd(L, mav.MAV_CMD_SET_MESSAGE_INTERVAL, msgid, us),
+                             lambda g: _ack_of(g, mav.MAV_CMD_SET_MESSAGE_INTERVAL) is not None, max_steps=5)
+            assert _ack_of(got, mav.MAV_CMD_SET_MESSAGE_INTERVAL) == want
+        assert L.ep._interval == before
+        assert L.ep.counters["interval_bad"] == 2 and L.ep.counters["cmd_unsupported"] == 1
+
+
+def test_command_long_request_message_reaches_the_extra_streams():
+    """MAV_CMD_REQUEST_MESSAGE for a message beside the base streams (EXTENDED_SYS_STATE,
+    BATTERY_STATUS): the message, then COMMAND_ACK ACCEPTED; no battery: TEMPORARILY_REJECTED;
+    an id that is no stream: UNSUPPORTED, counted."""
+    with Link() as L:
+        L.step(1)
+        ess = mav.MAVLINK_MSG_ID_EXTENDED_SYS_STATE
+        got = L.exchange(_cmd(L, mav.MAV_CMD_REQUEST_MESSAGE, ess),
+                         lambda g: _ack_of(g, mav.MAV_CMD_REQUEST_MESSAGE) is not None, max_steps=5)
+        assert _ack_of(got, mav.MAV_CMD_REQUEST_MESSAGE) == mav.MAV_RESULT_ACCEPTED
+        assert of_type(got, "EXTENDED_SYS_STATE")
+        got = L.exchange(_cmd(L, mav.MAV_CMD_REQUEST_MESSAGE, mav.MAVLINK_MSG_ID_BATTERY_STATUS),
+                         lambda g: _ack_of(g, mav.MAV_CMD_REQUEST_MESSAGE) is not None, max_steps=5)
+        assert _ack_of(got, mav.MAV_CMD_REQUEST_MESSAGE) == mav.MAV_RESULT_TEMPORARILY_REJECTED
+        L.ep.battery = Battery()
+        got = L.exchange(_cmd(L, mav.MAV_CMD_REQUEST_MESSAGE, mav.MAVLINK_MSG_ID_BATTERY_STATUS),
+                         lambda g: _ack_of(g, mav.MAV_CMD_REQUEST_MESSAGE) is not None, max_steps=5)
+        assert _ack_of(got, mav.MAV_CMD_REQUEST_MESSAGE) == mav.MAV_RESULT_ACCEPTED
+        assert of_type(got, "BATTERY_STATUS")
+        n = L.ep.counters["cmd_unsupported"]
+        got = L.exchange(_cmd(L, mav.MAV_CMD_REQUEST_MESSAGE, 12345),
+                         lambda g: _ack_of(g, mav.MAV_CMD_REQUEST_MESSAGE) is not None, max_steps=5)
+        assert _ack_of(got, mav.MAV_CMD_REQUEST_MESSAGE) == mav.MAV_RESULT_UNSUPPORTED
+        assert L.ep.counters["cmd_unsupported"] == n + 1

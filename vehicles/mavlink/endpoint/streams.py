@@ -16,17 +16,47 @@ from .constants import (_DATA_STREAM_GROUPS, ATTITUDE, AUTOPILOT_VERSION, CAPABI
 
 
 VFR_HUD, EXTENDED_SYS_STATE, BATTERY_STATUS = 74, 245, 147
+NAV_CONTROLLER_OUTPUT, EKF_STATUS_REPORT = 62, 193
 #: streams beside constants.STREAMS, with their default rates, Hz (ArduPilot's REQUEST_DATA_STREAM
-#: group of each: VFR_HUD EXTRA2, EXTENDED_SYS_STATE EXTENDED_STATUS, BATTERY_STATUS EXTRA3)
-EXTRA_STREAM_RATES_HZ = {VFR_HUD: 2.0, EXTENDED_SYS_STATE: 1.0, BATTERY_STATUS: 1.0, HOME_POSITION: 0.2}
-EXTRA_DATA_STREAM_GROUPS = {mavlink.MAV_DATA_STREAM_EXTENDED_STATUS: (EXTENDED_SYS_STATE,),
+#: group of each: VFR_HUD EXTRA2, EXTENDED_SYS_STATE and NAV_CONTROLLER_OUTPUT EXTENDED_STATUS,
+#: BATTERY_STATUS and EKF_STATUS_REPORT EXTRA3; HOME_POSITION none, MAVProxy asks for it)
+EXTRA_STREAM_RATES_HZ = {VFR_HUD: 2.0, EXTENDED_SYS_STATE: 1.0, BATTERY_STATUS: 1.0, HOME_POSITION: 0.2,
+                         NAV_CONTROLLER_OUTPUT: 1.0, EKF_STATUS_REPORT: 1.0}
+EXTRA_DATA_STREAM_GROUPS = {mavlink.MAV_DATA_STREAM_EXTENDED_STATUS: (EXTENDED_SYS_STATE, NAV_CONTROLLER_OUTPUT),
                             mavlink.MAV_DATA_STREAM_EXTRA2: (VFR_HUD,),
-                            mavlink.MAV_DATA_STREAM_EXTRA3: (BATTERY_STATUS,)}
+                            mavlink.MAV_DATA_STREAM_EXTRA3: (BATTERY_STATUS, EKF_STATUS_REPORT)}
 #: SYS_STATUS: sensors present and enabled; GEOFENCE is not present, but its health bit is set
 #: (ArduPilot sets it unless breached: MAVProxy's fence module says "fence breach" when it is clear)
 SENSORS_PRESENT = mavlink.MAV_SYS_STATUS_SENSOR_GPS | mavlink.MAV_SYS_STATUS_AHRS
 #: the fastest stream: one message per vehicle epoch (run.rate_hz); an endpoint may set epoch_s
 DEFAULT_EPOCH_S = 0.1
+
+
+#: EKF_STATUS_REPORT flags that say the filter navigates (position and velocity known)
+_EKF_NAV_FLAGS = mavlink.EKF_VELOCITY_HORIZ | mavlink.EKF_POS_HORIZ_ABS
+
+
+def sensor_health(tel, battery_ok: bool) -> int:
+    """SYS_STATUS onboard_control_sensors_health, consistent with what the other messages say:
+    GPS healthy with a 3D fix (GPS_RAW_INT.fix_type >= 3); AHRS healthy when the onboard filter
+    navigates (EKF_STATUS_REPORT has velocity and absolute horizontal position, and not every
+    test ratio fails its gate: NavEKF3_core::healthy), or, without a filter status, when there is
+    telemetry; the battery while it has charge left; GEOFENCE always (no fence: never breached,
+    as ArduPilot reports it)."""
+    h = mavlink.MAV_SYS_STATUS_GEOFENCE
+    if tel is None:
+        return h
+    if tel.fix_type >= mavlink.GPS_FIX_TYPE_3D_FIX:
+        h |= mavlink.MAV_SYS_STATUS_SENSOR_GPS
+    ekf = getattr(tel, "ekf", None)
+    if ekf is None:
+        h |= mavlink.MAV_SYS_STATUS_AHRS
+    elif (ekf.flags & _EKF_NAV_FLAGS) == _EKF_NAV_FLAGS and not (ekf.flags & mavlink.EKF_UNINITIALIZED) and \
+            not (ekf.vel_test_ratio > 1 and ekf.pos_test_ratio > 1 and ekf.hgt_test_ratio > 1):
+        h |= mavlink.MAV_SYS_STATUS_AHRS
+    if battery_ok:
+        h |= mavlink.MAV_SYS_STATUS_SENSOR_BATTERY
+    return h
 
 
 @functools.cache
@@ -46,8 +76,14 @@ class StreamOutput:
 
     Hooks the vehicle worker may set on an endpoint: ``landed_state_fn()`` -> MAV_LANDED_STATE
     (None: IN_AIR when armed with telemetry, ON_GROUND otherwise), ``battery`` (a
-    vehicles.mavlink.battery.Battery, stepped here with the telemetry's ground speed unless
-    the telemetry carries ``airspeed_m_s``), ``epoch_s`` (the fastest stream interval)."""
+    vehicles.mavlink.battery.Battery, stepped here with the telemetry's airspeed (its ground
+    speed without one); or a battery stepped by its owner, e.g. a BatteryBank's ``cell(j)``,
+    which has no ``step`` and is only read), ``epoch_s`` (the fastest stream interval).
+
+    COMMAND_LONG / COMMAND_INT MAV_CMD_SET_MESSAGE_INTERVAL, MAV_CMD_GET_MESSAGE_INTERVAL and
+    MAV_CMD_REQUEST_MESSAGE are answered here (:meth:`_on_command`, ahead of RequestHandlers'
+    in VehicleEndpoint's MRO), so they reach every stream, the extra ones included, with the
+    epoch clamp; every other command goes on to RequestHandlers."""
 
     landed_state_fn = None
     battery = None
@@ -101,7 +137,7 @@ class StreamOutput:
     def _send_streams(self, t: float) -> None:
         self._ensure_extras()
         tel = self.telemetry
-        if self.battery is not None and tel is not None:
+        if self.battery is not None and tel is not None and hasattr(self.battery, "step"):
             v = getattr(tel, "airspeed_m_s", None)
             self.battery.step(t, math.hypot(*tel.vel_ned_m_s[:2]) if v is None else v, tel.armed)
         if t < self._next_due - _DUE_TOL_S:  # most steps at 10 Hz: nothing due
@@ -176,6 +212,31 @@ class StreamOutput:
             self._interval[msgid] = max(1.0 / hz, getattr(self, "epoch_s", DEFAULT_EPOCH_S)) if on else None
             self._streams_changed(msgid)
 
+    def _on_command(self, msg, addr) -> None:
+        """The stream commands (class docstring); COMMAND_ACK with the MAV_RESULT, counted when
+        refused, never raises; anything else: RequestHandlers._on_command."""
+        cmd = msg.command
+        if cmd == mavlink.MAV_CMD_SET_MESSAGE_INTERVAL:
+            self._ack(addr, msg, self.set_interval(msg.param1, msg.param2))
+        elif cmd == mavlink.MAV_CMD_GET_MESSAGE_INTERVAL:
+            try:
+                msgid = int(msg.param1) if math.isfinite(float(msg.param1)) else -1
+            except (TypeError, ValueError, OverflowError):
+                msgid = -1
+            self._ensure_extras()
+            if msgid not in self._streams_all():
+                self._count("cmd_unsupported")
+                self._ack(addr, msg, mavlink.MAV_RESULT_UNSUPPORTED)
+                return
+            iv = self._interval.get(msgid)
+            self._ack(addr, msg, mavlink.MAV_RESULT_ACCEPTED)
+            self._send_to(addr, "message_interval_send", msgid, -1 if iv is None else int(round(iv * 1e6)))
+        elif cmd == mavlink.MAV_CMD_REQUEST_MESSAGE:
+            # the message first, then the ACK (ArduPilot's order: it sends while handling)
+            self._ack(addr, msg, self.request_message(msg.param1, addr))
+        else:
+            super()._on_command(msg, addr)
+
     def _on_request_data_stream(self, msg, addr) -> None:
         """REQUEST_DATA_STREAM: this one (StreamOutput precedes RequestHandlers in VehicleEndpoint's
         MRO) knows the extra streams and the epoch clamp."""
@@ -217,19 +278,16 @@ class StreamOutput:
             mav.system_time_send(int(round(self._unix_s * 1e6)), self.time_boot_ms & tm.UINT32_MAX)
         elif msgid == SYS_STATUS:
             mv, pct = tm.battery_fields(tel) if tel is not None else (tm.UINT16_MAX, -1)
-            gps_ok = tel is not None and tel.fix_type >= mavlink.GPS_FIX_TYPE_2D_FIX
             errors = sum(self.counters[r] for r in FRAME_REJECT_REASONS) + self.datagrams["kernel_dropped"]
             present = SENSORS_PRESENT | (mavlink.MAV_SYS_STATUS_SENSOR_BATTERY if self.battery is not None else 0)
-            health = ((mavlink.MAV_SYS_STATUS_SENSOR_GPS if gps_ok else 0)
-                      | (mavlink.MAV_SYS_STATUS_AHRS if tel is not None else 0)
-                      | (mavlink.MAV_SYS_STATUS_SENSOR_BATTERY if self.battery is not None else 0)
-                      | mavlink.MAV_SYS_STATUS_GEOFENCE)
             ma = -1
+            batt_ok = False
             if self.battery is not None:
                 b = self.battery
                 mv, pct = min(int(round(b.voltage_v * 1000)), tm.UINT16_MAX - 1), int(round(b.remaining_pct))
                 ma = min(int(round(b.current_a * 100)), tm.INT16_MAX)  # cA
-            mav.sys_status_send(present, present, health, 0, mv, ma, pct, 0,
+                batt_ok = b.remaining_pct > 0.0
+            mav.sys_status_send(present, present, sensor_health(tel, batt_ok), 0, mv, ma, pct, 0,
                                 min(errors, tm.UINT16_MAX), 0, 0, 0, 0)
         elif msgid == AUTOPILOT_VERSION:
             mav.autopilot_version_send(CAPABILITIES, FLIGHT_SW_VERSION, 0, 0, 0, flight_custom_version(), [0] * 8,
@@ -266,6 +324,16 @@ class StreamOutput:
                                     [min(int(round(b.voltage_v * 1000)), tm.UINT16_MAX - 1)] + [tm.UINT16_MAX] * 9,
                                     min(int(round(b.current_a * 100)), tm.INT16_MAX), int(round(b.consumed_mah)),
                                     int(round(b.consumed_wh * 36.0)), int(round(b.remaining_pct)))
+        elif msgid == NAV_CONTROLLER_OUTPUT:
+            nav = getattr(tel, "nav", None)
+            if nav is None:  # no guidance to report (the sonde; ArduPlane in MANUAL)
+                return False
+            mav.nav_controller_output_send(*tm.nav_controller_output_fields(nav))
+        elif msgid == EKF_STATUS_REPORT:
+            ekf = getattr(tel, "ekf", None)
+            if ekf is None:
+                return False
+            mav.ekf_status_report_send(*tm.ekf_status_report_fields(ekf))
         elif msgid == GPS_RAW_INT:
             mav.gps_raw_int_send(*tm.gps_raw_int_fields(tel, int(round(self._unix_s * 1e6))))
         elif msgid == GLOBAL_POSITION_INT:
