@@ -16,7 +16,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from sitl.app.args import OUTPUT_DIR, UsageError, options_of
-from sitl.params import add_flags, choice, from_text, optional, param, validate
+from sitl.params import add_flags, choice, from_text, optional, param, switch, validate
 
 DOC = "broadcast GPS/GLONASS orbits and clocks against IGS precise orbits (SP3) and clocks"
 
@@ -48,6 +48,7 @@ class GnssOrbitsOptions:
     gps_record: str = param("transmitted", check=choice("transmitted", "nearest"),
                             doc=("GPS record in force at t: the latest transmitted (ttm <= t, what a receiver holds) "
                                  "or the one nearest in Toe"))
+    by_satellite: bool = param(False, check=switch(), doc="also print the figures of each satellite")
     out: Path = param(Path("out/gnss-orbits"), check=OUTPUT_DIR, metavar="DIR", doc="output directory")
 
     __post_init__ = validate
@@ -87,8 +88,10 @@ def plot(res, path: Path) -> None:
         ax1.plot((ep["t_gps_s"][m] - t0) / 3600.0, ep["err_3d_m"][m], ".-", ms=2, lw=0.7, color=cmap(k % 20), label=s)
     ax1.set_xlabel("hours since the first epoch")
     ax1.set_ylabel("3D orbit error, m")
+    rp = res.summary["reference_point"]
     ax1.set_title(f"broadcast vs precise: 3D RMS {res.summary['orbit_3d_rms_m']:.2f} m "
-                  f"({', '.join(res.summary['systems'])})")
+                  f"({', '.join(res.summary['systems'])}; GPS reference point: {rp['apc']}, "
+                  f"record: {res.summary['record_selection']['gps']})", fontsize=9)
     ax1.legend(ncol=8, fontsize=6)
     ax1.grid(alpha=0.3)
     bs = res.summary["by_satellite"]
@@ -142,5 +145,17 @@ def main(args) -> int:
         print(f"reference point {rp['apc']}: {rp['correction']}; 3D RMS at the CoM "
               f"{rp['com']['orbit_3d_rms_m']:.2f} m, at the igs05 APC {rp['igs05_apc']['orbit_3d_rms_m']:.2f} m, "
               f"at the control segment's APC {rp['control_segment_apc']['orbit_3d_rms_m']:.2f} m")
+    if opts.by_satellite:
+        print(f"{'sat':4s} {'svn':5s} {'block':12s} {'epochs':>6s} {'3D':>6s} {'R':>6s} {'A':>6s} {'C':>6s} "
+              f"{'R mean':>7s} {'at CoM':>7s} {'at igs05':>8s} {'excluded':>8s}")
+        for name, e in s["by_satellite"].items():
+            if e["orbit_3d_rms_m"] is None:
+                print(f"{name:4s} {e['svn'] or '-':5s} {e['block'] or '-':12s} {0:6d}   (unhealthy "
+                      f"{e['unhealthy_excluded']}, no record {e['no_record_in_force']})")
+                continue
+            print(f"{name:4s} {e['svn'] or '-':5s} {e['block'] or '-':12s} {e['epochs']:6d} {e['orbit_3d_rms_m']:6.2f} "
+                  f"{e['radial_rms_m']:6.2f} {e['along_rms_m']:6.2f} {e['cross_rms_m']:6.2f} {e['radial_mean_m']:+7.2f} "
+                  f"{e['radial_mean_com_m']:+7.2f} {e['radial_mean_igs05_apc_m']:+8.2f} "
+                  f"{e['unhealthy_excluded'] + e['no_record_in_force']:8d}")
     print(f"wrote {out / 'result.json'}, {out / 'orbit_errors.png'}")
     return 0
