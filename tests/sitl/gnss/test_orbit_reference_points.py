@@ -194,3 +194,27 @@ def test_bench_in_an_installed_layout_is_a_one_line_usage_error(tmp_path):
                        capture_output=True, text=True, timeout=300)
     assert p.returncode == 0, p.stderr
     assert (tmp_path / "b.json").stat().st_size > 0
+
+
+def test_cli_reference_point_and_record_flags(tmp_path, capsys):
+    import json
+
+    from sitl.app.cli import main
+
+    out = tmp_path / "o"
+    rc = main(["gnss", "orbits", "--nav", str(DATA / "brdc1820.10n"), "--sp3", str(DATA / "igs15904.sp3"),
+               "--clk", str(DATA / "igs15904.clk"), "--apc", "igs05", "--gps-record", "nearest", "--by-satellite",
+               "--out", str(out)])
+    assert rc == 0
+    res = json.loads((out / "result.json").read_text())
+    assert res["reference_point"]["apc"] == "igs05" and res["record_selection"]["gps"] == "nearest"
+    assert res["reference_point"]["precise"]["orbits"] == "centre of mass"
+    assert "igs05" in res["reference_point"]["precise"]["clocks"]
+    for key in ("orbit_3d_rms_m", "radial_rms_m", "along_rms_m", "cross_rms_m", "clock_rms_ns", "sisre_m",
+                "by_satellite", "by_block"):
+        assert key in res
+    printed = capsys.readouterr().out
+    assert "BLOCK IIR-A" in printed and "G09  G039  BLOCK IIA" in printed
+    rc = main(["gnss", "orbits", "--nav", str(DATA / "brdc1820.10n"), "--sp3", str(DATA / "igs15904.sp3"),
+               "--apc", "cs", "--out", str(out)])
+    assert rc == 2 and "--apc" in capsys.readouterr().err
