@@ -218,3 +218,19 @@ def test_cli_reference_point_and_record_flags(tmp_path, capsys):
     rc = main(["gnss", "orbits", "--nav", str(DATA / "brdc1820.10n"), "--sp3", str(DATA / "igs15904.sp3"),
                "--apc", "cs", "--out", str(out)])
     assert rc == 2 and "--apc" in capsys.readouterr().err
+
+
+def test_helmert_fit_recovers_a_known_transformation_and_is_only_reported(summary):
+    from sitl.gnss.orbit_check import helmert_fit
+
+    rng = np.random.default_rng(7)
+    r = rng.normal(size=(200, 3)) * 2.0e7
+    w = np.array([1.0, -2.0, 3.0]) / (180.0 / np.pi * 3600e3)  # mas -> rad
+    d = np.array([0.1, -0.2, 0.3]) + np.cross(w, r) + 2e-9 * r
+    fit = helmert_fit(r, d)
+    np.testing.assert_allclose(fit["translation_m"], [0.1, -0.2, 0.3], atol=1e-6)
+    np.testing.assert_allclose(fit["rotation_mas"], [1.0, -2.0, 3.0], atol=1e-6)
+    assert fit["scale_ppb"] == pytest.approx(2.0, abs=1e-6) and fit["orbit_3d_rms_m_after"] < 1e-6
+    # on the day: a fit explains part of the along-track error, but the headline is not fitted
+    h = summary["helmert_fit"]
+    assert h["orbit_3d_rms_m_after"] < summary["orbit_3d_rms_m"]
