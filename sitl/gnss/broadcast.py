@@ -4,6 +4,13 @@
     st = broadcast_states(nav, sats, t_gps_s)              # the record in force per (sat, t)
     st.pos_m, st.vel_m_s, st.clock_s, st.ok, st.healthy, st.record
 
+Which GPS record is "in force" (``select``): ``"nearest"`` (the default) takes the record whose
+Toe is nearest t within its fit interval (``GpsEphemerides.select``), which may be one the
+satellite had not yet transmitted at t; ``"transmitted"`` takes the one a receiver holds at t:
+among the records whose fit interval covers t, the latest transmitted (transmission time of
+message ttm <= t; ties: the latest Toe). The control segment transmits each 2-hourly set from
+about 2 h before its Toe, and a mid-period upload (a new IODE) from its ttm on.
+
 GPS (IS-GPS-200, sec. 20.3.3.3.3 and Table 20-IV): the Keplerian set with Delta_n, IDOT,
 OMEGA DOT, the six harmonic corrections C_uc, C_us, C_rc, C_rs, C_ic, C_is and the Earth's
 rotation (Omega_k = OMEGA0 + (OMEGA DOT - w_e) t_k - w_e t_oe), evaluated by the same
@@ -34,7 +41,7 @@ from .rinex_common import calendar_seconds
 from .rinex_nav import GlonassEphemerides, GpsEphemerides, NavFile
 
 __all__ = ["BroadcastStates", "broadcast_states", "gps_states", "glonass_states", "pz90_to_itrf",
-           "F_RELATIVISTIC_S_SQRT_M", "GLONASS_STEP_S"]
+           "select_transmitted", "F_RELATIVISTIC_S_SQRT_M", "GLONASS_STEP_S", "GPS_RECORD_SELECTIONS"]
 
 GM_GPS = 3.986005e14
 OMEGA_E_GPS = 7.2921151467e-5
@@ -45,6 +52,8 @@ GLO_AE = 6378136.0
 GLO_J2 = 1082625.75e-9
 GLO_OMEGA = 7.292115e-5
 GLONASS_STEP_S = 60.0
+GPS_RECORD_SELECTIONS = ("nearest", "transmitted")
+WEEK_S = 604_800.0
 
 
 @dataclass(frozen=True, eq=False)
@@ -70,12 +79,44 @@ def _empty(n):
     return nan3, nan3.copy(), nan, nan.copy(), np.zeros(n)
 
 
-def gps_states(eph: GpsEphemerides, sat, t_gps_s, drop_mislabelled: bool = True) -> BroadcastStates:
+def select_transmitted(eph: GpsEphemerides, sat, t_gps_s, usable=None) -> np.ndarray:
+    """Index of the record a receiver holds at t for each (satellite, time) pair, -1 where
+    none: among the records whose fit interval covers t (|t - toe| <= fit_h * 1800 s), the one
+    with the latest transmission time ttm <= t (ties: the latest Toe, then the last in the
+    file). ttm is seconds of the record's week, put on the continuous scale next to its Toe.
+    ``usable`` (bool (N,)) leaves records out, as in ``GpsEphemerides.select``."""
+    sat = np.asarray(sat, dtype=str).reshape(-1)
+    t = np.asarray(t_gps_s, dtype=float).reshape(-1)
+    ttm = eph.week * WEEK_S + eph.ttm_s
+    ttm = ttm + WEEK_S * np.round((eph.toe_gps_s - ttm) / WEEK_S)  # the week of its Toe
+    half = eph.fit_h * 1800.0
+    keep = np.ones(len(eph), bool) if usable is None else np.asarray(usable, bool)
+    out = np.full(t.shape, -1, dtype=np.int64)
+    for s in np.unique(sat):
+        q = np.flatnonzero(sat == s)
+        r = np.flatnonzero((eph.sat == s) & keep)
+        if r.size == 0:
+            continue
+        r = r[np.lexsort((r, eph.toe_gps_s[r], ttm[r]))]  # by ttm, then Toe, then file order
+        ok = (ttm[r][None, :] <= t[q, None]) & (np.abs(t[q, None] - eph.toe_gps_s[r][None, :]) <= half[r][None, :])
+        last = r.size - 1 - np.argmax(ok[:, ::-1], axis=1)
+        has = ok.any(axis=1)
+        out[q[has]] = r[last[has]]
+    return out
+
+
+def gps_states(eph: GpsEphemerides, sat, t_gps_s, drop_mislabelled: bool = True,
+               select: str = "nearest") -> BroadcastStates:
     """IS-GPS-200 states of GPS satellites ``sat`` (N,) at GPS times ``t_gps_s`` (N,), from the
-    record in force (``GpsEphemerides.select``); ``drop_mislabelled`` (default) leaves out
-    records that are copies of another PRN's (``GpsEphemerides.mislabelled``)."""
+    record in force: ``select="nearest"`` (default, ``GpsEphemerides.select``) or
+    ``"transmitted"`` (:func:`select_transmitted`; see the module docstring);
+    ``drop_mislabelled`` (default) leaves out records that are copies of another PRN's
+    (``GpsEphemerides.mislabelled``)."""
+    if select not in GPS_RECORD_SELECTIONS:
+        raise ValueError(f"select: {select!r} is not one of {', '.join(GPS_RECORD_SELECTIONS)}")
     sat, t = np.broadcast_arrays(np.asarray(sat, dtype=str).reshape(-1), np.asarray(t_gps_s, float).reshape(-1))
-    rec = eph.select(sat, t, usable=~eph.mislabelled() if drop_mislabelled else None)
+    usable = ~eph.mislabelled() if drop_mislabelled else None
+    rec = eph.select(sat, t, usable=usable) if select == "nearest" else select_transmitted(eph, sat, t, usable)
     ok = rec >= 0
     pos, vel, clk, clk_l1, rel = _empty(t.size)
     if ok.any():
@@ -175,8 +216,9 @@ def pz90_to_itrf(pos_m, t_gps_s) -> np.ndarray:
     return out
 
 
-def broadcast_states(nav: NavFile, sat, t_gps_s) -> BroadcastStates:
-    """GPS ('G..') and GLONASS ('R..') satellites mixed: each by its system's algorithm."""
+def broadcast_states(nav: NavFile, sat, t_gps_s, gps_select: str = "nearest") -> BroadcastStates:
+    """GPS ('G..') and GLONASS ('R..') satellites mixed: each by its system's algorithm
+    (``gps_select``: which GPS record is in force, see :func:`gps_states`)."""
     sat, t = np.broadcast_arrays(np.asarray(sat, dtype=str).reshape(-1), np.asarray(t_gps_s, float).reshape(-1))
     n = t.size
     rec = np.full(n, -1, dtype=np.int64)
@@ -187,7 +229,7 @@ def broadcast_states(nav: NavFile, sat, t_gps_s) -> BroadcastStates:
         m = np.char.startswith(sat, letter)
         if not m.any() or eph is None:
             continue
-        s = fn(eph, sat[m], t[m])
+        s = fn(eph, sat[m], t[m], select=gps_select) if letter == "G" else fn(eph, sat[m], t[m])
         rec[m], ok[m], healthy[m] = s.record, s.ok, s.healthy
         pos[m], vel[m], clk[m], clk_l1[m], rel[m] = s.pos_m, s.vel_m_s, s.clock_s, s.clock_l1_s, s.relativistic_s
     return BroadcastStates(rec, ok, healthy, pos, vel, clk, clk_l1, rel)

@@ -3,6 +3,11 @@ georinex (the peer reader) timed on the same files in the same run.
 
 Targets (issue 24): reading the 1 h station file <= 5 s; the orbit comparison over a day
 <= 10 s. Best of ``--rounds`` wall-clock timings (time.perf_counter), each a fresh read.
+
+The files are the real ones of a skyfuse checkout's tests/data/gnss (``DATA_FILES``), which an
+installed package does not carry: ``--data DIR`` names the folder; without it the checkout's
+folder is used when skyfuse runs from a clone (found next to the sitl package), else the run
+stops with a one-line usage error naming --data (exit 2).
 """
 from __future__ import annotations
 
@@ -12,26 +17,54 @@ import warnings
 from dataclasses import dataclass
 from pathlib import Path
 
-from sitl.app.args import OUTPUT_FILE
+from sitl.app.args import OUTPUT_FILE, UsageError
 from sitl.params import add_flags, integer, optional, param, validate, from_text
 
-_DATA = Path(__file__).resolve().parents[3] / "tests" / "data" / "gnss"
+#: The files the bench reads (tests/data/gnss of a checkout; see its README).
+DATA_FILES = ("07590920.05o", "brdc1820.10n", "brdc0910.09g", "igs15904.sp3", "igs15904.clk", "igl15253.sp3")
+
+
+def _missing(folder: Path) -> list[str]:
+    return [f for f in DATA_FILES if not (folder / f).is_file()]
+
+
+def checkout_data_dir(package_file: str | Path = __file__) -> Path | None:
+    """tests/data/gnss of the checkout this module runs from (a clone, or an editable install),
+    or None when there is none (an installed package: site-packages has no tests/)."""
+    folder = Path(package_file).resolve().parents[3] / "tests" / "data" / "gnss"
+    return folder if not _missing(folder) else None
 
 
 def _data_dir(text: str) -> Path:
     p = Path(text)
-    if not (p / "07590920.05o").is_file():
+    missing = _missing(p)
+    if missing:
         import argparse
 
-        raise argparse.ArgumentTypeError(f"{text} does not hold 07590920.05o (the data of tests/data/gnss)")
+        raise argparse.ArgumentTypeError(f"{text} does not hold {', '.join(missing)} (the files of tests/data/gnss)")
     return p
+
+
+def resolve_data_dir(data: Path | None, package_file: str | Path = __file__) -> Path:
+    """``data`` if given, else the checkout's folder; UsageError (one line, naming --data) if
+    neither exists."""
+    if data is not None:
+        return Path(data)
+    found = checkout_data_dir(package_file)
+    if found is None:
+        raise UsageError("skyfuse bench gnss: no GNSS data folder found (an installed skyfuse carries none): "
+                         "pass --data DIR, a folder holding " + ", ".join(DATA_FILES)
+                         + " (a skyfuse checkout's tests/data/gnss)")
+    return found
 
 
 @dataclass(frozen=True)
 class GnssBenchOptions:
     """`skyfuse bench gnss`' options, declared once (sitl.params)."""
 
-    data: Path = param(_DATA, check=from_text(_data_dir), metavar="DIR", doc="the real GNSS files (tests/data/gnss)")
+    data: Path | None = param(None, check=optional(from_text(_data_dir)), metavar="DIR",
+                              doc="folder of the real GNSS files (a checkout's tests/data/gnss)",
+                              default_help="default: the checkout's tests/data/gnss when run from a clone")
     rounds: int = param(3, check=integer(lo=1), doc="timings per item (the best is reported)")
     json: Path | None = param(None, check=optional(OUTPUT_FILE), metavar="FILE", doc="also write the result as JSON")
 
@@ -90,7 +123,7 @@ def main(args) -> int:
     from sitl.app.args import options_of
 
     opts = options_of(GnssBenchOptions, args)
-    res = run(Path(opts.data), opts.rounds)
+    res = run(resolve_data_dir(opts.data), opts.rounds)
     peer = res.get("georinex") or {}
     for k, v in res.items():
         if isinstance(v, float):

@@ -2,9 +2,11 @@
 checked against IGS precise orbits and clocks (sitl.gnss.orbit_check).
 
 Writes DIR/result.json (orbit_3d_rms_m, radial/along/cross_rms_m, clock_rms_ns, sisre_m,
-by_satellite, the exclusions by health flag, the reference points) and DIR/orbit_errors.png
-(3D error per satellite over the day, and the per-satellite RMS by component). A file that
-cannot be read is a usage error: one line naming the file and line, exit 2.
+by_block, by_satellite, the exclusions by health flag, the reference points of each product
+and the figures at each of them) and DIR/orbit_errors.png (3D error per satellite over the day,
+and the per-satellite RMS by component). Prints the figures by satellite block at the three
+reference points. A file that cannot be read is a usage error: one line naming the file and
+line, exit 2.
 """
 from __future__ import annotations
 
@@ -14,7 +16,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from sitl.app.args import OUTPUT_DIR, UsageError, options_of
-from sitl.params import add_flags, from_text, optional, param, switch, validate
+from sitl.params import add_flags, choice, from_text, optional, param, switch, validate
 
 DOC = "broadcast GPS/GLONASS orbits and clocks against IGS precise orbits (SP3) and clocks"
 
@@ -40,8 +42,13 @@ class GnssOrbitsOptions:
     sp3: Path | None = param(None, check=INPUT_FILE, metavar="SP3", doc="SP3-c/d precise orbit file; required")
     clk: Path | None = param(None, check=INPUT_FILE, metavar="CLK",
                              doc="RINEX clock file for the clock figure (else the SP3 clocks)")
-    no_pco: bool = param(False, check=switch(),
-                         doc="do not move the IGS centre of mass to the GPS antenna phase centre")
+    apc: str = param("control-segment", check=choice("control-segment", "igs05", "none"),
+                     doc=("GPS reference point of the figures: the control segment's antenna phase centre (the one "
+                          "the broadcast orbits refer to), igs05.atx's, or none (IGS centre of mass)"))
+    gps_record: str = param("transmitted", check=choice("transmitted", "nearest"),
+                            doc=("GPS record in force at t: the latest transmitted (ttm <= t, what a receiver holds) "
+                                 "or the one nearest in Toe"))
+    by_satellite: bool = param(False, check=switch(), doc="also print the figures of each satellite")
     out: Path = param(Path("out/gnss-orbits"), check=OUTPUT_DIR, metavar="DIR", doc="output directory")
 
     __post_init__ = validate
@@ -61,7 +68,7 @@ def run(opts: GnssOrbitsOptions):
     nav = read_nav(opts.nav)
     sp3 = read_sp3(opts.sp3)
     clk = read_clk(opts.clk) if opts.clk is not None else None
-    return check_orbits(nav, sp3, clk, pco=not opts.no_pco)
+    return check_orbits(nav, sp3, clk, apc=opts.apc, gps_select=opts.gps_record)
 
 
 def plot(res, path: Path) -> None:
@@ -81,8 +88,10 @@ def plot(res, path: Path) -> None:
         ax1.plot((ep["t_gps_s"][m] - t0) / 3600.0, ep["err_3d_m"][m], ".-", ms=2, lw=0.7, color=cmap(k % 20), label=s)
     ax1.set_xlabel("hours since the first epoch")
     ax1.set_ylabel("3D orbit error, m")
+    rp = res.summary["reference_point"]
     ax1.set_title(f"broadcast vs precise: 3D RMS {res.summary['orbit_3d_rms_m']:.2f} m "
-                  f"({', '.join(res.summary['systems'])})")
+                  f"({', '.join(res.summary['systems'])}; GPS reference point: {rp['apc']}, "
+                  f"record: {res.summary['record_selection']['gps']})", fontsize=9)
     ax1.legend(ncol=8, fontsize=6)
     ax1.grid(alpha=0.3)
     bs = res.summary["by_satellite"]
@@ -121,5 +130,32 @@ def main(args) -> int:
           f"{s['cross_rms_m']:.2f} m, radial mean {s['radial_mean_m']:+.2f} m), clock {clk}, SISRE "
           f"{s['sisre_m']:.2f} m; {s['unhealthy_excluded']} unhealthy satellite-epochs excluded "
           f"({elapsed:.2f} s)")
+    blocks = s.get("by_block") or {}
+    if blocks:
+        print(f"{'block':12s} {'sats':>4s} {'3D':>6s} {'R':>6s} {'A':>6s} {'C':>6s} {'R mean':>7s}   "
+              f"{'3D/R mean at CoM':>17s}   {'3D/R mean at igs05 APC':>22s}   clock mean/RMS")
+        for b, e in blocks.items():
+            clk_b = ("n/a" if e["clock_rms_ns"] is None else
+                     f"{e['clock_mean_ns']:+.2f}/{e['clock_rms_ns']:.2f} ns")
+            print(f"{b:12s} {len(e['satellites']):4d} {e['orbit_3d_rms_m']:6.2f} {e['radial_rms_m']:6.2f} "
+                  f"{e['along_rms_m']:6.2f} {e['cross_rms_m']:6.2f} {e['radial_mean_m']:+7.2f}   "
+                  f"{e['orbit_3d_rms_com_m']:8.2f}/{e['radial_mean_com_m']:+6.2f} m   "
+                  f"{e['orbit_3d_rms_igs05_apc_m']:13.2f}/{e['radial_mean_igs05_apc_m']:+6.2f} m   {clk_b}")
+        rp = s["reference_point"]
+        print(f"reference point {rp['apc']}: {rp['correction']}; 3D RMS at the CoM "
+              f"{rp['com']['orbit_3d_rms_m']:.2f} m, at the igs05 APC {rp['igs05_apc']['orbit_3d_rms_m']:.2f} m, "
+              f"at the control segment's APC {rp['control_segment_apc']['orbit_3d_rms_m']:.2f} m")
+    if opts.by_satellite:
+        print(f"{'sat':4s} {'svn':5s} {'block':12s} {'epochs':>6s} {'3D':>6s} {'R':>6s} {'A':>6s} {'C':>6s} "
+              f"{'R mean':>7s} {'at CoM':>7s} {'at igs05':>8s} {'excluded':>8s}")
+        for name, e in s["by_satellite"].items():
+            if e["orbit_3d_rms_m"] is None:
+                print(f"{name:4s} {e['svn'] or '-':5s} {e['block'] or '-':12s} {0:6d}   (unhealthy "
+                      f"{e['unhealthy_excluded']}, no record {e['no_record_in_force']})")
+                continue
+            print(f"{name:4s} {e['svn'] or '-':5s} {e['block'] or '-':12s} {e['epochs']:6d} {e['orbit_3d_rms_m']:6.2f} "
+                  f"{e['radial_rms_m']:6.2f} {e['along_rms_m']:6.2f} {e['cross_rms_m']:6.2f} {e['radial_mean_m']:+7.2f} "
+                  f"{e['radial_mean_com_m']:+7.2f} {e['radial_mean_igs05_apc_m']:+8.2f} "
+                  f"{e['unhealthy_excluded'] + e['no_record_in_force']:8d}")
     print(f"wrote {out / 'result.json'}, {out / 'orbit_errors.png'}")
     return 0

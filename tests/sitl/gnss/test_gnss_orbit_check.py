@@ -36,7 +36,10 @@ def test_gps_broadcast_against_igs_finals(gps):
     assert gps["orbit_3d_rms_m"] <= 2.0
     assert gps["reference_point"]["uncorrected"]["orbit_3d_rms_m"] <= 2.0
     assert -1.0 < gps["reference_point"]["uncorrected"]["radial_mean_m"] < -0.5  # APC below the CoM
-    assert gps["clock_rms_ns"] <= 10.0 and gps["clock_samples"] == 360  # the clk file: 00:00-00:55
+    # the clk file: 00:00-00:55, 12 epochs x 30 satellites, but PRN 9 at 00:00: the file's first
+    # PRN 9 record (Toe 02:00) was transmitted at 00:00:18 (ttm 345618), the one before is not in it
+    assert gps["clock_rms_ns"] <= 10.0 and gps["clock_samples"] == 359
+    assert gps["no_record_in_force"] == 1 and gps["by_satellite"]["G09"]["no_record_in_force"] == 1
     assert gps["clock_rms_ns_sp3_day"] <= 10.0
     assert gps["sisre_m"] < 2.0
     # PRN 1 (SVN49) is flagged unhealthy (63) in every record but the mislabelled copy of PRN 23
