@@ -1,14 +1,14 @@
 """Real ground-control clients fly the live demo (issue 21): a scripted headless MAVProxy session
-and a MAVSDK session against ``launch`` at x10, loopback only, every process stopped.
+against ``launch`` at x10, loopback only, every process stopped (MAVProxy and the workers).
 
 MAVProxy (its own process, commands on stdin, what it received read back from its tlog with
 pymavlink): connect, parameters by FTP ("Received N parameters (ftp)"), the list protocol for
 comparison, a waypoint file with home at item 0, ``mode AUTO``, MISSION_CURRENT advancing and
-MISSION_ITEM_REACHED for every item, ``guided LAT LON ALT`` reached, ``rtl`` loitering at home.
-MAVSDK: discover, get_all_params, upload a mission, arm, start_mission, progress n/n and
-is_mission_finished, return_to_launch, the flight mode in telemetry.  The figures (parameter
-download by FTP vs the list protocol, COMMAND_ACK latency) are printed (``-s``) and kept in
-``OUT/figures.json``."""
+MISSION_ITEM_REACHED for every item where the waypoints are, the end of the mission (RTL,
+ArduPlane's rule), ``guided LAT LON ALT`` reached, ``rtl`` circling home.  pymavlink beside it
+measures COMMAND_LONG -> COMMAND_ACK.  The figures (parameter download by FTP vs the list
+protocol, the 4-item upload, the ACK latency; wall seconds at x10) are printed as one JSON line
+(``-s``) and kept in ``OUT/figures.json``."""
 from __future__ import annotations
 
 import json
@@ -20,7 +20,7 @@ import threading
 import time
 
 import pytest
-from tests.procs import udp_base as _base_port
+from tests.procs import dead, udp_base as _base_port
 
 from sitl.scenario import default_scenario
 
@@ -63,6 +63,8 @@ class Demo:
         self.stop_ev.set()
         self.thread.join(60)
         assert not self.thread.is_alive(), "the demo did not stop"
+        pids = [e["pid"] for e in (self.report or {}).get("events", []) if e.get("event") == "start"]
+        assert all(dead(p) for p in pids), f"workers left running: {[p for p in pids if not dead(p)]}"
 
 
 def _free_udp_port() -> int:
@@ -124,6 +126,7 @@ class MavProxy:
                 self.p.kill()
                 self.p.wait(5)
         self._t.join(2)
+        assert self.p.poll() is not None, "MAVProxy did not stop"
 
     def tlog(self):
         from pymavlink import mavutil
@@ -220,7 +223,7 @@ def test_mavproxy_session_ftp_params_mission_guided_rtl(tmp_path):
     gcs_port = _free_udp_port()
     demo = Demo(tmp_path, gcs_port)
     # UAV 1's home: where the scenario starts it (in flight; ArduPlane's home is where it armed)
-    home_lat, home_lon, _ = demo.scn.uavs.start_points()[0]
+    home_lat, home_lon, home_alt = demo.scn.uavs.start_points()[0]
     mp = None
     figures = {"speed": SPEED}
     try:
@@ -261,7 +264,21 @@ def test_mavproxy_session_ftp_params_mission_guided_rtl(tmp_path):
         ack = _after(msgs, "MISSION_ACK", t_unix)[0]
         assert count.count == 4 and ack.type == mavlink.MAV_MISSION_ACCEPTED
         figures["mission_upload_4_items_s"] = ack._timestamp - count._timestamp
-        # not flown outside AUTO: still circling in LOITER, current item 1
+        # the download: item 0 is the UAV's home (where the scenario started it), not the file's
+        # home row; items 1..3 as uploaded
+        t_unix = time.time()
+        t = mp.send("wp list")
+        mp.wait("Saved 4 waypoints", 30, after=t)
+        msgs = mp.tlog()
+        got = {m.seq: m for m in _after(msgs, "MISSION_ITEM_INT", t_unix)}
+        assert sorted(got) == [0, 1, 2, 3], sorted(got)
+        h = got[0]
+        assert _dist_m(h.x * 1e-7, h.y * 1e-7, home_lat, home_lon) < 0.05 and abs(h.z - home_alt) < 0.01, h
+        for k, (a, o) in enumerate(wps, 1):
+            m = got[k]
+            assert (m.command, m.frame, m.z) == (mavlink.MAV_CMD_NAV_WAYPOINT, 3, 1500.0), m
+            assert abs(m.x - a * 1e7) <= 1 and abs(m.y - o * 1e7) <= 1, m
+        # not flown outside AUTO: still circling in LOITER
         assert _after(msgs, "MISSION_ITEM_REACHED", t_unix) == []
 
         # AUTO: MISSION_CURRENT 1 -> 2 -> 3, MISSION_ITEM_REACHED 1, 2, 3 where the waypoints are,
