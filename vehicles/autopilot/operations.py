@@ -260,6 +260,17 @@ class Operations:
     def _check_item(self, k: int, it, n: int) -> MissionResult:
         return check_item(k, it, n)
 
+    @_guarded(mission=True)
+    def check_item(self, k, item, n) -> MissionResult:
+        """Item k of an n-item upload, checked as it arrives (the MissionServer's per-item hook):
+        MAV_MISSION_ACCEPTED, or the code and reason set_mission would give for it (counted as
+        set_mission counts it: 'unsupported_item' / 'bad_item')."""
+        res = self._check_item(int(k), item, int(n))
+        if not res.ok:
+            self.counters["unsupported_item" if res.code == mavlink.MAV_MISSION_UNSUPPORTED else "bad_item"] += 1
+            self.last_reason = res.reason
+        return res
+
     def _store_mission(self, v: int, items) -> None:
         n = len(items)
         if n > self.K:

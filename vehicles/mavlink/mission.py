@@ -24,9 +24,12 @@ upload (MAV_MISSION_ERROR) and the previous plan stays.
 With an autopilot (``on_items``, the UAVs' vehicles.autopilot: ArduPlane's convention), an
 accepted upload's items themselves go to ``on_items(items) -> (code, reason)``: its code is
 the MISSION_ACK type (MAV_MISSION_UNSUPPORTED for an item it cannot fly, ...), and the plan is
-stored only when it is ACCEPTED.  Item 0 is home: ``home_item()`` gives the stored item 0 on
-download (ArduPilot's rule: the GCS reads home there), and a vehicle without a mission
-downloads one item, home.
+stored only when it is ACCEPTED.  ``item_check(k, item, n) -> (code, reason)`` checks each item
+as it arrives (the autopilot's rules): an item it refuses ends the upload at once with that
+MISSION_ACK (ArduPilot answers the offending item; the GCS need not send the rest), the
+previous plan stays.  Item 0 is home: ``home_item()`` gives the stored item 0 on download
+(ArduPilot's rule: the GCS reads home there), and a vehicle without a mission downloads one
+item, home.
 """
 from __future__ import annotations
 
@@ -92,6 +95,12 @@ def check_item(it: MissionItem) -> int:
     return mavlink.MAV_MISSION_ACCEPTED
 
 
+def mission_result_name(code: int) -> str:
+    """MAV_MISSION_RESULT's name of a code (the number if it has none)."""
+    e = mavlink.enums["MAV_MISSION_RESULT"]
+    return e[code].name if code in e else str(code)
+
+
 def waypoints_from_items(items, home_alt_msl_m: float) -> list[tuple[float, float, float]]:
     """(lat_rad, lon_rad, alt_msl_m) of the items that carry a position, in order."""
     out = []
@@ -110,7 +119,8 @@ class MissionServer:
     def __init__(self, accepts_missions: bool, send: Callable, count: Callable[[str], None],
                  on_mission: Callable | None = None, home_alt: Callable[[], float] = lambda: 0.0,
                  timeout_s: float = 1.5, retries: int = 5, on_items: Callable | None = None,
-                 home_item: Callable[[], MissionItem | None] | None = None):
+                 home_item: Callable[[], MissionItem | None] | None = None,
+                 item_check: Callable[[int, MissionItem, int], tuple[int, str]] | None = None):
         if not (timeout_s > 0 and math.isfinite(timeout_s)):
             raise ValueError(f"mission timeout_s must be > 0, got {timeout_s!r}")
         if int(retries) < 0:
@@ -122,6 +132,7 @@ class MissionServer:
         self._home_alt = home_alt
         self._on_items = on_items
         self._home_item = home_item
+        self._item_check = item_check
         self.timeout_s = float(timeout_s)
         self.retries = int(retries)
         self.items: list[MissionItem] = []
@@ -185,11 +196,15 @@ class MissionServer:
                 self._request_next()  # out of sequence (a duplicate after a retry): ask again
                 return
             it = item_from_msg(msg)
-            res = check_item(it)
+            if self._item_check is not None:
+                res, reason = self._item_check(len(rx), it, up[3])
+            else:
+                res, reason = check_item(it), ""
             if res != mavlink.MAV_MISSION_ACCEPTED:
                 self._up = None
                 self._ack(addr, src_sys, src_comp, res, mtype)
                 self._count("mission_rejected")
+                self.last_reason = reason or f"item {len(rx)}: {mission_result_name(res)}"
                 return
             rx.append(it)
             up[5], up[6] = t_s + self.timeout_s, self.retries

@@ -132,3 +132,64 @@ def test_ground_start_mission_with_takeoff_and_land():
         assert ref_distance(y, la, lo + 0.05) < 10_000.0  # on the field about the landing point
     g = fl.last_guidance
     assert np.all(g.speed_m_s == 0.0)
+
+
+def every_kind_mission(la0, lo0):
+    """home; WP; LOITER_TURNS 1 turn r 1000 m; DO_CHANGE_SPEED 80 m/s; LOITER_TIME 60 s r 800 m;
+    DO_JUMP -> 1 once; LOITER_TO_ALT 500 m above home r 900 m; NAV_RETURN_TO_LAUNCH (all relative)."""
+    pts = [(la0 + 0.03, lo0), (la0 + 0.06, lo0 + 0.03), (la0 + 0.03, lo0 + 0.06), (la0, lo0 + 0.03)]
+    return pts, [item(0, NAV_WAYPOINT, la0, lo0),
+                 item(1, NAV_WAYPOINT, *pts[0], 300.0),
+                 item(2, R.MAV_CMD_NAV_LOITER_TURNS, *pts[1], 300.0, p=(1, 0, 1000, 0)),
+                 item(3, R.MAV_CMD_DO_CHANGE_SPEED, p=(0, 80, -1, 0)),
+                 item(4, R.MAV_CMD_NAV_LOITER_TIME, *pts[2], 300.0, p=(60, 0, 800, 0)),
+                 item(5, DO_JUMP, p=(1, 1, 0, 0)),
+                 item(6, R.MAV_CMD_NAV_LOITER_TO_ALT, *pts[3], 500.0, p=(0, 900, 0, 0)),
+                 item(7, R.MAV_CMD_NAV_RETURN_TO_LAUNCH)]
+
+
+def test_every_flyable_item_kind_in_one_mission():
+    """ArduPlane's rules: MISSION_ITEM_REACHED for every navigation item when it is complete and
+    for a DO item when it runs (DO_CHANGE_SPEED), none for DO_JUMP (the mission's own jump, once:
+    items 1..4 twice); a loiter is complete after its turns / its time on its circle, or at its
+    altitude; DO_CHANGE_SPEED changes the speed flown; NAV_RETURN_TO_LAUNCH switches to RTL."""
+    fl = fleet(1)
+    ap = fl.ap
+    la0, lo0 = math.degrees(ap.pos[0, 0]), math.degrees(ap.pos[0, 1])
+    h_home = ap.home[0, 2]
+    pts, items = every_kind_mission(la0, lo0)
+    assert ap.set_mission(0, items).ok
+    run = Run(fl)
+    assert run.run(3000, until=lambda r: r.values("mode") == [cv.RTL])
+    assert run.values("item_reached") == [1, 2, 3, 4, 1, 2, 3, 4, 6]
+    assert run.values("mission_current") == [1, 2, 4, 1, 2, 4, 6, 7]
+    assert "Mission: RTL" in [e.text for _, e in run.kinds(0, "text")]
+    track = dict(run.track)
+    t_cur = {}  # when each item became current (the mission_current events, in order)
+    reached = run.kinds(0, "item_reached")
+    cur_ev = run.kinds(0, "mission_current")
+    for (t, e) in cur_ev:
+        t_cur.setdefault(e.value, []).append(t)
+    v0, v1 = ap.cfg.airspeed_cruise_m_s, 80.0
+    for t, e in reached:
+        y = track[t - run.epoch_s][0]  # the state the step that reported it evaluated
+        if e.value == 2:  # one turn of 1000 m at cruise: at least its period after it became current
+            assert abs(ref_distance(y, *pts[1]) - 1000.0) < 150.0
+            starts = [s for s in t_cur[2] if s < t]
+            assert t - starts[-1] >= 2 * math.pi * 1000.0 / (v0 if len(starts) == 1 else v1) - 2.0
+        elif e.value == 4:  # 60 s on the 800 m circle
+            assert abs(ref_distance(y, *pts[2]) - 800.0) < 150.0
+            assert t - [s for s in t_cur[4] if s < t][-1] >= 60.0
+        elif e.value == 6:  # at its altitude (within 5 m), loitering about its point (the climb may
+            # end while it still turns onto the circle from inside: the bank-limited entry)
+            assert abs(y[2] - (h_home + 500.0)) <= 5.0
+            assert ref_distance(y, *pts[3]) < 900.0 + 150.0
+    # DO_CHANGE_SPEED: 80 m/s from item 3 on (the track's step length over 1 s epochs)
+    t3 = [t for t, e in reached if e.value == 3][0]
+    t4 = [t for t, e in reached if e.value == 4][0]
+    seg = np.array([y[0] for t, y in run.track if t3 + 5 <= t <= t4])
+    from sitl import geodesy
+    ecef = geodesy.geodetic_to_ecef(seg[:, 0], seg[:, 1], seg[:, 2])
+    steps = np.linalg.norm(np.diff(ecef, axis=0), axis=1)
+    assert abs(np.median(steps) - v1) < 1.0, np.median(steps)
+    assert ap.mode[0] == cv.RTL

@@ -356,3 +356,249 @@ def test_ten_uavs_from_the_ground_armed_taken_off_and_flown_through_a_5_item_mis
         assert all(r == [1, 2, 3, 4] for r in reached.values()), reached
     finally:
         grp.close()
+
+
+NAN = math.nan
+#: the commands the autopilot flies by, all parameters NaN (COMMAND_INT: x, y = 0, z NaN): the
+#: results a NaN in a field the command needs must give (None: NaN means "default / here" in
+#: MAVLink for every field it uses, or it uses none -- any clear result)
+NAN_COMMANDS = {
+    mav.MAV_CMD_COMPONENT_ARM_DISARM: {mav.MAV_RESULT_DENIED},
+    mav.MAV_CMD_DO_SET_MODE: {mav.MAV_RESULT_DENIED},
+    mav.MAV_CMD_DO_CHANGE_SPEED: {mav.MAV_RESULT_DENIED},
+    mav.MAV_CMD_DO_SET_MISSION_CURRENT: {mav.MAV_RESULT_DENIED},
+    mav.MAV_CMD_MISSION_START: {mav.MAV_RESULT_DENIED},
+    mav.MAV_CMD_DO_SET_HOME: {mav.MAV_RESULT_DENIED},
+    mav.MAV_CMD_DO_REPOSITION: {mav.MAV_RESULT_DENIED, mav.MAV_RESULT_FAILED},
+    mav.MAV_CMD_NAV_TAKEOFF: None,  # NaN altitude: TKOFF_ALT
+    mav.MAV_CMD_NAV_LAND: None,  # NaN position: straight ahead
+    mav.MAV_CMD_NAV_RETURN_TO_LAUNCH: None,
+    mav.MAV_CMD_NAV_LOITER_UNLIM: None,
+    # the endpoint's own: NaN message id
+    mav.MAV_CMD_REQUEST_MESSAGE: {mav.MAV_RESULT_UNSUPPORTED},
+    mav.MAV_CMD_SET_MESSAGE_INTERVAL: {mav.MAV_RESULT_UNSUPPORTED},
+    mav.MAV_CMD_GET_MESSAGE_INTERVAL: {mav.MAV_RESULT_UNSUPPORTED},
+    64999: {mav.MAV_RESULT_UNSUPPORTED},  # no such command (not in the ardupilotmega dialect)
+    mav.MAV_CMD_DO_DIGICAM_CONTROL: {mav.MAV_RESULT_UNSUPPORTED},  # one the vehicles have not
+}
+_RESULTS = set(mav.enums["MAV_RESULT"]) - {mav.MAV_RESULT_ENUM_END}
+assert 64999 not in mav.enums["MAV_CMD"]
+
+
+def _nan_cmd(grp, sysid, command, use_int):
+    if use_int:
+        return grp.peer.mav.command_int_encode(sysid, 1, mav.MAV_FRAME_GLOBAL_RELATIVE_ALT_INT, command, 0, 0,
+                                               NAN, NAN, NAN, NAN, 0, 0, NAN)
+    return grp.peer.mav.command_long_encode(sysid, 1, command, 0, *([NAN] * 7))
+
+
+@pytest.mark.parametrize("use_int", [False, True])
+def test_every_command_with_nan_parameters_gets_one_clear_ack_counted_uav_and_sonde(grp, use_int):
+    """Each command with NaN parameters, to a UAV (sysid 1) and to the sonde (sysid 4): exactly one
+    COMMAND_ACK of that command with a MAV_RESULT; a refusal counted once (cmd_refused or
+    cmd_unsupported); the sonde flies nothing (UNSUPPORTED for every flight command); no handler
+    error, no autopilot internal error."""
+    ap = grp.g.autopilot
+    for sysid in (1, 4):
+        ep = grp.ep(sysid)
+        for command, want in NAN_COMMANDS.items():
+            before = ep.counters["cmd_refused"] + ep.counters["cmd_unsupported"]
+            got = grp.exchange(sysid, _nan_cmd(grp, sysid, command, use_int), lambda g: of_type(g, "COMMAND_ACK"))
+            grp.step(1)  # nothing more comes
+            got += grp.peer.drain(0.005)
+            acks = [a for a in of_type(got, "COMMAND_ACK") if a.get_srcSystem() == sysid]
+            assert [a.command for a in acks] == [command], (sysid, command, acks)
+            res = acks[0].result
+            assert res in _RESULTS, (sysid, command, res)
+            if sysid == 4 and command not in (mav.MAV_CMD_REQUEST_MESSAGE, mav.MAV_CMD_SET_MESSAGE_INTERVAL,
+                                              mav.MAV_CMD_GET_MESSAGE_INTERVAL):
+                assert res == mav.MAV_RESULT_UNSUPPORTED, (command, res)
+            elif want is not None:
+                assert res in want, (sysid, command, res)
+            after = ep.counters["cmd_refused"] + ep.counters["cmd_unsupported"]
+            assert after == before + (res != mav.MAV_RESULT_ACCEPTED), (sysid, command, res)
+            if res not in (mav.MAV_RESULT_ACCEPTED, mav.MAV_RESULT_UNSUPPORTED):
+                assert ep.last_error and "\n" not in ep.last_error
+        assert ep.counters["handler_errors"] == 0, ep.last_error
+    assert ap.counters["internal_error"] == 0, ap.last_reason
+    assert grp.heartbeat(1, 3).type == mav.MAV_TYPE_FIXED_WING  # alive and answering
+
+
+@pytest.mark.parametrize("how", ["set_mode", "do_set_mode"])
+def test_modes_that_do_not_exist_or_cannot_be_flown(grp, how):
+    """ArduPlane's numbers (pymavlink's table): one it has not -> DENIED with 'No such mode';
+    one it has but these fixed-wing UAVs cannot fly (QHOVER) -> FAILED; base_mode without
+    CUSTOM_MODE_ENABLED -> DENIED; each counted, the mode unchanged; the sonde has no modes."""
+    ep = grp.ep(1)
+    custom = mav.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED
+    cases = [(custom, 99, mav.MAV_RESULT_DENIED), (custom, cv.MODES["QHOVER"], mav.MAV_RESULT_FAILED),
+             (0, cv.LOITER, mav.MAV_RESULT_DENIED)]
+    texts = []
+    for sysid in (1, 4):
+        for base, mode, code in cases:
+            before = grp.ep(sysid).counters["cmd_refused"] + grp.ep(sysid).counters["cmd_unsupported"]
+            msg = (grp.peer.mav.set_mode_encode(sysid, base, mode) if how == "set_mode"
+                   else grp.cmd(sysid, mav.MAV_CMD_DO_SET_MODE, base, mode))
+            got = grp.exchange(sysid, msg, lambda g: of_type(g, "COMMAND_ACK"))
+            got += grp.step(2)
+            texts += [m.text for m in of_type(got, "STATUSTEXT") if m.get_srcSystem() == sysid]
+            acks = [a for a in of_type(got, "COMMAND_ACK") if a.get_srcSystem() == sysid]
+            assert [(a.command, a.result) for a in acks] == [
+                (mav.MAV_CMD_DO_SET_MODE, code if sysid == 1 else mav.MAV_RESULT_UNSUPPORTED)], (sysid, mode, acks)
+            after = grp.ep(sysid).counters["cmd_refused"] + grp.ep(sysid).counters["cmd_unsupported"]
+            assert after == before + 1
+    assert grp.heartbeat(1, 3).custom_mode == cv.AUTO and grp.g.autopilot.mode[0] == cv.AUTO
+    assert "No such mode 99" in texts, texts  # ArduPlane's words
+    assert any("QHOVER" in t for t in texts), texts
+    assert ep.counters["handler_errors"] == 0
+
+
+def _upload_until_ack(grp, sysid, items):
+    """MISSION_COUNT, then each requested item: (the MISSION_ACK, the seqs requested)."""
+    asked = []
+    got = grp.exchange(sysid, grp.peer.mav.mission_count_encode(sysid, 1, len(items), 0),
+                       lambda g: of_type(g, "MISSION_REQUEST_INT") or of_type(g, "MISSION_ACK"))
+    for _ in range(len(items) + 1):
+        acks = [a for a in of_type(got, "MISSION_ACK") if a.get_srcSystem() == sysid]
+        if acks:
+            return acks[0], asked
+        req = [r for r in of_type(got, "MISSION_REQUEST_INT") if r.get_srcSystem() == sysid][-1]
+        asked.append(req.seq)
+        got = grp.exchange(sysid, items[req.seq],
+                           lambda g: of_type(g, "MISSION_REQUEST_INT") or of_type(g, "MISSION_ACK"))
+    raise AssertionError("upload did not finish")
+
+
+def _bad_items(peer, lat, lon):
+    """(item, its MAV_MISSION_RESULT, the autopilot's counter) -- each as item 2 of a 4-item upload."""
+    it = lambda **kw: _item(peer, 2, kw.pop("la", lat + 0.02), kw.pop("lo", lon), kw.pop("alt", 300.0), **kw)
+    return [
+        (it(cmd=mav.MAV_CMD_DO_DIGICAM_CONTROL, frame=mav.MAV_FRAME_MISSION), mav.MAV_MISSION_UNSUPPORTED,
+         "unsupported_item"),
+        (it(cmd=mav.MAV_CMD_NAV_SPLINE_WAYPOINT), mav.MAV_MISSION_UNSUPPORTED, "unsupported_item"),
+        (it(cmd=mav.MAV_CMD_CONDITION_DELAY, frame=mav.MAV_FRAME_MISSION, p=(5, 0, 0, 0)),
+         mav.MAV_MISSION_UNSUPPORTED, "unsupported_item"),
+        (it(cmd=mav.MAV_CMD_NAV_VTOL_TAKEOFF), mav.MAV_MISSION_UNSUPPORTED, "unsupported_item"),
+        (it(alt=NAN), mav.MAV_MISSION_INVALID_PARAM7, "bad_item"),
+        (it(la=95.0), mav.MAV_MISSION_INVALID_PARAM5_X, "bad_item"),
+        (it(frame=mav.MAV_FRAME_LOCAL_NED), mav.MAV_MISSION_UNSUPPORTED_FRAME, "bad_item"),
+        (it(cmd=mav.MAV_CMD_NAV_LOITER_TURNS, p=(NAN, 0, 0, 0)), mav.MAV_MISSION_INVALID_PARAM1, "bad_item"),
+        (it(cmd=mav.MAV_CMD_DO_JUMP, p=(9, 1, 0, 0), frame=mav.MAV_FRAME_MISSION), mav.MAV_MISSION_INVALID_PARAM1,
+         "bad_item"),
+    ]
+
+
+def test_mission_items_refused_at_the_item_with_their_code_counted_old_plan_kept(grp):
+    """Any item the UAVs cannot fly (not NAV_WAYPOINT, NAV_LOITER_*, NAV_RETURN_TO_LAUNCH,
+    NAV_TAKEOFF, NAV_LAND, DO_JUMP, DO_CHANGE_SPEED): MISSION_ACK MAV_MISSION_UNSUPPORTED as it
+    arrives (item 3 is never asked for); a bad field: its MAV_MISSION_INVALID_* / frame code; each
+    counted (the endpoint's mission_rejected, the autopilot's counter), said in a STATUSTEXT that
+    names the item, and the plan before it stays; the sonde takes no mission at all."""
+    lat, lon, h = _pos(grp, 1)
+    ep, ap = grp.ep(1), grp.g.autopilot
+    home = _item(grp.peer, 0, lat, lon, 0.0, frame=mav.MAV_FRAME_GLOBAL_INT)
+    good = [home, _item(grp.peer, 1, lat + 0.01, lon, 300.0), _item(grp.peer, 2, lat + 0.02, lon, 300.0)]
+    assert upload(grp, 1, good) == mav.MAV_MISSION_ACCEPTED
+    for bad, code, counter in _bad_items(grp.peer, lat, lon):
+        before, before_ap = ep.counters["mission_rejected"], ap.counters[counter]
+        items = [home, good[1], bad, _item(grp.peer, 3, lat + 0.03, lon, 300.0)]
+        ack, asked = _upload_until_ack(grp, 1, items)
+        assert (ack.type, asked) == (code, [0, 1, 2]), (bad, ack, asked)
+        assert ep.counters["mission_rejected"] == before + 1 and ap.counters[counter] == before_ap + 1, bad
+        assert ep.last_error.startswith("mission: item 2"), ep.last_error
+        texts = [m.text for m in of_type(grp.step(1), "STATUSTEXT") if m.get_srcSystem() == 1]
+        texts += [m.text for m in of_type(grp.peer.drain(0.005), "STATUSTEXT") if m.get_srcSystem() == 1]
+        got = grp.exchange(1, grp.peer.mav.mission_request_list_encode(1, 1, 0), lambda g: of_type(g, "MISSION_COUNT"))
+        assert of_type(got, "MISSION_COUNT")[0].count == 3  # the good plan
+        assert ap.m_count[0] == 3
+    assert ep.counters["handler_errors"] == 0 and ap.counters["internal_error"] == 0
+    # the sonde: MAV_MISSION_UNSUPPORTED at the count, counted; it downloads zero items
+    before = grp.ep(4).counters["mission_rejected"]
+    ack, asked = _upload_until_ack(grp, 4, [_item(grp.peer, k, lat, lon, 300.0, sysid=4) for k in range(2)])
+    assert (ack.type, asked) == (mav.MAV_MISSION_UNSUPPORTED, [])
+    assert grp.ep(4).counters["mission_rejected"] == before + 1
+    got = grp.exchange(4, grp.peer.mav.mission_request_list_encode(4, 1, 0), lambda g: of_type(g, "MISSION_COUNT"))
+    assert of_type(got, "MISSION_COUNT")[0].count == 0
+
+
+def _dedup(seq):
+    return [v for k, v in enumerate(seq) if k == 0 or v != seq[k - 1]]
+
+
+@pytest.mark.slow
+def test_every_flyable_item_kind_flown_over_mavlink(tmp_path):
+    """Uploaded by pymavlink with home at item 0: WP, LOITER_TURNS, DO_CHANGE_SPEED, LOITER_TIME,
+    DO_JUMP (-> 1, once), LOITER_TO_ALT, NAV_RETURN_TO_LAUNCH; MISSION_ITEM_REACHED per ArduPlane's
+    rules (every navigation item when complete, the DO item when run, not DO_JUMP; items 1..4 twice),
+    MISSION_CURRENT following it, then RTL (HEARTBEAT) at the RTL item."""
+    grp = Group(tmp_path, count=1, sonde=False)
+    try:
+        la, lo, _h = _pos(grp, 1)
+        pts = [(la + 0.03, lo), (la + 0.06, lo + 0.03), (la + 0.03, lo + 0.06), (la, lo + 0.03)]
+        P, NOF = _item, mav.MAV_FRAME_MISSION
+        items = [P(grp.peer, 0, la, lo, 0.0, frame=mav.MAV_FRAME_GLOBAL_INT),
+                 P(grp.peer, 1, *pts[0], 300.0),
+                 P(grp.peer, 2, *pts[1], 300.0, cmd=mav.MAV_CMD_NAV_LOITER_TURNS, p=(1, 0, 1000, 0)),
+                 P(grp.peer, 3, 0, 0, 0, cmd=mav.MAV_CMD_DO_CHANGE_SPEED, frame=NOF, p=(0, 80, -1, 0)),
+                 P(grp.peer, 4, *pts[2], 300.0, cmd=mav.MAV_CMD_NAV_LOITER_TIME, p=(60, 0, 800, 0)),
+                 P(grp.peer, 5, 0, 0, 0, cmd=mav.MAV_CMD_DO_JUMP, frame=NOF, p=(1, 1, 0, 0)),
+                 P(grp.peer, 6, *pts[3], 500.0, cmd=mav.MAV_CMD_NAV_LOITER_TO_ALT, p=(0, 900, 0, 0)),
+                 P(grp.peer, 7, 0, 0, 0, cmd=mav.MAV_CMD_NAV_RETURN_TO_LAUNCH, frame=NOF)]
+        assert upload(grp, 1, items) == mav.MAV_MISSION_ACCEPTED
+        reached, current, modes, texts = [], [], [], []
+        for _ in range(1200):  # <= 12000 epochs (the default scenario's 1 Hz)
+            got = [m for m in grp.step(10) if m.get_srcSystem() == 1]
+            reached += [m.seq for m in of_type(got, "MISSION_ITEM_REACHED")]
+            current += [m.seq for m in of_type(got, "MISSION_CURRENT")]
+            modes += [m.custom_mode for m in of_type(got, "HEARTBEAT")]
+            texts += [m.text for m in of_type(got, "STATUSTEXT")]
+            if modes and modes[-1] == cv.RTL:
+                break
+        assert reached == [1, 2, 3, 4, 1, 2, 3, 4, 6], reached
+        assert _dedup(current) == [1, 2, 4, 1, 2, 4, 6, 7], _dedup(current)
+        assert modes[-1] == cv.RTL and "Mission: RTL" in texts and "Set airspeed 80 m/s" in texts
+        assert grp.ep(1).counters["handler_errors"] == 0
+    finally:
+        grp.close()
+
+
+@pytest.mark.slow
+def test_takeoff_and_land_items_flown_over_mavlink_from_the_ground(tmp_path):
+    """A ground start: home, NAV_TAKEOFF (100 m), a waypoint, NAV_LAND at a point; armed and AUTO
+    by pymavlink: it rolls, climbs, flies, lands there (MISSION_ITEM_REACHED 1, 2, 3), then disarms
+    after LAND_DISARMDELAY (HEARTBEAT: not armed, STANDBY)."""
+    grp = Group(tmp_path, start="ground", count=1, sonde=False)
+    try:
+        ap = grp.g.autopilot
+        la, lo, h0 = _pos(grp, 1)
+        land = (la + 0.03, lo + 0.03)
+        items = [_item(grp.peer, 0, la, lo, 0.0, frame=mav.MAV_FRAME_GLOBAL_INT),
+                 _item(grp.peer, 1, 0, 0, 100.0, cmd=mav.MAV_CMD_NAV_TAKEOFF, p=(10, 0, 0, 0)),
+                 _item(grp.peer, 2, la + 0.05, lo, 100.0),
+                 _item(grp.peer, 3, *land, 0.0, cmd=mav.MAV_CMD_NAV_LAND)]
+        assert upload(grp, 1, items) == mav.MAV_MISSION_ACCEPTED
+        assert grp.ack(1, grp.cmd(1, mav.MAV_CMD_COMPONENT_ARM_DISARM, 1))[1] == mav.MAV_RESULT_ACCEPTED
+        assert grp.ack(1, grp.peer.mav.set_mode_encode(1, mav.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, cv.AUTO))[1] == \
+            mav.MAV_RESULT_ACCEPTED
+        reached, texts, hbs, top = [], [], [], h0
+        for _ in range(1500):  # <= 15000 epochs (the default scenario's 1 Hz)
+            got = [m for m in grp.step(10) if m.get_srcSystem() == 1]
+            reached += [m.seq for m in of_type(got, "MISSION_ITEM_REACHED")]
+            texts += [m.text for m in of_type(got, "STATUSTEXT")]
+            hbs += of_type(got, "HEARTBEAT")
+            top = max(top, ap.pos[0, 2])
+            if hbs and not hbs[-1].base_mode & mav.MAV_MODE_FLAG_SAFETY_ARMED and "Landed" in texts:
+                break
+        assert reached == [1, 2, 3], reached
+        assert top >= h0 + 100.0 - 2.0  # TAKEOFF to 100 m (ArduPlane: complete 2 m below)
+        assert "Touchdown" in texts and "Landed" in texts and "Disarming motors" in texts
+        hb = hbs[-1]
+        assert not hb.base_mode & mav.MAV_MODE_FLAG_SAFETY_ARMED and hb.system_status == mav.MAV_STATE_STANDBY
+        assert abs(ap.pos[0, 2] - h0) < 1.0
+        from sitl import geodesy
+        enu = geodesy.ecef_to_enu(geodesy.geodetic_to_ecef(*ap.pos[0]), math.radians(land[0]), math.radians(land[1]),
+                                  0.0)
+        # on the ground past the landing point: the flare and roll-out (a few hundred metres)
+        assert math.hypot(enu[0], enu[1]) < 2000.0, enu
+    finally:
+        grp.close()

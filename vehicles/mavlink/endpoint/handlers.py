@@ -283,6 +283,16 @@ class RequestHandlers:
             self._mission_current_due = -math.inf
         return res.code, res.reason
 
+    def _mission_item_check(self, k: int, item, n: int) -> tuple[int, str]:
+        """The MissionServer's per-item hook: item k of an n-item upload as it arrives, by the
+        autopilot's rules; a refusal is said (last_error, STATUSTEXT naming the item) and ends
+        the upload with its MISSION_ACK code."""
+        res = self.autopilot.ap.check_item(k, item, n)
+        if res.code != mavlink.MAV_MISSION_ACCEPTED:
+            self.last_error = f"mission: {res.reason}"
+            self._statustext(mavlink.MAV_SEVERITY_WARNING, res.reason)
+        return res.code, res.reason
+
     def _home_item(self):
         """Mission item 0 for a download: home now (ArduPilot), MSL height."""
         ap = self.autopilot.ap

@@ -170,7 +170,8 @@ class VehicleEndpoint(SigningClock, DatagramInput, StreamOutput, RequestHandlers
                                      home_alt=lambda: self.home_alt_msl_m or 0.0,
                                      timeout_s=mission_timeout_s, retries=mission_retries,
                                      on_items=self._mission_items if autopilot is not None else None,
-                                     home_item=self._home_item if autopilot is not None else None)
+                                     home_item=self._home_item if autopilot is not None else None,
+                                     item_check=self._mission_item_check if autopilot is not None else None)
         self.ftp = FtpServer(self.params)
         self._t = None
         self._t_boot = None
