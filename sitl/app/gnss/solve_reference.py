@@ -3,7 +3,7 @@ broadcast Klobuchar, and RTKLIB's L1 single-point solution (rnx2rtkp), when inst
 
 Dual-frequency reference (GPS L1/L2, metres of L1 group delay):
     I_code  = (P2 - C1) / (gamma - 1) - c TGD            gamma = (f1/f2)^2
-    I_phase = -(L1 - L2) / (gamma - 1)                    (phases in metres; + ambiguity)
+    I_phase = (L1 - L2) / (gamma - 1)                     (phases in metres; + ambiguity)
     levelled I = I_phase + mean over the arc of (I_code - I_phase), elevation >= mask.
 An arc ends at a loss-of-lock flag (LLI bit 0 on L1 or L2), a missing epoch, or a jump of the
 geometry-free phase of more than 0.5 m between epochs. With the broadcast TGD
@@ -54,7 +54,7 @@ def dual_frequency_slant(c1_m, p2_m, l1_cyc, l2_cyc, lli, tgd_s, use):
     l1 = l1_cyc * C_M_S / F1_HZ
     l2 = l2_cyc * C_M_S / F2_HZ
     i_code = (p2_m - c1_m) / (GAMMA - 1.0) - C_M_S * tgd_s
-    i_phase = -(l1 - l2) / (GAMMA - 1.0)
+    i_phase = (l1 - l2) / (GAMMA - 1.0)  # L_i = rho - I_i + amb, I_2 = gamma I_1
     valid = use & np.isfinite(i_code) & np.isfinite(i_phase)
     arc = arcs(valid, lli, np.where(valid, l1 - l2, 0.0))
     lev = np.full(i_code.shape, np.nan)
