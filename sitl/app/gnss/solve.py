@@ -70,18 +70,20 @@ class GnssSolveOptions:
                                          doc="reference position, ECEF m (default the file's APPROX POSITION)")
     el_mask_deg: float = param(10.0, check=number(0, hi=60), flag="--el-mask", metavar="DEG",
                                doc="elevation mask of the filter, the references and RTKLIB, deg")
-    iono_shape: str = param("thin_shell", check=choice("thin_shell", "klobuchar"),
-                            doc="the slant-to-zenith ionosphere of the filter: the seed's thin shell (eq 9) or "
+    iono_shape: str = param("auto", check=choice("auto", "thin_shell", "klobuchar"),
+                            doc="the slant-to-zenith ionosphere of the filter: the seed's thin shell (eq 9), or "
                                 "broadcast Klobuchar's slant over its vertical (its horizontal gradient; the filter "
-                                "still estimates the zenith I_g)")
-    tropo_vertical: str = param("geocentric", check=choice("geocentric", "geodetic"),
-                                doc="the elevation of the filter's 1/sin troposphere mapping: the seed's geocentric "
-                                    "(eq 10) or above the ellipsoid's normal")
+                                "still estimates the zenith I_g); auto: klobuchar when the navigation header has "
+                                "ION ALPHA/BETA, else thin_shell")
+    tropo_mapping: str = param("seed", check=choice("seed", "geodetic", "mops"),
+                               doc="the filter's tropo mapping: seed (1/sin of the geocentric elevation, eq 10-11), "
+                                   "geodetic (1/sin above the ellipsoid's normal) or mops (RTCA DO-229: "
+                                   "1.001/sqrt(0.002001 + sin^2 el), geodetic)")
     sigma_pr_m: float = param(0.6, check=_POS, doc="code noise at the zenith (sigma / sin(el)), m")
     sigma_prr_m_s: float = param(0.02, check=_POS,
                                  doc="sigma of the phase-rate range-rate row (atmosphere and clock changes over "
                                      "the epoch), m/s")
-    sigma_phase_m: float = param(0.02, check=_POS,
+    sigma_phase_m: float = param(0.05, check=_POS,
                                  doc="sigma of a carrier-phase row (noise plus what the one-zenith atmosphere does "
                                      "not model), m")
     sigma_phase_noise_m: float = param(0.003, check=_POS,
@@ -94,8 +96,13 @@ class GnssSolveOptions:
                                             "TCXO 0.8e-20)")
     q_iono_m2_s: float = param(3e-4, check=_NONNEG, doc="random-walk PSD of the zenith iono I_g, m^2/s")
     q_tropo_m2_s: float = param(1e-7, check=_NONNEG, doc="random-walk PSD of the zenith tropo U_g, m^2/s")
-    iono_prior_m: float = param(0.0, check=number(), doc="prior mean of I_g, m")
-    sigma0_iono_m: float = param(20.0, check=_POS, doc="prior sigma of I_g (the seed's), m")
+    iono_prior_m: float | None = param(None, check=optional(number()),
+                                       doc="prior mean of I_g, m (default: broadcast Klobuchar's vertical delay at "
+                                           "the first fix and epoch, else 0)")
+    sigma0_iono_m: float | None = param(None, check=optional(_POS),
+                                        doc="prior sigma of I_g, m (default: half the Klobuchar prior, at least "
+                                            "0.5 m -- the ICD's model removes about half the delay --, else the "
+                                            "seed's 20 m)")
     tropo_prior_m: float = param(2.3, check=number(), doc="prior mean of U_g (a standard atmosphere at sea level), m")
     sigma0_tropo_m: float = param(0.5, check=_POS, doc="prior sigma of U_g, m")
     sigma0_pos_m: float = param(100.0, check=_POS, doc="prior sigma per axis about the first code-only fix, m")
@@ -221,7 +228,8 @@ def run(opts: GnssSolveOptions, progress=None) -> dict:
                        "reference position",
         },
         "counts": {**ep.counts, **fr["counts"]},
-        "tuning": {"clock_psd_1_s": fr["clock_psd_1_s"], "epoch_interval_s": fr["epoch_interval_s"],
+        "tuning": {"iono_shape": fr["iono_shape"], "iono_prior_m": fr["iono_prior_m"],
+                   "sigma0_iono_m": fr["sigma0_iono_m"], "clock_psd_1_s": fr["clock_psd_1_s"], "epoch_interval_s": fr["epoch_interval_s"],
                    "cmc_window_epochs": fr["cmc_window_epochs"]},
         "settings": {k: (str(v) if isinstance(v, Path) else v) for k, v in asdict(opts).items()},
         "timing_s": {"read": t_read, "read_and_process": t_proc, "filter": fr["wall_s"]},

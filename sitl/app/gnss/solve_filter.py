@@ -64,6 +64,7 @@ VARIANTS = ("code_doppler", "phase_increments", "carrier_phase")
 MIN_SATS = 4
 INERT_SIGMA_PRR_M_S = 1e3
 CLOCK_PSD_FLOOR_1_S = 0.8e-20  # the seed's TCXO (filters.iono_tropo.CLOCK_PSD_1_S)
+SEED_SIGMA0_IONO_M = 20.0  # the seed's prior sigma of I_g (IonoTropoScenario.sigma0_iono_m)
 
 __all__ = ["VARIANTS", "run_filter", "clock_psd_from_phase"]
 
@@ -113,8 +114,10 @@ def run_filter(ep, opts, progress=None) -> dict:
             trans_cache[n] = _transition(opts, n, clock_psd)
         return trans_cache[n]
 
-    use_klob = opts.iono_shape == "klobuchar"
-    if use_klob and (ep.ion_alpha is None or ep.ion_beta is None):
+    have_klob = ep.ion_alpha is not None and ep.ion_beta is not None
+    shape = opts.iono_shape if opts.iono_shape != "auto" else ("klobuchar" if have_klob else "thin_shell")
+    use_klob = shape == "klobuchar"
+    if use_klob and not have_klob:
         raise ValueError(f"{ep.path}: --iono-shape klobuchar needs ION ALPHA/BETA in the navigation header")
 
     def obliquity(pos, az, el_, t_s):
@@ -131,7 +134,16 @@ def run_filter(ep, opts, progress=None) -> dict:
     x = np.zeros((1, N_BASE))
     x[0, 0:3] = ep.ls_pos_m[k0]
     x[0, IDX_CLOCK] = ep.ls_clock_m[k0]
-    x[0, IDX_IONO] = opts.iono_prior_m
+    iono0, sd_iono0 = opts.iono_prior_m, opts.sigma0_iono_m
+    if iono0 is None:
+        iono0 = 0.0
+        if have_klob:
+            lat0, lon0, _ = ecef_to_geodetic(ep.ls_pos_m[k0])
+            iono0 = float(klobuchar_delay_m(ep.ion_alpha, ep.ion_beta, lat0, lon0, 0.0, math.pi / 2, t[k0]))
+            sd_iono0 = max(0.5 * iono0, 0.5) if sd_iono0 is None else sd_iono0
+    if sd_iono0 is None:
+        sd_iono0 = SEED_SIGMA0_IONO_M
+    x[0, IDX_IONO] = iono0
     x[0, IDX_TROPO] = opts.tropo_prior_m
     sd = np.zeros(N_BASE)
     sd[0:3] = opts.sigma0_pos_m
@@ -139,7 +151,7 @@ def run_filter(ep, opts, progress=None) -> dict:
     sd[4:7] = 0.0 if opts.static else opts.sigma0_vel_m_s
     sd[IDX_DRIFT] = opts.sigma0_clock_drift_m_s
     sd[IDX_GPS_GLO] = 0.0
-    sd[IDX_IONO] = opts.sigma0_iono_m
+    sd[IDX_IONO] = sd_iono0
     sd[IDX_TROPO] = opts.sigma0_tropo_m
     P = np.diag(sd**2)[None]
 
@@ -233,7 +245,7 @@ def run_filter(ep, opts, progress=None) -> dict:
                 have_rate = ok
         counts["rate_rows"] += int(have_rate.sum())
         obl = mI_all[idx][None] if use_klob else None
-        tob = (1.0 / sin_el)[None] if opts.tropo_vertical == "geodetic" else None
+        tob = _tropo_obliquity(opts.tropo_mapping, sin_el)
         base = IonoTropoGnss(sp_v, sv_v, carrier[idx], is_gps[idx], sig_pr[None], sig_prr[None],
                              n_state=x_pred.shape[-1], iono_obliquity=obl, tropo_obliquity=tob)
         h0 = base.h(x_pred)[0]
@@ -257,8 +269,20 @@ def run_filter(ep, opts, progress=None) -> dict:
             progress(f"epoch {k + 1:4d}/{T}  sats {idx.size:2d}  I_g {x[0, IDX_IONO]:6.2f} m  U_g "
                      f"{x[0, IDX_TROPO]:5.2f} m  ({time.perf_counter() - t_wall:.2f} s)")
 
-    return {"series": ser, "counts": counts, "clock_psd_1_s": clock_psd, "cmc_window_epochs": W,
+    return {"series": ser, "counts": counts, "clock_psd_1_s": clock_psd, "iono_shape": shape, "iono_prior_m": iono0,
+            "sigma0_iono_m": sd_iono0, "cmc_window_epochs": W,
             "epoch_interval_s": dt_nom, "wall_s": time.perf_counter() - t_wall}
+
+
+def _tropo_obliquity(name, sin_el):
+    """None (the seed's 1/sin of the geocentric elevation, inside IonoTropoGnss) or (1, n) fixed values:
+    1/sin of the elevation above the ellipsoid's normal, or the RTCA MOPS (DO-229) mapping
+    1.001 / sqrt(0.002001 + sin^2 el), which stays finite at the horizon and is ~3.5% below 1/sin at 10 deg."""
+    if name == "seed":
+        return None
+    if name == "geodetic":
+        return (1.0 / sin_el)[None]
+    return (1.001 / np.sqrt(0.002001 + sin_el**2))[None]
 
 
 def _record(ser, k, x, P, nis):
