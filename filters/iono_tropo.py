@@ -25,6 +25,10 @@ phases). Its mapping functions are written again here from the same equations as
 simulator's (sitl/gnss/atmosphere.py): filters/ imports no sitl, and the duplication across
 the truth/estimator boundary is deliberate.
 
+Real data (sitl.app.gnss.solve_filter): ``iono_obliquity`` / ``tropo_obliquity`` replace m_I / m_U by
+fixed per-satellite values (a shape with the ionosphere's horizontal gradient, another tropo
+mapping); left None, as the simulated experiment does, the arithmetic is the seed's.
+
 Pure numpy: no I/O, no clocks, no randomness.
 """
 from __future__ import annotations

@@ -21,19 +21,30 @@ Variants (the experiment's three):
   the predicted phase, variance sigma0_amb_m^2). The phase-rate rows are inert here: the phase
   rows hold the same information and would count it twice.
 
-Tuning for 30 s epochs (the seed's 0.1 s values would not do):
+Tuning for 30 s epochs (the seed's 0.1 s values would not do); defaults in
+sitl.app.gnss.solve.GnssSolveOptions:
 * the process noise is a continuous-time PSD, discretised exactly over T by IonoTropoTransition,
   so the rate itself needs no rescaling; what T changes is which terms matter:
-* clock: a free-running receiver oscillator (this Trimble: ~418 m/s drift, no steps). N_eps is set
-  from the file itself: the drift's random walk seen by the epoch-differenced phase (clock_psd
-  from `clock_psd_from_phase`: var(second difference of the clock) ~ c^2 N_eps (2/3) T^3 for a
-  drift random walk) -- the seed's TCXO value is kept as a floor;
+* clock: a free-running receiver oscillator (this Trimble: ~418 m/s drift, no steps). N_eps is
+  fitted to the file (`clock_psd_from_phase`: the clock change per epoch from the
+  epoch-differenced phase, var(second difference) ~ c^2 N_eps (2/3) T^3 for a drift random walk),
+  with the seed's TCXO value as a floor. On 0759 the fit gives 2.5e-22, below the floor: the
+  seed's 0.8e-20 is used (the results do not move between 1e-21 and 1e-19);
 * receiver motion: --static sets velocity 0 with no process noise (a geodetic station); otherwise
   q_accel_m2_s3 (default 1e-4: 0.05 m/s of velocity wander per 30 s);
 * atmosphere: random walks. I_g moves by ~1 m an hour in the morning (q_iono 3e-4 m^2/s: 1 m in
-  1 h); U_g by centimetres (q_tropo 1e-7 m^2/s: 2 cm in 1 h);
-* noise: elevation-weighted code, sigma_pr_m / sin(el) (real code noise and multipath grow at low
-  elevation; the seed's flat 6 m is a simulated receiver's); phase sigma_phase_m.
+  1 h); U_g by centimetres (q_tropo 1e-7 m^2/s: 2 cm in 1 h). Priors: I_g from broadcast
+  Klobuchar's vertical delay at the first fix and epoch, sigma half of it (the ICD's model takes
+  out about half the delay); U_g 2.3 +- 0.5 m (a standard atmosphere at sea level);
+* the ionosphere's shape (iono_shape): the seed's one zenith value on a thin shell (eq 9) cannot
+  hold the horizontal gradient of the real ionosphere, which then goes into the horizontal
+  position (east -1.0 m, north -1.1 m on 0759 with carrier phase); by default (auto) the filter
+  keeps its one zenith state I_g but maps it with Klobuchar's slant / vertical per line of sight
+  (IonoTropoGnss.iono_obliquity), which carries the broadcast model's gradient;
+* noise: elevation-weighted code, sigma_pr_m / sin(el), 0.6 m: four times the white code noise
+  measured on the file (epoch-differenced code minus carrier: 0.12-0.15 m sin(el)^-1), for the
+  broadcast orbit and clock errors and the multipath that is correlated over minutes; a phase row
+  sigma_phase_m = 5 cm: the phase noise is 3 mm, the rest is what a one-zenith atmosphere leaves.
 Delta_A (GPS - GLONASS offset) is not observable with GPS only: held at 0 (prior variance 0).
 
 Cycle slips: the L1 LLI bit and filters.cycleslip on the geometry-removed phase. With no Doppler
