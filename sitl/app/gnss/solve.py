@@ -254,6 +254,10 @@ def rtklib_block(opts, ref) -> dict:
                         f"elmask {opts.el_mask_deg:g}"}
 
 
+def _m(v) -> str:
+    return "n/a" if v is None else f"{v:.2f} m"
+
+
 def plot(res, path: Path) -> None:
     import matplotlib
 
@@ -279,11 +283,11 @@ def plot(res, path: Path) -> None:
     a1.legend(ncol=3, fontsize=7)
     a1.grid(alpha=0.3)
     ir = res["iono_reference"]
-    a2.plot(tm, s["iono_zenith_m"], label=f"filter I_g (RMS {ir['rms_estimate_m']:.2f} m)")
+    a2.plot(tm, s["iono_zenith_m"], label=f"filter I_g (RMS {_m(ir['rms_estimate_m'])})")
     a2.fill_between(tm, s["iono_zenith_m"] - s["iono_sd_m"], s["iono_zenith_m"] + s["iono_sd_m"], alpha=0.2)
     a2.plot(tm, ir["dual_frequency_zenith_m"], "k", label="dual-frequency reference")
     if ir["klobuchar_zenith_m"] is not None:
-        a2.plot(tm, ir["klobuchar_zenith_m"], "--", label=f"Klobuchar (RMS {ir['rms_klobuchar_m']:.2f} m)")
+        a2.plot(tm, ir["klobuchar_zenith_m"], "--", label=f"Klobuchar (RMS {_m(ir['rms_klobuchar_m'])})")
     a2.plot(tm, s["tropo_zenith_m"], label="filter U_g")
     a2.set_ylim(-2, 15)
     a2.set_xlabel("minutes since the first epoch")
@@ -323,10 +327,9 @@ def main(args) -> int:
     plot(res, out / "solve.png")
     pe, ir, rt = res["position_error_m"], res["iono_reference"], res["rtklib"]
     rtk = f"{rt['l1_spp_rms_3d_m']:.2f} m" if "l1_spp_rms_3d_m" in rt else rt.get("skipped", "n/a")
-    kl = "n/a" if ir["rms_klobuchar_m"] is None else f"{ir['rms_klobuchar_m']:.2f} m"
     print(f"{res['variant']}: 3D RMS {pe['rms_3d']:.2f} m (ENU mean {', '.join(f'{v:+.2f}' for v in pe['mean_enu'])}; "
           f"std {', '.join(f'{v:.2f}' for v in pe['std_enu'])}) over {pe['epochs']} epochs; RTKLIB L1 SPP {rtk}")
-    print(f"zenith iono RMS against the dual-frequency reference: filter {ir['rms_estimate_m']:.2f} m, "
-          f"Klobuchar {kl}; read + process {res['timing_s']['read_and_process']:.2f} s")
+    print(f"zenith iono RMS against the dual-frequency reference: filter {_m(ir['rms_estimate_m'])}, "
+          f"Klobuchar {_m(ir['rms_klobuchar_m'])}; read + process {res['timing_s']['read_and_process']:.2f} s")
     print(f"wrote {out / 'result.json'}, {out / 'solve.png'}")
     return 0

@@ -40,6 +40,8 @@ LAMBDA_L1_M = C_M_S / F_L1_HZ
 LAMBDA_L2_M = C_M_S / F_L2_HZ
 LS_ITERATIONS = 8
 LS_MASK_DEG = 5.0
+#: the observables used, by RINEX 2 / RINEX 3 code (the first one the file has)
+OBS_CODES = {"C1": ("C1", "C1C"), "L1": ("L1", "L1C"), "P2": ("P2", "C2W", "C2P"), "L2": ("L2", "L2W", "L2P")}
 
 __all__ = ["Epochs", "prepare", "rotate_to_reception", "least_squares_fix", "F_L1_HZ", "F_L2_HZ",
            "LAMBDA_L1_M", "LAMBDA_L2_M"]
@@ -121,17 +123,21 @@ def prepare(obs, nav, frequency: str = "L1") -> Epochs:
     counts = {"epochs": int(obs.t_gps_s.size), "non_gps_satellites": len(obs.sats) - len(gcols)}
     if not gcols:
         raise GnssFileError(obs.path, None, "no GPS satellites in the observation file")
+    names = {k: next((c for c in alts if c in obs.data), None) for k, alts in OBS_CODES.items()}
     for code in ("C1", "L1"):
-        if code not in obs.data:
-            raise GnssFileError(obs.path, None, f"no {code} observations (GPS L1 C/A code and phase are needed)")
+        if names[code] is None:
+            raise GnssFileError(obs.path, None, f"no {code} observations (GPS L1 C/A code and phase are needed: "
+                                                f"{' or '.join(OBS_CODES[code])})")
     sats = tuple(obs.sats[j] for j in gcols)
     T, S = obs.t_gps_s.size, len(sats)
 
     def col(code):
-        return obs.data[code][:, gcols] if code in obs.data else np.full((T, S), np.nan)
+        c = names[code]
+        return obs.data[c][:, gcols] if c is not None else np.full((T, S), np.nan)
 
     def lli(code):
-        return obs.lli[code][:, gcols] if code in obs.lli else np.zeros((T, S), dtype=int)
+        c = names[code]
+        return obs.lli[c][:, gcols] if c is not None and c in obs.lli else np.zeros((T, S), dtype=int)
 
     c1 = col("C1")
     t_rx = np.broadcast_to(obs.t_gps_s[:, None], (T, S))

@@ -68,6 +68,8 @@ def zenith_and_bias(slant_m, m_iono):
     """Least squares slant_jk = m_jk I_z(k) + b: (I_z (T,), b, residual RMS)."""
     T, S = slant_m.shape
     kk, jj = np.nonzero(np.isfinite(slant_m))
+    if kk.size == 0:  # no dual-frequency data (an L1-only file)
+        return np.full(T, np.nan), float("nan"), float("nan")
     A = np.zeros((kk.size, T + 1))
     A[np.arange(kk.size), kk] = m_iono[kk, jj]
     A[:, T] = 1.0
