@@ -83,6 +83,8 @@ class GnssSolveOptions:
     sigma_prr_m_s: float = param(0.02, check=_POS,
                                  doc="sigma of the phase-rate range-rate row (atmosphere and clock changes over "
                                      "the epoch), m/s")
+    sigma_doppler_m_s: float = param(0.1, check=_POS,
+                                     doc="sigma of a Doppler range-rate row, where the file has D1/D1C, m/s")
     sigma_phase_m: float = param(0.05, check=_POS,
                                  doc="sigma of a carrier-phase row (noise plus what the one-zenith atmosphere does "
                                      "not model), m")

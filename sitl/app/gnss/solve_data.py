@@ -41,7 +41,8 @@ LAMBDA_L2_M = C_M_S / F_L2_HZ
 LS_ITERATIONS = 8
 LS_MASK_DEG = 5.0
 #: the observables used, by RINEX 2 / RINEX 3 code (the first one the file has)
-OBS_CODES = {"C1": ("C1", "C1C"), "L1": ("L1", "L1C"), "P2": ("P2", "C2W", "C2P"), "L2": ("L2", "L2W", "L2P")}
+OBS_CODES = {"C1": ("C1", "C1C"), "L1": ("L1", "L1C"), "P2": ("P2", "C2W", "C2P"), "L2": ("L2", "L2W", "L2P"),
+             "D1": ("D1", "D1C")}
 
 __all__ = ["Epochs", "prepare", "rotate_to_reception", "least_squares_fix", "F_L1_HZ", "F_L2_HZ",
            "LAMBDA_L1_M", "LAMBDA_L2_M"]
@@ -71,6 +72,7 @@ class Epochs:
     counts: dict
     ion_alpha: tuple | None = None  # the nav header's Klobuchar coefficients
     ion_beta: tuple | None = None
+    doppler_prr_m_s: np.ndarray | None = None  # -lambda_1 D1 + c d(dt_sv)/dt, None without Doppler
 
 
 def rotate_to_reception(pos_m, vel_m_s, tau_s):
@@ -162,6 +164,12 @@ def prepare(obs, nav, frequency: str = "L1") -> Epochs:
     rec = st.record.reshape(T, S)
     tgd[ok] = nav.gps.tgd_s[rec[ok]]
     pr = np.where(use, c1 + C_M_S * clk_l1, np.nan)
+    doppler = None
+    if names["D1"] is not None:  # D1 positive approaching; the satellite clock's rate added like its offset
+        drift = np.zeros((T, S))
+        dtc = t_tx2 - np.where(ok, nav.gps.toc_gps_s[np.maximum(rec, 0)], 0.0)
+        drift[ok] = (nav.gps.af1[rec[ok]] + 2.0 * nav.gps.af2[rec[ok]] * dtc[ok])
+        doppler = np.where(use, -LAMBDA_L1_M * col("D1") + C_M_S * drift, np.nan)
 
     # light time / Sagnac from the code-only fix, twice (the fix with the rotated states)
     pos, vel = np.where(use[..., None], pos_tx, 0.0), np.where(use[..., None], vel_tx, 0.0)
@@ -185,5 +193,5 @@ def prepare(obs, nav, frequency: str = "L1") -> Epochs:
         sat_pos_m=np.where(use[..., None], pos, nan3), sat_vel_m_s=np.where(use[..., None], vel, nan3),
         ls_pos_m=rx, ls_clock_m=clk,
         approx_position_m=None if obs.approx_position_m is None else np.asarray(obs.approx_position_m, float),
-        counts=counts, ion_alpha=nav.ion_alpha, ion_beta=nav.ion_beta,
+        counts=counts, ion_alpha=nav.ion_alpha, ion_beta=nav.ion_beta, doppler_prr_m_s=doppler,
     )

@@ -7,12 +7,15 @@ increment model and the state edits of sitl.app.experiments.iono_tropo_models, a
 filters.cycleslip. What differs is the data, so only the bookkeeping around them is here.
 
 Variants (the experiment's three):
-* code_doppler: pseudoranges and pseudorange rates. The station file has no Doppler, so the rate
-  row is the L1 phase's rate over the epoch, moved from the interval's middle to its end with the
-  broadcast geometry: prr_j(k) = (phase_j(k) - phase_j(k-1)) / T + [u_j . v_j - (rho_j(k) -
-  rho_j(k-1)) / T] (rho from the filter's predicted position; the bracket is the satellite's
-  range curvature over T, metres per second at T = 30 s). Only on a slip-free epoch pair (LLI and
-  the detector); elsewhere the row is inert (z = h, sigma 1e3 m/s).
+* code_doppler: pseudoranges and pseudorange rates. With a Doppler in the file (D1, D1C) the rate is
+  -lambda_1 D + c d(dt_sv)/dt (sigma_doppler_m_s). The station file has none, so the rate row is the
+  L1 phase's rate over the epoch, moved from the interval's middle to its end with the broadcast
+  geometry and rid of the atmosphere's change that the seed's rate model leaves out (the filter's
+  own predicted U_g, I_g on the two epochs' mappings): prr_j(k) = (phase_j(k) - phase_j(k-1) -
+  a_j) / T + [u_j . v_j - (rho_j(k) - rho_j(k-1)) / T], a_j = U_g dm_U - I_g dm_I (1 cm/s of
+  tropo at 10 deg); the bracket is the satellite's range curvature over T (m/s at T = 30 s), rho
+  from the filter's predicted position. Only on a slip-free epoch pair (LLI and the detector);
+  elsewhere the row is inert (z = h, sigma 1e3 m/s).
 * phase_increments: plus the code-minus-carrier increments E_j over cmc_window_s, the code noise at
   each window start a state (the experiment's cmc_noise = "states"), on arcs the detector calls
   slip-free over the window.
@@ -240,18 +243,24 @@ def run_filter(ep, opts, progress=None) -> dict:
         sin_el = np.sin(el[idx])
         sig_pr = opts.sigma_pr_m / sin_el
 
-        # ---- the rate rows: phase rate moved to the epoch (variants 1, 2), else inert
+        # ---- the rate rows (variants 1, 2): the file's Doppler, else the phase rate moved to the
+        # epoch and rid of the filter's own atmosphere change; carrier_phase: inert
         prr = np.zeros(idx.size)
         sig_prr = np.full(idx.size, INERT_SIGMA_PRR_M_S)
         have_rate = np.zeros(idx.size, dtype=bool)
-        if variant != "carrier_phase" and k > 0:
-            j = idx
-            ok = pair_ok[j] & np.isfinite(prev["phase"][j])
+        j = idx
+        if variant != "carrier_phase" and ep.doppler_prr_m_s is not None:
+            dop = ep.doppler_prr_m_s[k, j]
+            have_rate = np.isfinite(dop)
+            prr[have_rate] = dop[have_rate]
+            sig_prr[have_rate] = opts.sigma_doppler_m_s
+        elif variant != "carrier_phase" and k > 0:
+            ok = pair_ok[j] & np.isfinite(prev["phase"][j]) & np.isfinite(atmo[j])
             if ok.any():
                 u = (sp_all[j] - pos_f) / rho[j, None]
                 rho_prev = np.linalg.norm(prev["sat"][j] - pos_f, axis=-1)
                 curv = np.sum(u * sv_all[j], axis=-1) - (rho[j] - rho_prev) / dt
-                prr[ok] = ((ph[j] - prev["phase"][j]) / dt + curv)[ok]
+                prr[ok] = ((ph[j] - prev["phase"][j] - atmo[j]) / dt + curv)[ok]
                 sig_prr[ok] = opts.sigma_prr_m_s
                 have_rate = ok
         counts["rate_rows"] += int(have_rate.sum())
