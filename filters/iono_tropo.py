@@ -25,6 +25,10 @@ phases). Its mapping functions are written again here from the same equations as
 simulator's (sitl/gnss/atmosphere.py): filters/ imports no sitl, and the duplication across
 the truth/estimator boundary is deliberate.
 
+Real data (sitl.app.gnss.solve_filter): ``iono_obliquity`` / ``tropo_obliquity`` replace m_I / m_U by
+fixed per-satellite values (a shape with the ionosphere's horizontal gradient, another tropo
+mapping); left None, as the simulated experiment does, the arithmetic is the seed's.
+
 Pure numpy: no I/O, no clocks, no randomness.
 """
 from __future__ import annotations
@@ -280,6 +284,17 @@ class IonoTropoGnss:
     f_ref_hz: float = param(F_REF_HZ, check=_POSITIVE, doc="reference frequency of I_g (GPS L1), Hz")
     h_shell_m: float = param(IONO_SHELL_HEIGHT_M, check=_POSITIVE, doc="height of the thin ionosphere shell (eq 9), m")
     r_earth_m: float = param(EARTH_RADIUS_M, check=_POSITIVE, doc="Earth radius of the mapping functions, m")
+    iono_obliquity: Any = param(None, check=optional(_SIGMAS),
+                                doc="slant-to-zenith ratio of the ionosphere per line of sight, (S,) or (..., S), "
+                                    "replacing the thin-shell m_I(eta) of eq 9 (None: eq 9); given, it is held "
+                                    "fixed (no position dependence in H). Real data: a shape with the "
+                                    "ionosphere's horizontal gradient, e.g. broadcast Klobuchar's slant over "
+                                    "its vertical")
+    tropo_obliquity: Any = param(None, check=optional(_SIGMAS),
+                                 doc="slant-to-zenith ratio of the troposphere per line of sight, (S,) or (..., S), "
+                                     "replacing m_U = 1/sin(eta) of eq 11 on the geocentric elevation (None: eq 11); "
+                                     "given, it is held fixed (no position dependence in H). Real data: 1/sin of "
+                                     "the elevation above the ellipsoid's normal, which the air follows")
 
     def __post_init__(self):
         validate(self)
@@ -313,6 +328,10 @@ class IonoTropoGnss:
                     f"expected at least one K state when use_phase=True, got {self.phase_state_index!r}")
         if self.sigma_phase_m is not None:
             object.__setattr__(self, "sigma_phase_m", _per_satellite("sigma_phase_m", self.sigma_phase_m, S))
+        for name in ("iono_obliquity", "tropo_obliquity"):
+            ob = getattr(self, name)
+            require(ob is None or (ob.ndim >= 1 and ob.shape[-1] == S), name,
+                    f"expected (S,) or (..., {S}), got shape {np.shape(ob)}")
 
         object.__setattr__(self, "phase_state_index", _readonly(kidx))
         # derived per-satellite constants
@@ -364,6 +383,8 @@ class IonoTropoGnss:
             sel(self.sigma_phase_m), self.phase_state_index[m],
             self.use_phase and bool(np.any(self.phase_state_index[m] >= 0)),
             self.n_state, self.f_ref_hz, self.h_shell_m, self.r_earth_m,
+            None if self.iono_obliquity is None else self.iono_obliquity[..., m],
+            None if self.tropo_obliquity is None else self.tropo_obliquity[..., m],
         )
 
     # ---------------------------------------------------------------- h, H
@@ -382,6 +403,10 @@ class IonoTropoGnss:
         w = self.sat_vel_ecef_m_s - V[..., None, :]
         uw = np.sum(u * w, axis=-1)
         mI, dmI, mU, dmU = _mappings_of_sin(s, self._a2)
+        if self.iono_obliquity is not None:
+            mI, dmI = self.iono_obliquity, 0.0
+        if self.tropo_obliquity is not None:
+            mU, dmU = self.tropo_obliquity, 0.0
         Ig = x[..., IDX_IONO, None]
         Ug = x[..., IDX_TROPO, None]
         iono = Ig * self._k_iono * mI

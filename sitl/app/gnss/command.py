@@ -20,8 +20,15 @@ def _export():
     return export
 
 
+def _solve():
+    from sitl.app.gnss import solve
+
+    return solve
+
+
 SUBCOMMANDS = {
     "orbits": (_orbits, "broadcast GPS/GLONASS orbits and clocks against IGS precise orbits (SP3) and clocks"),
+    "solve": (_solve, "real GPS L1 observations through the seed 000 filter, against RTKLIB and dual-frequency iono"),
     "export": (_export, "the simulated world as RINEX 3.04 observation and navigation files plus truth"),
 }
 
