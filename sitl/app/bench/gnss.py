@@ -22,7 +22,7 @@ from sitl.app.args import OUTPUT_FILE, UsageError
 from sitl.params import add_flags, integer, optional, param, validate, from_text
 
 #: The files the bench reads (tests/data/gnss of a checkout; see its README).
-DATA_FILES = ("07590920.05o", "brdc1820.10n", "brdc0910.09g", "igs15904.sp3", "igs15904.clk", "igl15253.sp3")
+DATA_FILES = ("07590920.05o", "07590920.05n", "brdc1820.10n", "brdc0910.09g", "igs15904.sp3", "igs15904.clk", "igl15253.sp3")
 
 
 def _missing(folder: Path) -> list[str]:
@@ -31,9 +31,13 @@ def _missing(folder: Path) -> list[str]:
 
 def checkout_data_dir(package_file: str | Path = __file__) -> Path | None:
     """tests/data/gnss of the checkout this module runs from (a clone, or an editable install),
-    or None when there is none (an installed package: site-packages has no tests/)."""
-    folder = Path(package_file).resolve().parents[3] / "tests" / "data" / "gnss"
-    return folder if not _missing(folder) else None
+    else of the clone the command runs in (the current directory: a clone with the package
+    installed from it), or None when there is neither (site-packages has no tests/)."""
+    for root in (Path(package_file).resolve().parents[3], Path.cwd()):
+        folder = root / "tests" / "data" / "gnss"
+        if not _missing(folder):
+            return folder
+    return None
 
 
 def _data_dir(text: str) -> Path:

@@ -165,11 +165,14 @@ def test_gps_orbit_within_1_5_m_once_the_reference_points_agree(summary):
 
 # --- the bench's data folder -------------------------------------------------------------------
 
-def test_bench_finds_the_checkout_data_and_refuses_without(tmp_path):
+def test_bench_finds_the_checkout_data_and_refuses_without(tmp_path, monkeypatch):
+    monkeypatch.chdir(REPO)  # run from the clone (the package may be installed from it, as CI's is)
     assert checkout_data_dir() == DATA
     assert resolve_data_dir(None) == DATA
     assert resolve_data_dir(tmp_path) == tmp_path  # given: used as is (argparse checks its files)
     fake = tmp_path / "site-packages" / "sitl" / "app" / "bench" / "gnss.py"  # an installed layout
+    assert checkout_data_dir(fake) == DATA  # found through the current directory
+    monkeypatch.chdir(tmp_path)  # elsewhere: neither the package's checkout nor the directory
     assert checkout_data_dir(fake) is None
     with pytest.raises(UsageError, match="--data DIR"):
         resolve_data_dir(None, fake)
