@@ -7,7 +7,6 @@ from __future__ import annotations
 
 import math
 import select
-import socket
 
 import numpy as np
 import pytest
@@ -17,31 +16,8 @@ from tests.mavlink_peer import Peer, of_type
 from sitl.bus import InMemoryTransport
 from sitl.scenario import default_scenario
 from vehicles.autopilot import convention as cv
+from tests.procs import udp_base
 from vehicles.process import VehicleGroup, _mav_telemetry, build_endpoints
-
-
-def _free_base_port(n: int) -> int:
-    """A base port with base + 10 k free for k < n (UDP, loopback)."""
-    for _ in range(50):
-        s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-        s.bind(("127.0.0.1", 0))
-        base = s.getsockname()[1]
-        s.close()
-        if base + 10 * n >= 65535:
-            continue
-        socks = []
-        try:
-            for k in range(n):
-                t = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-                socks.append(t)
-                t.bind(("127.0.0.1", base + 10 * k))
-            return base
-        except OSError:
-            continue
-        finally:
-            for t in socks:
-                t.close()
-    raise RuntimeError("no free port range")
 
 
 class Group:
@@ -49,7 +25,7 @@ class Group:
 
     def __init__(self, tmp_path, start="in-flight", count=3, sonde=True):
         self.peer = Peer()
-        self.base = _free_base_port(count + 1)
+        self.base = udp_base(count + 1)
         scn = default_scenario().replace(sonde={"enabled": sonde}, uavs={"count": count, "start": start},
                                          mavlink={"gcs": f"127.0.0.1:{self.peer.addr[1]}", "base_port": self.base,
                                                   "tlog": False})

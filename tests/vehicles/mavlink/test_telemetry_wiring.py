@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import math
 import select
-import socket
 
 import numpy as np
 import pymap3d
@@ -22,6 +21,7 @@ from sitl.bus import InMemoryTransport
 from sitl.scenario import default_scenario
 from vehicles import uav_nav
 from vehicles.autopilot import convention as cv
+from tests.procs import udp_base
 from vehicles.process import VehicleGroup, _mav_telemetry, build_endpoints
 
 
@@ -70,35 +70,12 @@ def test_ned_covariance_is_the_ecef_covariance_rotated_as_pymap3d_rotates():
 # ---------------------------------------------------------------------- the worker's group on loopback
 
 
-def _free_base_port(n: int) -> int:
-    for _ in range(50):
-        s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-        s.bind(("127.0.0.1", 0))
-        base = s.getsockname()[1]
-        s.close()
-        if base + 10 * n >= 65535:
-            continue
-        socks = []
-        try:
-            for k in range(n):
-                t = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-                socks.append(t)
-                t.bind(("127.0.0.1", base + 10 * k))
-            return base
-        except OSError:
-            continue
-        finally:
-            for t in socks:
-                t.close()
-    raise RuntimeError("no free port range")
-
-
 class Group:
     """count UAVs (no sonde) of the worker's VehicleGroup with their endpoints; a pymavlink GCS."""
 
     def __init__(self, tmp_path, start="in-flight", count=2, **uavs):
         self.peer = Peer()
-        self.base = _free_base_port(count)
+        self.base = udp_base(count)
         self.scn = default_scenario().replace(
             sonde={"enabled": False}, uavs={"count": count, "start": start, **uavs},
             mavlink={"gcs": f"127.0.0.1:{self.peer.addr[1]}", "base_port": self.base, "tlog": False})
