@@ -450,6 +450,7 @@ def _cold_warm_up(scn, out: Path, stop: threading.Event, say) -> bool:
     import subprocess
 
     from sitl.app import kernel_cache as kc
+    from sitl.runtime import child_env
     if kc.is_warm():
         return True
     est_s, est_n = kc.estimate()
@@ -461,7 +462,7 @@ def _cold_warm_up(scn, out: Path, stop: threading.Event, say) -> bool:
     t0, w0 = perf_now(), wall_now() - 1.0
     with open(out / "logs" / "warm_up.stderr.log", "ab") as err:
         p = subprocess.Popen([sys.executable, "-m", "sitl.app.batch", str(out / "scenario.json"), "--warm-up"],
-                             stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=err)
+                             stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=err, env=child_env())
     next_line = perf_now() + 5.0
     try:
         while p.poll() is None:

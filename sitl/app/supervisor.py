@@ -68,7 +68,8 @@ class Supervisor:
         self.max_restarts = max_restarts
         self.grace_s = grace_s
         self.term_timeout_s = term_timeout_s
-        self.env = dict(os.environ if env is None else env)
+        from sitl.runtime import child_env
+        self.env = child_env(env)  # the children import this copy of the packages (not the cwd's)
         self.env["PYTHONUNBUFFERED"] = "1"
         self.children: dict[str, Child] = {}
         self.events: list[dict] = []

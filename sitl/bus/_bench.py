@@ -115,7 +115,8 @@ def main(argv: list[str] | None = None) -> int:
     a = ap.parse_args(argv)
     from .router import Router
 
-    env = dict(os.environ)
+    from sitl.runtime import child_env
+    env = child_env()  # the peers import this copy of the packages
     with Router() as r:
         ep = r.endpoints[0]
         sub = subprocess.Popen([sys.executable, "-c", _SUB, ep, a.delivery, str(a.n),
