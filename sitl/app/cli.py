@@ -258,6 +258,15 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)
         return 130
+    except BrokenPipeError:
+        # the reader went away (`skyfuse gnss ... | head`): stop quietly, as cat and grep do;
+        # stdout is pointed at devnull so that the interpreter's final flush does not fail too
+        import os
+        try:
+            os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        except (OSError, ValueError):
+            pass
+        return 141  # 128 + SIGPIPE, the shell's status for a writer cut off by its reader
 
 
 if __name__ == "__main__":  # pragma: no cover

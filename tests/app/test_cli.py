@@ -127,3 +127,26 @@ def test_bench_iono_tropo_runs_and_reports_ratios(tmp_path, capsys):
     assert main_row["ratio_to_main"] == 1.0
     for r in doc["rows"]:
         assert r["wall_s"] > 0 and abs(r["x_real_time"] - 3.0 / r["wall_s"]) < 1e-9 * r["x_real_time"]
+
+
+def test_a_reader_that_goes_away_ends_the_command_quietly(monkeypatch, capsys, tmp_path):
+    """`skyfuse gnss orbits ... | head`: the pipe closes under the writer; no traceback, the
+    shell's status for a writer cut off by its reader (128 + SIGPIPE)."""
+    import io
+    from pathlib import Path
+
+    from sitl.app import cli
+
+    class ClosedPipe(io.TextIOBase):
+        def write(self, s):
+            raise BrokenPipeError(32, "Broken pipe")
+
+        def fileno(self):
+            raise io.UnsupportedOperation("no descriptor")
+
+    data = Path(__file__).resolve().parents[1] / "data" / "gnss"
+    monkeypatch.setattr("sys.stdout", ClosedPipe())
+    rc = cli.main(["gnss", "orbits", "--nav", str(data / "brdc1820.10n"), "--sp3", str(data / "igs15904.sp3"),
+                   "--out", str(tmp_path / "o")])
+    assert rc == 141
+    assert "Traceback" not in capsys.readouterr().err
