@@ -51,3 +51,41 @@ def udp_base(n: int) -> int:
         if all(udp_free(base + 10 * i) for i in range(n)):
             return base
     raise RuntimeError("no free UDP port range")
+
+
+class LiveDemo:
+    """``sitl.app.launcher.launch(scn, out)`` in a thread, for live tests that act as a GCS
+    against it: the constructor returns once the workers are up (the launcher's own start-up
+    bound plus a margin for a cold kernel cache), ``stop()`` ends the run, joins it and checks
+    that every worker it started is gone.  ``report``: the launcher's report once stopped."""
+
+    def __init__(self, scn, out):
+        import threading
+        import time
+
+        import pytest
+
+        from sitl.app.launcher import READY_TIMEOUT_S, launch
+        self.scn, self.out = scn, out
+        self.out.mkdir(parents=True, exist_ok=True)
+        self.started = threading.Event()
+        self.stop_ev = threading.Event()
+        self.report = None
+
+        def run():
+            self.report = launch(scn, out, quiet=True, stop=self.stop_ev, on_started=lambda sup: self.started.set())
+        self.thread = threading.Thread(target=run, daemon=True)
+        self.thread.start()
+        end = time.monotonic() + READY_TIMEOUT_S + 30.0
+        while not self.started.wait(1.0) and self.thread.is_alive() and time.monotonic() < end:
+            pass
+        if not self.started.is_set():
+            self.stop()
+            pytest.fail(f"the demo did not start: {(self.report or {}).get('error', 'timed out')}")
+
+    def stop(self):
+        self.stop_ev.set()
+        self.thread.join(60)
+        assert not self.thread.is_alive(), "the demo did not stop"
+        pids = [e["pid"] for e in (self.report or {}).get("events", []) if e.get("event") == "start"]
+        assert all(dead(p) for p in pids), f"workers left running: {[p for p in pids if not dead(p)]}"

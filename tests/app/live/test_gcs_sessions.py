@@ -20,7 +20,7 @@ import threading
 import time
 
 import pytest
-from tests.procs import dead, udp_base as _base_port
+from tests.procs import LiveDemo, udp_base as _base_port
 
 from sitl.scenario import default_scenario
 
@@ -29,42 +29,14 @@ pytestmark = [pytest.mark.live, pytest.mark.slow]
 SPEED = 10.0
 
 
-class Demo:
-    """``launch`` in a thread (3 UAVs, no sonde, x10); ``stop()`` ends it and joins."""
-
-    def __init__(self, tmp_path, gcs_port: int, duration_s: float = 4000.0, **uavs):
-        from sitl.app.launcher import launch
-        self.base = _base_port(4)
-        self.scn = default_scenario().replace(run={"speed": SPEED, "duration_s": duration_s, "rate_hz": 10.0},
-                                              mavlink={"gcs": f"127.0.0.1:{gcs_port}", "base_port": self.base},
-                                              uavs={"count": 3, **uavs}, sonde={"enabled": False})
-        self.out = tmp_path / "demo"
-        self.out.mkdir()
-        self.started = threading.Event()
-        self.stop_ev = threading.Event()
-        self.report = None
-
-        def run():
-            self.report = launch(self.scn, self.out, quiet=True, stop=self.stop_ev,
-                                 on_started=lambda sup: self.started.set())
-        self.thread = threading.Thread(target=run, daemon=True)
-        self.thread.start()
-        # the launcher's own bound (a loaded machine may need it: the first start of a checkout
-        # compiles the numba kernels), plus the warm-up's margin
-        from sitl.app.launcher import READY_TIMEOUT_S
-        end = time.monotonic() + READY_TIMEOUT_S + 30.0
-        while not self.started.wait(1.0) and self.thread.is_alive() and time.monotonic() < end:
-            pass
-        if not self.started.is_set():
-            self.stop()
-            pytest.fail(f"the demo did not start: {(self.report or {}).get('error', 'timed out')}")
-
-    def stop(self):
-        self.stop_ev.set()
-        self.thread.join(60)
-        assert not self.thread.is_alive(), "the demo did not stop"
-        pids = [e["pid"] for e in (self.report or {}).get("events", []) if e.get("event") == "start"]
-        assert all(dead(p) for p in pids), f"workers left running: {[p for p in pids if not dead(p)]}"
+def Demo(tmp_path, gcs_port: int, duration_s: float = 4000.0, **uavs) -> LiveDemo:
+    """The demo at x10 with 3 UAVs and no sonde, MAVLink to ``gcs_port``; ``.stop()`` ends it."""
+    scn = default_scenario().replace(run={"speed": SPEED, "duration_s": duration_s, "rate_hz": 10.0},
+                                     mavlink={"gcs": f"127.0.0.1:{gcs_port}", "base_port": _base_port(4)},
+                                     uavs={"count": 3, **uavs}, sonde={"enabled": False})
+    d = LiveDemo(scn, tmp_path / "demo")
+    d.base = scn.mavlink.base_port
+    return d
 
 
 def _free_udp_port() -> int:

@@ -12,12 +12,11 @@ with the PARAM_VALUEs the vehicles sent."""
 from __future__ import annotations
 
 import math
-import threading
 import time
 
 import numpy as np
 import pytest
-from tests.procs import udp_base as _base_port
+from tests.procs import LiveDemo, udp_base as _base_port
 
 from sitl.scenario import default_scenario
 
@@ -47,34 +46,14 @@ def _free_udp_port() -> int:
         return s.getsockname()[1]
 
 
-class Demo:
-    """``launch`` in a thread (N_UAV UAVs on the ground, no sonde, x10, 10 Hz epochs); stop() joins it."""
-
-    def __init__(self, tmp_path, gcs_port: int):
-        from sitl.app.launcher import launch
-        self.base = _base_port(N_UAV + 1)
-        self.scn = default_scenario().replace(run={"speed": SPEED, "duration_s": 4000.0, "rate_hz": 10.0},
-                                              mavlink={"gcs": f"127.0.0.1:{gcs_port}", "base_port": self.base},
-                                              uavs={"count": N_UAV, "start": "ground"}, sonde={"enabled": False})
-        self.out = tmp_path / "demo"
-        self.out.mkdir()
-        self.started = threading.Event()
-        self.stop_ev = threading.Event()
-        self.report = None
-
-        def run():
-            self.report = launch(self.scn, self.out, quiet=True, stop=self.stop_ev,
-                                 on_started=lambda sup: self.started.set())
-        self.thread = threading.Thread(target=run, daemon=True)
-        self.thread.start()
-        if not self.started.wait(120):
-            self.stop()
-            pytest.fail("the demo did not start within 120 s")
-
-    def stop(self):
-        self.stop_ev.set()
-        self.thread.join(60)
-        assert not self.thread.is_alive(), "the demo did not stop"
+def Demo(tmp_path, gcs_port: int) -> LiveDemo:
+    """The demo at x10 with N_UAV UAVs on the ground, no sonde, 10 Hz epochs; ``.stop()`` ends it."""
+    scn = default_scenario().replace(run={"speed": SPEED, "duration_s": 4000.0, "rate_hz": 10.0},
+                                     mavlink={"gcs": f"127.0.0.1:{gcs_port}", "base_port": _base_port(N_UAV + 1)},
+                                     uavs={"count": N_UAV, "start": "ground"}, sonde={"enabled": False})
+    d = LiveDemo(scn, tmp_path / "demo")
+    d.base = scn.mavlink.base_port
+    return d
 
 
 def _wait(pred, timeout_s: float, what: str, poll_s: float = 0.1):
