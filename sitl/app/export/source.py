@@ -66,9 +66,11 @@ def read_records(log: Path, *, stats: BusLogStats | None = None, progress: bool 
     if progress is None:
         progress = hasattr(sys.stderr, "isatty") and sys.stderr.isatty()
     bar = None
-    if progress:
+    try:
         from tqdm import tqdm
-
+    except ImportError:  # the `export` extra brings it; without it no bar
+        progress = False
+    if progress:
         bar = tqdm(total=os.path.getsize(log), unit="B", unit_scale=True, desc=desc, leave=False,
                    file=sys.stderr)
     logger = logging.getLogger("sitl.bus.buslog")
