@@ -7,7 +7,9 @@
     skyfuse export mcap    OUT|LOG [-o FILE]
     skyfuse export all     OUT|LOG [--format parquet|csv]
 
-OUT is a run's output directory (its bus.log is read), LOG a bus log. Without -o a file goes
+OUT is a run's output directory (its bus.log is read; a `demo --batch` run's, which keeps no bus
+log, is run again from its report.json's scenario with a recorder, and checked against the
+report's errors: `sitl.app.export.source.record_batch`), LOG a bus log. Without -o a file goes
 beside the log (tracks.parquet / tracks.csv, tracks.geojson, tracks.kml, bus.mcap). Bad input
 (no such file, not a bus log, a log without records) is one line on stderr, exit 2, before
 anything is written; a torn tail is exported up to it and said once."""

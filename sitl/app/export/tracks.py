@@ -287,6 +287,14 @@ def object_arrays(o: TrackedObject) -> dict:
 def _nees(e: np.ndarray, p: np.ndarray) -> np.ndarray:
     out = np.full(len(e), np.nan)
     ok = np.isfinite(e).all(axis=1) & np.isfinite(p).all(axis=(1, 2))
+    if not ok.any():
+        return out
+    try:
+        x = np.linalg.solve(p[ok], e[ok][..., None])[..., 0]
+        out[ok] = np.einsum("ij,ij->i", e[ok], x)
+        return out
+    except np.linalg.LinAlgError:  # a singular covariance among them: row by row
+        pass
     for i in np.flatnonzero(ok):
         try:
             out[i] = float(e[i] @ np.linalg.solve(p[i], e[i]))

@@ -154,3 +154,24 @@ def test_table_matches_the_batch_runs_own_scores(tmp_path, capsys):
 
     assert ET.parse(out / "tracks.kml").getroot().tag == "{http://www.opengis.net/kml/2.2}kml"
 
+
+
+@pytest.mark.slow
+def test_a_demo_batch_run_is_exported_from_its_report(tmp_path, capsys):
+    """`skyfuse demo --batch` keeps no bus log; export runs it again from report.json's scenario
+    (deterministic for its seed) with a recorder: the table's RMSE is the report's."""
+    pytest.importorskip("numba")
+    out = tmp_path / "b"
+    assert main(["demo", "--batch", "--duration", "6", "--out", str(out), "--quiet"]) == 0
+    report = json.loads((out / "report.json").read_text())
+    capsys.readouterr()
+    assert main(["export", "table", str(out), "-o", str(tmp_path / "b.parquet")]) == 0
+    err = capsys.readouterr().err
+    assert "running it again" in err and "differ" not in err and len(err.strip().splitlines()) == 1
+    t = pq.read_table(tmp_path / "b.parquet").to_pylist()
+    for name, e in report["errors"].items():
+        kind, oid = name.split("/")
+        err_m = [r["err_3d_m"] for r in t if r["kind"] == kind and r["object_id"] == oid and r["err_3d_m"] is not None]
+        assert len(err_m) == e["scored"] > 0
+        assert math.sqrt(sum(x * x for x in err_m) / len(err_m)) == pytest.approx(e["rmse_m"], rel=1e-9)
+    assert (out / "bus.log").is_file() and not (out / "bus.log.part").exists()
