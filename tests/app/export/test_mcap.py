@@ -24,6 +24,32 @@ def _utc_ns(t_gps_s: float) -> int:
     return int(round(dt.timestamp() * 1e6)) * 1000
 
 
+def conforms(value, schema) -> bool:
+    """The JSON Schema keywords the export uses (type, properties, required, additionalProperties,
+    items, minItems, maxItems), checked by hand (no JSON Schema validator is installed)."""
+    types = schema.get("type")
+    if types is not None:
+        names = types if isinstance(types, list) else [types]
+        kinds = {"number": (int, float), "integer": (int,), "boolean": (bool,), "string": (str,),
+                 "array": (list,), "object": (dict,), "null": (type(None),)}
+        ok = any(isinstance(value, kinds[n]) and not (n in ("number", "integer") and isinstance(value, bool))
+                 for n in names)
+        if not ok:
+            return False
+    if isinstance(value, dict):
+        props = schema.get("properties", {})
+        if any(k not in value for k in schema.get("required", [])):
+            return False
+        if schema.get("additionalProperties") is False and set(value) - set(props):
+            return False
+        return all(conforms(v, props[k]) for k, v in value.items() if k in props)
+    if isinstance(value, list):
+        if len(value) < schema.get("minItems", 0) or len(value) > schema.get("maxItems", len(value)):
+            return False
+        return all(conforms(v, schema.get("items", {})) for v in value)
+    return True
+
+
 def _read(path):
     with open(path, "rb") as f:
         r = make_reader(f)
@@ -54,6 +80,7 @@ def test_mcap_round_trip(synthetic_run, capsys):
         doc = json.loads(m.data)
         js = json.loads(sch.data)
         assert set(doc) == set(js["required"]), ch.topic
+        assert conforms(doc, js), ch.topic
         if ch.topic == "skyfuse/undecodable":
             assert doc["key"] == "r1/uav/7/nav" and doc["reason"]
             continue
@@ -66,6 +93,8 @@ def test_mcap_round_trip(synthetic_run, capsys):
     assert truth[0]["pos_ecef_m"] == pytest.approx(list(ecef(*beacon_llh(0))), abs=1e-6)
     est = [json.loads(m.data) for _, c, m in msgs if c.topic == "r1/gs/estimate/beacon/b1"]
     assert len(est[0]["cov"]) == 6 and all(len(row) == 6 for row in est[0]["cov"]) and est[0]["nis"] == 1.5
+    assert not conforms({**est[0], "cov": est[0]["cov"][:5]}, json.loads(
+        next(s for s in summary.schemas.values() if s.name.endswith(".Estimate")).data))  # the checker bites
     assert meta["skyfuse"]["schema"] == "skyfuse.export.mcap/1"
     assert int(meta["skyfuse"]["records"]) == synthetic_run.records
     assert _utc_ns(T0) == 1735693182 * 10**9  # 2025-01-01T00:59:42Z

@@ -144,8 +144,13 @@ def test_table_matches_the_batch_runs_own_scores(tmp_path, capsys):
     from sitl.bus.buslog import read_bus_log
 
     want = Counter(k for k, _ in read_bus_log(out / "bus.log"))
+    from .test_mcap import conforms
+
+    got: Counter = Counter()
     with open(out / "bus.mcap", "rb") as f:
-        got = Counter(c.topic for _, c, _ in make_reader(f).iter_messages())
+        for sch, c, m in make_reader(f).iter_messages():
+            got[c.topic] += 1
+            assert conforms(json.loads(m.data), json.loads(sch.data)), c.topic
     assert got == want and sum(want.values()) == res["recorded"]
     from .test_geo import check_rfc7946
 
