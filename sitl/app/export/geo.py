@@ -60,12 +60,14 @@ def _track_geometry(t: np.ndarray, lat: np.ndarray, lon: np.ndarray, h: np.ndarr
         return None, t
     if len(t) == 1:
         return {"type": "Point", "coordinates": _pos(lon[0], lat[0], h[0])}, t
-    parts = _split_antimeridian(lon)
-    lines = [[_pos(lon[i], lat[i], h[i]) for i in range(a, b)] for a, b in parts]
-    lines = [ln for ln in lines if len(ln) >= 2]  # a lone point between two crossings is dropped
+    parts = [(a, b) for a, b in _split_antimeridian(lon) if b - a >= 2]  # a lone point between two crossings
+    lines = [[_pos(lon[i], lat[i], h[i]) for i in range(a, b)] for a, b in parts]  # is dropped
+    kept = np.concatenate([t[a:b] for a, b in parts]) if parts else t[:0]
+    if not lines:
+        return None, kept
     if len(lines) == 1:
-        return {"type": "LineString", "coordinates": lines[0]}, t
-    return {"type": "MultiLineString", "coordinates": lines}, t
+        return {"type": "LineString", "coordinates": lines[0]}, kept
+    return {"type": "MultiLineString", "coordinates": lines}, kept
 
 
 def ellipse_ring(pos_ecef_m: np.ndarray, cov_pos: np.ndarray, k: float = CHI2_2DOF_95_SQRT,
