@@ -201,6 +201,10 @@ def build_parser() -> argparse.ArgumentParser:
     from sitl.app.gnss.command import add_parser as add_gnss_parser  # `gnss`: sitl/app/gnss/ (light)
     add_gnss_parser(sub)
 
+    # `export`: sitl/app/export/ (light; pyarrow and mcap load when a subcommand runs)
+    from sitl.app.export.command import add_parser as add_export_parser
+    add_export_parser(sub)
+
     bench = sub.add_parser("bench", help="speed benchmarks, each against a peer measured in the same run",
                            description="Benchmarks report ratios against a peer measured in the same run.")
     bench_sub = bench.add_subparsers(dest="bench", metavar="BENCH", parser_class=Parser)
@@ -241,6 +245,8 @@ def _run(args: argparse.Namespace) -> int:
         return mod.main(args)
     if args.command == "gnss":  # registered by sitl.app.gnss.command.add_parser, which set gnss_main
         return args.gnss_main(args)
+    if args.command == "export":  # registered by sitl.app.export.command.add_parser
+        return args.export_main(args)
     if args.command == "bench":
         mod = BENCHES[args.bench][0]()
         return mod.main(args)
