@@ -65,6 +65,7 @@ def main(argv=None) -> int:
     bus = open_bus(spec, scn.bus.lease_ms)
     gcs = None
     node = None
+    journal = None
     try:
         if scn.mavlink.enabled:
             try:
@@ -78,8 +79,15 @@ def main(argv=None) -> int:
         # the link first: it heartbeats (standby) while the node is built and the run waits to start
         standby = _standby_heartbeats(gcs) if gcs is not None else None
         try:
+            from ground_station.journal import JournalingTransport, config_to_json, open_journal
             from ground_station.node import GroundStationNode, GsConfig  # numba kernels: seconds on a cold start
-            node = GroundStationNode(bus, spec.run_id, GsConfig.from_scenario(scn, sonde_tracker_from_spec(spec)),
+            from sitl.pacing import perf_now
+            config = GsConfig.from_scenario(scn, sonde_tracker_from_spec(spec))
+            # the journal: what the node consumed and when, for an exact replay (ground_station.journal)
+            journal = open_journal(spec.out_dir, rt.incarnation,
+                                   {"run_id": spec.run_id, "worker": spec.name, "config": config_to_json(config)},
+                                   t_s=scn.run.t0_gps_s, clock=perf_now)
+            node = GroundStationNode(JournalingTransport(bus, journal), spec.run_id, config,
                                      incarnation=rt.incarnation)
             if not rt.wait_start():
                 return 0
@@ -105,10 +113,13 @@ def main(argv=None) -> int:
             w0 = perf_now()
             if gcs is not None:  # HEARTBEAT when due (simulation time) before the step, which may take long
                 gcs.tick(pacer.sim_now())
+            journal.t_s = pacer.sim_now()  # what this drain takes in arrived by then
             bus.drain()
-            horizon = min(pacer.sim_now(), t_end + hold_sim) - hold_sim
+            now = min(pacer.sim_now(), t_end + hold_sim)
+            horizon = now - hold_sim
+            journal.advance(horizon, early_window, now)  # journaled (to the kernel) before any output
             try:
-                out = node.advance(horizon, early_window_s=early_window, now_s=min(pacer.sim_now(), t_end + hold_sim))
+                out = node.advance(horizon, early_window_s=early_window, now_s=now)
             except Exception as e:  # counted, reported, the node keeps running
                 errors += 1
                 out = []
@@ -132,17 +143,25 @@ def main(argv=None) -> int:
             node.link_messages.clear()
             tick_s.append(perf_now() - w0)
             if rt.status_due():
-                rt.emit(_status(node, bus, gcs, errors, horizon, tick_s))
+                rt.emit(_status(node, bus, gcs, errors, horizon, tick_s, journal))
             if horizon >= t_end:
                 break
             t = max(t + tick, pacer.sim_now())
+        journal.t_s = pacer.sim_now()
         bus.drain()
-        node.advance(t_end)
-        rt.emit({**_status(node, bus, gcs, errors, t_end, tick_s), "event": "done", "gs": node.stats()})
+        journal.advance(t_end, None, None)
+        try:
+            node.advance(t_end)
+        except Exception as e:
+            errors += 1
+            print(f"gs: last step failed: {type(e).__name__}: {e}", file=sys.stderr)
+        rt.emit({**_status(node, bus, gcs, errors, t_end, tick_s, journal), "event": "done", "gs": node.stats()})
         return 0
     finally:
         if node is not None:
             node.close()
+        if journal is not None:
+            journal.close()
         if gcs is not None:
             gcs.close()
         bus.close()
@@ -175,7 +194,7 @@ def _standby_heartbeats(gcs, period_wall_s: float = 1.0):
     return stop
 
 
-def _status(node, bus, gcs, errors, t, tick_s=()) -> dict:
+def _status(node, bus, gcs, errors, t, tick_s=(), journal=None) -> dict:
     from sitl.pacing import cpu_now
     from sitl.live.worker import bus_counters
     d = {"event": "status", "t_sim_s": t, "cpu_s": cpu_now(), "epochs": node.counters["epochs"], "estimates": node.counters["estimates"],
@@ -188,6 +207,8 @@ def _status(node, bus, gcs, errors, t, tick_s=()) -> dict:
             d["rejected"][f"time:{reason}"] = int(node.counters[f"rejected_{reason}"])
     if gcs is not None:  # skipped / clamped: what the MAVLink messages could not carry as it is
         d["mavlink"] = gcs.status()
+    if journal is not None:  # its records, bytes and the time the main loop spent writing it
+        d["journal"] = journal.status()
     if tick_s:
         a = sorted(tick_s)
         d["tick_ms"] = {"p50": 1e3 * a[len(a) // 2], "p90": 1e3 * a[int(0.9 * len(a))], "p99": 1e3 * a[min(len(a) - 1, int(0.99 * len(a)))],
