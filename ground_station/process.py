@@ -11,6 +11,12 @@ with its signing state in ``OUT/mav_signing_250.json``): the beacon and sonde es
 ADSB_VEHICLE with their 1-sigma uncertainty in UTM_GLOBAL_POSITION, the integrity events its
 trackers publish (``<run>/gs/integrity/**``) and its input links turning stale or coming back
 (``<run>/gs/link/**``, "link uav2: stale") as rate-limited STATUSTEXT; ``mav_gs.tlog`` records them.
+
+Journal (ground_station.journal): every input payload the node's subscriptions take in, raw and
+in their order, and every ``advance()`` with its arguments go to ``OUT/gs_journal.log``
+(``gs_journal.r<N>.log`` for incarnation N), each tick's records to the kernel before the tick
+publishes anything, so `skyfuse replay` reproduces this process's decisions exactly. The status
+line's ``journal`` block: its records, bytes and the main loop's time spent writing it.
 """
 from __future__ import annotations
 
