@@ -90,11 +90,15 @@ def main(argv=None) -> int:
             from sitl.pacing import perf_now
             config = GsConfig.from_scenario(scn, sonde_tracker_from_spec(spec))
             # the journal: what the node consumed and when, for an exact replay (ground_station.journal)
-            journal = open_journal(spec.out_dir, rt.incarnation,
-                                   {"run_id": spec.run_id, "worker": spec.name, "config": config_to_json(config)},
-                                   t_s=scn.run.t0_gps_s, clock=perf_now)
-            node = GroundStationNode(JournalingTransport(bus, journal), spec.run_id, config,
-                                     incarnation=rt.incarnation)
+            try:
+                journal = open_journal(spec.out_dir, rt.incarnation,
+                                       {"run_id": spec.run_id, "worker": spec.name, "config": config_to_json(config)},
+                                       t_s=scn.run.t0_gps_s, clock=perf_now)
+                node_bus = JournalingTransport(bus, journal)
+            except (OSError, ValueError) as e:  # the fusion runs anyway; a replay then re-derives its decisions
+                print(f"gs: no journal (replay will not be exact): {type(e).__name__}: {e}", file=sys.stderr)
+                journal, node_bus = _NoJournal(), bus
+            node = GroundStationNode(node_bus, spec.run_id, config, incarnation=rt.incarnation)
             if not rt.wait_start():
                 return 0
         finally:
@@ -171,6 +175,21 @@ def main(argv=None) -> int:
         if gcs is not None:
             gcs.close()
         bus.close()
+
+
+class _NoJournal:
+    """Stands in for the journal when it cannot be written (the status line says so)."""
+
+    t_s = 0.0
+
+    def advance(self, *_):
+        pass
+
+    def status(self) -> dict:
+        return {"path": None}
+
+    def close(self):
+        pass
 
 
 def _standby_heartbeats(gcs, period_wall_s: float = 1.0):
