@@ -11,6 +11,12 @@ with its signing state in ``OUT/mav_signing_250.json``): the beacon and sonde es
 ADSB_VEHICLE with their 1-sigma uncertainty in UTM_GLOBAL_POSITION, the integrity events its
 trackers publish (``<run>/gs/integrity/**``) and its input links turning stale or coming back
 (``<run>/gs/link/**``, "link uav2: stale") as rate-limited STATUSTEXT; ``mav_gs.tlog`` records them.
+
+Journal (ground_station.journal): every input payload the node's subscriptions take in, raw and
+in their order, and every ``advance()`` with its arguments go to ``OUT/gs_journal.log``
+(``gs_journal.r<N>.log`` for incarnation N), each tick's records to the kernel before the tick
+publishes anything, so `skyfuse replay` reproduces this process's decisions exactly. The status
+line's ``journal`` block: its records, bytes and the main loop's time spent writing it.
 """
 from __future__ import annotations
 
@@ -65,6 +71,7 @@ def main(argv=None) -> int:
     bus = open_bus(spec, scn.bus.lease_ms)
     gcs = None
     node = None
+    journal = None
     try:
         if scn.mavlink.enabled:
             try:
@@ -78,9 +85,20 @@ def main(argv=None) -> int:
         # the link first: it heartbeats (standby) while the node is built and the run waits to start
         standby = _standby_heartbeats(gcs) if gcs is not None else None
         try:
+            from ground_station.journal import JournalingTransport, config_to_json, open_journal
             from ground_station.node import GroundStationNode, GsConfig  # numba kernels: seconds on a cold start
-            node = GroundStationNode(bus, spec.run_id, GsConfig.from_scenario(scn, sonde_tracker_from_spec(spec)),
-                                     incarnation=rt.incarnation)
+            from sitl.pacing import perf_now
+            config = GsConfig.from_scenario(scn, sonde_tracker_from_spec(spec))
+            # the journal: what the node consumed and when, for an exact replay (ground_station.journal)
+            try:
+                journal = open_journal(spec.out_dir, rt.incarnation,
+                                       {"run_id": spec.run_id, "worker": spec.name, "config": config_to_json(config)},
+                                       t_s=scn.run.t0_gps_s, clock=perf_now)
+                node_bus = JournalingTransport(bus, journal)
+            except (OSError, ValueError) as e:  # the fusion runs anyway; a replay then re-derives its decisions
+                print(f"gs: no journal (replay will not be exact): {type(e).__name__}: {e}", file=sys.stderr)
+                journal, node_bus = _NoJournal(), bus
+            node = GroundStationNode(node_bus, spec.run_id, config, incarnation=rt.incarnation)
             if not rt.wait_start():
                 return 0
         finally:
@@ -105,10 +123,13 @@ def main(argv=None) -> int:
             w0 = perf_now()
             if gcs is not None:  # HEARTBEAT when due (simulation time) before the step, which may take long
                 gcs.tick(pacer.sim_now())
+            journal.t_s = pacer.sim_now()  # what this drain takes in arrived by then
             bus.drain()
-            horizon = min(pacer.sim_now(), t_end + hold_sim) - hold_sim
+            now = min(pacer.sim_now(), t_end + hold_sim)
+            horizon = now - hold_sim
+            journal.advance(horizon, early_window, now)  # journaled (to the kernel) before any output
             try:
-                out = node.advance(horizon, early_window_s=early_window, now_s=min(pacer.sim_now(), t_end + hold_sim))
+                out = node.advance(horizon, early_window_s=early_window, now_s=now)
             except Exception as e:  # counted, reported, the node keeps running
                 errors += 1
                 out = []
@@ -132,20 +153,43 @@ def main(argv=None) -> int:
             node.link_messages.clear()
             tick_s.append(perf_now() - w0)
             if rt.status_due():
-                rt.emit(_status(node, bus, gcs, errors, horizon, tick_s))
+                rt.emit(_status(node, bus, gcs, errors, horizon, tick_s, journal))
             if horizon >= t_end:
                 break
             t = max(t + tick, pacer.sim_now())
+        journal.t_s = pacer.sim_now()
         bus.drain()
-        node.advance(t_end)
-        rt.emit({**_status(node, bus, gcs, errors, t_end, tick_s), "event": "done", "gs": node.stats()})
+        journal.advance(t_end, None, None)
+        try:
+            node.advance(t_end)
+        except Exception as e:
+            errors += 1
+            print(f"gs: last step failed: {type(e).__name__}: {e}", file=sys.stderr)
+        rt.emit({**_status(node, bus, gcs, errors, t_end, tick_s, journal), "event": "done", "gs": node.stats()})
         return 0
     finally:
         if node is not None:
             node.close()
+        if journal is not None:
+            journal.close()
         if gcs is not None:
             gcs.close()
         bus.close()
+
+
+class _NoJournal:
+    """Stands in for the journal when it cannot be written (the status line says so)."""
+
+    t_s = 0.0
+
+    def advance(self, *_):
+        pass
+
+    def status(self) -> dict:
+        return {"path": None}
+
+    def close(self):
+        pass
 
 
 def _standby_heartbeats(gcs, period_wall_s: float = 1.0):
@@ -175,7 +219,7 @@ def _standby_heartbeats(gcs, period_wall_s: float = 1.0):
     return stop
 
 
-def _status(node, bus, gcs, errors, t, tick_s=()) -> dict:
+def _status(node, bus, gcs, errors, t, tick_s=(), journal=None) -> dict:
     from sitl.pacing import cpu_now
     from sitl.live.worker import bus_counters
     d = {"event": "status", "t_sim_s": t, "cpu_s": cpu_now(), "epochs": node.counters["epochs"], "estimates": node.counters["estimates"],
@@ -188,6 +232,8 @@ def _status(node, bus, gcs, errors, t, tick_s=()) -> dict:
             d["rejected"][f"time:{reason}"] = int(node.counters[f"rejected_{reason}"])
     if gcs is not None:  # skipped / clamped: what the MAVLink messages could not carry as it is
         d["mavlink"] = gcs.status()
+    if journal is not None:  # its records, bytes and the time the main loop spent writing it
+        d["journal"] = journal.status()
     if tick_s:
         a = sorted(tick_s)
         d["tick_ms"] = {"p50": 1e3 * a[len(a) // 2], "p90": 1e3 * a[int(0.9 * len(a))], "p99": 1e3 * a[min(len(a) - 1, int(0.99 * len(a)))],

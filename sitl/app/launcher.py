@@ -21,14 +21,22 @@ the workers filter their own publications; ``<run>/ctl/fault`` changes any of th
 run goes (`skyfuse fault set`, which finds the router in OUT/run.json). report.json gets a
 ``faults`` block: per link the specs applied over time and the truth counters.
 
-replay LOG: the recorded bus log through the batch ground station (GroundStationNode on the
-in-memory transport), in the recorded order, on the recorded clock (each record's receive
-time: the launcher's simulation clock when the payload arrived, never the payload's own time),
-an epoch processed under the live rule (once every source publishing has delivered it, at the
-latest hold_wall_s x speed after it), the same time guard as live; prints the replayed
-estimates' errors against the recorded truth and their difference from the estimates the
-live ground station published (recorded in the same log). A log with restarted workers
-replays like any other: their new incarnations are new streams there too.
+replay LOG: the ground station's inputs through the batch ground station (GroundStationNode on
+the in-memory transport); prints the replayed estimates' errors against the recorded truth and
+their difference from the estimates the live ground station published (recorded in the same
+log), and which of two sources gave its decisions ("decisions:"):
+  * "journal" (when OUT/gs_journal.log is beside the log; ground_station.journal): what each live
+    ground-station incarnation consumed, in its order -- every input payload as it took it in,
+    every advance() with its arguments -- through a node of the journal's own configuration and
+    incarnation: the live estimates bit for bit, whatever the machine's load was;
+  * "recorder clock" (no journal, or --no-journal): the log in the recorded order, on the
+    recorded clock (each record's receive time: the launcher's simulation clock when the payload
+    arrived, never the payload's own time), an epoch processed under the live rule (once every
+    source publishing has delivered it, at the latest hold_wall_s x speed after it), the same
+    time guard as live. The recorder is not the ground station: under load its arrival order
+    and clock differ, and so, for some epochs, do the estimates.
+A log with restarted workers replays like any other: their new incarnations are new streams
+there too.
 
 vehicles / ground_station are started by module name (sitl never imports them statically).
 """
@@ -134,6 +142,9 @@ class ReplayOptions:
     scenario: Path | None = param(None, check=optional(from_text(Path)), doc="the run's scenario",
                                   default_help="default: scenario.json beside the log, else the built-in default")
     json: Path | None = param(None, check=optional(from_text(Path)), metavar="FILE", doc="also write the result as JSON")
+    no_journal: bool = param(False, check=switch(),
+                             doc="re-derive the ground station's decisions on the recorder's clock even where its "
+                                 "journal (gs_journal.log beside the log) would give them exactly")
 
     __post_init__ = validate
 
@@ -588,10 +599,65 @@ def summary_text(report: dict) -> str:
 # ---------------------------------------------------------------------- replay
 
 
-def replay(log_path, scn) -> dict:
-    """The recorded bus log through GroundStationNode on the in-memory transport (module doc)."""
+def replay(log_path, scn, *, use_journal: bool = True) -> dict:
+    """The recorded bus log through GroundStationNode on the in-memory transport (module doc):
+    with the live ground station's journals beside the log (ground_station.journal) its exact
+    inputs and decisions, else (or with ``use_journal=False``) the live rule re-derived on the
+    recorder's clock. ``decisions`` in the result says which was used, ``decisions_note`` why."""
+    from ground_station.journal import JournalError, find_journals, read_journal_header
+
+    log_path = Path(log_path)
+    journals, note = [], ""
+    if not use_journal:
+        note = "journal not used (asked)"
+    else:
+        paths = find_journals(log_path.parent)
+        if not paths:
+            note = "no ground-station journal beside the log"
+        for p in paths:
+            try:
+                hdr = read_journal_header(p)
+            except JournalError as e:
+                journals, note = [], f"journal not usable: {' '.join(str(e).split())}"
+                break
+            if hdr["run_id"] != scn.run.id:
+                journals, note = [], f"journal {p.name} is of run {hdr['run_id']!r}, not {scn.run.id!r}"
+                break
+            journals.append(p)
+    if journals:
+        return _replay_journals(log_path, scn, journals)
+    out = _replay_recorder_clock(log_path, scn)
+    out["decisions"], out["decisions_note"] = "recorder clock", note
+    return out
+
+
+def _vs_live(replayed: dict, recorded: dict) -> dict:
+    """Per estimate kind: replayed, recorded, matched (the same key and time in both) and the
+    largest / median position difference of the matched ones. Keys: (..., key, t)."""
     import numpy as np
 
+    def kind_of(k):
+        return k[-2].rsplit("/", 2)[-2]
+
+    diffs = {}
+    for k, est in replayed.items():
+        rec_est = recorded.get(k)
+        if rec_est is None:
+            continue
+        diffs.setdefault(kind_of(k), []).append(float(np.linalg.norm(est.pos_ecef_m - rec_est.pos_ecef_m)))
+    cmp = {}
+    for kind in sorted({kind_of(k) for k in set(replayed) | set(recorded)}):
+        d = np.array(diffs.get(kind, []))
+        cmp[kind] = {"replayed": sum(1 for k in replayed if kind_of(k) == kind),
+                     "recorded": sum(1 for k in recorded if kind_of(k) == kind),
+                     "matched": int(d.size),
+                     "max_pos_diff_m": float(d.max()) if d.size else None,
+                     "median_pos_diff_m": float(np.median(d)) if d.size else None}
+    return cmp
+
+
+def _replay_recorder_clock(log_path, scn) -> dict:
+    """The live rule re-derived from the recorder's receive times (no journal)."""
     from sitl.bus import BusDecodeError, InMemoryTransport, decode, key_matches
     from sitl.bus.buslog import BusLogStats, read_bus_log_records
     from ground_station import node as gn
@@ -639,27 +705,120 @@ def replay(log_path, scn) -> dict:
         bus.publish_raw(key, payload, now)  # every epoch complete or held long enough is processed
         node.advance(now - hold_sim - 1e-6, early_window_s=early_window, now_s=now)
     node.flush()
-    diffs = {}
-    for (key, t), est in replayed.items():
-        rec_est = recorded.get((key, t))
-        if rec_est is None:
-            continue
-        kind = key.rsplit("/", 2)[-2]
-        diffs.setdefault(kind, []).append(float(np.linalg.norm(est.pos_ecef_m - rec_est.pos_ecef_m)))
-    cmp = {}
-    for kind in sorted({k.rsplit("/", 2)[-2] for k, _ in set(replayed) | set(recorded)}):
-        d = np.array(diffs.get(kind, []))
-        cmp[kind] = {"replayed": sum(1 for k, _ in replayed if k.rsplit("/", 2)[-2] == kind),
-                     "recorded": sum(1 for k, _ in recorded if k.rsplit("/", 2)[-2] == kind),
-                     "matched": int(d.size),
-                     "max_pos_diff_m": float(d.max()) if d.size else None,
-                     "median_pos_diff_m": float(np.median(d)) if d.size else None}
     out = {"mode": "replay", "log": str(log_path), "records": n, "undecodable": bad, "other_keys": other,
            "torn_tail": {"dropped_bytes": stats.dropped_bytes, "reason": stats.reason},
-           "errors": scorer.summary(), "vs_live": cmp, "ground_station": node.stats(),
+           "errors": scorer.summary(), "vs_live": _vs_live(replayed, recorded), "ground_station": node.stats(),
            "bus_rejected": dict(bus.stats.total.rejected), "scorer_rejected": scorer.rejected, "ok": True}
     node.close()
     bus.close()
+    return out
+
+
+def _replay_journals(log_path, scn, journals) -> dict:
+    """Each ground-station incarnation's journal through a node of its own configuration and
+    incarnation: its inputs as it took them in, its advance() calls with their arguments -- the
+    live decisions, bit for bit. The bus log gives the recorded truth (scored against, on the
+    journal's clock) and the live estimates (compared with per incarnation, key and time)."""
+    from collections import Counter
+
+    from sitl.bus import BusDecodeError, InMemoryTransport, decode, key_matches
+    from sitl.bus.buslog import BusLogError, BusLogStats, read_bus_log_records
+    from ground_station import node as gn
+    from ground_station.journal import JournalAdvance, JournalError, JournalStats, config_from_json, read_journal
+    from sitl.app.scoring import ErrorTracker
+
+    run_id = scn.run.id
+    clock = [-math.inf]  # the journal's clock (the live ground station's)
+    scorer = ErrorTracker(t0_gps_s=scn.run.t0_gps_s, clock=lambda: clock[0],
+                          max_ahead_s=scn.ground_station.max_ahead_s)
+    truth_bus = InMemoryTransport(synchronous=True, start_t_gps_s=scn.run.t0_gps_s)
+    truth_bus.subscribe(f"{run_id}/truth/**", scorer.on_truth)
+    stats = BusLogStats()
+    records = iter(read_bus_log_records(log_path, stats=stats))
+    pending = [None]  # the next bus-log record not yet taken
+    counts = {"records": 0, "undecodable": 0, "other_keys": 0}
+    recorded = {}
+
+    def take_log(until_s: float) -> None:
+        """The bus log's records received up to until_s: truth to the scorer, the live estimates."""
+        while True:
+            rec = pending[0] if pending[0] is not None else next(records, None)
+            pending[0] = None
+            if rec is None:
+                return
+            if rec.t_recv_s > until_s:
+                pending[0] = rec
+                return
+            counts["records"] += 1
+            clock[0] = max(clock[0], rec.t_recv_s)
+            try:
+                msg = decode(rec.payload)
+            except BusDecodeError:
+                counts["undecodable"] += 1
+                continue
+            if key_matches(f"{run_id}/gs/estimate/**", rec.key):
+                recorded[(int(msg.incarnation), rec.key, round(msg.t_gps_s, 6))] = msg
+            elif key_matches(f"{run_id}/truth/**", rec.key):
+                truth_bus.publish_raw(rec.key, rec.payload, max(rec.t_recv_s, truth_bus.now_s))
+            else:
+                counts["other_keys"] += 1
+
+    replayed = {}
+    used, gs_stats, bus_rejected, step_errors = [], [], Counter(), 0
+    for path in journals:
+        jst = JournalStats(path=str(path))
+        try:
+            events = read_journal(path, jst)
+            first = next(events, None)
+            config = config_from_json(jst.header["config"])
+        except JournalError as e:  # checked before: a file changed meanwhile
+            raise BusLogError(str(e)) from None
+        inc = int(jst.header["incarnation"])
+        bus = InMemoryTransport(synchronous=True, start_t_gps_s=scn.run.t0_gps_s)
+        node = gn.GroundStationNode(bus, jst.header["run_id"], config, incarnation=inc)
+
+        def on_estimate(k, m, inc=inc):
+            replayed[(inc, k, round(m.t_gps_s, 6))] = m
+            scorer.on_estimate(k, m)
+        bus.subscribe(f"{run_id}/gs/estimate/**", on_estimate)
+        ev = first
+        while ev is not None:
+            if ev.t_s > clock[0]:
+                clock[0] = ev.t_s
+                take_log(clock[0])
+            if isinstance(ev, JournalAdvance):
+                try:  # as live: a failing step is counted and the node goes on
+                    node.advance(ev.t_until_s, early_window_s=ev.early_window_s, now_s=ev.now_s)
+                except Exception:
+                    step_errors += 1
+                node.events.clear()
+                node.link_changes.clear()
+                node.link_messages.clear()
+            else:
+                bus.publish_raw(ev.key, ev.payload, max(ev.t_s, bus.now_s))  # rejected and counted as live
+            ev = next(events, None)
+        if jst.bad:
+            print(f"replay: journal {path.name}: {sum(jst.bad.values())} bad records skipped "
+                  f"({', '.join(f'{r}: {n}' for r, n in sorted(jst.bad.items()))})", file=sys.stderr)
+        used.append(jst.as_dict())
+        gs_stats.append(node.stats())
+        bus_rejected.update(bus.stats.total.rejected)
+        node.close()
+        bus.close()
+    take_log(math.inf)
+    torn = [j for j in used if j["torn_tail"]["dropped_bytes"]]
+    note = f"{len(used)} ground-station journal{'s' if len(used) > 1 else ''}: " + ", ".join(
+        f"{Path(j['path']).name} ({j['inputs']} inputs, {j['advances']} steps)" for j in used)
+    if torn:
+        note += "; torn tail cut: " + ", ".join(f"{Path(j['path']).name} {j['torn_tail']['dropped_bytes']} bytes "
+                                                f"({j['torn_tail']['reason']})" for j in torn)
+    out = {"mode": "replay", "log": str(log_path), **counts,
+           "torn_tail": {"dropped_bytes": stats.dropped_bytes, "reason": stats.reason},
+           "decisions": "journal", "decisions_note": note, "journals": used,
+           "errors": scorer.summary(), "vs_live": _vs_live(replayed, recorded),
+           "ground_station": gs_stats[0] if len(gs_stats) == 1 else gs_stats, "step_errors": step_errors,
+           "bus_rejected": dict(bus_rejected), "scorer_rejected": scorer.rejected, "ok": True}
+    truth_bus.close()
     return out
 
 
@@ -686,13 +845,14 @@ def replay_main(args) -> int:
         raise UsageError(str(e)) from None
     from sitl.bus.buslog import BusLogError
     try:
-        res = replay(log, scn)
+        res = replay(log, scn, use_journal=not args.no_journal)
     except BusLogError as e:
         raise UsageError(f"replay: {e}") from None
     if res["records"] == 0:
         raise UsageError(f"replay: {str(log)!r} holds no records"
                        + (f" ({res['torn_tail']['reason']})" if res["torn_tail"]["reason"] else ""))
-    lines = [f"replay of {log}: {res['records']} records ({res['undecodable']} undecodable)"]
+    lines = [f"replay of {log}: {res['records']} records ({res['undecodable']} undecodable)",
+             f"  decisions: {res['decisions']}" + (f" ({res['decisions_note']})" if res["decisions_note"] else "")]
     for name, e in sorted(res["errors"].items()):
         rm = e.get("rmse_m")
         lines.append(f"  {name:14s} estimates {e['estimates']:6d}  RMSE " + (f"{rm:.2f} m" if rm is not None else "--"))
