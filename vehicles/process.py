@@ -48,9 +48,11 @@ from sitl.bus import (
     RadarMeasurement,
     SondeRelay,
     Truth,
+    UavGroupEpoch,
     UavNav,
     key_for,
 )
+from sitl.bus.schema import PART_BEACON, PART_NAV, PART_TRUTH, UAV_GROUP_MAX
 from sitl.radio import beacon_link
 
 SONDE_WORLD_KEYS = ("flight", "radar", "relay")
@@ -118,7 +120,7 @@ class VehicleGroup:
 
     def __init__(self, scn, uav_indices, transport, rng_seq: np.random.SeedSequence, *,
                  with_beacon_truth: bool = True, with_sonde: bool = True, with_truth: bool = True,
-                 incarnation: int = 0):
+                 incarnation: int = 0, columnar: bool | None = None):
         from sitl.gnss import orbits
         from vehicles import beacon as beacon_mod
         from vehicles import uav as uav_mod
@@ -133,6 +135,7 @@ class VehicleGroup:
         self.with_beacon_truth = with_beacon_truth
         self.with_truth = with_truth
         self.inc = int(incarnation)
+        self.columnar = columnar
         streams = rng_seq.spawn(2)
         self.rng = np.random.default_rng(streams[0])
         self.epoch = 0
@@ -175,6 +178,7 @@ class VehicleGroup:
         self.k_tu = [key_for(run, Truth, kind="uav", id=i + 1) for i in self.idx]
         self.k_tb = key_for(run, Truth, kind="beacon", id=self.b_id)
         self.src = [f"uav{i + 1}" for i in self.idx]
+        self._columnar_keys()
         self.last_uav_truth = None
         self.last_nav = None
         self.nav_prior = None  # the estimate the last update started from (EKF_STATUS_REPORT's test ratios)
@@ -270,8 +274,12 @@ class VehicleGroup:
         if self._nav_next is None:
             self._nav_next = t + _phases(self.idx, 1.0 / self.scn.uavs.nav_rate_hz, rate)
             self._truth_next = t + _phases(self.idx, 1.0, rate)
-        nav_due = _due(self._nav_next, t, 1.0 / self.scn.uavs.nav_rate_hz).tolist()
-        uav_truth = (_due(self._truth_next, t, 1.0) if self.with_truth else np.zeros(self.n, bool)).tolist()
+        nav_due = _due(self._nav_next, t, 1.0 / self.scn.uavs.nav_rate_hz)
+        uav_truth = _due(self._truth_next, t, 1.0) if self.with_truth else np.zeros(self.n, bool)
+        if self.publishes_columnar:
+            self._publish_columnar(t, k, est.x, sym, est.n_tracked, nav_due, uav_truth, meas, U, V)
+            return
+        nav_due, uav_truth = nav_due.tolist(), uav_truth.tolist()
         r_l, rr_l = meas.range_m.tolist(), meas.range_rate_m_s.tolist()
         vr_l, vv_l = meas.var_range_m2.tolist(), meas.var_range_rate_m2_s2.tolist()
         for i in range(self.n):
@@ -291,6 +299,51 @@ class VehicleGroup:
             if uav_truth[i]:
                 self._publish(self.k_tu[i], Truth(t_gps_s=t, source_id="truth", seq=k, incarnation=self.inc, kind="uav",
                                                   pos_ecef_m=U[i], vel_ecef_m_s=V[i]))
+
+    def _columnar_keys(self) -> None:
+        """The columnar path's ids: one UavGroupEpoch per chunk of at most UAV_GROUP_MAX UAVs,
+        keyed ``<run>/uavs/uavs<first>-<last>/epoch`` by its first and last UAV's ids."""
+        self.uav_key_ids = [str(i + 1) for i in self.idx]
+        self.k_group = []  # (key, group id) per chunk
+        for c0 in range(0, self.n, UAV_GROUP_MAX):
+            c1 = min(self.n, c0 + UAV_GROUP_MAX)
+            gid = f"uavs{self.idx[c0] + 1}-{self.idx[c1 - 1] + 1}"
+            self.k_group.append((key_for(self.run_id, UavGroupEpoch, group=gid), gid))
+
+    @property
+    def publishes_columnar(self) -> bool:
+        """Whether the UAVs' epoch goes out as UavGroupEpoch messages (one per chunk of
+        UAV_GROUP_MAX UAVs) rather than up to three messages per UAV: ``columnar`` if given, else
+        unless the transport has fault filters (bus faults are per key: a rule on
+        ``uav/2/beacon/**`` must see UAV 2's own messages)."""
+        if self.columnar is not None:
+            return bool(self.columnar)
+        return not getattr(self.bus, "faults", None)
+
+    def _publish_columnar(self, t, k, x, sym, n_tracked, nav_due, uav_truth, meas, U, V) -> None:
+        """The epoch's UavNav / BeaconMeasurement / Truth of every UAV as UavGroupEpoch messages:
+        the same values (UavGroupEpoch.per_uav gives back the messages the per-UAV loop of
+        _step_uavs publishes, in its order)."""
+        ntr = np.asarray(n_tracked).astype(np.int64)
+        fix = np.where(ntr >= 4, 3, np.where(ntr >= 3, 2, 0))
+        r = np.asarray(meas.range_m, float)
+        ok = r > 0  # a NaN range is not > 0 either
+        self.links_nonpositive += int(self.n - np.count_nonzero(ok))
+        parts = nav_due * PART_NAV + ok * PART_BEACON + uav_truth * PART_TRUTH
+        cols = [np.where(ok, np.asarray(a, float), np.nan) for a in
+                (r, meas.range_rate_m_s, meas.var_range_m2, meas.var_range_rate_m2_s2)]
+        tp = np.where(uav_truth[:, None], U, np.nan)
+        tv = np.where(uav_truth[:, None], V, np.nan)
+        for c, (key, gid) in enumerate(self.k_group):
+            sl = slice(c * UAV_GROUP_MAX, min(self.n, (c + 1) * UAV_GROUP_MAX))
+            if not parts[sl].any():
+                continue  # nothing of these UAVs this epoch (the per-UAV path sends nothing either)
+            self._publish(key, UavGroupEpoch(
+                t_gps_s=t, source_id=gid, seq=k, incarnation=self.inc, group=gid, beacon_id=self.b_id,
+                truth_source_id="truth", uav_ids=tuple(self.uav_key_ids[sl]), uav_source_ids=tuple(self.src[sl]),
+                parts=parts[sl], n_sats=ntr[sl], fix_type=fix[sl], pos_ecef_m=x[sl, 0:3], vel_ecef_m_s=x[sl, 3:6],
+                cov=sym[sl], range_m=cols[0][sl], range_rate_m_s=cols[1][sl], var_range_m2=cols[2][sl],
+                var_range_rate_m2_s2=cols[3][sl], truth_pos_ecef_m=tp[sl], truth_vel_ecef_m_s=tv[sl]))
 
     def _step_sonde(self, t, k) -> None:
         fl = self.flight
@@ -336,6 +389,9 @@ class VehicleGroup:
         self.bus = None
         self.__dict__.setdefault("nav_prior", None)
         self.__dict__.setdefault("last_tracked", None)
+        self.__dict__.setdefault("columnar", None)
+        if "k_group" not in self.__dict__:  # a checkpoint from before the columnar path
+            self._columnar_keys()
         if self.n and "batteries" not in self.__dict__:  # a checkpoint from before the batteries
             self.batteries = self._batteries()
         if self.n:
