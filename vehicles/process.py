@@ -232,8 +232,15 @@ class VehicleGroup:
         self.bus.publish(key, msg)
         self.sent += 1
 
-    def step(self, t_gps_s: float) -> None:
-        """Advance the world to t_gps_s (> the previous epoch) and publish the epoch."""
+    def step(self, t_gps_s: float, between=None) -> None:
+        """Advance the world to t_gps_s (> the previous epoch) and publish the epoch.
+
+        between: None, or a callable run between the slices of the step: after the UAVs' flight
+        (and their batteries), and between the UAVs' part and the sonde's. The worker serves the
+        MAVLink sockets there, so a command waits for one slice of a long step, not the whole of
+        it. What a command changes there: a UAV's mode or mission from the next epoch's flight,
+        as ever; a navigation parameter already for this epoch's receivers and filters (both read
+        it after the first slice, so they agree); the sonde's flight model is fixed."""
         t = float(t_gps_s)
         if self.t_last is not None and not t > self.t_last:
             raise ValueError(f"t_gps_s must increase: {t} after {self.t_last}")
@@ -245,26 +252,30 @@ class VehicleGroup:
             self._publish(self.k_tb, Truth(t_gps_s=t, source_id="truth", seq=k, incarnation=self.inc, kind="beacon", pos_ecef_m=B,
                                            vel_ecef_m_s=VB))
         if self.n:
-            self._step_uavs(t, k, trel, B, VB)
+            self._step_uavs(t, k, trel, B, VB, between)
         if self.sonde is not None:
+            if between is not None and self.n:
+                between()
             self._step_sonde(t, k)
         self.epoch += 1
         self.t_last = t
 
-    def _step_uavs(self, t, k, trel, B, VB) -> None:
+    def _step_uavs(self, t, k, trel, B, VB, between=None) -> None:
         un = self._uav_nav
         tu = self.fleet.step(trel)  # the scenario's flight, bit-for-bit, until a GCS commands
         self.ap_events, self.ap_epoch = self.fleet.events, k
         U, V = tu.pos_ecef_m, tu.vel_ecef_m_s
         self.last_uav_truth = tu
+        # the batteries draw at the flown airspeed (no wind: the truth's speed) while armed
+        ap = self.fleet.ap
+        self.batteries.step(t, tu.speed_m_s, ap.armed, getattr(ap.C, "batt_capacity_mah", None))
+        if between is not None:  # the flight and its batteries are done; the sensors read the config from here
+            between()
         ep = un.gnss_measure(self.rng, t, U, V, self.const, self.nav_cfg)
         self.nav_prior = self.nav.estimate
         est = self.nav.update(ep)
         self.last_nav = est
         self.last_tracked = ep.tracked
-        # the batteries draw at the flown airspeed (no wind: the truth's speed) while armed
-        ap = self.fleet.ap
-        self.batteries.step(t, tu.speed_m_s, ap.armed, getattr(ap.C, "batt_capacity_mah", None))
         meas = beacon_link.measure(self.rng, U, V, B, VB, self.link_cfg)
         sym = 0.5 * (est.P + np.swapaxes(est.P, -1, -2))
         ntr = est.n_tracked.tolist()
@@ -815,6 +826,43 @@ def _landed_state_of(group: VehicleGroup, j: int):
 _MAV_INPUT_SHARE = 0.25
 
 
+class _InputService:
+    """The worker's MAVLink input between the slices of a world tick: before the world's step,
+    between its UAVs' and its sonde's parts (VehicleGroup.step's ``between``) and after it, then
+    in the endpoints' own step. A world step at 100 UAVs takes longer than a MAVLink tick on a
+    loaded machine; answered only after it, a command waited for the whole step (COMMAND_ACK
+    p95 118 ms at 100 UAVs, load 12). The tick's input budget is shared by the calls: each takes
+    what the earlier ones of the tick left (``remaining_s``, what the endpoints' step gets)."""
+
+    def __init__(self, endpoints, budget_s: float, timer):
+        self.endpoints, self.budget_s, self.timer = endpoints, float(budget_s), timer
+        self.t = None
+        self.used_s = 0.0
+        self.failed: list = []
+
+    def start_tick(self, t_gps_s: float) -> None:
+        self.t, self.used_s = float(t_gps_s), 0.0
+
+    def remaining_s(self) -> float:
+        return max(0.0, self.budget_s - self.used_s)
+
+    def __call__(self) -> None:
+        """Serve the sockets; a failure is kept in ``failed`` (the worker counts and reports it),
+        never raised into the world's step."""
+        if self.t is None:
+            return
+        a = self.timer()
+        try:
+            self.endpoints.serve_input(self.t, self.remaining_s())
+        except Exception as e:
+            self.failed.append(f"{type(e).__name__}: {e}")
+        self.used_s += self.timer() - a
+
+    def take_failed(self) -> list:
+        out, self.failed = self.failed, []
+        return out
+
+
 def _mavlink_status(endpoints) -> dict:
     """The status line's ``mavlink`` block: traffic counters; ``datagrams`` (one verdict per
     datagram: accepted + sum(rejected) + kernel_dropped = datagrams sent to the group's ports);
@@ -995,6 +1043,7 @@ def main(argv=None) -> int:
         # MAVLink input may take this share of a tick's wall time, shared over the group's
         # sockets (what does not fit waits in the kernel queue; what overflows it is counted)
         mav_budget_s = _MAV_INPUT_SHARE * dt_tick / scn.run.speed
+        serve = _InputService(endpoints, mav_budget_s, perf_now) if endpoints is not None else None
         step_s = deque(maxlen=2000)  # wall time of each world epoch's tick (world + bus + MAVLink)
         mav_s = deque(maxlen=2000)  # wall time of each tick between them (MAVLink only)
         k_next = k0  # the next world epoch, t0 + k_next dt
@@ -1016,19 +1065,29 @@ def main(argv=None) -> int:
                     pace["skipped_epochs"] += k - k_next
                 pace["late_epochs"] += pacer.sim_now() - tw > dt
                 k_next = k + 1
+                if serve is not None:  # what came in while the loop waited: answered before the world's step
+                    serve.start_tick(t)
+                    serve()
                 try:
-                    group.step(tw)
+                    group.step(tw, between=serve)
                 except Exception as e:  # one bad epoch must not end the run: counted, reported
                     errors += 1
                     if errors <= 10 or errors % 100 == 0:  # the log stays readable
                         print(f"{spec.name}: epoch {tw:.3f} failed ({errors} so far): {type(e).__name__}: {e}",
                               file=sys.stderr)
+                if serve is not None:
+                    serve()
+                    for text in serve.take_failed():
+                        errors += 1
+                        if errors <= 10 or errors % 100 == 0:
+                            print(f"{spec.name}: MAVLink input failed ({errors} so far): {text}", file=sys.stderr)
             if endpoints is not None:
                 try:
                     if world:
                         sub.reset(group.telemetry(), turn_rates_rad_s(group.fleet) if group.fleet is not None
                                   else None)
-                    endpoints.step(t, _mav_telemetry(sub.at(t), len(endpoints)), budget_s=mav_budget_s)
+                    endpoints.step(t, _mav_telemetry(sub.at(t), len(endpoints)),
+                                   budget_s=serve.remaining_s() if world else mav_budget_s)
                 except Exception as e:
                     errors += 1
                     if errors <= 10 or errors % 100 == 0:
