@@ -559,7 +559,7 @@ class UavGroupEpoch(Message):
                 if a.ndim == 1:
                     nan_any = nan_all = np.isnan(a)
                 else:
-                    m = np.isnan(a.reshape(n, -1))
+                    m = np.isnan(a)  # (n, 3)
                     nan_any, nan_all = m.any(axis=1), m.all(axis=1)
                 bad = nan_any & has
                 if bad.any():

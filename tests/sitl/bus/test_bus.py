@@ -127,14 +127,14 @@ def fault_control(**kw) -> FaultControl:
 def uav_group(n: int = 3, **kw) -> UavGroupEpoch:
     """n UAVs: the first with every part, the second a beacon measurement only, the third its nav only."""
     rng = np.random.default_rng(n)
-    parts = np.array([7, 2, 1] * n)[:n]
+    parts = np.array([7, 2, 1] * n, dtype=np.int64)[:n]
     has_b, has_t = (parts & 2) != 0, (parts & 4) != 0
     nan = np.nan
     base = dict(HDR, source_id="uavs1-3", group="uavs1-3", beacon_id="b7", truth_source_id="world",
                 uav_ids=tuple(str(i + 1) for i in range(n)), uav_source_ids=tuple(f"uav-{i + 1}" for i in range(n)),
                 parts=parts, n_sats=np.arange(n) + 6, fix_type=np.full(n, 3),
                 pos_ecef_m=np.array([4.2e6, 1.1e6, 4.6e6]) + rng.normal(0, 1e3, (n, 3)),
-                vel_ecef_m_s=rng.normal(0, 20, (n, 3)), cov=np.array([_cov(10 + i) for i in range(n)]),
+                vel_ecef_m_s=rng.normal(0, 20, (n, 3)), cov=np.array([_cov(10 + i) for i in range(n)]).reshape(n, 6, 6),
                 range_m=np.where(has_b, rng.uniform(1e3, 5e4, n), nan),
                 range_rate_m_s=np.where(has_b, rng.normal(0, 30, n), nan),
                 var_range_m2=np.where(has_b, 4.0, nan), var_range_rate_m2_s2=np.where(has_b, 0.01, nan),
