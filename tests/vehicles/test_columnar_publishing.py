@@ -9,7 +9,7 @@ import time
 import numpy as np
 import pytest
 
-from sitl.bus import BusRecorder, InMemoryTransport, UavGroupEpoch, read_bus_log_records
+from sitl.bus import BusRecorder, InMemoryTransport, read_bus_log_records
 from sitl.scenario import default_scenario
 from tests.procs import udp_base
 from vehicles.process import VehicleGroup, _InputService
