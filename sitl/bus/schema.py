@@ -28,6 +28,11 @@ ranges <= `POS_MAX_M`, range rates and Dopplers <= `VEL_MAX_M_S`, at most `N_SAT
 satellites per relay epoch. A consumer still guards the TIME against its own clock
 (`sitl.bus.timeguard`): the schema only knows what is possible, not what is now.
 
+Columnar epochs (version 3, an added kind: no other kind's wire changed, so the version did
+not): `UavGroupEpoch` carries up to `UAV_GROUP_MAX` UAVs' UavNav / BeaconMeasurement / Truth
+of one epoch as arrays (int64 array fields for its counts and flags), with the same header
+and the same rules on every present value; ``per_uav`` gives back the per-UAV messages.
+
 Units are SI and appear in the field names; frames are ECEF (WGS-84). Arrays are float64,
 stored as read-only copies. Covariances are 6x6 over [position, velocity] and must be
 symmetric (max |C - C^T| <= 1e-9 max |C|), with a non-negative diagonal and eigenvalues
