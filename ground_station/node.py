@@ -43,7 +43,7 @@ import threading
 from collections import Counter, deque
 from dataclasses import dataclass
 
-from sitl.bus import Estimate, LinkMonitor, key_matches
+from sitl.bus import Estimate, LinkMonitor, UavGroupEpoch, key_matches, parse_key
 from sitl.bus.timeguard import TimeGuard
 from sitl.scenario import BeaconSection, GroundStationSection, RunSection, SondeSection
 
@@ -96,8 +96,17 @@ class _Sub:
         self.closed = True
 
 
+#: the vehicle groups' columnar epochs (sitl.bus.UavGroupEpoch), of any run
+GROUP_EPOCH_EXPR = "*/uavs/*/epoch"
+
+
 class _DeferredBus:
-    """What the components see as their transport: subscribe / publish; deliveries queued."""
+    """What the components see as their transport: subscribe / publish; deliveries queued.
+
+    A vehicle group's columnar epoch (UavGroupEpoch) is taken apart on arrival into the per-UAV
+    messages it holds (UavGroupEpoch.per_uav: the messages, keys and order the group would have
+    published one by one), of which only those a component subscribes to are made and queued:
+    the components, the time guard and the link statistics see per-UAV messages either way."""
 
     def __init__(self, transport, on_input, incarnation: int = 0):
         self.transport = transport
@@ -107,20 +116,41 @@ class _DeferredBus:
         self._queue: deque = deque()
         self._on_input = on_input
         self.published: list = []  # (key, Estimate) published since the last take_published()
+        self._wanted: dict[str, bool] = {}  # per-UAV key -> some subscription takes it (keys recur)
+        self.group_epochs = 0  # columnar epochs taken apart
+        if transport is not None:
+            self._real.append(transport.subscribe(GROUP_EPOCH_EXPR, self._enqueue))
 
     def subscribe(self, key_expr, callback):
         sub = _Sub(self, key_expr, callback)
         self._subs.append(sub)
+        self._wanted.clear()
         if self.transport is not None:
             self._real.append(self.transport.subscribe(key_expr, self._enqueue))
         return sub
 
     def _enqueue(self, key, msg):  # any thread
-        self._queue.append((key, msg))
+        if type(msg) is UavGroupEpoch:
+            self._queue.extend(self._per_uav(key, msg))
+        else:
+            self._queue.append((key, msg))
 
     def feed(self, key, msg):
         """Deliver a message directly (no transport: replay and tests)."""
-        self._queue.append((key, msg))
+        self._enqueue(key, msg)
+
+    def _per_uav(self, key, msg) -> list:
+        parsed = parse_key(key)
+        if parsed is None or parsed[1] is not UavGroupEpoch:
+            return []  # a group epoch on a key not of its kind: nothing for a component
+        self.group_epochs += 1
+        return msg.per_uav(parsed[0], want=self._takes)
+
+    def _takes(self, key) -> bool:
+        hit = self._wanted.get(key)
+        if hit is None:
+            hit = self._wanted[key] = any(not s.closed and key_matches(s.key_expr, key) for s in self._subs)
+        return hit
 
     def pump(self) -> int:
         n = 0

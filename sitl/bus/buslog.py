@@ -45,7 +45,8 @@ from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from typing import Any, BinaryIO, NamedTuple
 
-from .codec import MAX_PAYLOAD_BYTES, encode
+from .codec import MAX_PAYLOAD_BYTES, BusDecodeError, decode, encode
+from .schema import UavGroupEpoch, parse_key
 
 log = logging.getLogger("sitl.bus.buslog")
 
@@ -340,7 +341,12 @@ class BusRecorder:
     otherwise (`InMemoryTransport`) every valid message is re-encoded, which gives the same
     bytes (the codec is deterministic). ``writer``: a `BusLogWriter` or a path. A payload larger
     than the codec's bound (`sitl.bus.codec.MAX_PAYLOAD_BYTES`: no message can be that large) is
-    not written, only counted (``oversize``): a flood of huge junk must not fill the disk."""
+    not written, only counted (``oversize``): a flood of huge junk must not fill the disk.
+
+    A vehicle group's columnar epoch (`UavGroupEpoch`, key ``<run>/uavs/<group>/epoch``) is
+    recorded as the per-UAV messages it holds (``UavGroupEpoch.per_uav``: the keys, payloads and
+    order the group publishes without it), so a log reads the same whichever way the group
+    published (``group_epochs`` counts them); a malformed one is recorded as received."""
 
     def __init__(self, transport: Any, path_or_writer: str | os.PathLike | BusLogWriter,
                  key_expr: str = "**", **writer_kw: Any):
@@ -349,21 +355,50 @@ class BusRecorder:
         self.key_expr = key_expr
         self.errors = 0
         self.oversize = 0
+        self.group_epochs = 0
         self.raw = hasattr(transport, "subscribe_raw")
         try:
             if self.raw:
                 self._sub = transport.subscribe_raw(key_expr, self._on_raw)
             else:
-                self._sub = transport.subscribe(key_expr,
-                                                lambda k, m: self._on_raw(k, encode(m)))
+                self._sub = transport.subscribe(key_expr, self._on_message)
         except Exception:
             self.writer.close()
             raise
+
+    def _on_message(self, key: str, msg: Any) -> None:
+        if type(msg) is UavGroupEpoch:
+            self._on_group(key, msg)
+        else:
+            self._append(key, encode(msg))
 
     def _on_raw(self, key: str, payload: bytes) -> None:
         if len(payload) > MAX_PAYLOAD_BYTES:
             self.oversize += 1
             return
+        hit = parse_key(key)
+        if hit is not None and hit[1] is UavGroupEpoch:
+            try:
+                msg = decode(payload)
+            except BusDecodeError:
+                msg = None
+            if type(msg) is UavGroupEpoch:
+                self._on_group(key, msg, hit[0])
+                return
+        self._append(key, payload)
+
+    def _on_group(self, key: str, msg: UavGroupEpoch, run_id: str | None = None) -> None:
+        if run_id is None:
+            hit = parse_key(key)
+            if hit is None:
+                self._append(key, encode(msg))
+                return
+            run_id = hit[0]
+        self.group_epochs += 1
+        for k, m in msg.per_uav(run_id):
+            self._append(k, encode(m))
+
+    def _append(self, key: str, payload: bytes) -> None:
         try:
             self.writer.append(key, payload)
         except (BusLogError, RuntimeError) as e:

@@ -3,8 +3,9 @@
 Wire format (schema version 3; version 2 had no ``incarnation`` in the header): one MessagePack map
 ``{"_v": 2, "_kind": "<kind tag>", "<field>": <value>, ..., "_crc": <bin 4>}`` holding every field of the message
 dataclass by name: floats as float64, ints, bools, strs, tuples of str as arrays of str, and
-numpy arrays as ``bin`` holding the raw little-endian float64 bytes in C order (shapes are
-fixed by the schema; "n"-long arrays take n from ``len(sat_ids)``). The envelope keys start
+numpy arrays as ``bin`` holding the raw little-endian float64 bytes in C order (int arrays:
+int64 bytes; shapes are fixed by the schema; "n"-long arrays take n from the kind's n field,
+``len(sat_ids)`` of a SondeRelay, ``len(uav_ids)`` of a UavGroupEpoch). The envelope keys start
 with "_", which no message field may, so they never clash with a field (Truth has a ``kind``).
 
 Checksum (version 2). The map's last entry is ``"_crc"``: a 4-byte ``bin`` holding the CRC-32
@@ -75,6 +76,7 @@ from .schema import (
     F_ARRAY,
     F_BOOL,
     F_FLOAT,
+    F_IARRAY,
     F_INT,
     F_STR,
     F_STRS,
@@ -91,6 +93,7 @@ from .schema import (
 MAX_PAYLOAD_BYTES = 64 << 10
 _HEADER_KEYS = ("_v", "_kind", "_crc")
 _LE_F8 = np.dtype("<f8")
+_LE_I8 = np.dtype("<i8")
 CRC_KEY = "_crc"
 _CRC_PLACEHOLDER = b"\0\0\0\0"
 CRC_TRAILER = b"\xa4_crc\xc4\x04"  # msgpack: fixstr "_crc", bin8 of length 4 (then the 4 CRC bytes)
@@ -140,6 +143,8 @@ def encode(msg: Message) -> bytes:
         value = getattr(msg, spec.name)
         if spec.ftype == F_ARRAY:
             out[spec.name] = value.astype(_LE_F8, copy=False).tobytes()
+        elif spec.ftype == F_IARRAY:
+            out[spec.name] = value.astype(_LE_I8, copy=False).tobytes()
         elif spec.ftype == F_STRS:
             out[spec.name] = list(value)
         else:
@@ -151,15 +156,15 @@ def encode(msg: Message) -> bytes:
 
 _WIRE_TYPES = {F_FLOAT: (float,), F_INT: (int,), F_BOOL: (bool,), F_STR: (str,)}
 _TYPE_WORD = {F_FLOAT: "float", F_INT: "int", F_BOOL: "bool", F_STR: "str",
-              F_STRS: "array of str", F_ARRAY: "bin (float64 bytes)"}
+              F_STRS: "array of str", F_ARRAY: "bin (float64 bytes)", F_IARRAY: "bin (int64 bytes)"}
 
 
 def _plan(cls) -> tuple:
     """(name, ftype, exact wire type or None, fixed shape or None) of each field of cls."""
-    _SHAPES[cls] = {sp.name: sp.shape for sp in cls.FIELDS if sp.ftype == F_ARRAY}
+    _SHAPES[cls] = {sp.name: sp.shape for sp in cls.FIELDS if sp.ftype in (F_ARRAY, F_IARRAY)}
     out = []
     for sp in cls.FIELDS:
-        wire = {F_ARRAY: bytes, F_FLOAT: float, F_INT: int, F_BOOL: bool, F_STR: str}.get(sp.ftype)
+        wire = {F_ARRAY: bytes, F_IARRAY: bytes, F_FLOAT: float, F_INT: int, F_BOOL: bool, F_STR: str}.get(sp.ftype)
         fixed = sp.shape if sp.shape is not None and "n" not in sp.shape else None
         out.append((sp.name, sp.ftype, wire, fixed))
     return tuple(out)
@@ -249,7 +254,7 @@ def _decode(payload: Any) -> Message:
     # pass 2: the arrays' sizes, then the arrays themselves
     n = len(kwargs[cls.N_FIELD]) if cls.N_FIELD is not None else None
     for fname, ft, _, shape in plan:
-        if ft != F_ARRAY:
+        if ft != F_ARRAY and ft != F_IARRAY:
             continue
         raw = kwargs[fname]
         if shape is None:  # n-dependent
@@ -260,7 +265,7 @@ def _decode(payload: Any) -> Message:
         if len(raw) != 8 * count:
             raise BusDecodeError(f"{name}.{fname}: wrong size",
                                  f"{len(raw)} bytes for shape {shape}")
-        kwargs[fname] = np.frombuffer(raw, dtype=_LE_F8).reshape(shape)
+        kwargs[fname] = np.frombuffer(raw, dtype=_LE_F8 if ft == F_ARRAY else _LE_I8).reshape(shape)
     return cls(**kwargs)
 
 

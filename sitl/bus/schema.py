@@ -28,6 +28,11 @@ ranges <= `POS_MAX_M`, range rates and Dopplers <= `VEL_MAX_M_S`, at most `N_SAT
 satellites per relay epoch. A consumer still guards the TIME against its own clock
 (`sitl.bus.timeguard`): the schema only knows what is possible, not what is now.
 
+Columnar epochs (version 3, an added kind: no other kind's wire changed, so the version did
+not): `UavGroupEpoch` carries up to `UAV_GROUP_MAX` UAVs' UavNav / BeaconMeasurement / Truth
+of one epoch as arrays (int64 array fields for its counts and flags), with the same header
+and the same rules on every present value; ``per_uav`` gives back the per-UAV messages.
+
 Units are SI and appear in the field names; frames are ECEF (WGS-84). Arrays are float64,
 stored as read-only copies. Covariances are 6x6 over [position, velocity] and must be
 symmetric (max |C - C^T| <= 1e-9 max |C|), with a non-negative diagonal and eigenvalues
@@ -78,6 +83,8 @@ F_BOOL = "bool"
 F_STR = "str"
 F_STRS = "strs"  # tuple of str
 F_ARRAY = "array"  # float64 array of a fixed (or n-dependent) shape
+F_IARRAY = "iarray"  # int64 array of a fixed (or n-dependent) shape, each element in [lo, hi]
+_ARRAY_TYPES = (F_ARRAY, F_IARRAY)
 
 
 class SchemaError(ValueError):
@@ -128,6 +135,11 @@ def _arr(*shape: int | str, max_abs: float, nan_ok: bool = False) -> Any:
     return field(metadata={"shape": tuple(shape), "nan_ok": nan_ok, "max_abs": float(max_abs)})
 
 
+def _iarr(*shape: int | str, lo: int, hi: int) -> Any:
+    """An int64 array field of the given shape whose elements lie in [lo, hi]."""
+    return field(metadata={"shape": tuple(shape), "int": True, "lo": int(lo), "hi": int(hi)})
+
+
 def _num(lo: float | None = None, hi: float | None = None, *, nan_ok: bool = False, default: Any = dataclasses.MISSING
          ) -> Any:
     """A float field in [lo, hi] (None: unbounded on that side); ``nan_ok``: NaN allowed too."""
@@ -163,7 +175,9 @@ def _field_specs(cls: type) -> tuple[FieldSpec, ...]:
         if ftype is None:
             raise TypeError(f"{cls.__name__}.{f.name}: unsupported annotation {f.type!r}")
         shape = f.metadata.get("shape")
-        if (ftype == F_ARRAY) != (shape is not None):
+        if ftype == F_ARRAY and f.metadata.get("int"):
+            ftype = F_IARRAY
+        if (ftype in _ARRAY_TYPES) != (shape is not None):
             raise TypeError(f"{cls.__name__}.{f.name}: array fields need a shape")
         md = f.metadata
         specs.append(FieldSpec(f.name, ftype, shape, bool(md.get("nan_ok", False)), md.get("max_abs"),
@@ -219,6 +233,8 @@ def _coerce(cls_name: str, spec: FieldSpec, value: Any, n: int | None) -> Any:
                 raise SchemaError(where, "expected a tuple of str",
                                   f"item {i} is {type(s).__name__}")
         return tuple(s if type(s) is str else str(s) for s in value)
+    if ft == F_IARRAY:
+        return _coerce_int_array(where, spec, value, n)
     # F_ARRAY
     if isinstance(value, (str, bytes)):
         raise SchemaError(where, "expected a float array", f"got {type(value).__name__}")
@@ -242,6 +258,29 @@ def _coerce(cls_name: str, spec: FieldSpec, value: Any, n: int | None) -> Any:
         if big.any():
             raise SchemaError(where, f"out of range (|x| <= {spec.max_abs:g})",
                               f"max |x| = {float(np.nanmax(np.abs(a))):.3g}")
+    a.flags.writeable = False
+    return a
+
+
+def _coerce_int_array(where: str, spec: FieldSpec, value: Any, n: int | None) -> np.ndarray:
+    """An int64 array of the spec's shape, every element in [spec.lo, spec.hi] (bools, floats and
+    other non-integer elements are refused, not rounded)."""
+    if isinstance(value, (str, bytes)):
+        raise SchemaError(where, "expected an int array", f"got {type(value).__name__}")
+    try:
+        a = value if type(value) is np.ndarray else np.array(value)
+    except Exception as e:
+        raise SchemaError(where, "expected an int array", f"{type(e).__name__}: {e}") from None
+    if a.dtype.kind not in "iu" and not (a.size == 0 and a.dtype.kind == "f"):  # [] is float64 to numpy
+        raise SchemaError(where, "expected an int array", f"dtype {a.dtype}")
+    if a.dtype.kind == "u" and a.size and a.max() > np.iinfo(np.int64).max:
+        raise SchemaError(where, _range_text(spec.lo, spec.hi), "beyond int64")
+    a = a.astype(np.int64, copy=True)
+    shape = spec.shape if n is None else tuple(n if d == "n" else d for d in spec.shape)
+    if a.shape != shape:
+        raise SchemaError(where, "wrong shape", f"expected {shape}, got {a.shape}")
+    if a.size and (a.min() < spec.lo or a.max() > spec.hi):
+        raise SchemaError(where, _range_text(spec.lo, spec.hi), f"min {a.min()}, max {a.max()}")
     a.flags.writeable = False
     return a
 
@@ -374,8 +413,8 @@ class Message:
             return NotImplemented
         for spec in self.FIELDS:
             a, b = getattr(self, spec.name), getattr(other, spec.name)
-            if spec.ftype == F_ARRAY:
-                if not np.array_equal(a, b, equal_nan=True):
+            if spec.ftype in _ARRAY_TYPES:
+                if not np.array_equal(a, b, equal_nan=spec.ftype == F_ARRAY):
                     return False
             elif spec.ftype == F_FLOAT:
                 if not (a == b or (math.isnan(a) and math.isnan(b))):
@@ -448,6 +487,145 @@ class BeaconMeasurement(Message):
             if not getattr(self, f) > 0:
                 _check_positive(self._where(f), getattr(self, f))
         self._check_cov("uav_cov")
+
+
+UAV_GROUP_MAX = 100  # UAVs per UavGroupEpoch (a payload of ~50 kB, under the codec's 64 KiB bound)
+PART_NAV, PART_BEACON, PART_TRUTH = 1, 2, 4  # UavGroupEpoch.parts bits
+
+
+@_message("uav_group", "uavs/{group}/epoch", n_field="uav_ids")
+class UavGroupEpoch(Message):
+    """One epoch of a vehicle group's UAVs as arrays: what the group would otherwise publish
+    as up to three messages per UAV (its `UavNav`, its `BeaconMeasurement` of beacon
+    ``beacon_id``, its `Truth`) in one payload per group (of at most `UAV_GROUP_MAX` UAVs) per
+    epoch. The per-UAV view is `per_uav` (the messages, keys and order the group would have
+    published; ground_station.node and the bus recorder use it, so consumers and bus logs see
+    per-UAV messages as before).
+
+    Row j is UAV ``uav_ids[j]`` (its key id: ``<run>/uav/<id>/...``), publishing as
+    ``uav_source_ids[j]``; every per-UAV message has the header's time, sequence number and
+    incarnation. ``parts[j]``: which of its messages the epoch holds (bits `PART_NAV`,
+    `PART_BEACON`, `PART_TRUTH`). ``pos_ecef_m`` / ``vel_ecef_m_s`` / ``cov``: the UAV's onboard
+    estimate (the UavNav, and the nav snapshot every BeaconMeasurement carries), present for
+    every row, with ``n_sats`` / ``fix_type``; the beacon columns hold the BeaconMeasurement
+    where ``parts`` has PART_BEACON and are NaN elsewhere; the truth columns (``truth_*``,
+    source ``truth_source_id``) likewise with PART_TRUTH. Every present value obeys the rule
+    of its per-UAV message (ranges, finiteness, covariance symmetric PSD), so each per-UAV
+    message of `per_uav` is valid by construction; an absent value must be NaN (no hidden data)."""
+
+    group: str
+    beacon_id: str
+    truth_source_id: str
+    uav_ids: tuple[str, ...]
+    uav_source_ids: tuple[str, ...]
+    parts: np.ndarray = _iarr("n", lo=0, hi=PART_NAV | PART_BEACON | PART_TRUTH)
+    n_sats: np.ndarray = _iarr("n", lo=0, hi=N_SATS_MAX)
+    fix_type: np.ndarray = _iarr("n", lo=0, hi=6)
+    pos_ecef_m: np.ndarray = _arr("n", 3, max_abs=POS_MAX_M)
+    vel_ecef_m_s: np.ndarray = _arr("n", 3, max_abs=VEL_MAX_M_S)
+    cov: np.ndarray = _arr("n", 6, 6, max_abs=VAR_MAX)
+    range_m: np.ndarray = _arr("n", max_abs=POS_MAX_M, nan_ok=True)
+    range_rate_m_s: np.ndarray = _arr("n", max_abs=VEL_MAX_M_S, nan_ok=True)
+    var_range_m2: np.ndarray = _arr("n", max_abs=VAR_MAX, nan_ok=True)
+    var_range_rate_m2_s2: np.ndarray = _arr("n", max_abs=VAR_MAX, nan_ok=True)
+    truth_pos_ecef_m: np.ndarray = _arr("n", 3, max_abs=POS_MAX_M, nan_ok=True)
+    truth_vel_ecef_m_s: np.ndarray = _arr("n", 3, max_abs=VEL_MAX_M_S, nan_ok=True)
+
+    _BEACON_COLS = ("range_m", "range_rate_m_s", "var_range_m2", "var_range_rate_m2_s2")
+    _TRUTH_COLS = ("truth_pos_ecef_m", "truth_vel_ecef_m_s")
+
+    def _validate(self) -> None:
+        n = len(self.uav_ids)
+        if n > UAV_GROUP_MAX:
+            raise SchemaError(self._where("uav_ids"), f"more than {UAV_GROUP_MAX} UAVs", f"{n}")
+        for f in ("group", "beacon_id", "truth_source_id"):
+            check_id(getattr(self, f), self._where(f))
+        for f in ("uav_ids", "uav_source_ids"):
+            ids = getattr(self, f)
+            if len(ids) != n:
+                raise SchemaError(self._where(f), "not one per UAV", f"{len(ids)} for {n} UAVs")
+            for s in ids:
+                if not is_valid_id(s):
+                    check_id(s, self._where(f))
+        if len(set(self.uav_ids)) != n:
+            raise SchemaError(self._where("uav_ids"), "duplicate UAV id")
+        for j in range(n):  # the legal case: one compiled pass per matrix
+            c = self.cov[j]
+            if _cov_code is None or _cov_code(c) != 0:
+                try:
+                    _check_cov(self._where("cov"), c)
+                except SchemaError as e:
+                    raise SchemaError(self._where("cov"), e.problem, f"UAV {self.uav_ids[j]}: {e.detail}") from None
+        parts = self.parts
+        for cols, bit in ((self._BEACON_COLS, PART_BEACON), (self._TRUTH_COLS, PART_TRUTH)):
+            has = (parts & bit) != 0
+            for f in cols:
+                a = getattr(self, f)
+                if a.ndim == 1:
+                    nan_any = nan_all = np.isnan(a)
+                else:
+                    m = np.isnan(a)  # (n, 3)
+                    nan_any, nan_all = m.any(axis=1), m.all(axis=1)
+                bad = nan_any & has
+                if bad.any():
+                    raise SchemaError(self._where(f), "NaN where present", f"UAV {self.uav_ids[int(np.argmax(bad))]}")
+                bad = ~nan_all & ~has
+                if bad.any():
+                    raise SchemaError(self._where(f), "a value where absent (must be NaN)",
+                                      f"UAV {self.uav_ids[int(np.argmax(bad))]}")
+        has = (parts & PART_BEACON) != 0
+        if has.any():
+            for f in ("range_m", "var_range_m2", "var_range_rate_m2_s2"):
+                v = getattr(self, f)[has]
+                if not (v > 0).all():
+                    raise SchemaError(self._where(f), "must be > 0", f"min {v.min():.3g}")
+
+    def per_uav(self, run_id: str, want=None) -> list:
+        """[(key, message)] the per-UAV messages this epoch holds, in the order the group
+        publishes them one by one (each UAV's UavNav, BeaconMeasurement, Truth). ``want``:
+        None (all), or a predicate on the key: only the messages whose key it accepts are built.
+
+        The messages are made without re-running each one's checks: this message passed the
+        same checks on every present value (class text), so they are the messages the
+        constructors would make (tests/sitl/bus/test_uav_group.py checks it against them)."""
+        check_id(run_id, "run_id")
+        hdr = {"t_gps_s": self.t_gps_s, "seq": self.seq, "incarnation": self.incarnation}
+        parts = self.parts.tolist()
+        nsat, fix = self.n_sats.tolist(), self.fix_type.tolist()
+        P, V, C = self.pos_ecef_m, self.vel_ecef_m_s, self.cov
+        r, rr, vr, vrr = (getattr(self, f).tolist() for f in self._BEACON_COLS)
+        TP, TV = self.truth_pos_ecef_m, self.truth_vel_ecef_m_s
+        b = self.beacon_id
+        out = []
+        for j, (uid, src, p) in enumerate(zip(self.uav_ids, self.uav_source_ids, parts)):
+            if p & PART_NAV:
+                key = f"{run_id}/uav/{uid}/nav"
+                if want is None or want(key):
+                    out.append((key, _made(UavNav, hdr, source_id=src, pos_ecef_m=P[j], vel_ecef_m_s=V[j], cov=C[j],
+                                           n_sats=nsat[j], fix_type=fix[j])))
+            if p & PART_BEACON:
+                key = f"{run_id}/uav/{uid}/beacon/{b}"
+                if want is None or want(key):
+                    out.append((key, _made(BeaconMeasurement, hdr, source_id=src, range_m=r[j], range_rate_m_s=rr[j],
+                                           var_range_m2=vr[j], var_range_rate_m2_s2=vrr[j], uav_pos_ecef_m=P[j],
+                                           uav_vel_ecef_m_s=V[j], uav_cov=C[j])))
+            if p & PART_TRUTH:
+                key = f"{run_id}/truth/uav/{uid}"
+                if want is None or want(key):
+                    out.append((key, _made(Truth, hdr, source_id=self.truth_source_id, kind="uav",
+                                           pos_ecef_m=TP[j], vel_ecef_m_s=TV[j])))
+        return out
+
+
+def _made(cls, header: dict, **fields):
+    """A message of cls from values already checked by the constructor's rules (UavGroupEpoch
+    .per_uav): the fields set as the constructor sets them (arrays read-only float64 rows of
+    the checked arrays), without running the checks again."""
+    m = object.__new__(cls)
+    d = m.__dict__
+    d.update(header)
+    d.update(fields)
+    return m
 
 
 PSEUDORANGE_MAX_M = 1e8
@@ -648,7 +826,7 @@ class FaultControl(Message):
 # Keys
 
 KEY_TEMPLATES: dict[type[Message], str] = {cls: cls.KEY_TEMPLATE for cls in MESSAGE_TYPES.values()}
-_FIELD_IDS = {"kind", "channel", "link"}  # key ids that the message itself carries
+_FIELD_IDS = {"kind", "channel", "link", "group"}  # key ids that the message itself carries
 _TEMPLATE_RE = re.compile(r"\{(\w+)\}")
 
 
@@ -768,6 +946,8 @@ __all__ = [
     "SchemaError",
     "SondeRelay",
     "Truth",
+    "UAV_GROUP_MAX",
+    "UavGroupEpoch",
     "UavNav",
     "check_id",
     "is_valid_id",

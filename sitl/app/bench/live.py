@@ -140,6 +140,22 @@ class _Probe:
         self.sub.close()
 
 
+def _free_udp_base(n: int, first: int = 20000, last: int = 60000) -> int:
+    """A base port with 127.0.0.1:base + 10 i free for UDP for every i < n (the vehicles' MAVLink
+    ports; a shared machine's tests take some of 20000+): the first such from ``first``."""
+    def free(port):
+        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+            try:
+                s.bind(("127.0.0.1", port))
+                return True
+            except OSError:
+                return False
+    for base in range(first, last - 10 * n, 97):
+        if all(free(base + 10 * i) for i in range(n)):
+            return base
+    raise RuntimeError(f"bench live: no {n} free UDP ports 10 apart in {first}..{last}")
+
+
 def _pct(values, q):
     if not values:
         return None
@@ -155,7 +171,7 @@ def run_size(n: int, args, router_ep: str) -> dict:
     if sink is not None:
         sink.start()
     probe = _Probe(router_ep)
-    base = 20000
+    base = _free_udp_base(n if n <= 249 and not args.no_mavlink else 0)
     # a ring whose radius grows with the swarm (the same spacing), heights in three layers
     scn = default_scenario().replace(
         run={"id": f"bench{n}", "rate_hz": args.rate, "duration_s": args.duration, "speed": 1.0},

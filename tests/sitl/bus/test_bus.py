@@ -32,6 +32,7 @@ from sitl.bus import (
     SequenceTracker,
     SondeRelay,
     Truth,
+    UavGroupEpoch,
     UavNav,
     decode,
     encode,
@@ -123,9 +124,29 @@ def fault_control(**kw) -> FaultControl:
     return FaultControl(**{**base, **kw})
 
 
+def uav_group(n: int = 3, **kw) -> UavGroupEpoch:
+    """n UAVs: the first with every part, the second a beacon measurement only, the third its nav only."""
+    rng = np.random.default_rng(n)
+    parts = np.array([7, 2, 1] * n, dtype=np.int64)[:n]
+    has_b, has_t = (parts & 2) != 0, (parts & 4) != 0
+    nan = np.nan
+    base = dict(HDR, source_id="uavs1-3", group="uavs1-3", beacon_id="b7", truth_source_id="world",
+                uav_ids=tuple(str(i + 1) for i in range(n)), uav_source_ids=tuple(f"uav-{i + 1}" for i in range(n)),
+                parts=parts, n_sats=np.arange(n) + 6, fix_type=np.full(n, 3),
+                pos_ecef_m=np.array([4.2e6, 1.1e6, 4.6e6]) + rng.normal(0, 1e3, (n, 3)),
+                vel_ecef_m_s=rng.normal(0, 20, (n, 3)), cov=np.array([_cov(10 + i) for i in range(n)]).reshape(n, 6, 6),
+                range_m=np.where(has_b, rng.uniform(1e3, 5e4, n), nan),
+                range_rate_m_s=np.where(has_b, rng.normal(0, 30, n), nan),
+                var_range_m2=np.where(has_b, 4.0, nan), var_range_rate_m2_s2=np.where(has_b, 0.01, nan),
+                truth_pos_ecef_m=np.where(has_t[:, None], rng.normal(4e6, 1e5, (n, 3)), nan),
+                truth_vel_ecef_m_s=np.where(has_t[:, None], rng.normal(0, 20, (n, 3)), nan))
+    return UavGroupEpoch(**{**base, **kw})
+
+
 FACTORIES = {"UavNav": nav, "BeaconMeasurement": beacon, "SondeRelay": relay,
              "RadarMeasurement": radar, "Truth": truth, "Estimate": estimate,
-             "IntegrityEvent": integrity, "LinkStats": link_stats, "FaultControl": fault_control}
+             "IntegrityEvent": integrity, "LinkStats": link_stats, "FaultControl": fault_control,
+             "UavGroupEpoch": uav_group}
 
 
 def test_every_kind_has_a_factory_and_round_trips():

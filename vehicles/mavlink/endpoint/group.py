@@ -46,6 +46,14 @@ class EndpointGroup:
         if len(telemetry_list) != len(self.endpoints):
             raise ValueError(f"telemetry_list must have one entry per endpoint ({len(self.endpoints)}), "
                              f"got {len(telemetry_list)}")
+        self.serve_input(t_gps_s, budget_s)
+        for ep, tel in zip(self.endpoints, telemetry_list):
+            ep._advance(tel)
+
+    def serve_input(self, t_gps_s: float, budget_s: float | None = None) -> None:
+        """Only the input half of `step`: handle what arrived (replies go out at once) at
+        simulated time t_gps_s, sending no stream. The worker calls it between the slices of a
+        long world step, so a command waits for the next slice, not for the whole step."""
         if budget_s is not None and not (isinstance(budget_s, (int, float)) and budget_s >= 0):
             raise ValueError(f"budget_s must be None or >= 0 s, got {budget_s!r}")
         for ep in self.endpoints:
@@ -62,8 +70,6 @@ class EndpointGroup:
             for ep in self._tcp:
                 if ep.tcp.clients:
                     ep.poll_tcp()
-        for ep, tel in zip(self.endpoints, telemetry_list):
-            ep._advance(tel)
 
     @property
     def counters(self) -> dict:
