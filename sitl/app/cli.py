@@ -248,6 +248,10 @@ def _run(args: argparse.Namespace) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
+    from sitl.app.provenance import mark_started
+
+    # every output of this command records its start and command line (sitl/app/provenance.py)
+    mark_started(["skyfuse", *(sys.argv[1:] if argv is None else argv)])
     parser = build_parser()
     try:
         args = parser.parse_args(argv)

@@ -226,15 +226,15 @@ def _main(scn, args: DemoOptions) -> int:
 
 
 def _batch(scn, out: Path, args: DemoOptions) -> int:
-    from sitl.app.experiments.common import strict
     from sitl.app.batch import run_batch
+    from sitl.app.provenance import write_json
     t0 = perf_now()
     res = run_batch(scn, progress=None if args.quiet else (lambda m: print(m, file=sys.stderr)))
     doc = {"mode": "batch", "scenario": scn.to_dict(), "wall_s": perf_now() - t0, "errors": res["errors"],
            "ground_station": res["gs"], "published": res["published"], "ok": True}
     if "faults" in res:
         doc["faults"] = res["faults"]
-    (out / "report.json").write_text(json.dumps(strict(doc), indent=1, allow_nan=False))
+    write_json(out / "report.json", doc, seed=scn.run.seed, scenario=scn)  # + schema, provenance
     print(summary_text(doc))
     if "faults" in res:
         f = res["faults"]
@@ -256,7 +256,7 @@ def launch(scn, out: Path, *, quiet: bool = False, stop: threading.Event | None 
     called once the workers have started their run (tests use it to inject faults)."""
     from sitl.bus.buslog import BusRecorder
     from sitl.bus.zenoh_transport import ZenohTransport
-    from sitl.app.experiments.common import strict
+    from sitl.app.provenance import write_json
     from sitl.app.scoring import ErrorTracker
     from sitl.app.status import StatusBoard, format_status
     from sitl.app.supervisor import Supervisor
@@ -418,7 +418,7 @@ def launch(scn, out: Path, *, quiet: bool = False, stop: threading.Event | None 
         report["shutdown"] = shutdown
         if sup is not None:
             _fill_report(report, sup, scorer if bus is not None else None, audit, recorder)
-        (out / "report.json").write_text(json.dumps(strict(report), indent=1, allow_nan=False))
+        write_json(out / "report.json", report, seed=scn.run.seed, scenario=scn)  # + schema, provenance
     return report
 
 

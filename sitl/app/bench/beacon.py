@@ -24,12 +24,12 @@ includes waiting for a core; the CPU time does not).  The per-stage split of the
 """
 from __future__ import annotations
 
-import json
 import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
 
+from sitl.app.provenance import options_scenario, write_json
 from sitl.app.args import OUTPUT_FILE
 from sitl.params import add_flags, choice, integer, number, optional, param, quiet_option, validate
 
@@ -295,6 +295,6 @@ def main(args) -> int:
               progress=None if args.quiet else (lambda m: print(m, file=sys.stderr, flush=True)))
     print(table(res))
     if args.json:
-        args.json.write_text(json.dumps(res, indent=1, allow_nan=False, default=float))
+        write_json(args.json, res, seed=args.seed, scenario=options_scenario(args))
         print(f"wrote {args.json}")
     return 0

@@ -11,7 +11,6 @@ The figure of merit is the ratio filterpy_s_per_trial_step / skyfuse_s_per_trial
 """
 from __future__ import annotations
 
-import json
 import sys
 import time
 from dataclasses import dataclass
@@ -19,6 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
+from sitl.app.provenance import options_scenario, write_json
 from sitl.app.args import OUTPUT_FILE
 from sitl.params import add_flags, choice, integer, optional, param, several, validate
 
@@ -187,6 +187,6 @@ def main(args) -> int:
                progress=lambda msg: print(msg, file=sys.stderr, flush=True))
     print(table(rows, backends))
     if args.json:
-        args.json.write_text(json.dumps({"rows": rows}, indent=1))
+        write_json(args.json, {"rows": rows}, scenario=options_scenario(args))
         print(f"wrote {args.json}")
     return 0

@@ -32,13 +32,13 @@ ratio of minima ranged 26-60 % over three runs of the same code, the paired medi
 """
 from __future__ import annotations
 
-import json
 import os
 import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
 
+from sitl.app.provenance import options_scenario, write_json
 from sitl.app.args import OUTPUT_FILE
 from sitl.params import add_flags, choice, integer, optional, param, quiet_option, validate
 
@@ -224,7 +224,5 @@ def main(args) -> int:
     res = run(args.trials, args.steps, args.rounds, args.seed, args.backend, progress=prog)
     print(table(res))
     if args.json is not None:
-        from sitl.app.experiments.common import strict
-
-        args.json.write_text(json.dumps(strict(res), indent=1, allow_nan=False))
+        write_json(args.json, res, seed=args.seed, scenario=options_scenario(args))
     return 0

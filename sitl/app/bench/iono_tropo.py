@@ -16,7 +16,6 @@ drifts; the minimum is the least disturbed run).
 """
 from __future__ import annotations
 
-import json
 import sys
 import time
 from dataclasses import dataclass
@@ -24,6 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
+from sitl.app.provenance import options_scenario, write_json
 from sitl.app.args import OUTPUT_FILE
 from sitl.params import add_flags, choice, integer, number, optional, param, quiet_option, validate
 
@@ -142,6 +142,6 @@ def main(args) -> int:
         raise UsageError(f"bench iono-tropo: {exc}") from None
     print(table(res))
     if args.json:
-        args.json.write_text(json.dumps(res, indent=1, allow_nan=False, default=float))
+        write_json(args.json, res, seed=getattr(args, "seed", None), scenario=options_scenario(args))
         print(f"wrote {args.json}")
     return 0

@@ -22,12 +22,12 @@ the main case's wall (main: fused, no bus).
 """
 from __future__ import annotations
 
-import json
 import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
 
+from sitl.app.provenance import options_scenario, write_json
 from sitl.app.args import OUTPUT_FILE
 from sitl.params import add_flags, integer, number, optional, param, quiet_option, switch, validate
 
@@ -177,6 +177,6 @@ def main(args) -> int:
               progress=None if args.quiet else (lambda m: print(m, file=sys.stderr, flush=True)))
     print(table(res))
     if args.json:
-        args.json.write_text(json.dumps(res, indent=1, allow_nan=False, default=float))
+        write_json(args.json, res, seed=args.seed, scenario=options_scenario(args))
         print(f"wrote {args.json}")
     return 0

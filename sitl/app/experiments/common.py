@@ -8,6 +8,8 @@ import os
 import sys
 from pathlib import Path
 
+from sitl.app.provenance import options_scenario  # noqa: F401  (the experiments' scenario of their options)
+
 
 def strict(v):
     """A JSON-able copy: numpy to Python, inf / nan to None (json.dump(allow_nan=False) works)."""
@@ -26,6 +28,15 @@ def strict(v):
     if isinstance(v, (float, np.floating)):
         return float(v) if math.isfinite(v) else None
     return v
+
+
+def write_result(path: Path, doc: dict, *, seed=None, scenario=None) -> dict:
+    """Write ``doc`` to ``path`` as strict JSON with the one ``schema`` version and the provenance
+    record (sitl.app.provenance.write_json: version, commit, command line, seed, scenario and its
+    hash, start time); returns the document written."""
+    from sitl.app.provenance import write_json
+
+    return write_json(path, doc, seed=seed, scenario=scenario)
 
 
 def save_figure(fig, path: Path) -> Path:

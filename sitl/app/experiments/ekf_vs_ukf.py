@@ -32,7 +32,6 @@ Memory stays flat: trials are stepped together and only per-step statistics are 
 """
 from __future__ import annotations
 
-import json
 import math
 import sys
 import time
@@ -48,6 +47,7 @@ from sitl import geodesy
 from sitl.constants import C_M_S
 from sitl.gnss import orbits, ranging
 from sitl.app.args import OUTPUT_DIR
+from sitl.app.experiments.common import write_result
 from sitl.params import (
     add_flags, backend_option, choice, default_of, integer, number, optional, param, quiet_option, require, validate,
 )
@@ -281,6 +281,7 @@ def run(scn: EkfVsUkfScenario, trials: int, seed: int, backend=None, progress=No
     last = slice(max(0, scn.steps - 100), scn.steps)
     result = {
         "experiment": "ekf-vs-ukf",
+        "schema": None,  # set when written (sitl.app.provenance.SCHEMA)
         "seed_paper": "001",
         "trials": trials,
         "steps": scn.steps,
@@ -449,7 +450,7 @@ def _progress(quiet):
 
 def write(res: dict, out: Path) -> list[Path]:
     out.mkdir(parents=True, exist_ok=True)
-    (out / "result.json").write_text(json.dumps(res, indent=1))
+    write_result(out / "result.json", res, seed=res["seed"], scenario=res["scenario"])
     return [out / "result.json"] + plot(res, out)
 
 

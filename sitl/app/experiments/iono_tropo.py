@@ -17,13 +17,12 @@ spirit of the paper's figures 2 (I_g) and 3 (U_g), where "series 1" is variant 2
 from __future__ import annotations
 
 import dataclasses
-import json
 import math
 from pathlib import Path
 
 import numpy as np
 
-from sitl.app.experiments.common import prepare_out, progress_printer, save_figure, strict
+from sitl.app.experiments.common import prepare_out, progress_printer, save_figure, strict, write_result
 
 from sitl.app.experiments import iono_tropo_filters
 from sitl.app.args import OUTPUT_DIR
@@ -184,7 +183,7 @@ def result_document(scn, trials: int, seed: int, results: dict, figures) -> dict
         d["time_to_1m_s_per_trial"] = np.asarray(res["time_to_1m_s_per_trial"]).tolist()
         d.update({k: res[k] for k in EXTRA_KEYS if k in res})
         variants[name] = d
-    doc = {"experiment": "iono-tropo", "schema": 1, "seed": seed, "trials": trials,
+    doc = {"experiment": "iono-tropo", "schema": None, "seed": seed, "trials": trials,
            "scenario": dataclasses.asdict(scn), "variants": variants, "paper": PAPER,
            "ordering_3_lt_2_lt_1": ordering_3_lt_2_lt_1(results), "figures": [Path(f).name for f in figures]}
     return strict(doc)
@@ -202,8 +201,7 @@ def series_arrays(results: dict) -> dict:
 
 def write(out: Path, scn, trials: int, seed: int, results: dict) -> list[Path]:
     figures = plot(results, scn, trials, seed, out)
-    doc = result_document(scn, trials, seed, results, figures)
-    (out / "result.json").write_text(json.dumps(doc, indent=1, allow_nan=False))
+    write_result(out / "result.json", result_document(scn, trials, seed, results, figures), seed=seed, scenario=scn)
     np.savez(out / "series.npz", **series_arrays(results))
     return [out / "result.json", out / "series.npz", *figures]
 
@@ -415,7 +413,7 @@ def _study(args, scn, out: Path, backend) -> int:
               f"({'holds' if res['pooled_ordering_holds'] else 'does not hold'}); same-data pairs: variant 2 "
               f"first in {pf['variant2_before_variant1']:.0%}, variant 3 before 2 in "
               f"{pf['variant3_before_variant2']:.0%} of trials")
-    doc = strict({"experiment": "iono-tropo", "study": args.study, "scenario": dataclasses.asdict(scn), **res})
-    (out / name).write_text(json.dumps(doc, indent=1, allow_nan=False))
+    doc = {"experiment": "iono-tropo", "study": args.study, "schema": None, "scenario": dataclasses.asdict(scn), **res}
+    write_result(out / name, doc, seed=seeds if args.study == "ordering" else args.seed, scenario=scn)
     print(f"wrote {out / name}, {fig}")
     return 0

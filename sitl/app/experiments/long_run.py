@@ -80,7 +80,6 @@ Writes DIR/result.json (strict JSON) and DIR/long_run.png.  Progress on stderr.
 from __future__ import annotations
 
 import dataclasses
-import json
 import math
 import time
 import warnings
@@ -90,7 +89,7 @@ import numpy as np
 
 from sitl.app.args import OUTPUT_DIR
 from sitl.params import add_flags, choice, integer, number, param, quiet_option, switch, validate
-from sitl.app.experiments.common import prepare_out, progress_printer, save_figure, strict
+from sitl.app.experiments.common import options_scenario, prepare_out, progress_printer, save_figure, write_result
 
 GEOMETRIES = ("default", "north")
 LOCATORS = ("live", "inflate")
@@ -392,7 +391,7 @@ def long_run(duration_s: float = 21600.0, seed: int = 1, trials: int = 4, geomet
         d["beacon_to_uav_centroid_km"] = [float(dist[sel].min() / 1e3), float(dist[sel].max() / 1e3)]
     overall = _overall(t, sc, sq, settle_s, int(trials), win)
     doc = {
-        "experiment": "long-run", "schema": 1, "seed": seed, "trials": int(trials), "duration_s": float(duration_s),
+        "experiment": "long-run", "schema": None, "seed": seed, "trials": int(trials), "duration_s": float(duration_s),
         "geometry": geometry, "locator": locator,
         "locator_config": {"observer_uncertainty": cfg.observer_uncertainty, "init": cfg.init,
                            "init_epochs": cfg.init_epochs, "q_m2_s3": cfg.q_m2_s3,
@@ -532,9 +531,7 @@ def run(args) -> dict:
     fig = plot(out, doc)
     doc.pop("_series")
     doc["figures"] = [fig.name]
-    doc = strict(doc)
-    (out / "result.json").write_text(json.dumps(doc, indent=1, allow_nan=False))
-    return doc
+    return write_result(out / "result.json", doc, seed=args.seed, scenario=options_scenario(args, LongRunOptions))
 
 
 def table(doc) -> str:

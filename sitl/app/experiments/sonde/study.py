@@ -85,7 +85,7 @@ def seed_study(scn: SondeScenario, seeds, *, backend=None, progress=None, batch:
               "radar_loss_no_worse_than_relay_only": loss["fused_no_worse_on_average"]}
     checks = {k: v for k, v in checks.items() if v is not None}  # an episode outside the run: not judged
     return {
-        "experiment": "sonde", "study": "seeds", "schema": 1, "seeds": seeds, "trial": 0,
+        "experiment": "sonde", "study": "seeds", "schema": None, "seeds": seeds, "trial": 0,
         "scenario": dataclasses.asdict(scn),
         "per_seed": [{"seed": sd, **{f"{name}_rmse_m": {m: per[name][m][b] for m in MODES} for name in names},
                       "fused_to_relay_only": ratio[b], "fused_below_relay_only": below[b]}
