@@ -280,6 +280,7 @@ def launch(scn, out: Path, *, quiet: bool = False, stop: threading.Event | None 
     report: dict = {"mode": "live", "scenario": scn.to_dict(), "ok": False, "events": []}
     shutdown = {}
     try:
+        clear_previous_tlogs(out)
         if warm_up and not _cold_warm_up(scn, out, stop, None if quiet else status_stream):
             report["error"] = ("stopped while compiling the kernels" if stop.is_set()
                                else f"the kernels' warm-up failed (see {out / 'logs' / 'warm_up.stderr.log'})")
@@ -420,6 +421,16 @@ def launch(scn, out: Path, *, quiet: bool = False, stop: threading.Event | None 
             _fill_report(report, sup, scorer if bus is not None else None, audit, recorder)
         write_json(out / "report.json", report, seed=scn.run.seed, scenario=scn)  # + schema, provenance
     return report
+
+
+def clear_previous_tlogs(out: Path) -> list[Path]:
+    """One tlog per run per link: before a run's workers start, the tlogs a previous run left in a
+    re-used output directory (the run holds its lock) are removed, so neither a restart's
+    mav_<name>.r<k>.tlog files nor appends pile up across runs. Returns the files removed."""
+    gone = sorted(out.glob("mav_*.tlog"))
+    for p in gone:
+        p.unlink(missing_ok=True)
+    return gone
 
 
 class _RunJson:

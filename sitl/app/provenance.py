@@ -69,12 +69,12 @@ def git_state(root: Path | None = None) -> dict:
 
 
 def _canonical(v):
-    """A JSON-able copy with a single spelling: dataclasses and to_dict() objects as dicts, numpy
+    """A JSON-able copy with a single spelling: to_dict() objects and dataclasses as dicts, numpy
     as Python, tuples as lists, paths as strings, non-finite floats as strings."""
-    if dataclasses.is_dataclass(v) and not isinstance(v, type):
-        v = {f.name: getattr(v, f.name) for f in dataclasses.fields(v)}
-    elif hasattr(v, "to_dict") and callable(v.to_dict):
+    if hasattr(v, "to_dict") and callable(v.to_dict):  # its own canonical form (sitl.scenario.Scenario)
         v = v.to_dict()
+    elif dataclasses.is_dataclass(v) and not isinstance(v, type):
+        v = {f.name: getattr(v, f.name) for f in dataclasses.fields(v)}
     if isinstance(v, dict):
         return {str(k): _canonical(x) for k, x in v.items()}
     if isinstance(v, (list, tuple, set, frozenset)):
