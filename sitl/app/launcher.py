@@ -215,27 +215,50 @@ def _main(scn, args: DemoOptions) -> int:
         if args.batch:
             return _batch(scn, out, args)
         if not args.quiet:
-            print(f"[launcher] output in {out}/ (report.json, bus.log, logs/)", file=sys.stderr)
+            print(start_text(scn, out), file=sys.stderr, flush=True)
         report = launch(scn, out, quiet=args.quiet)
     finally:
         lock.release()
     print(summary_text(report))
+    print(f"report: {out / 'report.json'}")
     if report.get("stopped_early"):
         return 130  # Ctrl-C / SIGTERM: stopped cleanly, as asked
     return 0 if report["ok"] else 1
 
 
+def start_text(scn, out: Path) -> str:
+    """What a live run says first: where its output goes and how to connect MAVProxy or
+    QGroundControl to it (the scenario's real addresses: [mavlink] gcs, base_port, tcp)."""
+    lines = [f"[launcher] output in {out}/: report.json at the end, bus.log, mav_*.tlog, logs/"]
+    m = scn.mavlink
+    if not m.enabled:
+        return "\n".join(lines + ["[launcher] MAVLink is off ([mavlink] enabled = false): no vehicle to connect to"])
+    host, gport = m.gcs.rsplit(":", 1)
+    vehicles = [f"UAV {i + 1}" for i in range(scn.uavs.count)] + (["sonde"] if scn.sonde.enabled else [])
+    lines.append(f"[launcher] the vehicles send MAVLink to {m.gcs}: QGroundControl's default UDP link hears them "
+                 f"all, or `mavproxy.py --master udpin:{host}:{gport}`" if gport == "14550" else
+                 f"[launcher] the vehicles send MAVLink to {m.gcs}: `mavproxy.py --master udpin:{host}:{gport}` "
+                 f"(QGroundControl: a UDP link on port {gport})")
+    for i, name in enumerate(vehicles):
+        port = m.base_port + 10 * i
+        lines.append(f"[launcher]   {name} (system id {i + 1}): `mavproxy.py --master udpout:127.0.0.1:{port}`"
+                     + (f" or `--master tcp:127.0.0.1:{port}`" if m.tcp else ""))
+    return "\n".join(lines)
+
+
 def _batch(scn, out: Path, args: DemoOptions) -> int:
     from sitl.app.batch import run_batch
+    from sitl.app.progress import progress_printer
     from sitl.app.provenance import write_json
     t0 = perf_now()
-    res = run_batch(scn, progress=None if args.quiet else (lambda m: print(m, file=sys.stderr)))
+    res = run_batch(scn, progress=progress_printer(args.quiet, "batch run"))
     doc = {"mode": "batch", "scenario": scn.to_dict(), "wall_s": perf_now() - t0, "errors": res["errors"],
            "ground_station": res["gs"], "published": res["published"], "ok": True}
     if "faults" in res:
         doc["faults"] = res["faults"]
     write_json(out / "report.json", doc, seed=scn.run.seed, scenario=scn)  # + schema, provenance
     print(summary_text(doc))
+    print(f"report: {out / 'report.json'}")
     if "faults" in res:
         f = res["faults"]
         print(f"  network faults (batch): {len(f['bus_rules'])} bus rule(s) applied, "
@@ -467,27 +490,32 @@ def _cold_warm_up(scn, out: Path, stop: threading.Event, say) -> bool:
     est_s, est_n = kc.estimate()
     (out / "logs").mkdir(parents=True, exist_ok=True)
     (out / "scenario.json").write_text(json.dumps(scn.to_dict(), indent=1))
-    if say is not None:
-        _say(say, False, f"[launcher] compiling the numba kernels (the first run after an install or a source "
-                         f"change; later starts skip this): about {est_s:.0f} s ...")
+    bar = None
+    if say is not None:  # a bar of the kernels compiled against the last cold warm-up's count (tqdm)
+        from sitl.app.progress import Progress
+        bar = Progress("[launcher] compiling", stream=say, unit="kernel")
+        bar(f"[launcher] compiling the estimation kernels (first run only, about {est_s:.0f} s; "
+            f"the first run after an install or a source change, later starts skip this)")
+        bar(done=0, total=est_n)
     t0, w0 = perf_now(), wall_now() - 1.0
     with open(out / "logs" / "warm_up.stderr.log", "ab") as err:
         p = subprocess.Popen([sys.executable, "-m", "sitl.app.batch", str(out / "scenario.json"), "--warm-up"],
                              stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=err, env=child_env())
-    next_line = perf_now() + 5.0
+    next_poll = perf_now() + 1.0
     try:
         while p.poll() is None:
             if stop.wait(0.2):
                 return False
-            if say is not None and perf_now() >= next_line:
-                next_line += 5.0
-                el = perf_now() - t0
-                _say(say, False, f"[launcher] compiling: {kc.written_since(w0)}/~{est_n} kernels, {el:.0f} s of "
-                                 f"about {max(est_s, el):.0f} s")
+            if bar is not None and perf_now() >= next_poll:
+                next_poll += 1.0
+                n = kc.written_since(w0)
+                bar(done=n, total=max(est_n, n))
     finally:
         if p.poll() is None:
             p.kill()
         p.wait()
+        if bar is not None:
+            bar.close()
     if p.returncode != 0:
         return False
     el, n = perf_now() - t0, kc.written_since(w0)

@@ -1,13 +1,14 @@
-"""What every experiment command shares: strict JSON, figure saving, progress, the output
-directory check, network faults on a batch run's measurement keys."""
+"""What every experiment command shares: strict JSON, the result document's writer (schema and
+provenance), figure saving, progress (sitl.app.progress), the output directory check, network
+faults on a batch run's measurement keys."""
 from __future__ import annotations
 
 import dataclasses
 import math
 import os
-import sys
 from pathlib import Path
 
+from sitl.app.progress import progress_printer  # noqa: F401  (the experiments' progress: tqdm)
 from sitl.app.provenance import options_scenario  # noqa: F401  (the experiments' scenario of their options)
 
 
@@ -45,13 +46,6 @@ def save_figure(fig, path: Path) -> Path:
     fig.savefig(path, dpi=110)
     plt.close(fig)
     return path
-
-
-def progress_printer(quiet: bool):
-    """None when quiet, else a function printing one progress line to stderr."""
-    if quiet:
-        return None
-    return lambda msg: print(msg, file=sys.stderr, flush=True)
 
 
 def prepare_out(out: Path) -> Path:

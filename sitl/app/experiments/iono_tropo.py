@@ -159,7 +159,7 @@ def run_all(scn, names, trials: int, seed: int, backend=None, progress=None) -> 
         v = VARIANTS[name]
         if progress:
             progress(f"[{name}] variant {v}: {trials} trials x {scn.n_epochs} epochs")
-        prog = (lambda msg, _n=name: progress(f"[{_n}] {msg}")) if progress else None
+        prog = (lambda msg, _n=name, **kw: progress(f"[{_n}] {msg}", **kw)) if progress else None
         out[name] = iono_tropo_filters.run_streamed(scn, trials, seed, variant=v, progress=prog, backend=backend)
     return out
 
@@ -372,7 +372,7 @@ def main(args) -> int:
     if getattr(args, "study", default_of(IonoTropoOptions, "study")) != "none":
         return _study(args, scn, out, backend)
     try:
-        results = run_all(scn, names, args.trials, args.seed, backend=backend, progress=progress_printer(args.quiet))
+        results = run_all(scn, names, args.trials, args.seed, backend=backend, progress=progress_printer(args.quiet, "iono-tropo"))
     except ValueError as exc:
         # the per-epoch visibility check is finer than the scenario's 10 s pre-check
         if "satellites in view" in str(exc):
@@ -391,7 +391,7 @@ def _study(args, scn, out: Path, backend) -> int:
     """`--study adaptive-q|ordering`: writes DIR/<study>.json and a PNG."""
     from sitl.app.experiments import iono_tropo_studies as studies
 
-    prog = progress_printer(args.quiet)
+    prog = progress_printer(args.quiet, f"iono-tropo {args.study} study")
     if args.study == "adaptive-q":
         res = studies.adaptive_q_study(scn, args.trials, args.seed, clock_scale=args.clock_scale, progress=prog,
                                        backend=backend)

@@ -199,7 +199,7 @@ def run_trial(scn, locator: str = "live", progress=None) -> dict:
         bus.drain(t)
         if progress and k % report == 0 and k:
             e = np.linalg.norm(rec.b["x"][k, 0:3] - rec.b["truth"][k, 0:3])
-            progress(f"[long-run seed {run.seed}] t = {k * dt:.0f} s of {run.duration_s:.0f}: beacon error {e:.1f} m")
+            progress(f"[long-run seed {run.seed}] beacon error {e:.1f} m", done=k * dt, total=run.duration_s)
     stats = node.stats()
     node.close()
     bus.close()
@@ -525,7 +525,7 @@ def run(args) -> dict:
     if args.settle >= args.window:
         raise UsageError(f"--settle: less than --window ({args.window:g} s), got {args.settle:g}")
     out = prepare_out(Path(args.out))
-    prog = progress_printer(getattr(args, "quiet", False))
+    prog = progress_printer(getattr(args, "quiet", False), "long-run")
     doc = long_run(args.duration, args.seed, args.trials, args.geometry, args.locator, args.window, args.settle,
                    not args.no_pcrb, not args.no_sonde, prog)
     fig = plot(out, doc)

@@ -410,7 +410,7 @@ def sweep(scenarios=SCENARIOS, trials: int = 8, seed: int = 1, plan: Plan = DEFA
                 sel = r.t_s >= setup.settle_s
                 progress(f"[{name}] {i + 1:>2}/{len(conds)} {fault}={value:g} ({spec}): RMSE "
                          f"{rmse(r.err2, sel) or float('nan'):.3g} m; {r.wall_s:.1f} s wall, "
-                         f"{time.perf_counter() - t0:.0f} s so far")
+                         f"{time.perf_counter() - t0:.0f} s so far", done=i + 1, total=len(conds))
         checks = {}
         if plan.duplicate_check:
             spec = f"duplicate={100.0 * plan.duplicate_check:.6g}%"
@@ -723,7 +723,7 @@ def _config(args):
 def run(args) -> dict:
     names, plan, setups, trials = _config(args)
     out = prepare_out(Path(args.out))
-    prog = progress_printer(getattr(args, "quiet", False))
+    prog = progress_printer(getattr(args, "quiet", False), "faults")
     wall0 = time.perf_counter()
     raw = sweep(names, trials, args.seed, plan, setups, prog)
     summ = summarise(raw, plan)

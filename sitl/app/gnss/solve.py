@@ -26,6 +26,7 @@ from pathlib import Path
 import numpy as np
 
 from sitl.app.args import OUTPUT_DIR, UsageError, add_positional, options_of
+from sitl.app.progress import progress_printer
 from sitl.app.provenance import options_scenario, write_json
 from sitl.params import add_flags, choice, from_text, number, optional, param, quiet_option, switch, validate
 
@@ -319,7 +320,7 @@ def main(args) -> int:
     opts = options_of(GnssSolveOptions, args)
     if opts.obs is None or opts.nav is None:
         raise UsageError("skyfuse gnss solve: OBS and --nav are required")
-    progress = None if opts.quiet else print
+    progress = progress_printer(opts.quiet, "gnss solve")
     try:
         res = run(opts, progress=progress)
     except ValueError as exc:  # GnssFileError: '<file>, line <n>: <reason>'

@@ -118,7 +118,7 @@ def run(args) -> dict:
     counts = check_args(args)
     geometry = getattr(args, "geometry", default_of(BeaconOptions, "geometry"))
     out = prepare_out(Path(args.out))
-    prog = progress_printer(args.quiet)
+    prog = progress_printer(args.quiet, "beacon")
     wall0 = time.perf_counter()
     timing = {}
     cfg = LocatorConfig()

@@ -189,7 +189,7 @@ def main(args) -> int:
         raise UsageError(str(exc)) from None
     out = prepare_out(Path(args.out))
     backend = None if getattr(args, "backend", default_of(IntegrityOptions, "backend")) == "auto" else args.backend
-    res = run(scn, args.trials, args.seed, progress=progress_printer(args.quiet), backend=backend)
+    res = run(scn, args.trials, args.seed, progress=progress_printer(args.quiet, "integrity"), backend=backend)
     figures = plot(res, scn, out)
     write_result(out / "result.json", result_document(scn, args.trials, args.seed, res, figures),
                  seed=args.seed, scenario=scn)

@@ -113,7 +113,7 @@ def main(args) -> int:
     except ValueError as exc:
         raise UsageError(" ".join(str(exc).split())) from None
     out = prepare_out(Path(args.out))
-    progress = progress_printer(args.quiet)
+    progress = progress_printer(args.quiet, "sonde")
     backend = None if args.backend == "auto" else args.backend
     n_seeds = getattr(args, "seeds", None)
     if n_seeds is not None:  # the seed study: trial 0 of seeds --seed (default 1) .. + n - 1
