@@ -443,8 +443,10 @@ def _scenario_from_args(args) -> EkfVsUkfScenario:
 
 def write(res: dict, out: Path) -> list[Path]:
     out.mkdir(parents=True, exist_ok=True)
+    figures = plot(res, out)
+    res["figures"] = [Path(f).name for f in figures]  # as every experiment's result.json lists them
     write_result(out / "result.json", res, seed=res["seed"], scenario=res["scenario"])
-    return [out / "result.json"] + plot(res, out)
+    return [out / "result.json"] + figures
 
 
 def main(args) -> int:
