@@ -293,7 +293,13 @@ def launch(scn, out: Path, *, quiet: bool = False, stop: threading.Event | None 
     restore = _install_signals(stop)
     run = scn.run
     t_wall0 = perf_now()
-    router = bus = recorder = sup = live_faults = None
+    router = bus = recorder = sup = live_faults = run_bar = None
+
+    def say(line: str) -> None:  # an event line: above the run's bar once there is one
+        if run_bar is not None:
+            run_bar(line)
+        else:
+            _say(status_stream, tty, line)
     audit = PayloadAudit()  # every payload of the run, on every key, counted once
     paced: list = []  # the run's Pacer once it has started: the launcher's simulation clock
 
@@ -333,7 +339,7 @@ def launch(scn, out: Path, *, quiet: bool = False, stop: threading.Event | None 
             fault_board = live_faults.board
         else:
             fault_board = NoFaultBoard()
-        serve(fault_board, bus, run.id, on_line=lambda line: _say(status_stream, tty, line))
+        serve(fault_board, bus, run.id, on_line=lambda line: say(line))
         run_json = _RunJson(out / "run.json", run.id, endpoints, fault_board)
         run_json.write()
         fault_board.on_change = run_json.write
@@ -386,11 +392,14 @@ def launch(scn, out: Path, *, quiet: bool = False, stop: threading.Event | None 
         board = StatusBoard()
         next_status = perf_now()
         last_line = ""
+        if not quiet:  # the run's progress, simulated seconds of the run's duration (tqdm: rate, ETA)
+            from sitl.app.progress import Progress
+            run_bar = Progress("[launcher] run", stream=status_stream, tty=tty, unit="sim s")
         while not stop.is_set():
             bus.drain()
             for ev in sup.poll():
                 if ev["event"] in ("restart", "gave_up") or (ev["event"] == "exit" and not ev.get("clean")):
-                    _say(status_stream, tty, f"[launcher] {ev['worker']}: {_event_text(ev)}")
+                    say(f"[launcher] {ev['worker']}: {_event_text(ev)}")
                 if ev["event"] == "fatal":
                     report["error"] = f"{ev['worker']}: {ev['error']}"
             fatal = next((c for c in sup.children.values() if c.fatal), None)
@@ -406,8 +415,8 @@ def launch(scn, out: Path, *, quiet: bool = False, stop: threading.Event | None 
                 next_status += 1.0
                 last_line = format_status(board.snapshot(sup, scorer, audit, min(pacer.sim_now(), t_end)), run.t0_gps_s,
                                           run.duration_s, scn.ground_station.stale_after_s)
-                if not quiet:
-                    _status(status_stream, tty, last_line)
+                if run_bar is not None:
+                    run_bar(last_line, done=min(pacer.sim_now(), t_end) - run.t0_gps_s, total=run.duration_s)
             stop.wait(0.05)
         bus.drain()
         report["stopped_early"] = stop.is_set()
@@ -434,8 +443,8 @@ def launch(scn, out: Path, *, quiet: bool = False, stop: threading.Event | None 
         if router is not None:
             router.close()
         _restore_signals(restore)
-        if tty and not quiet:
-            status_stream.write("\n")
+        if run_bar is not None:
+            run_bar.close()
         report["wall_s"] = perf_now() - t_wall0
         from sitl.pacing import cpu_now
         report["launcher_cpu_s"] = cpu_now()  # this process: the embedded router, the log, the scorer
@@ -569,16 +578,13 @@ def _event_text(ev) -> str:
     return f"exited with {ev.get('returncode')}"
 
 
-def _status(stream, tty, line) -> None:
+def _say(stream, tty, line) -> None:
+    """One line on ``stream`` (before the run's bar exists, or without one)."""
     try:
-        stream.write(("\r" + line + "\x1b[K") if tty else line + "\n")
+        stream.write(line + "\n")
         stream.flush()
     except (OSError, ValueError):
         pass
-
-
-def _say(stream, tty, line) -> None:
-    _status(stream, False, ("\n" + line) if tty else line)
 
 
 def _install_signals(stop: threading.Event):

@@ -54,7 +54,8 @@ def _check_same(r, doc, name):
     assert isinstance(r, experiments.RESULT_TYPES[name]) and r.experiment == name
     assert _stable(r.document) == _stable(doc)  # every figure of result.json, run by the command line
     for key in type(r).HEADLINE:  # the typed fields are result.json's entries
-        assert getattr(r, key) == doc.get(key), key
+        assert getattr(r, key) == json.loads((r.out / "result.json").read_text()).get(key), key
+        assert _stable(getattr(r, key)) == _stable(doc.get(key)), key
     assert (r.seed, r.trials, r.schema) == (doc["seed"], doc["trials"], doc["schema"])
     assert r.provenance.scenario_sha256 == doc["provenance"]["scenario_sha256"]
     assert [f.name for f in r.figures] == doc["figures"] and all(f.is_file() for f in r.figures)
