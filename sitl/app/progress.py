@@ -61,6 +61,9 @@ class Progress:
 
     # ------------------------------------------------------------------ the callback
     def __call__(self, msg: str | None = None, *, done: float | None = None, total: float | None = None) -> None:
+        if done is not None and (total if total is not None else self._total or 0) >= 10:
+            done = int(round(done))  # whole units (simulated seconds, epochs) read better
+            total = None if total is None else int(round(total))
         with self._lock:
             if done is None:
                 if msg:
