@@ -156,6 +156,7 @@ class GcsLink:
                  signing_state=None, text_burst: int = 5, text_rate_per_s: float = 1.0):
         import socket
 
+        from sitl.mavlink.framing import TlogWriter, fresh_tlog_path
         from sitl.pacing import wall_now
 
         host, port = gcs.rsplit(":", 1)
@@ -174,7 +175,8 @@ class GcsLink:
         self.signed = self.signing is not None
         self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         self.sock.setblocking(False)
-        self._tlog = open(tlog, "ab") if tlog else None
+        # a new file per start, stamped with the wall clock as MAVProxy's (sitl.mavlink.framing)
+        self._tlog = TlogWriter(fresh_tlog_path(tlog), stamp_clock=wall_now) if tlog else None
         self.sent = Counter()
         self.errors = 0
         self.skipped = Counter()  # ADSB_VEHICLE not sent: why
@@ -201,10 +203,7 @@ class GcsLink:
                 self.signing.before_send()
             self.mav.send(msg)
             if self._tlog is not None:
-                import struct
-
-                from sitl.pacing import wall_now  # a tlog stamps wall time (us), by convention
-                self._tlog.write(struct.pack(">Q", int(wall_now() * 1e6)) + msg.get_msgbuf())
+                self._tlog.write(0.0, msg.get_msgbuf())  # stamped by the wall clock (stamp_clock)
             self.sent[msg.get_type()] += 1
             return True
         except OSError:

@@ -740,8 +740,9 @@ def build_endpoints(group: VehicleGroup, scn, out_dir, name: str = "vehicles", *
     i + 1 and listens on udp base_port + 10 i (and tcp base_port + 10 i with [mavlink] tcp,
     ArduPilot SITL's SERIAL0); the sonde comes after the UAVs. Parameters:
     the UAV's onboard navigation settings and the sonde's flight model (their real values).
-    All the group's traffic goes to one .tlog, OUT/mav_<name>.tlog (a restarted worker starts
-    a new file, mav_<name>.r<k>.tlog: nothing recorded is overwritten). With signing, each
+    All the group's traffic goes to one .tlog, OUT/mav_<name>.tlog, stamped by ``clock`` (the
+    live worker's wall clock, as MAVProxy's) or else simulated time (a restarted worker starts a
+    new file, mav_<name>.r<k>.tlog: nothing recorded is overwritten). With signing, each
     vehicle's signing state is kept in OUT/mav_signing_<sysid>.json (loaded by a restarted
     worker: a replay of frames captured before the restart stays rejected); clock: the signing
     clock (unix s; the live worker passes the wall clock; None: simulated time); timer: the
@@ -751,6 +752,7 @@ def build_endpoints(group: VehicleGroup, scn, out_dir, name: str = "vehicles", *
     group's BatteryBank, stepped with the flight). None if MAVLink is off."""
     from pathlib import Path
 
+    from sitl.mavlink.framing import fresh_tlog_path
     from vehicles.mavlink import EndpointGroup, ParamStore, TlogWriter, VehicleEndpoint, load_signing_key
     from vehicles.mavlink.endpoint.handlers import AutopilotPort
     from vehicles.mavlink.params import autopilot_param_specs, sonde_param_specs, uav_param_specs
@@ -765,11 +767,7 @@ def build_endpoints(group: VehicleGroup, scn, out_dir, name: str = "vehicles", *
         vehicles.append(("sonde", scn.uavs.count))
     tlog = None
     if m.tlog:
-        path, k = Path(out_dir) / f"mav_{name}.tlog", 0
-        while path.exists():
-            k += 1
-            path = Path(out_dir) / f"mav_{name}.r{k}.tlog"
-        tlog = TlogWriter(path)
+        tlog = TlogWriter(fresh_tlog_path(Path(out_dir) / f"mav_{name}.tlog"), stamp_clock=clock)
     # each UAV has its own store: its autopilot's parameters (WP_RADIUS, RTL_ALTITUDE, ...: a set
     # changes that UAV only, from its next step) and SYSID_THISMAV (read-only), and the onboard
     # navigation's (GNSS_*, NAV_Q): the group's filters run as one batch, so a set there applies

@@ -49,7 +49,7 @@ def run_batch(scn, *, settle_s: float = 0.0, progress=None, record=None) -> dict
         node.advance(t)
         bus.drain(t)
         if progress and k % 100 == 0:
-            progress(f"[batch] t = {k * dt:.0f} s of {run.duration_s:.0f}")
+            progress("[batch]", done=k * dt, total=run.duration_s)
     out = {"errors": scorer.summary(), "gs": node.stats(), "published": bus.stats.published,
            "series": {f"{a}/{b}": v for (a, b), v in scorer.series.items()}}
     if links:

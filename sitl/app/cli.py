@@ -214,11 +214,18 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+#: the commands that compile numba kernels in their own process on a first run (the live runs
+#: warm them up in a subprocess first and say so: sitl.app.launcher)
+IN_PROCESS_KERNELS = ("experiment", "bench", "gnss")
+
+
 def _dispatch(args: argparse.Namespace) -> int:
+    from sitl.app.progress import KernelCompileNotice
     from sitl.runtime import batch_mode
 
-    with batch_mode():  # BLAS on one thread (see sitl/runtime.py)
-        return _run(args)
+    compiles_here = args.command in IN_PROCESS_KERNELS or (args.command in ("demo", "run") and getattr(args, "batch", False))
+    with batch_mode(), KernelCompileNotice(compiles_here and not getattr(args, "quiet", False)):
+        return _run(args)  # BLAS on one thread (see sitl/runtime.py); says so if kernels compile
 
 
 def _run(args: argparse.Namespace) -> int:
@@ -254,6 +261,10 @@ def _run(args: argparse.Namespace) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
+    from sitl.app.provenance import mark_started
+
+    # every output of this command records its start and command line (sitl/app/provenance.py)
+    mark_started(["skyfuse", *(sys.argv[1:] if argv is None else argv)])
     parser = build_parser()
     try:
         args = parser.parse_args(argv)

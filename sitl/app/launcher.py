@@ -226,27 +226,50 @@ def _main(scn, args: DemoOptions) -> int:
         if args.batch:
             return _batch(scn, out, args)
         if not args.quiet:
-            print(f"[launcher] output in {out}/ (report.json, bus.log, logs/)", file=sys.stderr)
+            print(start_text(scn, out), file=sys.stderr, flush=True)
         report = launch(scn, out, quiet=args.quiet)
     finally:
         lock.release()
     print(summary_text(report))
+    print(f"report: {out / 'report.json'}")
     if report.get("stopped_early"):
         return 130  # Ctrl-C / SIGTERM: stopped cleanly, as asked
     return 0 if report["ok"] else 1
 
 
+def start_text(scn, out: Path) -> str:
+    """What a live run says first: where its output goes and how to connect MAVProxy or
+    QGroundControl to it (the scenario's real addresses: [mavlink] gcs, base_port, tcp)."""
+    lines = [f"[launcher] output in {out}/: report.json at the end, bus.log, mav_*.tlog, logs/"]
+    m = scn.mavlink
+    if not m.enabled:
+        return "\n".join(lines + ["[launcher] MAVLink is off ([mavlink] enabled = false): no vehicle to connect to"])
+    host, gport = m.gcs.rsplit(":", 1)
+    vehicles = [f"UAV {i + 1}" for i in range(scn.uavs.count)] + (["sonde"] if scn.sonde.enabled else [])
+    lines.append(f"[launcher] the vehicles send MAVLink to {m.gcs}: QGroundControl's default UDP link hears them "
+                 f"all, or `mavproxy.py --master udpin:{host}:{gport}`" if gport == "14550" else
+                 f"[launcher] the vehicles send MAVLink to {m.gcs}: `mavproxy.py --master udpin:{host}:{gport}` "
+                 f"(QGroundControl: a UDP link on port {gport})")
+    for i, name in enumerate(vehicles):
+        port = m.base_port + 10 * i
+        lines.append(f"[launcher]   {name} (system id {i + 1}): `mavproxy.py --master udpout:127.0.0.1:{port}`"
+                     + (f" or `--master tcp:127.0.0.1:{port}`" if m.tcp else ""))
+    return "\n".join(lines)
+
+
 def _batch(scn, out: Path, args: DemoOptions) -> int:
-    from sitl.app.experiments.common import strict
     from sitl.app.batch import run_batch
+    from sitl.app.progress import progress_printer
+    from sitl.app.provenance import write_json
     t0 = perf_now()
-    res = run_batch(scn, progress=None if args.quiet else (lambda m: print(m, file=sys.stderr)))
+    res = run_batch(scn, progress=progress_printer(args.quiet, "batch run"))
     doc = {"mode": "batch", "scenario": scn.to_dict(), "wall_s": perf_now() - t0, "errors": res["errors"],
            "ground_station": res["gs"], "published": res["published"], "ok": True}
     if "faults" in res:
         doc["faults"] = res["faults"]
-    (out / "report.json").write_text(json.dumps(strict(doc), indent=1, allow_nan=False))
+    write_json(out / "report.json", doc, seed=scn.run.seed, scenario=scn)  # + schema, provenance
     print(summary_text(doc))
+    print(f"report: {out / 'report.json'}")
     if "faults" in res:
         f = res["faults"]
         print(f"  network faults (batch): {len(f['bus_rules'])} bus rule(s) applied, "
@@ -267,7 +290,7 @@ def launch(scn, out: Path, *, quiet: bool = False, stop: threading.Event | None 
     called once the workers have started their run (tests use it to inject faults)."""
     from sitl.bus.buslog import BusRecorder
     from sitl.bus.zenoh_transport import ZenohTransport
-    from sitl.app.experiments.common import strict
+    from sitl.app.provenance import write_json
     from sitl.app.scoring import ErrorTracker
     from sitl.app.status import StatusBoard, format_status
     from sitl.app.supervisor import Supervisor
@@ -281,7 +304,13 @@ def launch(scn, out: Path, *, quiet: bool = False, stop: threading.Event | None 
     restore = _install_signals(stop)
     run = scn.run
     t_wall0 = perf_now()
-    router = bus = recorder = sup = live_faults = None
+    router = bus = recorder = sup = live_faults = run_bar = None
+
+    def say(line: str) -> None:  # an event line: above the run's bar once there is one
+        if run_bar is not None:
+            run_bar(line)
+        else:
+            _say(status_stream, tty, line)
     audit = PayloadAudit()  # every payload of the run, on every key, counted once
     paced: list = []  # the run's Pacer once it has started: the launcher's simulation clock
 
@@ -291,6 +320,7 @@ def launch(scn, out: Path, *, quiet: bool = False, stop: threading.Event | None 
     report: dict = {"mode": "live", "scenario": scn.to_dict(), "ok": False, "events": []}
     shutdown = {}
     try:
+        clear_previous_tlogs(out)
         if warm_up and not _cold_warm_up(scn, out, stop, None if quiet else status_stream):
             report["error"] = ("stopped while compiling the kernels" if stop.is_set()
                                else f"the kernels' warm-up failed (see {out / 'logs' / 'warm_up.stderr.log'})")
@@ -320,7 +350,7 @@ def launch(scn, out: Path, *, quiet: bool = False, stop: threading.Event | None 
             fault_board = live_faults.board
         else:
             fault_board = NoFaultBoard()
-        serve(fault_board, bus, run.id, on_line=lambda line: _say(status_stream, tty, line))
+        serve(fault_board, bus, run.id, on_line=lambda line: say(line))
         run_json = _RunJson(out / "run.json", run.id, endpoints, fault_board)
         run_json.write()
         fault_board.on_change = run_json.write
@@ -373,11 +403,14 @@ def launch(scn, out: Path, *, quiet: bool = False, stop: threading.Event | None 
         board = StatusBoard()
         next_status = perf_now()
         last_line = ""
+        if not quiet:  # the run's progress, simulated seconds of the run's duration (tqdm: rate, ETA)
+            from sitl.app.progress import Progress
+            run_bar = Progress("[launcher] run", stream=status_stream, tty=tty, unit="sim s")
         while not stop.is_set():
             bus.drain()
             for ev in sup.poll():
                 if ev["event"] in ("restart", "gave_up") or (ev["event"] == "exit" and not ev.get("clean")):
-                    _say(status_stream, tty, f"[launcher] {ev['worker']}: {_event_text(ev)}")
+                    say(f"[launcher] {ev['worker']}: {_event_text(ev)}")
                 if ev["event"] == "fatal":
                     report["error"] = f"{ev['worker']}: {ev['error']}"
             fatal = next((c for c in sup.children.values() if c.fatal), None)
@@ -393,8 +426,8 @@ def launch(scn, out: Path, *, quiet: bool = False, stop: threading.Event | None 
                 next_status += 1.0
                 last_line = format_status(board.snapshot(sup, scorer, audit, min(pacer.sim_now(), t_end)), run.t0_gps_s,
                                           run.duration_s, scn.ground_station.stale_after_s)
-                if not quiet:
-                    _status(status_stream, tty, last_line)
+                if run_bar is not None:
+                    run_bar(last_line, done=min(pacer.sim_now(), t_end) - run.t0_gps_s, total=run.duration_s)
             stop.wait(0.05)
         bus.drain()
         report["stopped_early"] = stop.is_set()
@@ -421,16 +454,26 @@ def launch(scn, out: Path, *, quiet: bool = False, stop: threading.Event | None 
         if router is not None:
             router.close()
         _restore_signals(restore)
-        if tty and not quiet:
-            status_stream.write("\n")
+        if run_bar is not None:
+            run_bar.close()
         report["wall_s"] = perf_now() - t_wall0
         from sitl.pacing import cpu_now
         report["launcher_cpu_s"] = cpu_now()  # this process: the embedded router, the log, the scorer
         report["shutdown"] = shutdown
         if sup is not None:
             _fill_report(report, sup, scorer if bus is not None else None, audit, recorder)
-        (out / "report.json").write_text(json.dumps(strict(report), indent=1, allow_nan=False))
+        write_json(out / "report.json", report, seed=scn.run.seed, scenario=scn)  # + schema, provenance
     return report
+
+
+def clear_previous_tlogs(out: Path) -> list[Path]:
+    """One tlog per run per link: before a run's workers start, the tlogs a previous run left in a
+    re-used output directory (the run holds its lock) are removed, so neither a restart's
+    mav_<name>.r<k>.tlog files nor appends pile up across runs. Returns the files removed."""
+    gone = sorted(out.glob("mav_*.tlog"))
+    for p in gone:
+        p.unlink(missing_ok=True)
+    return gone
 
 
 class _RunJson:
@@ -467,27 +510,32 @@ def _cold_warm_up(scn, out: Path, stop: threading.Event, say) -> bool:
     est_s, est_n = kc.estimate()
     (out / "logs").mkdir(parents=True, exist_ok=True)
     (out / "scenario.json").write_text(json.dumps(scn.to_dict(), indent=1))
-    if say is not None:
-        _say(say, False, f"[launcher] compiling the numba kernels (the first run after an install or a source "
-                         f"change; later starts skip this): about {est_s:.0f} s ...")
+    bar = None
+    if say is not None:  # a bar of the kernels compiled against the last cold warm-up's count (tqdm)
+        from sitl.app.progress import Progress
+        bar = Progress("[launcher] compiling", stream=say, unit="kernel")
+        bar(f"[launcher] compiling the estimation kernels (first run only, about {est_s:.0f} s; "
+            f"the first run after an install or a source change, later starts skip this)")
+        bar(done=0, total=est_n)
     t0, w0 = perf_now(), wall_now() - 1.0
     with open(out / "logs" / "warm_up.stderr.log", "ab") as err:
         p = subprocess.Popen([sys.executable, "-m", "sitl.app.batch", str(out / "scenario.json"), "--warm-up"],
                              stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=err, env=child_env())
-    next_line = perf_now() + 5.0
+    next_poll = perf_now() + 1.0
     try:
         while p.poll() is None:
             if stop.wait(0.2):
                 return False
-            if say is not None and perf_now() >= next_line:
-                next_line += 5.0
-                el = perf_now() - t0
-                _say(say, False, f"[launcher] compiling: {kc.written_since(w0)}/~{est_n} kernels, {el:.0f} s of "
-                                 f"about {max(est_s, el):.0f} s")
+            if bar is not None and perf_now() >= next_poll:
+                next_poll += 1.0
+                n = kc.written_since(w0)
+                bar(done=n, total=max(est_n, n))
     finally:
         if p.poll() is None:
             p.kill()
         p.wait()
+        if bar is not None:
+            bar.close()
     if p.returncode != 0:
         return False
     el, n = perf_now() - t0, kc.written_since(w0)
@@ -541,16 +589,13 @@ def _event_text(ev) -> str:
     return f"exited with {ev.get('returncode')}"
 
 
-def _status(stream, tty, line) -> None:
+def _say(stream, tty, line) -> None:
+    """One line on ``stream`` (before the run's bar exists, or without one)."""
     try:
-        stream.write(("\r" + line + "\x1b[K") if tty else line + "\n")
+        stream.write(line + "\n")
         stream.flush()
     except (OSError, ValueError):
         pass
-
-
-def _say(stream, tty, line) -> None:
-    _status(stream, False, ("\n" + line) if tty else line)
 
 
 def _install_signals(stop: threading.Event):

@@ -256,33 +256,57 @@ def load_signing_key(path: str | os.PathLike) -> bytes:
     return hashlib.sha256(text).digest()
 
 
-class TlogWriter:
-    """Append MAVLink packets to a .tlog: 8-byte big-endian unix us, then the raw packet.
+def fresh_tlog_path(path: str | os.PathLike) -> str:
+    """``path`` if no file is there, else the first free ``<stem>.r<k>.tlog`` (k = 1, 2, ...): a
+    worker restarted inside a run gets its own file and never overwrites nor appends to what its
+    previous start recorded. (The launcher clears a previous run's tlogs from a re-used output
+    directory before its workers start, so a run's first file is always ``path``.)"""
+    path = os.fspath(path)
+    stem = path[:-5] if path.endswith(".tlog") else path
+    k, p = 0, path
+    while os.path.exists(p):
+        k += 1
+        p = f"{stem}.r{k}.tlog"
+    return p
 
+
+class TlogWriter:
+    """Write MAVLink packets to a new .tlog, as MAVProxy does: each record an 8-byte big-endian
+    time stamp in microseconds since the Unix epoch, then the raw packet. The file is created
+    (truncated if there), never appended to.
+
+    ``stamp_clock`` (unix s) stamps the records: the live workers pass the WALL clock, as MAVProxy
+    stamps its tlogs (the simulated time stays inside the messages: SYSTEM_TIME, GPS_RAW_INT ...);
+    None stamps each record with the unix time its writer gives (offline runs: simulated time).
     Several endpoints may share one writer (mavlogdump separates them by system id).
-    ``flush_interval_s`` of simulated time between flushes to the OS (and at close).
+    ``flush_interval_s`` of stamp time between flushes to the OS (and at close).
     """
 
-    def __init__(self, path: str | os.PathLike, flush_interval_s: float = 1.0):
+    def __init__(self, path: str | os.PathLike, flush_interval_s: float = 1.0, *, stamp_clock=None):
+        if stamp_clock is not None and not callable(stamp_clock):
+            raise ValueError("stamp_clock must be callable (unix seconds) or None")
         try:
             self._f = open(path, "wb")
         except OSError as e:
             raise ValueError(f"cannot open tlog {os.fspath(path)!r}: {e.strerror}") from None
         self.path = os.fspath(path)
+        self._stamp_clock = stamp_clock
         self._flush_interval_s = float(flush_interval_s)
         self._next_flush_s = None
         self.records = 0
 
     def write(self, unix_s: float, packet: bytes) -> None:
+        """Record ``packet``; ``unix_s``: its simulated unix time (the stamp without a stamp_clock)."""
         if self._f is None:
             return
-        self._f.write(_TLOG_TIME.pack(max(0, int(unix_s * 1e6))) + packet)
+        t = self._stamp_clock() if self._stamp_clock is not None else unix_s
+        self._f.write(_TLOG_TIME.pack(max(0, int(t * 1e6))) + packet)
         self.records += 1
         if self._next_flush_s is None:
-            self._next_flush_s = unix_s + self._flush_interval_s
-        elif unix_s >= self._next_flush_s:
+            self._next_flush_s = t + self._flush_interval_s
+        elif t >= self._next_flush_s:
             self._f.flush()
-            self._next_flush_s = unix_s + self._flush_interval_s
+            self._next_flush_s = t + self._flush_interval_s
 
     def flush(self) -> None:
         if self._f is not None:

@@ -457,7 +457,7 @@ def test_a_cold_start_says_at_once_that_it_compiles_and_a_warm_one_skips_it(tmp_
     out = io.StringIO()
     assert _cold_warm_up(scn, tmp_path, threading.Event(), out)
     lines = out.getvalue().strip().splitlines()
-    assert "compiling the numba kernels" in lines[0] and "about" in lines[0] and lines[-1].startswith(
+    assert "compiling the estimation kernels (first run only, about" in lines[0] and "about" in lines[0] and lines[-1].startswith(
         "[launcher] kernels compiled")
     assert stamp["el"] > 0 and stamp["n"] >= 0
     monkeypatch.setattr(kc, "is_warm", lambda: True)

@@ -24,12 +24,12 @@ includes waiting for a core; the CPU time does not).  The per-stage split of the
 """
 from __future__ import annotations
 
-import json
-import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
 
+from sitl.app.progress import progress_printer
+from sitl.app.provenance import options_scenario, write_json
 from sitl.app.args import OUTPUT_FILE
 from sitl.params import add_flags, choice, integer, number, optional, param, quiet_option, validate
 
@@ -201,7 +201,7 @@ def run(duration_s=1000.0, uavs=3, case="three_satellites", rounds=3, seed=1, pr
     import numpy as np
 
     from sitl.app.experiments import beacon as ex
-    say = progress or (lambda msg: None)
+    say = progress or (lambda msg, **kw: None)
     try:
         import os
 
@@ -247,7 +247,7 @@ def run(duration_s=1000.0, uavs=3, case="three_satellites", rounds=3, seed=1, pr
         keep("bus_only", wb, time.process_time() - c0)
         info = {"messages_published": n_pub, "messages_delivered": n_del,
                 "trial_bus": res["bus"], "locator_counters": res["counters"][ex.PRODUCTION]}
-        say(f"round {r + 1}/{rounds} bus alone: {wb:.2f} s ({n_pub} messages)")
+        say(f"round {r + 1}/{rounds} bus alone: {wb:.2f} s ({n_pub} messages)", done=r + 1, total=rounds)
     K = round(duration_s) + 1
     names = {"bus": "trial through the bus", "direct": "same trial, direct (no bus)",
              "world": "world only (truth, receivers, links)", "truth": "truth only (RK4 0.01 s)",
@@ -292,9 +292,9 @@ def main(args) -> int:
     if args.uavs > 100:
         raise UsageError(f"bench beacon: --uavs: at most 100, got {args.uavs}")
     res = run(args.duration, args.uavs, args.case, args.rounds, args.seed,
-              progress=None if args.quiet else (lambda m: print(m, file=sys.stderr, flush=True)))
+              progress=progress_printer(args.quiet, "bench beacon"))
     print(table(res))
     if args.json:
-        args.json.write_text(json.dumps(res, indent=1, allow_nan=False, default=float))
+        write_json(args.json, res, seed=args.seed, scenario=options_scenario(args))
         print(f"wrote {args.json}")
     return 0

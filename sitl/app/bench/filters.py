@@ -11,14 +11,14 @@ The figure of merit is the ratio filterpy_s_per_trial_step / skyfuse_s_per_trial
 """
 from __future__ import annotations
 
-import json
-import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
+from sitl.app.progress import progress_printer
+from sitl.app.provenance import options_scenario, write_json
 from sitl.app.args import OUTPUT_FILE
 from sitl.params import add_flags, choice, integer, optional, param, several, validate
 
@@ -184,9 +184,9 @@ def main(args) -> int:
     if not kernels.HAVE_NUMBA:
         backends = ("numpy",)
     rows = run(tuple(args.trials), args.steps, backends,
-               progress=lambda msg: print(msg, file=sys.stderr, flush=True))
+               progress=progress_printer(False, "bench filters"))
     print(table(rows, backends))
     if args.json:
-        args.json.write_text(json.dumps({"rows": rows}, indent=1))
+        write_json(args.json, {"rows": rows}, scenario=options_scenario(args))
         print(f"wrote {args.json}")
     return 0

@@ -12,12 +12,12 @@ stops with a one-line usage error naming --data (exit 2).
 """
 from __future__ import annotations
 
-import json
 import time
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
 
+from sitl.app.provenance import options_scenario, write_json
 from sitl.app.args import OUTPUT_FILE, UsageError
 from sitl.params import add_flags, integer, optional, param, validate, from_text
 
@@ -150,5 +150,5 @@ def main(args) -> int:
             p = peer.get(k)
             print(f"{k:28s} {v:8.3f} s" + (f"   georinex {p:8.3f} s" if p is not None else ""))
     if opts.json is not None:
-        Path(opts.json).write_text(json.dumps(res, indent=1))
+        write_json(opts.json, res, scenario=options_scenario(opts))
     return 0

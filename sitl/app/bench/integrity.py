@@ -32,13 +32,13 @@ ratio of minima ranged 26-60 % over three runs of the same code, the paired medi
 """
 from __future__ import annotations
 
-import json
 import os
-import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
 
+from sitl.app.progress import progress_printer
+from sitl.app.provenance import options_scenario, write_json
 from sitl.app.args import OUTPUT_FILE
 from sitl.params import add_flags, choice, integer, optional, param, quiet_option, validate
 
@@ -187,7 +187,7 @@ def run(trials: int, steps: int, rounds: int, seed: int, backend: str, progress=
             paired["wall"][k].append(this[k][0] / this["plain"][0] - 1.0)
             paired["cpu"][k].append(this[k][1] / this["plain"][1] - 1.0)
         if progress:
-            progress(f"round {r + 1}/{rounds}: " + "  ".join(f"{k} {v * 1e3:.2f} ms" for k, v in best.items()))
+            progress("  ".join(f"{k} {v * 1e3:.2f} ms" for k, v in best.items()), done=r + 1, total=rounds)
     ratio = best["monitored"] / best["plain"]
     over = float(np.median(paired["wall"]["monitored"]))
     return {"bench": "integrity", "trials": trials, "channels": S, "rows": 2 * S, "state": int(P.shape[-1]),
@@ -220,11 +220,9 @@ def table(res: dict) -> str:
 
 
 def main(args) -> int:
-    prog = None if args.quiet else (lambda m: print(m, file=sys.stderr, flush=True))
+    prog = progress_printer(args.quiet, "bench integrity")
     res = run(args.trials, args.steps, args.rounds, args.seed, args.backend, progress=prog)
     print(table(res))
     if args.json is not None:
-        from sitl.app.experiments.common import strict
-
-        args.json.write_text(json.dumps(strict(res), indent=1, allow_nan=False))
+        write_json(args.json, res, seed=args.seed, scenario=options_scenario(args))
     return 0

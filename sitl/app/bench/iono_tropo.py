@@ -16,14 +16,14 @@ drifts; the minimum is the least disturbed run).
 """
 from __future__ import annotations
 
-import json
-import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
+from sitl.app.progress import progress_printer
+from sitl.app.provenance import options_scenario, write_json
 from sitl.app.args import OUTPUT_FILE
 from sitl.params import add_flags, choice, integer, number, optional, param, quiet_option, validate
 
@@ -60,7 +60,7 @@ def run(duration_s=1200.0, trials=1, rounds=1, el_mask_deg=BENCH_MASK_DEG, seed=
 
     aq = {"adaptive_q": adaptive_q != "off"} | ({"adaptive_q_scope": adaptive_q} if adaptive_q != "off" else {})
     scn = IonoTropoScenario(duration_s=duration_s, el_mask_deg=el_mask_deg, **aq)
-    say = progress or (lambda msg: None)
+    say = progress or (lambda msg, **kw: None)
     # warm-up: loads (or compiles, on a fresh install) the kernels outside the timing
     warm = IonoTropoScenario(duration_s=2.0, el_mask_deg=el_mask_deg, **aq)
     for b in backends:
@@ -78,7 +78,7 @@ def run(duration_s=1200.0, trials=1, rounds=1, el_mask_deg=BENCH_MASK_DEG, seed=
             say(f"round {r + 1}/{rounds} {b}: {res['wall_s']:.2f} s")
         w = _world_only(scn, seed)
         best["world"] = min(best["world"], w)
-        say(f"round {r + 1}/{rounds} world only: {w:.2f} s")
+        say(f"round {r + 1}/{rounds} world only: {w:.2f} s", done=r + 1, total=rounds)
     main = backends[0]
     rows = []
     for name in (*backends, "world"):
@@ -136,12 +136,12 @@ def main(args) -> int:
         backends = ("numpy",)
     try:
         res = run(args.duration, args.trials, args.rounds, args.el_mask_deg, args.seed, backends,
-                  progress=None if args.quiet else (lambda m: print(m, file=sys.stderr, flush=True)),
+                  progress=progress_printer(args.quiet, "bench iono-tropo"),
                   adaptive_q=args.adaptive_q)
     except ValueError as exc:  # a scenario the receiver cannot run (e.g. < 4 satellites)
         raise UsageError(f"bench iono-tropo: {exc}") from None
     print(table(res))
     if args.json:
-        args.json.write_text(json.dumps(res, indent=1, allow_nan=False, default=float))
+        write_json(args.json, res, seed=getattr(args, "seed", None), scenario=options_scenario(args))
         print(f"wrote {args.json}")
     return 0

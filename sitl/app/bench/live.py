@@ -27,7 +27,6 @@ machine. A benchmark, not a test.
 """
 from __future__ import annotations
 
-import json
 import os
 import socket
 import sys
@@ -35,6 +34,7 @@ import threading
 from dataclasses import dataclass
 from pathlib import Path
 
+from sitl.app.provenance import options_scenario, write_json
 from sitl.app.args import OUTPUT_FILE
 from sitl.params import add_flags, from_text, integer, number, optional, param, switch, validate
 
@@ -227,7 +227,7 @@ def run_size(n: int, args, router_ep: str) -> dict:
 
 def main(args) -> int:
     from sitl.bus.router import Router
-    from sitl.app.experiments.common import prepare_out, strict
+    from sitl.app.experiments.common import prepare_out
 
     prepare_out(Path(args.out))
     rows = []
@@ -254,7 +254,7 @@ def main(args) -> int:
           f" (target >= 200)")
     doc = {"rate_hz": args.rate, "duration_s": args.duration, "largest_real_time_uavs": best, "runs": rows}
     if args.json is not None:
-        Path(args.json).write_text(json.dumps(strict(doc), indent=1, allow_nan=False))
+        write_json(args.json, doc, scenario=options_scenario(args))
     return 0
 
 

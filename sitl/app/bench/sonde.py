@@ -22,12 +22,12 @@ the main case's wall (main: fused, no bus).
 """
 from __future__ import annotations
 
-import json
-import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
 
+from sitl.app.progress import progress_printer
+from sitl.app.provenance import options_scenario, write_json
 from sitl.app.args import OUTPUT_FILE
 from sitl.params import add_flags, integer, number, optional, param, quiet_option, switch, validate
 
@@ -116,7 +116,7 @@ def run(duration_s: float = 7200.0, rounds: int = 2, seed: int = 4, trio: bool =
     from sitl.app.experiments.sonde import MODES, SondeScenario
 
     scn = SondeScenario(duration_s=duration_s, white_baseline=False)
-    say = progress or (lambda msg: None)
+    say = progress or (lambda msg, **kw: None)
     # warm-up: loads (or compiles, on a fresh install) the kernels outside the timing
     warm = SondeScenario(duration_s=min(duration_s, 60.0), white_baseline=False)
     _over_bus(warm, seed, MODES)
@@ -174,9 +174,9 @@ def table(res: dict) -> str:
 
 def main(args) -> int:
     res = run(args.duration, args.rounds, args.seed, trio=not args.no_trio,
-              progress=None if args.quiet else (lambda m: print(m, file=sys.stderr, flush=True)))
+              progress=progress_printer(args.quiet, "bench sonde"))
     print(table(res))
     if args.json:
-        args.json.write_text(json.dumps(res, indent=1, allow_nan=False, default=float))
+        write_json(args.json, res, seed=args.seed, scenario=options_scenario(args))
         print(f"wrote {args.json}")
     return 0

@@ -1,12 +1,15 @@
-"""What every experiment command shares: strict JSON, figure saving, progress, the output
-directory check, network faults on a batch run's measurement keys."""
+"""What every experiment command shares: strict JSON, the result document's writer (schema and
+provenance), figure saving, progress (sitl.app.progress), the output directory check, network
+faults on a batch run's measurement keys."""
 from __future__ import annotations
 
 import dataclasses
 import math
 import os
-import sys
 from pathlib import Path
+
+from sitl.app.progress import progress_printer  # noqa: F401  (the experiments' progress: tqdm)
+from sitl.app.provenance import options_scenario  # noqa: F401  (the experiments' scenario of their options)
 
 
 def strict(v):
@@ -28,19 +31,21 @@ def strict(v):
     return v
 
 
+def write_result(path: Path, doc: dict, *, seed=None, scenario=None) -> dict:
+    """Write ``doc`` to ``path`` as strict JSON with the one ``schema`` version and the provenance
+    record (sitl.app.provenance.write_json: version, commit, command line, seed, scenario and its
+    hash, start time); returns the document written."""
+    from sitl.app.provenance import write_json
+
+    return write_json(path, doc, seed=seed, scenario=scenario)
+
+
 def save_figure(fig, path: Path) -> Path:
     import matplotlib.pyplot as plt
 
     fig.savefig(path, dpi=110)
     plt.close(fig)
     return path
-
-
-def progress_printer(quiet: bool):
-    """None when quiet, else a function printing one progress line to stderr."""
-    if quiet:
-        return None
-    return lambda msg: print(msg, file=sys.stderr, flush=True)
 
 
 def prepare_out(out: Path) -> Path:

@@ -32,9 +32,7 @@ Memory stays flat: trials are stepped together and only per-step statistics are 
 """
 from __future__ import annotations
 
-import json
 import math
-import sys
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -48,6 +46,7 @@ from sitl import geodesy
 from sitl.constants import C_M_S
 from sitl.gnss import orbits, ranging
 from sitl.app.args import OUTPUT_DIR
+from sitl.app.experiments.common import progress_printer, write_result
 from sitl.params import (
     add_flags, backend_option, choice, default_of, integer, number, optional, param, quiet_option, require, validate,
 )
@@ -273,14 +272,15 @@ def run(scn: EkfVsUkfScenario, trials: int, seed: int, backend=None, progress=No
         pcrb_pos.append(float(np.sqrt(np.trace(B[np.ix_(POS, POS)]))))
 
         if progress and (k % report_every == 0 or k == scn.steps):
-            progress(f"step {k}/{scn.steps}  rmse ekf {ekf.rmse[-1]:.2f} m  ukf {ukf.rmse[-1]:.2f} m  "
-                     f"sqrt(PCRB) {pcrb_pos[-1]:.2f} m  ({time.perf_counter() - t_wall:.1f} s)")
+            progress(f"rmse ekf {ekf.rmse[-1]:.2f} m  ukf {ukf.rmse[-1]:.2f} m  "
+                     f"sqrt(PCRB) {pcrb_pos[-1]:.2f} m  ({time.perf_counter() - t_wall:.1f} s)", done=k, total=scn.steps)
 
     const, gdop = setup.const, setup.gdop
 
     last = slice(max(0, scn.steps - 100), scn.steps)
     result = {
         "experiment": "ekf-vs-ukf",
+        "schema": None,  # set when written (sitl.app.provenance.SCHEMA)
         "seed_paper": "001",
         "trials": trials,
         "steps": scn.steps,
@@ -441,16 +441,12 @@ def _scenario_from_args(args) -> EkfVsUkfScenario:
     return EkfVsUkfScenario.with_noise_reading(getattr(args, "noise_reading", default_of(EkfVsUkfOptions, "noise_reading")), **kw)
 
 
-def _progress(quiet):
-    if quiet:
-        return None
-    return lambda msg: print(msg, file=sys.stderr, flush=True)
-
-
 def write(res: dict, out: Path) -> list[Path]:
     out.mkdir(parents=True, exist_ok=True)
-    (out / "result.json").write_text(json.dumps(res, indent=1))
-    return [out / "result.json"] + plot(res, out)
+    figures = plot(res, out)
+    res["figures"] = [Path(f).name for f in figures]  # as every experiment's result.json lists them
+    write_result(out / "result.json", res, seed=res["seed"], scenario=res["scenario"])
+    return [out / "result.json"] + figures
 
 
 def main(args) -> int:
@@ -461,7 +457,7 @@ def main(args) -> int:
     except ValueError as exc:
         raise UsageError(str(exc)) from None
     backend = None if args.backend == "auto" else args.backend
-    res = run(scn, args.trials, args.seed, backend=backend, progress=_progress(args.quiet))
+    res = run(scn, args.trials, args.seed, backend=backend, progress=progress_printer(args.quiet, "ekf-vs-ukf"))
     files = write(res, args.out)
     print(summary_table(res))
     print("wrote " + ", ".join(str(f) for f in files))

@@ -17,13 +17,12 @@ spirit of the paper's figures 2 (I_g) and 3 (U_g), where "series 1" is variant 2
 from __future__ import annotations
 
 import dataclasses
-import json
 import math
 from pathlib import Path
 
 import numpy as np
 
-from sitl.app.experiments.common import prepare_out, progress_printer, save_figure, strict
+from sitl.app.experiments.common import prepare_out, progress_printer, save_figure, strict, write_result
 
 from sitl.app.experiments import iono_tropo_filters
 from sitl.app.args import OUTPUT_DIR
@@ -160,7 +159,7 @@ def run_all(scn, names, trials: int, seed: int, backend=None, progress=None) -> 
         v = VARIANTS[name]
         if progress:
             progress(f"[{name}] variant {v}: {trials} trials x {scn.n_epochs} epochs")
-        prog = (lambda msg, _n=name: progress(f"[{_n}] {msg}")) if progress else None
+        prog = (lambda msg, _n=name, **kw: progress(f"[{_n}] {msg}", **kw)) if progress else None
         out[name] = iono_tropo_filters.run_streamed(scn, trials, seed, variant=v, progress=prog, backend=backend)
     return out
 
@@ -184,7 +183,7 @@ def result_document(scn, trials: int, seed: int, results: dict, figures) -> dict
         d["time_to_1m_s_per_trial"] = np.asarray(res["time_to_1m_s_per_trial"]).tolist()
         d.update({k: res[k] for k in EXTRA_KEYS if k in res})
         variants[name] = d
-    doc = {"experiment": "iono-tropo", "schema": 1, "seed": seed, "trials": trials,
+    doc = {"experiment": "iono-tropo", "schema": None, "seed": seed, "trials": trials,
            "scenario": dataclasses.asdict(scn), "variants": variants, "paper": PAPER,
            "ordering_3_lt_2_lt_1": ordering_3_lt_2_lt_1(results), "figures": [Path(f).name for f in figures]}
     return strict(doc)
@@ -202,8 +201,7 @@ def series_arrays(results: dict) -> dict:
 
 def write(out: Path, scn, trials: int, seed: int, results: dict) -> list[Path]:
     figures = plot(results, scn, trials, seed, out)
-    doc = result_document(scn, trials, seed, results, figures)
-    (out / "result.json").write_text(json.dumps(doc, indent=1, allow_nan=False))
+    write_result(out / "result.json", result_document(scn, trials, seed, results, figures), seed=seed, scenario=scn)
     np.savez(out / "series.npz", **series_arrays(results))
     return [out / "result.json", out / "series.npz", *figures]
 
@@ -374,7 +372,7 @@ def main(args) -> int:
     if getattr(args, "study", default_of(IonoTropoOptions, "study")) != "none":
         return _study(args, scn, out, backend)
     try:
-        results = run_all(scn, names, args.trials, args.seed, backend=backend, progress=progress_printer(args.quiet))
+        results = run_all(scn, names, args.trials, args.seed, backend=backend, progress=progress_printer(args.quiet, "iono-tropo"))
     except ValueError as exc:
         # the per-epoch visibility check is finer than the scenario's 10 s pre-check
         if "satellites in view" in str(exc):
@@ -393,7 +391,7 @@ def _study(args, scn, out: Path, backend) -> int:
     """`--study adaptive-q|ordering`: writes DIR/<study>.json and a PNG."""
     from sitl.app.experiments import iono_tropo_studies as studies
 
-    prog = progress_printer(args.quiet)
+    prog = progress_printer(args.quiet, f"iono-tropo {args.study} study")
     if args.study == "adaptive-q":
         res = studies.adaptive_q_study(scn, args.trials, args.seed, clock_scale=args.clock_scale, progress=prog,
                                        backend=backend)
@@ -415,7 +413,7 @@ def _study(args, scn, out: Path, backend) -> int:
               f"({'holds' if res['pooled_ordering_holds'] else 'does not hold'}); same-data pairs: variant 2 "
               f"first in {pf['variant2_before_variant1']:.0%}, variant 3 before 2 in "
               f"{pf['variant3_before_variant2']:.0%} of trials")
-    doc = strict({"experiment": "iono-tropo", "study": args.study, "scenario": dataclasses.asdict(scn), **res})
-    (out / name).write_text(json.dumps(doc, indent=1, allow_nan=False))
+    doc = {"experiment": "iono-tropo", "study": args.study, "schema": None, "scenario": dataclasses.asdict(scn), **res}
+    write_result(out / name, doc, seed=seeds if args.study == "ordering" else args.seed, scenario=scn)
     print(f"wrote {out / name}, {fig}")
     return 0

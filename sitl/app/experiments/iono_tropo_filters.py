@@ -525,7 +525,7 @@ def run_streamed(scn: IonoTropoScenario, trials: int, seed: int, variant: int = 
         if progress and (k % report_every == 0 or k == T - 1):
             progress(f"t {t_rel[k]:7.1f} s  sats {idx.size:2d}  rms I_g err {ser['iono_err_rms_m'][k]:6.3f} m  "
                      f"U_g err {ser['tropo_err_rms_m'][k]:6.3f} m  pos {ser['pos_err_rms_m'][k]:7.2f} m  "
-                     f"({time.perf_counter() - t_wall:.1f} s)")
+                     f"({time.perf_counter() - t_wall:.1f} s)", done=k + 1, total=T)
 
     settled = last_bad < T - 1
     ttm = np.where(settled, t_rel[np.minimum(last_bad + 1, T - 1)], np.inf)

@@ -63,7 +63,8 @@ def adaptive_q_study(base: IonoTropoScenario, trials: int, seed: int, variants=(
                     t = row["time_to_1m_s"]
                     progress(f"adaptive-q study: {VARIANT_NAMES[v]:<16} {clock:<11} {name:<19} time to 1 m "
                              f"{'never' if t is None else f'{t:7.1f} s'}  ANEES atmo {row['anees']:.2f} "
-                             f"clock {row['anees_clock']:.3g}  ({row['wall_s']:.0f} s)")
+                             f"clock {row['anees_clock']:.3g}  ({row['wall_s']:.0f} s)", done=len(rows),
+                             total=len(variants) * 2 * len(ADAPTIVE_CONFIGS))
     return {"trials": trials, "seed": seed, "clock_scale": float(clock_scale), "rows": rows}
 
 
@@ -83,7 +84,7 @@ def ordering_study(base: IonoTropoScenario, seeds, trials: int, progress=None, b
                          "ordering_holds": holds})
         if progress:
             progress(f"ordering study: seed {s:3d}  variant 1 {c:7.1f} s  variant 2 {b:7.1f} s  variant 3 "
-                     f"{a:6.1f} s  {'3 < 2 < 1' if holds else 'ORDER BROKEN'}")
+                     f"{a:6.1f} s  {'3 < 2 < 1' if holds else 'ORDER BROKEN'}", done=len(per_seed), total=len(seeds))
     # pooled over seeds and trials; the variants see the same data trial by trial, so the
     # paired comparison (fraction of trials where one settles strictly first) is the sharp test
     t1, t2, t3 = (np.concatenate(pooled[n]) for n in ("code_doppler", "phase_increments", "carrier_phase"))

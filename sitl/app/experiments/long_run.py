@@ -80,7 +80,6 @@ Writes DIR/result.json (strict JSON) and DIR/long_run.png.  Progress on stderr.
 from __future__ import annotations
 
 import dataclasses
-import json
 import math
 import time
 import warnings
@@ -90,7 +89,7 @@ import numpy as np
 
 from sitl.app.args import OUTPUT_DIR
 from sitl.params import add_flags, choice, integer, number, param, quiet_option, switch, validate
-from sitl.app.experiments.common import prepare_out, progress_printer, save_figure, strict
+from sitl.app.experiments.common import options_scenario, prepare_out, progress_printer, save_figure, write_result
 
 GEOMETRIES = ("default", "north")
 LOCATORS = ("live", "inflate")
@@ -200,7 +199,7 @@ def run_trial(scn, locator: str = "live", progress=None) -> dict:
         bus.drain(t)
         if progress and k % report == 0 and k:
             e = np.linalg.norm(rec.b["x"][k, 0:3] - rec.b["truth"][k, 0:3])
-            progress(f"[long-run seed {run.seed}] t = {k * dt:.0f} s of {run.duration_s:.0f}: beacon error {e:.1f} m")
+            progress(f"[long-run seed {run.seed}] beacon error {e:.1f} m", done=k * dt, total=run.duration_s)
     stats = node.stats()
     node.close()
     bus.close()
@@ -392,7 +391,7 @@ def long_run(duration_s: float = 21600.0, seed: int = 1, trials: int = 4, geomet
         d["beacon_to_uav_centroid_km"] = [float(dist[sel].min() / 1e3), float(dist[sel].max() / 1e3)]
     overall = _overall(t, sc, sq, settle_s, int(trials), win)
     doc = {
-        "experiment": "long-run", "schema": 1, "seed": seed, "trials": int(trials), "duration_s": float(duration_s),
+        "experiment": "long-run", "schema": None, "seed": seed, "trials": int(trials), "duration_s": float(duration_s),
         "geometry": geometry, "locator": locator,
         "locator_config": {"observer_uncertainty": cfg.observer_uncertainty, "init": cfg.init,
                            "init_epochs": cfg.init_epochs, "q_m2_s3": cfg.q_m2_s3,
@@ -526,15 +525,13 @@ def run(args) -> dict:
     if args.settle >= args.window:
         raise UsageError(f"--settle: less than --window ({args.window:g} s), got {args.settle:g}")
     out = prepare_out(Path(args.out))
-    prog = progress_printer(getattr(args, "quiet", False))
+    prog = progress_printer(getattr(args, "quiet", False), "long-run")
     doc = long_run(args.duration, args.seed, args.trials, args.geometry, args.locator, args.window, args.settle,
                    not args.no_pcrb, not args.no_sonde, prog)
     fig = plot(out, doc)
     doc.pop("_series")
     doc["figures"] = [fig.name]
-    doc = strict(doc)
-    (out / "result.json").write_text(json.dumps(doc, indent=1, allow_nan=False))
-    return doc
+    return write_result(out / "result.json", doc, seed=args.seed, scenario=options_scenario(args, LongRunOptions))
 
 
 def table(doc) -> str:

@@ -50,7 +50,6 @@ station's own counters}], ``recovery`` [{scenario, partition_s, recovery_s, ...}
 from __future__ import annotations
 
 import dataclasses
-import json
 import math
 import time
 import warnings
@@ -61,7 +60,7 @@ from typing import TYPE_CHECKING
 from sitl.app.args import OUTPUT_DIR
 from sitl.params import (ParamError, add_flags, choice, default_of, integer, number, optional, param, quiet_option,
                          require, string, switch, validate)
-from sitl.app.experiments.common import prepare_out, progress_printer, save_figure, strict
+from sitl.app.experiments.common import prepare_out, progress_printer, save_figure, strict, write_result
 
 # numpy and the components are imported inside the functions: the CLI imports this module to
 # build its parser (add_args), and `skyfuse --help` must stay instant
@@ -411,7 +410,7 @@ def sweep(scenarios=SCENARIOS, trials: int = 8, seed: int = 1, plan: Plan = DEFA
                 sel = r.t_s >= setup.settle_s
                 progress(f"[{name}] {i + 1:>2}/{len(conds)} {fault}={value:g} ({spec}): RMSE "
                          f"{rmse(r.err2, sel) or float('nan'):.3g} m; {r.wall_s:.1f} s wall, "
-                         f"{time.perf_counter() - t0:.0f} s so far")
+                         f"{time.perf_counter() - t0:.0f} s so far", done=i + 1, total=len(conds))
         checks = {}
         if plan.duplicate_check:
             spec = f"duplicate={100.0 * plan.duplicate_check:.6g}%"
@@ -724,7 +723,7 @@ def _config(args):
 def run(args) -> dict:
     names, plan, setups, trials = _config(args)
     out = prepare_out(Path(args.out))
-    prog = progress_printer(getattr(args, "quiet", False))
+    prog = progress_printer(getattr(args, "quiet", False), "faults")
     wall0 = time.perf_counter()
     raw = sweep(names, trials, args.seed, plan, setups, prog)
     summ = summarise(raw, plan)
@@ -734,8 +733,8 @@ def run(args) -> dict:
             + (f", loss and delay from {plan.faults_from_s:g} s" if plan.faults_from_s else ""))
     figs = plot(out, summ, meta)
     doc = result_document(args, names, plan, setups, trials, raw, summ, wall, figs)
-    (out / "result.json").write_text(json.dumps(doc, indent=1, allow_nan=False))
-    return doc
+    return write_result(out / "result.json", doc, seed=args.seed,
+                        scenario={"scenarios": doc["scenarios"], "plan": doc["plan"], "trials": trials})
 
 
 def result_document(args, names, plan, setups, trials, raw, summ, wall, figs) -> dict:
@@ -744,7 +743,7 @@ def result_document(args, names, plan, setups, trials, raw, summ, wall, figs) ->
     walls = {n: {"baseline": d["baseline"].wall_s, "conditions": sum(r.wall_s for _, r in d["runs"].values())}
              for n, d in raw.items()}
     doc = {
-        "experiment": "faults", "schema": 1, "seed": args.seed, "trials": trials,
+        "experiment": "faults", "schema": None, "seed": args.seed, "trials": trials,
         "quick": bool(getattr(args, "quick", False)),
         "scenarios": {n: {**dataclasses.asdict(setups[n]),
                           "measurement_keys": list(be.MEASUREMENT_KEYS if n == "beacon" else so.MEASUREMENT_KEYS),

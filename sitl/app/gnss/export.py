@@ -45,6 +45,7 @@ from pathlib import Path
 import numpy as np
 
 from sitl.app.args import OUTPUT_DIR, Parser, UsageError, options_of
+from sitl.app.provenance import write_json
 from sitl.params import choice, from_text, number, optional, param, switch, validate, add_flags
 
 #: spacing of the navigation records, s (RTKLIB rounds GLONASS record epochs to 15 min)
@@ -225,8 +226,7 @@ def export(opts: ExportOptions) -> dict:
         "snr_dbhz": SNR_DBHZ,
         "files": ["sim.obs", "sim.nav", "truth.csv", "truth_geometry.npz"],
     }
-    (out / "export.json").write_text(json.dumps(meta, indent=1))
-    return meta
+    return write_json(out / "export.json", meta, seed=scn.run.seed, scenario=scn)
 
 
 # --------------------------------------------------------------------------------------------- RTKLIB
@@ -339,8 +339,7 @@ def rtklib_report(out: Path, atmosphere: bool) -> dict:
         for corr in ((False, True) if atmosphere else (False,)):
             runs.append(score(out, run_rnx2rtkp(out, systems, corr), systems, corr))
     doc = {"rnx2rtkp": "RTKLIB 2.4.3 single point", "runs": runs}
-    (out / "rtklib.json").write_text(json.dumps(doc, indent=1))
-    return doc
+    return write_json(out / "rtklib.json", doc, scenario={"conf": RTKLIB_CONF, "atmosphere": atmosphere})
 
 
 def _fmt3(v) -> str:

@@ -10,12 +10,12 @@ line, exit 2.
 """
 from __future__ import annotations
 
-import json
 import time
 from dataclasses import dataclass
 from pathlib import Path
 
 from sitl.app.args import OUTPUT_DIR, UsageError, options_of
+from sitl.app.provenance import options_scenario, write_json
 from sitl.params import add_flags, choice, from_text, optional, param, switch, validate
 
 DOC = "broadcast GPS/GLONASS orbits and clocks against IGS precise orbits (SP3) and clocks"
@@ -121,7 +121,7 @@ def main(args) -> int:
     elapsed = time.perf_counter() - t
     out = Path(opts.out)
     summary = dict(res.summary, elapsed_s=round(elapsed, 3))
-    (out / "result.json").write_text(json.dumps(summary, indent=2) + "\n", encoding="utf-8")
+    write_json(out / "result.json", summary, scenario=options_scenario(opts), indent=2)
     plot(res, out / "orbit_errors.png")
     s = res.summary
     clk = "n/a" if s["clock_rms_ns"] is None else f"{s['clock_rms_ns']:.2f} ns"

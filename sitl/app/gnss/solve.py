@@ -18,7 +18,6 @@ A bad file or flag: one line naming it, exit 2.
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import time
 from dataclasses import asdict, dataclass
@@ -27,6 +26,8 @@ from pathlib import Path
 import numpy as np
 
 from sitl.app.args import OUTPUT_DIR, UsageError, add_positional, options_of
+from sitl.app.progress import progress_printer
+from sitl.app.provenance import options_scenario, write_json
 from sitl.params import add_flags, choice, from_text, number, optional, param, quiet_option, switch, validate
 
 DOC = "real GPS L1 observations through the seed 000 filter, scored against RTKLIB and dual-frequency iono"
@@ -319,13 +320,13 @@ def main(args) -> int:
     opts = options_of(GnssSolveOptions, args)
     if opts.obs is None or opts.nav is None:
         raise UsageError("skyfuse gnss solve: OBS and --nav are required")
-    progress = None if opts.quiet else print
+    progress = progress_printer(opts.quiet, "gnss solve")
     try:
         res = run(opts, progress=progress)
     except ValueError as exc:  # GnssFileError: '<file>, line <n>: <reason>'
         raise UsageError(str(exc)) from None
     out = Path(opts.out)
-    (out / "result.json").write_text(json.dumps(_jsonable(res), indent=1) + "\n", encoding="utf-8")
+    write_json(out / "result.json", _jsonable(res), scenario=options_scenario(opts))
     plot(res, out / "solve.png")
     pe, ir, rt = res["position_error_m"], res["iono_reference"], res["rtklib"]
     rtk = f"{rt['l1_spp_rms_3d_m']:.2f} m" if "l1_spp_rms_3d_m" in rt else rt.get("skipped", "n/a")

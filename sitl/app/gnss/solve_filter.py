@@ -286,8 +286,8 @@ def run_filter(ep, opts, progress=None) -> dict:
         _record(ser, k, x, P, float(res.nis[0]))
         prev.update(phase=ph, sat=sp_all.copy(), pos=pos_f.copy(), el=el, mI=mI_all)
         if progress and (k % report_every == 0 or k == T - 1):
-            progress(f"epoch {k + 1:4d}/{T}  sats {idx.size:2d}  I_g {x[0, IDX_IONO]:6.2f} m  U_g "
-                     f"{x[0, IDX_TROPO]:5.2f} m  ({time.perf_counter() - t_wall:.2f} s)")
+            progress(f"sats {idx.size:2d}  I_g {x[0, IDX_IONO]:6.2f} m  U_g "
+                     f"{x[0, IDX_TROPO]:5.2f} m  ({time.perf_counter() - t_wall:.2f} s)", done=k + 1, total=T)
 
     return {"series": ser, "counts": counts, "clock_psd_1_s": clock_psd, "iono_shape": shape, "iono_prior_m": iono0,
             "sigma0_iono_m": sd_iono0, "cmc_window_epochs": W,

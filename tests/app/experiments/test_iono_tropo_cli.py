@@ -10,6 +10,7 @@ import pytest
 from tests.outputs import is_png as _is_png
 from tests.outputs import strict_json as _strict_json
 from sitl.app.cli import build_parser, main
+from sitl.app.provenance import SCHEMA
 
 VARIANTS = ("code_doppler", "phase_increments", "carrier_phase")
 FIGURES = ("iono_tropo_estimates.png", "iono_tropo_errors.png", "iono_tropo_time_to_1m.png")
@@ -43,7 +44,7 @@ def test_all_variants_write_result_series_and_figures(all_run, capsys):
     rc, out = all_run
     assert rc == 0
     res = _strict_json((out / "result.json").read_text())
-    assert res["experiment"] == "iono-tropo" and res["schema"] == 1
+    assert res["experiment"] == "iono-tropo" and res["schema"] == SCHEMA
     assert (res["seed"], res["trials"]) == (7, 2)
     assert res["scenario"]["duration_s"] == 20.0 and res["scenario"]["sigma_pr_m"] == 6.0
     assert set(res["variants"]) == set(VARIANTS)

@@ -138,6 +138,15 @@ def test_live_demo_multi_process(tmp_path):
     assert err["beacon/b1"]["rmse_m"] < 3.0 * batch["beacon/b1"]["rmse_m"] + 10.0
     # the tlogs read with pymavlink
     from pymavlink import mavutil
-    for name in ("mav_vehicles0.tlog", "mav_vehicles1.tlog", "mav_vehicles1.r1.tlog"):  # vehicles1 restarted
+    for name in ("mav_vehicles0.tlog", "mav_vehicles1.tlog", "mav_vehicles1.r1.tlog", "mav_gs.tlog"):  # vehicles1 restarted
         tl = mavutil.mavlink_connection(str(tmp_path / name))
-        assert tl.recv_match(type="HEARTBEAT") is not None, name
+        hb = tl.recv_match(type="HEARTBEAT")
+        assert hb is not None, name
+        assert abs(hb._timestamp - time.time()) < 600, name  # stamped with the wall clock, as MAVProxy's
+    # report.json says where it came from (sitl/app/provenance.py)
+    import json
+
+    from sitl.app.provenance import SCHEMA, scenario_record
+    doc = json.loads((tmp_path / "report.json").read_text())
+    assert doc["schema"] == SCHEMA and doc["provenance"]["seed"] == scn.run.seed
+    assert doc["provenance"]["scenario_sha256"] == scenario_record(scn)["sha256"]

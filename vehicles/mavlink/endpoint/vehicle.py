@@ -35,7 +35,7 @@ class VehicleEndpoint(SigningClock, DatagramInput, StreamOutput, RequestHandlers
     ``listen_addr``).  params: a ParamStore (None: no parameters).  on_mission: called with
     an uploaded mission's waypoints (see vehicles/mavlink/mission.py).  signing_key: 32 bytes to sign
     everything we send and require valid signatures on everything we accept.  tlog: a path
-    or a shared TlogWriter for all our traffic (simulated unix time stamps).
+    or a shared TlogWriter for all our traffic (a path: stamped by ``clock``, else simulated unix time).
     stream_rates_hz: {msgid: Hz} overriding DEFAULT_STREAM_RATES_HZ (0: off).
     clock: our signing clock, unix seconds (None: the simulated clock); signing_state: the
     file that keeps the signing state across restarts (None: kept in memory only); see
@@ -104,7 +104,7 @@ class VehicleEndpoint(SigningClock, DatagramInput, StreamOutput, RequestHandlers
         if signing_key is not None:
             self._signer = SignatureChecker(signing_key)  # validates the key
         own_tlog = tlog is not None and not isinstance(tlog, TlogWriter)
-        self._tlog = TlogWriter(tlog) if own_tlog else tlog
+        self._tlog = TlogWriter(tlog, stamp_clock=clock) if own_tlog else tlog  # stamped as the signing clock
         self._own_tlog = own_tlog
 
         self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)

@@ -240,7 +240,7 @@ def run_case(case, tracks, trials, seed, locators=(PRODUCTION,), progress=None, 
         bus.drain(tk)
         clock("bus_drain", t0)
         if progress and (k % 200 == 0 or k == K - 1):
-            progress(f"[{case} N={N}] t = {t[k]:6.0f} s of {t[-1]:.0f}")
+            progress(f"[{case} N={N}]", done=t[k] - t[0], total=t[-1] - t[0])
     est_x, est_P = scorer.x, scorer.P
     out = {"t": t, "truth": scorer.truth, "nav_x": nav_x, "nav_P": nav_P, "x": {pub: est_x},
            "P": {pub: est_P}, "mode": scorer.mode, "counters": {}, "bus": _bus_stats(bus),

@@ -4,7 +4,6 @@ summary table."""
 from __future__ import annotations
 
 import dataclasses
-import json
 import math
 import time
 import warnings
@@ -22,7 +21,7 @@ from sitl.app.experiments.beacon.figures import plot
 from sitl.app.experiments.beacon.scoring import (_scores, _series, integrity_summary, pcrb_series, summarise_case,
                                                  uav_nav_rmse)
 from sitl.app.experiments.beacon.world import beacon_prior, scenario
-from sitl.app.experiments.common import prepare_out, progress_printer, strict
+from sitl.app.experiments.common import options_scenario, prepare_out, progress_printer, write_result
 from sitl.params import add_flags, choice, default_of, from_text, integer, number, param, quiet_option, validate
 
 
@@ -119,7 +118,7 @@ def run(args) -> dict:
     counts = check_args(args)
     geometry = getattr(args, "geometry", default_of(BeaconOptions, "geometry"))
     out = prepare_out(Path(args.out))
-    prog = progress_printer(args.quiet)
+    prog = progress_printer(args.quiet, "beacon")
     wall0 = time.perf_counter()
     timing = {}
     cfg = LocatorConfig()
@@ -227,7 +226,7 @@ def run(args) -> dict:
     figs = plot(out, plots, sweep, meta, geometry)
     prior = beacon_prior() if geometry == "printed" else None
     doc = {
-        "experiment": "beacon", "schema": 2, "seed": args.seed, "trials": args.trials, "uavs": args.uavs,
+        "experiment": "beacon", "schema": None, "seed": args.seed, "trials": args.trials, "uavs": args.uavs,
         "duration_s": args.duration, "epoch_s": DT_S, "settle_s": SETTLE_S, "geometry": geometry,
         "axes": {"xi": "ECEF y", "eta": "ECEF z (polar axis)", "zeta": "ECEF x",
                  "note": "the paper's frame: its printed start point is r (cos45 sin30, sin45, cos45 cos30)"},
@@ -249,9 +248,7 @@ def run(args) -> dict:
         "timing_s": timing,
         "figures": [f.name for f in figs],
     }
-    doc = strict(doc)
-    (out / "result.json").write_text(json.dumps(doc, indent=1, allow_nan=False))
-    return doc
+    return write_result(out / "result.json", doc, seed=args.seed, scenario=options_scenario(args, BeaconOptions))
 
 
 def table(doc) -> str:

@@ -70,12 +70,11 @@ targets) and ``report`` (result.json, figures, summary); the command itself, its
 """
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass
 from pathlib import Path
 
 from sitl.app.args import OUTPUT_DIR
-from sitl.app.experiments.common import prepare_out, progress_printer
+from sitl.app.experiments.common import prepare_out, progress_printer, write_result
 from sitl.app.experiments.integrity.models import BiasedPseudorangeDoppler, GaussMarkovBank
 from sitl.app.experiments.integrity.monte_carlo import (
     BIASED, CLEAN, DETECTION_FILTER, DYNAMIC, FILTERS, K_DROP, K_OUT, K_RAMP, K_STEP, MONITORED, run,
@@ -190,10 +189,10 @@ def main(args) -> int:
         raise UsageError(str(exc)) from None
     out = prepare_out(Path(args.out))
     backend = None if getattr(args, "backend", default_of(IntegrityOptions, "backend")) == "auto" else args.backend
-    res = run(scn, args.trials, args.seed, progress=progress_printer(args.quiet), backend=backend)
+    res = run(scn, args.trials, args.seed, progress=progress_printer(args.quiet, "integrity"), backend=backend)
     figures = plot(res, scn, out)
-    doc = result_document(scn, args.trials, args.seed, res, figures)
-    (out / "result.json").write_text(json.dumps(doc, indent=1, allow_nan=False))
+    write_result(out / "result.json", result_document(scn, args.trials, args.seed, res, figures),
+                 seed=args.seed, scenario=scn)
     print(summary(res))
     print("wrote " + ", ".join(str(f) for f in [out / "result.json", *figures]))
     return 0

@@ -222,7 +222,7 @@ def run(scn: IntegrityScenario, trials: int, seed: int, progress=None, backend=N
         if progress and (k % report_every == 0 or k == T - 1):
             rms = {n: math.sqrt(np.mean(np.sum((st[n]["x"][:, :3] - pos_true[k]) ** 2, axis=1))) for n in FILTERS}
             progress(f"t {t_rel[k]:6.1f} s  position error rms: " + "  ".join(f"{n} {v:7.2f} m" for n, v in rms.items())
-                     + f"  ({time.perf_counter() - t_wall:.1f} s)")
+                     + f"  ({time.perf_counter() - t_wall:.1f} s)", done=k + 1, total=T)
 
     n_scored = T - k_warm
     rmse = {n: float(math.sqrt(st[n]["se"].sum() / (trials * n_scored))) for n in st}

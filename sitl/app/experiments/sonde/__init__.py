@@ -304,8 +304,7 @@ def run_trials(scn: SondeScenario, seed: int, trials, *, backend=None, progress=
             timing["estimates_delivery"] += w4 - w3
         if progress and (c1 == T or c1 - last_report >= T // 10):
             last_report = c1
-            progress(f"[sonde] {B} trial(s): {c1 - 1:>5d} / {T - 1} s simulated, "
-                     f"{time.perf_counter() - wall0:6.1f} s wall")
+            progress(f"[sonde] {B} trial(s), {time.perf_counter() - wall0:6.1f} s wall", done=c1 - 1, total=T - 1)
     bus.close()
     return {
         "trials": trials, "t_gps_s": track.t_gps_s.copy(), "t0_gps_s": t0, "modes": modes,
@@ -364,6 +363,6 @@ def run(scn: SondeScenario, trials: int, seed: int, *, backend=None, progress=No
     parts = []
     for s in range(0, trials, batch):
         idx = list(range(s, min(trials, s + batch)))
-        prog = (lambda m, _i=idx: progress(f"trials {_i[0]}-{_i[-1]}: {m}")) if progress else None
+        prog = (lambda m, _i=idx, **kw: progress(f"trials {_i[0]}-{_i[-1]}: {m}", **kw)) if progress else None
         parts.append(run_trials(scn, seed, idx, backend=backend, progress=prog))
     return _merge(parts)

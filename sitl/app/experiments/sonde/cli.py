@@ -2,14 +2,13 @@
 flags, and the command."""
 from __future__ import annotations
 
-import json
 import math
 import time
 from dataclasses import dataclass
 from pathlib import Path
 
 from sitl.app.args import OUTPUT_DIR
-from sitl.app.experiments.common import prepare_out, progress_printer, strict
+from sitl.app.experiments.common import prepare_out, progress_printer, strict, write_result
 from sitl.app.experiments.sonde.report import plot, result_document, summary_table
 from sitl.app.experiments.sonde.scenario import SondeScenario
 from sitl.app.experiments.sonde.scoring import score
@@ -114,14 +113,14 @@ def main(args) -> int:
     except ValueError as exc:
         raise UsageError(" ".join(str(exc).split())) from None
     out = prepare_out(Path(args.out))
-    progress = progress_printer(args.quiet)
+    progress = progress_printer(args.quiet, "sonde")
     backend = None if args.backend == "auto" else args.backend
     n_seeds = getattr(args, "seeds", None)
     if n_seeds is not None:  # the seed study: trial 0 of seeds --seed (default 1) .. + n - 1
         first = FIRST_SEED if args.seed is None else args.seed
         doc = strict(seed_study(scn, range(first, first + n_seeds), backend=backend, progress=progress))
         doc["figures"] = [plot_seed_study(doc, out).name]
-        (out / "result.json").write_text(json.dumps(doc, indent=1, allow_nan=False))
+        doc = write_result(out / "result.json", doc, seed=list(range(first, first + n_seeds)), scenario=scn)
         print(seed_study_table(doc))
         print("wrote " + ", ".join(str(p) for p in [out / "result.json", *(out / f for f in doc["figures"])]))
         return 0
@@ -133,8 +132,8 @@ def main(args) -> int:
     wall = time.perf_counter() - wall0
     one = raw["wall_s"] if args.trials == 1 else None
     figures = plot(raw, sc, scn, args.seed, out)
-    doc = result_document(scn, args.seed, raw, sc, figures, wall, one)
-    (out / "result.json").write_text(json.dumps(doc, indent=1, allow_nan=False))
+    doc = write_result(out / "result.json", result_document(scn, args.seed, raw, sc, figures, wall, one),
+                       seed=args.seed, scenario=scn)
     print(summary_table(doc))
     print("wrote " + ", ".join(str(p) for p in [out / "result.json", *figures]))
     return 0

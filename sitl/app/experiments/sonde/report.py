@@ -62,7 +62,7 @@ def result_document(scn, seed: int, raw: dict, sc: dict, figures, wall_s: float,
     implied = sum(kinds.get(k, 0) * c["total_us"] for k, c in costs.items()) * 1e-6
     bus_s = timing["publish"] + timing["deliver"] + timing["estimates_delivery"]
     doc = {
-        "experiment": "sonde", "schema": 1, "seed": seed, "trials": len(raw["trials"]),
+        "experiment": "sonde", "schema": None, "seed": seed, "trials": len(raw["trials"]),
         "scenario": dataclasses.asdict(scn), "epochs": scn.n_epochs,
         "by_range_km": sc["by_range_km"],
         "fused_below_both_in_every_bin": sc["fused_below_both_in_every_bin"],

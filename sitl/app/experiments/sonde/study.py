@@ -43,7 +43,7 @@ def seed_study(scn: SondeScenario, seeds, *, backend=None, progress=None, batch:
     wall0 = time.perf_counter()
     for s0 in range(0, len(seeds), batch):
         part = seeds[s0:s0 + batch]
-        prog = (lambda m, _p=part: progress(f"seeds {_p[0]}-{_p[-1]}: {m}")) if progress else None
+        prog = (lambda m, _p=part, **kw: progress(f"seeds {_p[0]}-{_p[-1]}: {m}", **kw)) if progress else None
         raw = run_trials(scn, part[0], [0] * len(part), backend=backend, progress=prog, modes=MODES, seeds=part)
         t_rel = raw["t_gps_s"] - raw["t0_gps_s"]
         e2 = np.sum((raw["pos"] - raw["truth_pos"][None]) ** 2, axis=-1)  # (M, B, T)
@@ -85,7 +85,7 @@ def seed_study(scn: SondeScenario, seeds, *, backend=None, progress=None, batch:
               "radar_loss_no_worse_than_relay_only": loss["fused_no_worse_on_average"]}
     checks = {k: v for k, v in checks.items() if v is not None}  # an episode outside the run: not judged
     return {
-        "experiment": "sonde", "study": "seeds", "schema": 1, "seeds": seeds, "trial": 0,
+        "experiment": "sonde", "study": "seeds", "schema": None, "seeds": seeds, "trial": 0,
         "scenario": dataclasses.asdict(scn),
         "per_seed": [{"seed": sd, **{f"{name}_rmse_m": {m: per[name][m][b] for m in MODES} for name in names},
                       "fused_to_relay_only": ratio[b], "fused_below_relay_only": below[b]}
