@@ -23,3 +23,21 @@ def skyfuse_version() -> str:
         return version("skyfuse")
     except PackageNotFoundError:
         return "unknown"
+
+
+def export_provenance(source) -> dict:
+    """What made an exported file: the export command's provenance record (sitl.app.provenance:
+    version, commit, command line, start time, schema) and, when the run's report.json lies beside
+    its bus log, the run's own record (``run``: seed, scenario hash, the run's command line)."""
+    import json
+    from pathlib import Path
+
+    from sitl.app.provenance import SCHEMA, provenance
+
+    doc = {"schema": SCHEMA, "export": provenance(), "run": None}
+    rep = Path(source).parent / "report.json"
+    try:
+        doc["run"] = json.loads(rep.read_text()).get("provenance")
+    except (OSError, ValueError, AttributeError):
+        pass
+    return doc

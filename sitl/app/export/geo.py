@@ -150,7 +150,7 @@ def _bbox(shapes: list) -> list | None:
 
 def geojson(tracks: Tracks) -> dict:
     """The tracks as an RFC 7946 FeatureCollection (a dict ready for json.dump)."""
-    from sitl.app.export import skyfuse_version
+    from sitl.app.export import export_provenance, skyfuse_version
 
     shapes = _shapes(tracks)
     doc = {"type": "FeatureCollection",
@@ -160,10 +160,10 @@ def geojson(tracks: Tracks) -> dict:
     if bb is not None and bb[0] <= bb[3]:  # (a bbox across the antimeridian would need west > east)
         doc["bbox"] = bb
     # a foreign member (RFC 7946 sec. 6.1): what made the file
-    # TODO(lead): add sitl.app.provenance.provenance() here once it exists on main
     doc["skyfuse"] = {"schema": GEOJSON_SCHEMA, "skyfuse_version": skyfuse_version(), "source": tracks.source,
                       "heights": "metres above the WGS-84 ellipsoid",
-                      "ellipses": "95 % horizontal uncertainty of the last estimate"}
+                      "ellipses": "95 % horizontal uncertainty of the last estimate",
+                      "provenance": export_provenance(tracks.source)}
     return doc
 
 
@@ -217,7 +217,7 @@ def _extended(props: dict) -> str:
 
 def kml(tracks: Tracks) -> str:
     """The tracks as a KML 2.2 document (text)."""
-    from sitl.app.export import skyfuse_version
+    from sitl.app.export import export_provenance, skyfuse_version
 
     shapes = _shapes(tracks)
     styles = []
@@ -252,7 +252,11 @@ def kml(tracks: Tracks) -> str:
     desc = (f"skyfuse {skyfuse_version()} export of {tracks.source}: true and estimated tracks, last estimates "
             "with their 95 % horizontal uncertainty ellipse, fixed sites. Heights are above the WGS-84 "
             "ellipsoid (KML's absolute altitude is above mean sea level: the geoid undulation is not applied).")
-    # TODO(lead): add sitl.app.provenance.provenance() to the description once it exists on main
+    prov = export_provenance(tracks.source)
+    run = prov["run"] or {}
+    desc += (f" Exported {prov['export']['started_utc']} by {' '.join(prov['export']['command_line'])!s}"
+             f" (commit {prov['export'].get('git_commit') or 'none'}); run seed {run.get('seed')}, scenario "
+             f"SHA-256 {run.get('scenario_sha256')}.")
     return (f'<?xml version="1.0" encoding="UTF-8"?>\n<kml xmlns="{KML_NS}"><Document>'
             f"<name>{escape(Path(tracks.source).parent.name or 'skyfuse run')} tracks</name>"
             f"<description>{escape(desc)}</description>{''.join(styles)}{body}</Document></kml>\n")

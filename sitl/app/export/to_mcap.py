@@ -145,7 +145,7 @@ def export_mcap(log: str | os.PathLike, out: str | os.PathLike, *, progress: boo
         from sitl.app.args import UsageError
 
         raise UsageError("export mcap: needs the mcap library: pip install 'skyfuse[export]'") from None
-    from sitl.app.export import skyfuse_version
+    from sitl.app.export import export_provenance, skyfuse_version
     from sitl.app.export.source import read_records
 
     out = Path(out)
@@ -198,8 +198,8 @@ def export_mcap(log: str | os.PathLike, out: str | os.PathLike, *, progress: boo
                               data=json.dumps(message_json(msg), allow_nan=False).encode(),
                               sequence=seqs[cid] & 0xFFFFFFFF)
                 res.per_key[rec.key] = res.per_key.get(rec.key, 0) + 1
-            # TODO(lead): add sitl.app.provenance.provenance() here once it exists on main
             w.add_metadata("skyfuse", {
+                "provenance": json.dumps(export_provenance(log)),
                 "schema": MCAP_SCHEMA, "skyfuse_version": skyfuse_version(), "source": os.fspath(log),
                 "bus_schema_version": str(SCHEMA_VERSION), "records": str(res.records),
                 "undecodable": str(res.undecodable),

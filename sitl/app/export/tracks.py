@@ -329,9 +329,10 @@ def table_metadata(tracks: Tracks) -> dict:
 
     from sitl.app.export import skyfuse_version
 
-    # TODO(lead): add sitl.app.provenance.provenance() here once it exists on main (it did not
-    # when this was written): version, commit, command line, seed, scenario hash, start time.
+    from sitl.app.export import export_provenance
+
     return {"schema": TABLE_SCHEMA, "skyfuse_version": skyfuse_version(), "source": tracks.source,
+            "provenance": json.dumps(export_provenance(tracks.source)),
             "run_ids": json.dumps(sorted({o.run_id for o in tracks.objects.values()})),
             "records": str(tracks.records), "undecodable": str(tracks.undecodable),
             "torn_tail": json.dumps({"dropped_bytes": tracks.stats.dropped_bytes, "reason": tracks.stats.reason}),

@@ -180,3 +180,38 @@ def test_a_demo_batch_run_is_exported_from_its_report(tmp_path, capsys):
         assert len(err_m) == e["scored"] > 0
         assert math.sqrt(sum(x * x for x in err_m) / len(err_m)) == pytest.approx(e["rmse_m"], rel=1e-9)
     assert (out / "bus.log").is_file() and not (out / "bus.log.part").exists()
+
+
+
+def test_every_export_carries_the_provenance_record(synthetic_run, capsys):
+    """The table's metadata, the GeoJSON's foreign member, the KML's description and the MCAP's
+    metadata hold the export's provenance record (version, command line, start time, schema) and
+    the run's own record from the report.json beside the log."""
+    import json
+    import xml.etree.ElementTree as ET
+
+    import pyarrow.parquet as pq
+    from mcap.reader import make_reader
+
+    from sitl.app.cli import main
+    from sitl.app.provenance import SCHEMA
+
+    out = synthetic_run.path.parent
+    run_record = {"seed": 17, "scenario_sha256": "ab" * 32, "command_line": ["skyfuse", "demo"]}
+    (out / "report.json").write_text(json.dumps({"provenance": run_record}))
+    assert main(["export", "all", str(out)]) == 0
+    capsys.readouterr()
+
+    def check(doc):
+        assert doc["schema"] == SCHEMA and doc["run"] == run_record
+        e = doc["export"]
+        assert e["command_line"] and e["started_utc"].endswith(("Z", "+00:00")) and "skyfuse_version" in e
+    meta = pq.read_schema(out / "tracks.parquet").metadata
+    check(json.loads(meta[b"provenance"]))
+    check(json.loads((out / "tracks.geojson").read_text())["skyfuse"]["provenance"])
+    with open(out / "bus.mcap", "rb") as f:
+        md = {m.name: m.metadata for m in make_reader(f).iter_metadata()}
+    check(json.loads(md["skyfuse"]["provenance"]))
+    ns = {"k": "http://www.opengis.net/kml/2.2"}
+    desc = ET.parse(out / "tracks.kml").getroot().find("k:Document/k:description", ns).text
+    assert "seed 17" in desc and "ab" * 32 in desc and "Exported " in desc
