@@ -223,8 +223,8 @@ def run(args) -> dict:
     wall = time.perf_counter() - wall0
     three = doc_cases["three_satellites"]["errors_m"]
     reproduces = all(three[ax]["median_of_trial_max"] <= PAPER_ERRORS_M[ax] for ax in AXES)
-    meta = f"{geometry} geometry, {args.trials} trials, seed {args.seed}, {args.uavs} UAVs, {args.duration:g} s"
-    figs = plot(out, plots, sweep, meta, geometry)
+    meta = f"{geometry} geometry, {args.uavs} UAVs, {args.duration:g} s at 1 Hz"
+    figs = plot(out, plots, sweep, meta, geometry, seed=args.seed, trials=args.trials)
     prior = beacon_prior() if geometry == "printed" else None
     doc = {
         "experiment": "beacon", "schema": 2, "seed": args.seed, "trials": args.trials, "uavs": args.uavs,
