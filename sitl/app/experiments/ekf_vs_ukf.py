@@ -459,8 +459,11 @@ def _progress(quiet):
 
 def write(res: dict, out: Path) -> list[Path]:
     out.mkdir(parents=True, exist_ok=True)
+    from sitl.app.report import write_report
+
     (out / "result.json").write_text(json.dumps(res, indent=1))
-    return [out / "result.json"] + plot(res, out)
+    figures = plot(res, out)
+    return [out / "result.json", *figures, write_report(out, figures=figures)]
 
 
 def main(args) -> int:

@@ -24,6 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from sitl.app.experiments.common import prepare_out, progress_printer, save_figure, strict
+from sitl.app.report import write_report
 
 from sitl.app.experiments import iono_tropo_filters
 from sitl.app.args import OUTPUT_DIR
@@ -204,6 +205,7 @@ def write(out: Path, scn, trials: int, seed: int, results: dict) -> list[Path]:
     figures = plot(results, scn, trials, seed, out)
     doc = result_document(scn, trials, seed, results, figures)
     (out / "result.json").write_text(json.dumps(doc, indent=1, allow_nan=False))
+    write_report(out)  # OUT/report.html from result.json (sitl.app.report)
     np.savez(out / "series.npz", **series_arrays(results))
     return [out / "result.json", out / "series.npz", *figures]
 

@@ -91,6 +91,7 @@ import numpy as np
 from sitl.app.args import OUTPUT_DIR
 from sitl.params import add_flags, choice, integer, number, param, quiet_option, switch, validate
 from sitl.app.experiments.common import prepare_out, progress_printer, save_figure, strict
+from sitl.app.report import write_report
 
 GEOMETRIES = ("default", "north")
 LOCATORS = ("live", "inflate")
@@ -534,6 +535,7 @@ def run(args) -> dict:
     doc["figures"] = [fig.name]
     doc = strict(doc)
     (out / "result.json").write_text(json.dumps(doc, indent=1, allow_nan=False))
+    write_report(out)  # OUT/report.html from result.json (sitl.app.report)
     return doc
 
 

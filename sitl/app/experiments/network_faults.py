@@ -62,6 +62,7 @@ from sitl.app.args import OUTPUT_DIR
 from sitl.params import (ParamError, add_flags, choice, default_of, integer, number, optional, param, quiet_option,
                          require, string, switch, validate)
 from sitl.app.experiments.common import prepare_out, progress_printer, save_figure, strict
+from sitl.app.report import write_report
 
 # numpy and the components are imported inside the functions: the CLI imports this module to
 # build its parser (add_args), and `skyfuse --help` must stay instant
@@ -735,6 +736,7 @@ def run(args) -> dict:
     figs = plot(out, summ, meta)
     doc = result_document(args, names, plan, setups, trials, raw, summ, wall, figs)
     (out / "result.json").write_text(json.dumps(doc, indent=1, allow_nan=False))
+    write_report(out)  # OUT/report.html from result.json (sitl.app.report)
     return doc
 
 

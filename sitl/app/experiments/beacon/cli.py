@@ -23,6 +23,7 @@ from sitl.app.experiments.beacon.scoring import (_scores, _series, integrity_sum
                                                  uav_nav_rmse)
 from sitl.app.experiments.beacon.world import beacon_prior, scenario
 from sitl.app.experiments.common import prepare_out, progress_printer, strict
+from sitl.app.report import write_report
 from sitl.params import add_flags, choice, default_of, from_text, integer, number, param, quiet_option, validate
 
 
@@ -251,6 +252,7 @@ def run(args) -> dict:
     }
     doc = strict(doc)
     (out / "result.json").write_text(json.dumps(doc, indent=1, allow_nan=False))
+    write_report(out)  # OUT/report.html from result.json (sitl.app.report)
     return doc
 
 

@@ -76,6 +76,7 @@ from pathlib import Path
 
 from sitl.app.args import OUTPUT_DIR
 from sitl.app.experiments.common import prepare_out, progress_printer
+from sitl.app.report import write_report
 from sitl.app.experiments.integrity.models import BiasedPseudorangeDoppler, GaussMarkovBank
 from sitl.app.experiments.integrity.monte_carlo import (
     BIASED, CLEAN, DETECTION_FILTER, DYNAMIC, FILTERS, K_DROP, K_OUT, K_RAMP, K_STEP, MONITORED, run,
@@ -194,6 +195,7 @@ def main(args) -> int:
     figures = plot(res, scn, out)
     doc = result_document(scn, args.trials, args.seed, res, figures)
     (out / "result.json").write_text(json.dumps(doc, indent=1, allow_nan=False))
+    write_report(out)  # OUT/report.html from result.json (sitl.app.report)
     print(summary(res))
     print("wrote " + ", ".join(str(f) for f in [out / "result.json", *figures]))
     return 0

@@ -10,6 +10,7 @@ from pathlib import Path
 
 from sitl.app.args import OUTPUT_DIR
 from sitl.app.experiments.common import prepare_out, progress_printer, strict
+from sitl.app.report import write_report
 from sitl.app.experiments.sonde.report import plot, result_document, summary_table
 from sitl.app.experiments.sonde.scenario import SondeScenario
 from sitl.app.experiments.sonde.scoring import score
@@ -122,6 +123,7 @@ def main(args) -> int:
         doc = strict(seed_study(scn, range(first, first + n_seeds), backend=backend, progress=progress))
         doc["figures"] = [plot_seed_study(doc, out).name]
         (out / "result.json").write_text(json.dumps(doc, indent=1, allow_nan=False))
+        write_report(out)  # OUT/report.html from result.json (sitl.app.report)
         print(seed_study_table(doc))
         print("wrote " + ", ".join(str(p) for p in [out / "result.json", *(out / f for f in doc["figures"])]))
         return 0
@@ -135,6 +137,7 @@ def main(args) -> int:
     figures = plot(raw, sc, scn, args.seed, out)
     doc = result_document(scn, args.seed, raw, sc, figures, wall, one)
     (out / "result.json").write_text(json.dumps(doc, indent=1, allow_nan=False))
+    write_report(out)  # OUT/report.html from result.json (sitl.app.report)
     print(summary_table(doc))
     print("wrote " + ", ".join(str(p) for p in [out / "result.json", *figures]))
     return 0
