@@ -146,14 +146,14 @@ def write_report(out, *, figures=None) -> Path:
     parts = [f"<!DOCTYPE html><html lang=\"en\"><head><meta charset=\"utf-8\"><title>{html.escape(title)}</title>",
              f"<style>{_CSS}</style></head><body>", f"<h1>{html.escape(title)}</h1>",
              f"<p class=\"note\">made from {html.escape(doc_path.name)}; figures also as PNG in this folder</p>"]
+    if map_png is not None:
+        parts.append(f"<figure id=\"map\"><img id=\"map-img\" src=\"{_png_uri(map_png)}\" "
+                     f"alt=\"map of the tracks\"><figcaption>{html.escape(map_png.name)}: local east/north frames, "
+                     "metres; no map tiles</figcaption></figure>")
     ident = _identity(doc)
     if ident:
         parts.append("<h2>Run</h2><table id=\"identity\">"
                      + "".join(f"<tr><th>{html.escape(k)}</th><td>{v}</td></tr>" for k, v in ident) + "</table>")
-    if map_png is not None:
-        parts.append(f"<h2>Map</h2><figure id=\"map\"><img id=\"map-img\" src=\"{_png_uri(map_png)}\" "
-                     f"alt=\"map of the tracks\"><figcaption>{html.escape(map_png.name)}: local east/north frames, "
-                     "metres; no map tiles</figcaption></figure>")
     parts.append("<h2>Key figures</h2>")
     if rows:
         parts.append("<table id=\"key-figures\"><tr><th>quantity</th><th>what</th><th>value</th><th>unit</th>"
