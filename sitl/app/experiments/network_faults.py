@@ -61,7 +61,7 @@ from typing import TYPE_CHECKING
 from sitl.app.args import OUTPUT_DIR
 from sitl.params import (ParamError, add_flags, choice, default_of, integer, number, optional, param, quiet_option,
                          require, string, switch, validate)
-from sitl.app.experiments.common import prepare_out, progress_printer, save_figure, strict
+from sitl.app.experiments.common import prepare_out, progress_printer, run_label, save_figure, strict
 from sitl.app.report import write_report
 
 # numpy and the components are imported inside the functions: the CLI imports this module to
@@ -575,7 +575,7 @@ def plot(out: Path, summ: dict, meta: str) -> list[Path]:
     ax.axhline(1.0, color="k", lw=0.8)
     _ratio_scale(ax)
     ax.set_xlabel("measurement packets lost, % (stationary loss for the bursts)")
-    ax.set_ylabel("position RMSE / fault-free RMSE (same seed)")
+    ax.set_ylabel("position RMSE / fault-free RMSE (same seed), ratio")
     ax.grid(alpha=0.3, which="both")
     ax.legend(fontsize=8)
     ax.set_title(f"Ground-station accuracy against measurement loss\n{meta}", fontsize=9)
@@ -593,7 +593,7 @@ def plot(out: Path, summ: dict, meta: str) -> list[Path]:
     ax.axhline(1.0, color="k", lw=0.8)
     _ratio_scale(ax)
     ax.set_xlabel("measurement delay, s (normal jitter, sigma = 20 % of the delay); epochs every 1 s")
-    ax.set_ylabel("position RMSE / fault-free RMSE (same seed)")
+    ax.set_ylabel("position RMSE / fault-free RMSE (same seed), ratio")
     ax.grid(alpha=0.3, which="both")
     ax.legend(fontsize=8)
     ax.set_title(f"Ground-station accuracy against measurement delay (out-of-sequence arrivals)\n{meta}", fontsize=9)
@@ -730,7 +730,8 @@ def run(args) -> dict:
     raw = sweep(names, trials, args.seed, plan, setups, prog)
     summ = summarise(raw, plan)
     wall = time.perf_counter() - wall0
-    meta = (f"{trials} trials, seed {args.seed}; " + ", ".join(f"{n} {setups[n].duration_s:g} s" for n in names)
+    meta = (run_label("faults", seed=args.seed, trials=trials, extra="per condition") + "\n"
+            + ", ".join(f"{n} {setups[n].duration_s:g} s" for n in names)
             + "; faults on the measurement links only"
             + (f", loss and delay from {plan.faults_from_s:g} s" if plan.faults_from_s else ""))
     figs = plot(out, summ, meta)
