@@ -271,12 +271,12 @@ def plot(res, path: Path) -> None:
     tm = (s["t_gps_s"] - t0) / 60.0
     fig, (a1, a2) = plt.subplots(2, 1, figsize=(10, 8), sharex=True)
     for i, lab in enumerate("ENU"):
-        a1.plot(tm, s["enu_error_m"][:, i], label=f"{lab} (filter)")
+        a1.plot(tm, s["enu_error_m"][:, i], color=f"C{i}", label=f"{lab} (filter)")
     rt = res.get("rtklib", {})
     if "enu_error_m" in rt:
         tr = (np.asarray(rt["t_gps_s"]) - t0) / 60.0
         for i, lab in enumerate("ENU"):
-            a1.plot(tr, np.asarray(rt["enu_error_m"])[:, i], ":", lw=0.8, label=f"{lab} (RTKLIB L1 SPP)")
+            a1.plot(tr, np.asarray(rt["enu_error_m"])[:, i], ":", color=f"C{i}", lw=0.9, label=f"{lab} (RTKLIB L1 SPP)")
     pe = res["position_error_m"]
     a1.set_title("skyfuse gnss solve (real data, no RNG): "
                  f"{res['variant']}{' static' if res['static'] else ''}: 3D RMS {pe['rms_3d']:.2f} m"
