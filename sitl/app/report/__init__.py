@@ -27,7 +27,7 @@ import json
 import math
 from pathlib import Path
 
-from sitl.app.report.table import Row, key_rows
+from sitl.app.report.table import QUANTITIES, Row, key_rows
 
 REPORT = "report.html"
 DOCUMENTS = ("result.json", "report.json")
@@ -140,6 +140,7 @@ def write_report(out, *, figures=None) -> Path:
                 notes.append(f"bus.log: {tracks.undecodable} records did not decode (skipped)")
         else:
             notes.append("no bus.log in this run's folder (the scenario's bus.log = false): no map")
+    rows.sort(key=lambda r: QUANTITIES.index(r.quantity))  # the log's NEES beside the document's ANEES
     files = _figure_list(out, doc, made) if figures is None else [Path(f) for f in figures]
     if map_png is not None and map_png not in files:
         files.insert(0, map_png)

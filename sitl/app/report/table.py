@@ -21,7 +21,7 @@ MAX_DEPTH = 6
 class Row:
     quantity: str
     label: str
-    value: float
+    value: float | int
     path: list | None  # JSON path in the document; None: computed by the report (``source``)
     unit: str = ""
     band: list | None = None
@@ -107,10 +107,15 @@ def key_rows(doc: dict) -> tuple[list[Row], dict]:
             if quantity == "ANEES" and isinstance(parent, dict):
                 bk, band = _band_of({k: v for k, v in parent.items() if k.startswith(str(path[-1])) or k == "band"})
                 band_path = path[:-1] + [bk] if bk else None
-            add(Row(quantity, label(path, qi), float(node), path,
+            add(Row(quantity, label(path, qi), node, path,
                     "1" if quantity in ("ANEES",) else ("" if quantity in ("rejected inputs", "faults", "restarts")
                                                         else _unit(path)), band, band_path))
             return
+        if (counts and isinstance(node, dict) and qi == len(path) - 1
+                and all(isinstance(v, int) and not isinstance(v, bool) for v in node.values())):
+            # a counter by reason ({"stale": 2, ...}, or {} when nothing was rejected): its total first
+            add(Row(quantity, label(path, qi) + " (total over reasons)", sum(node.values()), path, "",
+                    note=", ".join(f"{k} {v}" for k, v in node.items()) or "none"))
         if isinstance(node, dict):
             for k, v in node.items():
                 if k in SKIP:

@@ -97,7 +97,10 @@ def test_the_tables_values_are_the_documents(run, document, request):
             assert r["data-source"] == "bus.log"  # computed by the report from the run's log
             continue
         path = json.loads(r["data-path"])
-        assert float(r["data-value"]) == _at(doc, path), path
+        want = _at(doc, path)
+        if isinstance(want, dict):  # a counter by reason: the row is its total
+            want = sum(want.values())
+        assert float(r["data-value"]) == want, path
         if "data-band-path" in r:
             assert _at(doc, json.loads(r["data-band-path"])) is not None
         by_path[tuple(path)] = r
