@@ -87,7 +87,7 @@ def plot(res: dict, scn, out: Path) -> list[Path]:
             ax.set_xscale("log")
             ax.set_xlim(1e-7, 1)
             ax.set_ylim(0, 1.02)
-            ax.set_xlabel("probability of false alarm per channel-epoch (this statistic alone), log scale")
+            ax.set_xlabel("false-alarm probability per channel-epoch\n(this statistic alone; log scale)")
             ax.set_ylabel("probability of detection, 1")
             ax.set_title({"step": "steps (|beta|, onset or next epoch)", "ramp": f"ramps (window statistic, within "
                           f"{scn.ramp_detect_s:g} s)", "outlier": "outliers >= 5 sigma (|beta|, at the epoch)"}[kind],
