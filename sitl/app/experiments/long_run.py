@@ -436,7 +436,7 @@ def plot(out: Path, doc: dict) -> Path:
                              constrained_layout=True)
     th = t / 3600.0
     ax = axes[0]
-    ax.plot(th, rms, lw=0.5, color="tab:blue", alpha=0.6, label=f"beacon error (RMS over {doc['trials']} trials)")
+    ax.plot(th, rms, lw=0.5, color="tab:blue", alpha=0.6, label=f"beacon error (RMS over {doc['trials']} trial{'s' if doc['trials'] != 1 else ''})")
     edges = [d["t_start_s"] / 3600.0 for d in win] + [win[-1]["t_end_s"] / 3600.0] if win else []
     if win:
         ax.stairs([d["rmse_m"] or np.nan for d in win], edges, color="tab:blue", lw=2.0, baseline=None,
