@@ -74,7 +74,11 @@ def experiment_run(tmp_path_factory):
     return out
 
 
-@pytest.mark.parametrize("run", ["batch_run", "experiment_run"])
+# the batch demo takes some 10 s on an idle machine (slow); the experiment about 3 s
+BATCH = pytest.param("batch_run", marks=pytest.mark.slow)
+
+
+@pytest.mark.parametrize("run", [BATCH, "experiment_run"])
 def test_every_png_written_is_embedded_byte_for_byte_and_nothing_is_remote(run, request):
     out = request.getfixturevalue(run)
     page, text = _page(out)
@@ -86,7 +90,8 @@ def test_every_png_written_is_embedded_byte_for_byte_and_nothing_is_remote(run, 
     assert page.scripts == 0 and page.remote == []
 
 
-@pytest.mark.parametrize("run, document", [("batch_run", "report.json"), ("experiment_run", "result.json")])
+@pytest.mark.parametrize("run, document", [pytest.param("batch_run", "report.json", marks=pytest.mark.slow),
+                                           ("experiment_run", "result.json")])
 def test_the_tables_values_are_the_documents(run, document, request):
     out = request.getfixturevalue(run)
     doc = json.loads((out / document).read_text())
@@ -113,6 +118,7 @@ def test_the_tables_values_are_the_documents(run, document, request):
             assert json.loads(by_path[(f, "anees")]["data-band-path"]) == [f, "anees_bounds_99"]
 
 
+@pytest.mark.slow
 def test_a_batch_run_reports_the_position_nees_of_each_target(batch_run):
     page, _ = _page(batch_run)
     doc = json.loads((batch_run / "report.json").read_text())
@@ -142,6 +148,7 @@ def _screenshot(html: Path, png: Path, tmp: Path, size=(1200, 900)) -> str:
 
 
 @pytest.mark.live
+@pytest.mark.slow
 @pytest.mark.skipif(CHROMIUM is None, reason="headless Chromium (Debian package 'chromium') is not installed")
 def test_the_report_opens_in_headless_chromium_and_shows_the_map(batch_run, tmp_path):
     import matplotlib.image
