@@ -207,7 +207,7 @@ def write(out: Path, scn, trials: int, seed: int, results: dict) -> list[Path]:
     (out / "result.json").write_text(json.dumps(doc, indent=1, allow_nan=False))
     write_report(out)  # OUT/report.html from result.json (sitl.app.report)
     np.savez(out / "series.npz", **series_arrays(results))
-    return [out / "result.json", out / "series.npz", *figures]
+    return [out / "result.json", out / "series.npz", *figures, out / "report.html"]
 
 
 # ------------------------------------------------------------------ the table

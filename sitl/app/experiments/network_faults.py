@@ -836,5 +836,5 @@ def table(doc) -> str:
 def main(args) -> int:
     doc = run(args)
     print(table(doc))
-    print(f"wrote {Path(args.out) / 'result.json'} and {', '.join(doc['figures'])}")
+    print(f"wrote {Path(args.out) / 'result.json'} and {', '.join(doc['figures'] + ['report.html'])}")
     return 0

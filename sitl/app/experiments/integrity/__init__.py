@@ -197,5 +197,5 @@ def main(args) -> int:
     (out / "result.json").write_text(json.dumps(doc, indent=1, allow_nan=False))
     write_report(out)  # OUT/report.html from result.json (sitl.app.report)
     print(summary(res))
-    print("wrote " + ", ".join(str(f) for f in [out / "result.json", *figures]))
+    print("wrote " + ", ".join(str(f) for f in [out / "result.json", *figures, out / "report.html"]))
     return 0

@@ -125,7 +125,8 @@ def main(args) -> int:
         (out / "result.json").write_text(json.dumps(doc, indent=1, allow_nan=False))
         write_report(out)  # OUT/report.html from result.json (sitl.app.report)
         print(seed_study_table(doc))
-        print("wrote " + ", ".join(str(p) for p in [out / "result.json", *(out / f for f in doc["figures"])]))
+        print("wrote " + ", ".join(str(p) for p in [out / "result.json", *(out / f for f in doc["figures"]),
+                                                    out / "report.html"]))
         return 0
     if args.seed is None:
         args.seed = SEED
@@ -139,5 +140,5 @@ def main(args) -> int:
     (out / "result.json").write_text(json.dumps(doc, indent=1, allow_nan=False))
     write_report(out)  # OUT/report.html from result.json (sitl.app.report)
     print(summary_table(doc))
-    print("wrote " + ", ".join(str(p) for p in [out / "result.json", *figures]))
+    print("wrote " + ", ".join(str(p) for p in [out / "result.json", *figures, out / "report.html"]))
     return 0
