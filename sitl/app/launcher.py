@@ -228,6 +228,7 @@ def _main(scn, args: DemoOptions) -> int:
         if not args.quiet:
             print(start_text(scn, out), file=sys.stderr, flush=True)
         report = launch(scn, out, quiet=args.quiet)
+        _write_html_report(out)
     finally:
         lock.release()
     print(summary_text(report))
@@ -262,12 +263,15 @@ def _batch(scn, out: Path, args: DemoOptions) -> int:
     from sitl.app.progress import progress_printer
     from sitl.app.provenance import write_json
     t0 = perf_now()
-    res = run_batch(scn, progress=progress_printer(args.quiet, "batch run"))
+    # the bus log as a live run's (the report's map and tracks, `skyfuse export`, are read from it)
+    res = run_batch(scn, progress=progress_printer(args.quiet, "batch run"),
+                    record=out / "bus.log" if scn.bus.log else None)
     doc = {"mode": "batch", "scenario": scn.to_dict(), "wall_s": perf_now() - t0, "errors": res["errors"],
            "ground_station": res["gs"], "published": res["published"], "ok": True}
     if "faults" in res:
         doc["faults"] = res["faults"]
     write_json(out / "report.json", doc, seed=scn.run.seed, scenario=scn)  # + schema, provenance
+    _write_html_report(out)
     print(summary_text(doc))
     print(f"report: {out / 'report.json'}")
     if "faults" in res:
@@ -276,6 +280,18 @@ def _batch(scn, out: Path, args: DemoOptions) -> int:
               f"{f['injected'].get('dropped_loss', 0)} lost, {f['injected'].get('dropped_partition', 0)} partitioned; "
               f"live-only links not applied: {', '.join(f['not_in_batch']) or 'none'}")
     return 0
+
+
+def _write_html_report(out: Path) -> None:
+    """OUT/report.html from OUT/report.json (sitl.app.report); a report that cannot be made costs
+    one line on stderr, never the run's result."""
+    from sitl.app.report import ReportError, write_report
+    try:
+        path = write_report(out)
+    except (ReportError, OSError, ValueError, KeyError) as e:
+        print(f"[launcher] report.html not written: {' '.join(str(e).split())}", file=sys.stderr)
+        return
+    print(f"[launcher] report: {path}", file=sys.stderr)
 
 
 # ---------------------------------------------------------------------- the live run

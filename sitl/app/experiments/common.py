@@ -41,11 +41,27 @@ def write_result(path: Path, doc: dict, *, seed=None, scenario=None) -> dict:
 
 
 def save_figure(fig, path: Path) -> Path:
+    """Write the figure as PNG (110 dpi) and close it. ``bbox_inches="tight"`` grows the canvas to
+    whatever is drawn, so no title, subtitle or figure legend is cut off at the edge."""
     import matplotlib.pyplot as plt
 
-    fig.savefig(path, dpi=110)
+    fig.savefig(path, dpi=110, bbox_inches="tight", pad_inches=0.1)
     plt.close(fig)
     return path
+
+
+def run_label(experiment: str, *, paper: str | None = None, seed=None, trials=None, extra: str = "") -> str:
+    """The line every figure's title starts with: the experiment by name (and the paper it
+    follows, as a reference), then the RNG seed and the number of trials as separate items,
+    e.g. ``beacon experiment (after paper seed 002) | RNG seed 1 | 20 trials``."""
+    parts = [f"{experiment} experiment" + (f" (after paper seed {paper})" if paper else "")]
+    if seed is not None:
+        parts.append(f"RNG seed {seed}")
+    if trials is not None:
+        parts.append(f"{trials} trial{'s' if trials != 1 else ''}")
+    if extra:
+        parts.append(extra)
+    return " | ".join(parts)
 
 
 def prepare_out(out: Path) -> Path:

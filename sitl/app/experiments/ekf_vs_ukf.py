@@ -351,7 +351,7 @@ def _save(fig, path: Path) -> Path:
     import matplotlib.pyplot as plt
 
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    fig.savefig(path, dpi=110, bbox_inches="tight", pad_inches=0.1)
     plt.close(fig)
     return path
 
@@ -363,42 +363,52 @@ def plot(res: dict, out: Path) -> list[Path]:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    from sitl.app.experiments.common import run_label
+
     k = np.arange(1, res["steps"] + 1)
     pc = np.asarray(res["pcrb_position_m"])
+    N = res["trials"]
+    head = run_label("ekf-vs-ukf", paper="001", seed=res.get("seed"), trials=N)
     files = []
-    fig, axes = plt.subplots(1, 2, figsize=(12, 4.5))
+    fig, axes = plt.subplots(1, 2, figsize=(12, 4.8))
     ax = axes[0]
-    ax.plot(k, res["ekf"]["spherical_error_std_m"], label="EKF std", lw=2)
-    ax.plot(k, res["ukf"]["spherical_error_std_m"], "--", label="UKF std", lw=2)
+    ax.plot(k, res["ekf"]["spherical_error_std_m"], label="EKF: std over trials", lw=2)
+    ax.plot(k, res["ukf"]["spherical_error_std_m"], "--", label="UKF: std over trials", lw=2)
     ax.set_xlabel("update step k")
-    ax.set_ylabel("std of spherical error, m")
-    ax.set_title(f"Seed 001 figure: std of |X^ - X| over {res['trials']} trials")
+    ax.set_ylabel("std of the spherical error |X^ - X|, m")
+    ax.set_title(f"the paper's figure: std of |X^ - X| over {N} trials", fontsize=10)
     ax.grid(alpha=0.3)
     ax.legend()
     ax = axes[1]
-    ax.plot(k, res["ekf"]["rmse_position_m"], label="EKF RMSE", lw=2)
-    ax.plot(k, res["ukf"]["rmse_position_m"], "--", label="UKF RMSE", lw=2)
-    ax.plot(k, res["ekf"]["spherical_error_mean_m"], ":", label="EKF mean", lw=1.5)
+    ax.plot(k, res["ekf"]["rmse_position_m"], label="EKF: position RMSE over trials", lw=2)
+    ax.plot(k, res["ukf"]["rmse_position_m"], "--", label="UKF: position RMSE over trials", lw=2)
+    ax.plot(k, res["ekf"]["spherical_error_mean_m"], ":", label="EKF: mean spherical error", lw=1.5)
     ax.plot(k, pc, "k-", label="sqrt(tr PCRB_pos)", lw=1)
     ax.set_yscale("log")
     ax.set_xlabel("update step k")
-    ax.set_ylabel("position error, m")
-    ax.set_title("RMSE and mean against the posterior CRB")
+    ax.set_ylabel("position error, m (log scale)")
+    ax.set_title("RMSE and mean against the posterior Cramer-Rao bound", fontsize=10)
     ax.grid(alpha=0.3, which="both")
     ax.legend()
+    fig.suptitle(head)
     files.append(_save(fig, out / "spherical_error.png"))
 
-    fig, ax = plt.subplots(figsize=(7, 4))
-    ax.plot(k, np.asarray(res["ekf"]["mean_nees"]) / res["state_dim"], label="EKF")
-    ax.plot(k, np.asarray(res["ukf"]["mean_nees"]) / res["state_dim"], "--", label="UKF")
+    fig, ax = plt.subplots(figsize=(7.5, 4.6))
+    n = res["state_dim"]
+    ax.plot(k, np.asarray(res["ekf"]["mean_nees"]) / n, label=f"EKF (ANEES of the last 100 steps {res['ekf']['anees']:.3f})")
+    ax.plot(k, np.asarray(res["ukf"]["mean_nees"]) / n, "--",
+            label=f"UKF (ANEES of the last 100 steps {res['ukf']['anees']:.3f})")
     lo, hi = res["ekf"]["anees_bounds_99"]
-    ax.axhline(1.0, color="k", lw=0.8)
-    ax.axhspan(lo, hi, color="0.85", zorder=0, label="99% chi-square band (one step)")
+    ax.axhline(1.0, color="k", lw=0.8, label="expected value (1)")
+    # the band is that of ONE step's mean over the N trials (chi2(n N) / (n N)); the 100 steps of
+    # a trial are correlated, so their average has no band of 100 N independent draws
+    ax.axhspan(lo, hi, color="0.85", zorder=0,
+               label=f"99 % chi-square band of one step's mean over {N} trials ({lo:.3f}-{hi:.3f})")
     ax.set_xlabel("update step k")
-    ax.set_ylabel("mean NEES / n")
-    ax.set_title(f"Consistency (ANEES over the last 100 steps: 99% band {lo:.3f}..{hi:.3f})")
+    ax.set_ylabel(f"mean NEES over trials / n (n = {n} states), 1")
+    ax.set_title(f"{head}\nconsistency: mean NEES per step", fontsize=10)
     ax.grid(alpha=0.3)
-    ax.legend()
+    ax.legend(fontsize=8)
     files.append(_save(fig, out / "nees.png"))
     return files
 
@@ -443,10 +453,12 @@ def _scenario_from_args(args) -> EkfVsUkfScenario:
 
 def write(res: dict, out: Path) -> list[Path]:
     out.mkdir(parents=True, exist_ok=True)
+    from sitl.app.report import write_report
+
     figures = plot(res, out)
     res["figures"] = [Path(f).name for f in figures]  # as every experiment's result.json lists them
     write_result(out / "result.json", res, seed=res["seed"], scenario=res["scenario"])
-    return [out / "result.json"] + figures
+    return [out / "result.json", *figures, write_report(out, figures=figures)]
 
 
 def main(args) -> int:

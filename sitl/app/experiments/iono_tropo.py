@@ -23,6 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from sitl.app.experiments.common import prepare_out, progress_printer, save_figure, strict, write_result
+from sitl.app.report import write_report
 
 from sitl.app.experiments import iono_tropo_filters
 from sitl.app.args import OUTPUT_DIR
@@ -202,8 +203,9 @@ def series_arrays(results: dict) -> dict:
 def write(out: Path, scn, trials: int, seed: int, results: dict) -> list[Path]:
     figures = plot(results, scn, trials, seed, out)
     write_result(out / "result.json", result_document(scn, trials, seed, results, figures), seed=seed, scenario=scn)
+    write_report(out)  # OUT/report.html from result.json (sitl.app.report)
     np.savez(out / "series.npz", **series_arrays(results))
-    return [out / "result.json", out / "series.npz", *figures]
+    return [out / "result.json", out / "series.npz", *figures, out / "report.html"]
 
 
 # ------------------------------------------------------------------ the table
@@ -238,7 +240,10 @@ def comparison_table(results: dict) -> str:
 def _title(results: dict, scn) -> str:
     trials = next(iter(results.values()))["trials"]
     seed = next(iter(results.values()))["seed"]
-    return f"{trials} trials, seed {seed}, {scn.duration_s:g} s, el. mask {scn.el_mask_deg:g} deg"
+    from sitl.app.experiments.common import run_label
+
+    return run_label("iono-tropo", paper="000", seed=seed, trials=trials,
+                     extra=f"{scn.duration_s:g} s, elevation mask {scn.el_mask_deg:g} deg")
 
 
 def plot(results: dict, scn, trials: int, seed: int, out: Path) -> list[Path]:
@@ -262,7 +267,7 @@ def plot(results: dict, scn, trials: int, seed: int, out: Path) -> list[Path]:
             rms = res[f"{key}_err_rms_m"]
             c = COLORS[name]
             ax.fill_between(t, est - rms, est + rms, color=c, alpha=0.18, lw=0)
-            ax.plot(t, est, color=c, lw=WIDTHS[name], label=LABELS[name] + " (band: ± RMS error)")
+            ax.plot(t, est, color=c, lw=WIDTHS[name], label=LABELS[name] + f" (band: ± RMS error over {res['trials']} trials)")
             one = res.get(f"{key}_est_trial0_m")
             if one is not None:
                 ax.plot(t, one, color=c, lw=0.7, alpha=0.8, ls="-.",
@@ -276,11 +281,11 @@ def plot(results: dict, scn, trials: int, seed: int, out: Path) -> list[Path]:
         ax.grid(alpha=0.3)
     axes[0].set_title("mean estimate over trials, band ± RMS error; dash-dot: trial 0 alone; dotted: median time "
                       "to 1 m", fontsize=10)
-    axes[-1].set_xlabel("time, s")
+    axes[-1].set_xlabel("time since the first epoch, s")
     axes[-1].set_xlim(0, scn.duration_s)
     handles, labels = axes[0].get_legend_handles_labels()
     fig.legend(handles, labels, loc="outside lower center", fontsize=8, ncol=2)
-    fig.suptitle(f"Seed 000: zenith ionospheric (I_g) and tropospheric (U_g) delay estimates\n{sub}")
+    fig.suptitle(f"{sub}\nzenith ionospheric (I_g) and tropospheric (U_g) delay estimates")
     files.append(save_figure(fig, out / FIGURES[0]))
 
     # b) RMS error against the filter's own sigma, log scale
@@ -296,7 +301,7 @@ def plot(results: dict, scn, trials: int, seed: int, out: Path) -> list[Path]:
         if sk:
             ax.axhline(1.0, color="k", lw=0.8, ls=":")
         ax.set_yscale("log")
-        ax.set_ylabel(f"{sym} error, m" if sk else "position error (3-D RMS), m")
+        ax.set_ylabel(f"{sym} error, m (log scale)" if sk else "position error (3-D RMS), m (log scale)")
         ax.grid(alpha=0.3, which="both")
     axes[0].set_title("RMS error over trials (solid) and the filter's own sigma (dashed); dotted: 1 m",
                       fontsize=10)
@@ -306,9 +311,9 @@ def plot(results: dict, scn, trials: int, seed: int, out: Path) -> list[Path]:
     handles += [Line2D([], [], color="0.3", lw=1.4, label="RMS error over trials"),
                 Line2D([], [], color="0.3", lw=1.0, ls="--", label="filter sigma (RMS over trials)")]
     fig.legend(handles=handles, loc="outside lower center", fontsize=8, ncol=min(len(handles), 3))
-    axes[-1].set_xlabel("time, s")
+    axes[-1].set_xlabel("time since the first epoch, s")
     axes[-1].set_xlim(0, scn.duration_s)
-    fig.suptitle(f"Seed 000: estimation errors and consistency\n{sub}")
+    fig.suptitle(f"{sub}\nestimation errors and consistency")
     files.append(save_figure(fig, out / FIGURES[1]))
 
     # c) per-trial time to 1 m
@@ -348,7 +353,7 @@ def plot(results: dict, scn, trials: int, seed: int, out: Path) -> list[Path]:
     ax.legend(loc="upper right", fontsize=8)
     ax.set_ylabel("time to 1 m on I_g and U_g, s")
     ax.grid(alpha=0.3, axis="y")
-    ax.set_title(f"Seed 000: per-trial time to 1 m (box: settled trials; x: never)\n{sub}", fontsize=10)
+    ax.set_title(f"{sub}\nper-trial time to 1 m (box: settled trials; x: never)", fontsize=10)
     files.append(save_figure(fig, out / FIGURES[2]))
     return files
 

@@ -160,9 +160,12 @@ def plot_adaptive_q(study: dict, path) -> None:
             lo_, hi_ = ax.get_ylim()
             ax.set_ylim(lo_, hi_ * (8.0 if log else 1.35))  # room for the legend above the bars
             ax.legend(fontsize=8, loc="upper left")
-    fig.suptitle(f"Seed 000: adaptive process noise (eq 7), {study['trials']} trials, seed {study['seed']}")
+    from sitl.app.experiments.common import run_label
+
+    fig.suptitle(run_label("iono-tropo adaptive-Q study", paper="000", seed=study["seed"], trials=study["trials"])
+                 + "\nadaptive process noise (the paper's eq 7)")
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    fig.savefig(path, dpi=110, bbox_inches="tight", pad_inches=0.1)
     plt.close(fig)
 
 
@@ -179,15 +182,19 @@ def plot_ordering(study: dict, path) -> None:
         vals = [r["time_to_1m_s"][name] for r in study["per_seed"]]
         ax.plot(seeds, [np.nan if q is None else q for q in vals], "o-", label=label)
     ax.set_yscale("log")
-    ax.set_xlabel("seed")
+    ax.set_xlabel("RNG seed")
     ax.set_xticks(seeds if len(seeds) <= 30 else ax.get_xticks())
-    ax.set_ylabel(f"median time to 1 m over {study['trials_per_seed']} trials, s")
+    ax.set_ylabel(f"median time to 1 m over {study['trials_per_seed']} trials, s (log scale)")
     pm = study["pooled_median_time_to_1m_s"]
-    ax.set_title(f"Seed 000: median of each seed; 3 < 2 < 1 holds for {study['holds_for']} of {study['of']} seeds\n"
+    from sitl.app.experiments.common import run_label
+
+    ax.set_title(run_label("iono-tropo ordering study", paper="000", seed=f"{seeds[0]}-{seeds[-1]}",
+                           trials=study["trials_per_seed"], extra="per seed") + "\n"
+                 f"median of each seed; 3 < 2 < 1 holds for {study['holds_for']} of {study['of']} seeds\n"
                  f"pooled medians over {study['trials_total']} trials: v1 {pm['code_doppler']} s, "
                  f"v2 {pm['phase_increments']} s, v3 {pm['carrier_phase']} s", fontsize=10)
     ax.grid(True, which="both", alpha=0.3)
     ax.legend()
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    fig.savefig(path, dpi=110, bbox_inches="tight", pad_inches=0.1)
     plt.close(fig)

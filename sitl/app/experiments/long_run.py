@@ -89,7 +89,8 @@ import numpy as np
 
 from sitl.app.args import OUTPUT_DIR
 from sitl.params import add_flags, choice, integer, number, param, quiet_option, switch, validate
-from sitl.app.experiments.common import options_scenario, prepare_out, progress_printer, save_figure, write_result
+from sitl.app.experiments.common import options_scenario, prepare_out, progress_printer, run_label, save_figure, write_result
+from sitl.app.report import write_report
 
 GEOMETRIES = ("default", "north")
 LOCATORS = ("live", "inflate")
@@ -434,11 +435,11 @@ def plot(out: Path, doc: dict) -> Path:
                              constrained_layout=True)
     th = t / 3600.0
     ax = axes[0]
-    ax.plot(th, rms, lw=0.5, color="tab:blue", alpha=0.6, label=f"beacon error (RMS over {doc['trials']} trials)")
+    ax.plot(th, rms, lw=0.5, color="tab:blue", alpha=0.6, label=f"beacon error (RMS over {doc['trials']} trial{'s' if doc['trials'] != 1 else ''})")
     edges = [d["t_start_s"] / 3600.0 for d in win] + [win[-1]["t_end_s"] / 3600.0] if win else []
     if win:
         ax.stairs([d["rmse_m"] or np.nan for d in win], edges, color="tab:blue", lw=2.0, baseline=None,
-                  label="window RMSE")
+                  label=f"RMSE per {doc['window_s']:g} s window")
         bad = [d for d in win if not d["pass"]]
         for d in bad:
             ax.axvspan(d["t_start_s"] / 3600.0, d["t_end_s"] / 3600.0, color="tab:red", alpha=0.08, lw=0)
@@ -449,12 +450,13 @@ def plot(out: Path, doc: dict) -> Path:
     elif win:
         ax.stairs([d["rmse_bound_m"] or np.nan for d in win], edges, color="k", ls="--", label="2 x first window")
     ax.set_yscale("log")
-    ax.set_ylabel("beacon 3-D position error, m")
+    ax.set_ylabel("beacon 3-D position error, m\n(log scale)")
     ax.grid(alpha=0.3, which="both")
     ax.legend(fontsize=7, loc="upper left")
-    ax.set_title(f"long run: geometry {doc['geometry']}, locator {doc['locator']} "
-                 f"({doc['locator_config']['observer_uncertainty']}), seed {doc['seed']}, {doc['trials']} trial(s); "
-                 f"windows failed: {len(doc['windows_failed'])} of {len(win)} (shaded)", fontsize=9)
+    ax.set_title(run_label("long-run", seed=doc["seed"], trials=doc["trials"],
+                           extra=f"geometry {doc['geometry']}, locator {doc['locator']} "
+                                 f"({doc['locator_config']['observer_uncertainty']})")
+                 + f"\nwindows failed: {len(doc['windows_failed'])} of {len(win)} (shaded red)", fontsize=9)
     ax = axes[1]
     k = max(1, int(60.0 / (t[1] - t[0]))) if t.size > 1 else 1
     with warnings.catch_warnings():
@@ -464,12 +466,13 @@ def plot(out: Path, doc: dict) -> Path:
     ax.plot(th, sm, lw=1.0, color="tab:orange", label="... 60 s running mean")
     if win:
         ax.stairs([d["anees"] or np.nan for d in win], edges, color="tab:red", lw=2.0, baseline=None,
-                  label="window ANEES")
+                  label=f"ANEES per {doc['window_s']:g} s window")
         lo, hi = win[0]["band"]
-        ax.axhspan(lo, hi, color="g", alpha=0.1, label=f"{doc['band_p']:.0%} band of one epoch's average")
-    ax.axhline(3.0, color="g", lw=0.8)
+        ax.axhspan(lo, hi, color="g", alpha=0.1, label=f"{doc['band_p']:.0%} chi-square band of one epoch's average "
+                                                        f"over {doc['trials']} trial(s) ({lo:.2g}-{hi:.3g})")
+    ax.axhline(3.0, color="g", lw=0.8, label="expected value (3)")
     ax.set_yscale("log")
-    ax.set_ylabel("position NEES (3 dof)")
+    ax.set_ylabel("position NEES (3 dof), 1\n(log scale)")
     ax.grid(alpha=0.3, which="both")
     ax.legend(fontsize=7, loc="upper left")
     if has_sonde:
@@ -477,9 +480,9 @@ def plot(out: Path, doc: dict) -> Path:
         ax.plot(th, s["sonde"][0], lw=0.5, color="tab:purple", alpha=0.7, label="sonde error (trial 0)")
         if win:
             ax.stairs([(d.get("sonde") or {}).get("rmse_m") or np.nan for d in win], edges, color="tab:purple",
-                      lw=2.0, baseline=None, label="window RMSE")
+                      lw=2.0, baseline=None, label=f"RMSE per {doc['window_s']:g} s window (trial 0)")
         ax.set_yscale("log")
-        ax.set_ylabel("sonde 3-D error, m")
+        ax.set_ylabel("sonde 3-D error, m\n(log scale)")
         ax.grid(alpha=0.3, which="both")
         ax.legend(fontsize=7, loc="upper left")
     axes[-1].set_xlabel("time since the run's start, h")
@@ -531,7 +534,9 @@ def run(args) -> dict:
     fig = plot(out, doc)
     doc.pop("_series")
     doc["figures"] = [fig.name]
-    return write_result(out / "result.json", doc, seed=args.seed, scenario=options_scenario(args, LongRunOptions))
+    doc = write_result(out / "result.json", doc, seed=args.seed, scenario=options_scenario(args, LongRunOptions))
+    write_report(out)  # OUT/report.html from result.json (sitl.app.report)
+    return doc
 
 
 def table(doc) -> str:
@@ -568,5 +573,5 @@ def table(doc) -> str:
 def main(args) -> int:
     doc = run(args)
     print(table(doc))
-    print(f"wrote {Path(args.out) / 'result.json'} and {', '.join(doc['figures'])}")
+    print(f"wrote {Path(args.out) / 'result.json'} and {', '.join(doc['figures'] + ['report.html'])}")
     return 0

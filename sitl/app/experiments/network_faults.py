@@ -60,7 +60,8 @@ from typing import TYPE_CHECKING
 from sitl.app.args import OUTPUT_DIR
 from sitl.params import (ParamError, add_flags, choice, default_of, integer, number, optional, param, quiet_option,
                          require, string, switch, validate)
-from sitl.app.experiments.common import prepare_out, progress_printer, save_figure, strict, write_result
+from sitl.app.experiments.common import prepare_out, progress_printer, run_label, save_figure, strict, write_result
+from sitl.app.report import write_report
 
 # numpy and the components are imported inside the functions: the CLI imports this module to
 # build its parser (add_args), and `skyfuse --help` must stay instant
@@ -573,7 +574,7 @@ def plot(out: Path, summ: dict, meta: str) -> list[Path]:
     ax.axhline(1.0, color="k", lw=0.8)
     _ratio_scale(ax)
     ax.set_xlabel("measurement packets lost, % (stationary loss for the bursts)")
-    ax.set_ylabel("position RMSE / fault-free RMSE (same seed)")
+    ax.set_ylabel("position RMSE / fault-free RMSE (same seed), ratio")
     ax.grid(alpha=0.3, which="both")
     ax.legend(fontsize=8)
     ax.set_title(f"Ground-station accuracy against measurement loss\n{meta}", fontsize=9)
@@ -591,7 +592,7 @@ def plot(out: Path, summ: dict, meta: str) -> list[Path]:
     ax.axhline(1.0, color="k", lw=0.8)
     _ratio_scale(ax)
     ax.set_xlabel("measurement delay, s (normal jitter, sigma = 20 % of the delay); epochs every 1 s")
-    ax.set_ylabel("position RMSE / fault-free RMSE (same seed)")
+    ax.set_ylabel("position RMSE / fault-free RMSE (same seed), ratio")
     ax.grid(alpha=0.3, which="both")
     ax.legend(fontsize=8)
     ax.set_title(f"Ground-station accuracy against measurement delay (out-of-sequence arrivals)\n{meta}", fontsize=9)
@@ -728,13 +729,16 @@ def run(args) -> dict:
     raw = sweep(names, trials, args.seed, plan, setups, prog)
     summ = summarise(raw, plan)
     wall = time.perf_counter() - wall0
-    meta = (f"{trials} trials, seed {args.seed}; " + ", ".join(f"{n} {setups[n].duration_s:g} s" for n in names)
+    meta = (run_label("faults", seed=args.seed, trials=trials, extra="per condition") + "\n"
+            + ", ".join(f"{n} {setups[n].duration_s:g} s" for n in names)
             + "; faults on the measurement links only"
             + (f", loss and delay from {plan.faults_from_s:g} s" if plan.faults_from_s else ""))
     figs = plot(out, summ, meta)
     doc = result_document(args, names, plan, setups, trials, raw, summ, wall, figs)
-    return write_result(out / "result.json", doc, seed=args.seed,
+    doc = write_result(out / "result.json", doc, seed=args.seed,
                         scenario={"scenarios": doc["scenarios"], "plan": doc["plan"], "trials": trials})
+    write_report(out)  # OUT/report.html from result.json (sitl.app.report)
+    return doc
 
 
 def result_document(args, names, plan, setups, trials, raw, summ, wall, figs) -> dict:
@@ -832,5 +836,5 @@ def table(doc) -> str:
 def main(args) -> int:
     doc = run(args)
     print(table(doc))
-    print(f"wrote {Path(args.out) / 'result.json'} and {', '.join(doc['figures'])}")
+    print(f"wrote {Path(args.out) / 'result.json'} and {', '.join(doc['figures'] + ['report.html'])}")
     return 0

@@ -87,9 +87,9 @@ def plot(res, path: Path) -> None:
         m = ep["sat"] == s
         ax1.plot((ep["t_gps_s"][m] - t0) / 3600.0, ep["err_3d_m"][m], ".-", ms=2, lw=0.7, color=cmap(k % 20), label=s)
     ax1.set_xlabel("hours since the first epoch")
-    ax1.set_ylabel("3D orbit error, m")
+    ax1.set_ylabel("3-D orbit error (broadcast - precise), m")
     rp = res.summary["reference_point"]
-    ax1.set_title(f"broadcast vs precise: 3D RMS {res.summary['orbit_3d_rms_m']:.2f} m "
+    ax1.set_title(f"skyfuse gnss orbits (real data, no RNG): broadcast vs precise: 3D RMS {res.summary['orbit_3d_rms_m']:.2f} m "
                   f"({', '.join(res.summary['systems'])}; GPS reference point: {rp['apc']}, "
                   f"record: {res.summary['record_selection']['gps']})", fontsize=9)
     ax1.legend(ncol=8, fontsize=6)
@@ -101,11 +101,12 @@ def plot(res, path: Path) -> None:
                           (0.1, "cross_rms_m", "cross"), (0.3, "orbit_3d_rms_m", "3D")):
         ax2.bar(x + off, [bs[s][key] for s in names], width=0.2, label=lab)
     ax2.set_xticks(x, names, rotation=90, fontsize=7)
-    ax2.set_ylabel("RMS over the day, m")
+    ax2.set_ylabel("RMS orbit error over the data span, m")
+    ax2.set_xlabel("satellite")
     ax2.legend(fontsize=8)
     ax2.grid(alpha=0.3, axis="y")
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    fig.savefig(path, dpi=110, bbox_inches="tight", pad_inches=0.1)
     plt.close(fig)
 
 

@@ -272,22 +272,24 @@ def plot(res, path: Path) -> None:
     tm = (s["t_gps_s"] - t0) / 60.0
     fig, (a1, a2) = plt.subplots(2, 1, figsize=(10, 8), sharex=True)
     for i, lab in enumerate("ENU"):
-        a1.plot(tm, s["enu_error_m"][:, i], label=f"{lab} (filter)")
+        a1.plot(tm, s["enu_error_m"][:, i], color=f"C{i}", label=f"{lab} (filter)")
     rt = res.get("rtklib", {})
     if "enu_error_m" in rt:
         tr = (np.asarray(rt["t_gps_s"]) - t0) / 60.0
         for i, lab in enumerate("ENU"):
-            a1.plot(tr, np.asarray(rt["enu_error_m"])[:, i], ":", lw=0.8, label=f"{lab} (RTKLIB L1 SPP)")
+            a1.plot(tr, np.asarray(rt["enu_error_m"])[:, i], ":", color=f"C{i}", lw=0.9, label=f"{lab} (RTKLIB L1 SPP)")
     pe = res["position_error_m"]
-    a1.set_title(f"{res['variant']}{' static' if res['static'] else ''}: 3D RMS {pe['rms_3d']:.2f} m"
+    a1.set_title("skyfuse gnss solve (real data, no RNG): "
+                 f"{res['variant']}{' static' if res['static'] else ''}: 3D RMS {pe['rms_3d']:.2f} m"
                  + (f" (RTKLIB {rt['l1_spp_rms_3d_m']:.2f} m)" if "l1_spp_rms_3d_m" in rt else ""))
-    a1.set_ylabel("position error, m")
+    a1.set_ylabel("position error (east, north, up), m")
     a1.set_ylim(-5, 5)
     a1.legend(ncol=3, fontsize=7)
     a1.grid(alpha=0.3)
     ir = res["iono_reference"]
     a2.plot(tm, s["iono_zenith_m"], label=f"filter I_g (RMS {_m(ir['rms_estimate_m'])})")
-    a2.fill_between(tm, s["iono_zenith_m"] - s["iono_sd_m"], s["iono_zenith_m"] + s["iono_sd_m"], alpha=0.2)
+    a2.fill_between(tm, s["iono_zenith_m"] - s["iono_sd_m"], s["iono_zenith_m"] + s["iono_sd_m"], alpha=0.2,
+                    label="filter I_g +- its own 1-sigma (68 %)")
     a2.plot(tm, ir["dual_frequency_zenith_m"], "k", label="dual-frequency reference")
     if ir["klobuchar_zenith_m"] is not None:
         a2.plot(tm, ir["klobuchar_zenith_m"], "--", label=f"Klobuchar (RMS {_m(ir['rms_klobuchar_m'])})")
@@ -298,7 +300,7 @@ def plot(res, path: Path) -> None:
     a2.legend(fontsize=8)
     a2.grid(alpha=0.3)
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    fig.savefig(path, dpi=110, bbox_inches="tight", pad_inches=0.1)
     plt.close(fig)
 
 

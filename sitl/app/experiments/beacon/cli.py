@@ -22,6 +22,7 @@ from sitl.app.experiments.beacon.scoring import (_scores, _series, integrity_sum
                                                  uav_nav_rmse)
 from sitl.app.experiments.beacon.world import beacon_prior, scenario
 from sitl.app.experiments.common import options_scenario, prepare_out, progress_printer, write_result
+from sitl.app.report import write_report
 from sitl.params import add_flags, choice, default_of, from_text, integer, number, param, quiet_option, validate
 
 
@@ -222,8 +223,8 @@ def run(args) -> dict:
     wall = time.perf_counter() - wall0
     three = doc_cases["three_satellites"]["errors_m"]
     reproduces = all(three[ax]["median_of_trial_max"] <= PAPER_ERRORS_M[ax] for ax in AXES)
-    meta = f"{geometry} geometry, {args.trials} trials, seed {args.seed}, {args.uavs} UAVs, {args.duration:g} s"
-    figs = plot(out, plots, sweep, meta, geometry)
+    meta = f"{geometry} geometry, {args.uavs} UAVs, {args.duration:g} s at 1 Hz"
+    figs = plot(out, plots, sweep, meta, geometry, seed=args.seed, trials=args.trials)
     prior = beacon_prior() if geometry == "printed" else None
     doc = {
         "experiment": "beacon", "schema": None, "seed": args.seed, "trials": args.trials, "uavs": args.uavs,
@@ -248,7 +249,9 @@ def run(args) -> dict:
         "timing_s": timing,
         "figures": [f.name for f in figs],
     }
-    return write_result(out / "result.json", doc, seed=args.seed, scenario=options_scenario(args, BeaconOptions))
+    doc = write_result(out / "result.json", doc, seed=args.seed, scenario=options_scenario(args, BeaconOptions))
+    write_report(out)  # OUT/report.html from result.json (sitl.app.report)
+    return doc
 
 
 def table(doc) -> str:
@@ -297,5 +300,5 @@ def table(doc) -> str:
 def main(args) -> int:
     doc = run(args)
     print(table(doc))
-    print(f"wrote {Path(args.out) / 'result.json'} and {', '.join(doc['figures'])}")
+    print(f"wrote {Path(args.out) / 'result.json'} and {', '.join(doc['figures'] + ['report.html'])}")
     return 0

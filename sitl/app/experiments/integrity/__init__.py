@@ -75,6 +75,7 @@ from pathlib import Path
 
 from sitl.app.args import OUTPUT_DIR
 from sitl.app.experiments.common import prepare_out, progress_printer, write_result
+from sitl.app.report import write_report
 from sitl.app.experiments.integrity.models import BiasedPseudorangeDoppler, GaussMarkovBank
 from sitl.app.experiments.integrity.monte_carlo import (
     BIASED, CLEAN, DETECTION_FILTER, DYNAMIC, FILTERS, K_DROP, K_OUT, K_RAMP, K_STEP, MONITORED, run,
@@ -193,6 +194,7 @@ def main(args) -> int:
     figures = plot(res, scn, out)
     write_result(out / "result.json", result_document(scn, args.trials, args.seed, res, figures),
                  seed=args.seed, scenario=scn)
+    write_report(out)  # OUT/report.html from result.json (sitl.app.report)
     print(summary(res))
-    print("wrote " + ", ".join(str(f) for f in [out / "result.json", *figures]))
+    print("wrote " + ", ".join(str(f) for f in [out / "result.json", *figures, out / "report.html"]))
     return 0

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
-from sitl.app.experiments.common import save_figure, strict
+from sitl.app.experiments.common import run_label, save_figure, strict
 from sitl.app.experiments.integrity.monte_carlo import FILTERS
 from sitl.app.experiments.integrity.scoring import TARGETS
 
@@ -63,7 +63,8 @@ def plot(res: dict, scn, out: Path) -> list[Path]:
     import matplotlib.pyplot as plt
 
     files = []
-    sub = f"{res['trials']} trials, seed {res['seed']}, {scn.duration_s:g} s at {1 / scn.dt_s:g} Hz, {res['channels']} satellites"
+    sub = run_label("integrity", paper="003", seed=res["seed"], trials=res["trials"],
+                    extra=f"{scn.duration_s:g} s at {1 / scn.dt_s:g} Hz, {res['channels']} satellites")
     # ROC
     fig, axes = plt.subplots(1, 3, figsize=(15, 5), constrained_layout=True)
     if "roc" in res:
@@ -76,24 +77,24 @@ def plot(res: dict, scn, out: Path) -> list[Path]:
                 ax.plot(pfa, c["pd"], ls, label=name.replace("_", " "))
                 i = int(np.argmin(np.abs(np.asarray(c["threshold"]) - c["operating_threshold"])))
                 ax.plot(pfa[i], c["pd"][i], "o", ms=8, mfc="none", mew=2, color=ax.lines[-1].get_color(),
-                        label=f"operating point ({c['operating_threshold']:g})")
+                        label=f"operating point (threshold {c['operating_threshold']:g})")
             orc = res.get("detection", {}).get("ramp", {}).get("oracle") if kind == "ramp" else None
             if orc:
                 ax.plot(orc["pfa_per_epoch"], orc["pd"], "*", ms=12, color="k",
                         label=f"bound: oracle knowing the onset ({orc['pd']:.3f})")
-            ax.axvline(TARGETS["pfa_max"], color="k", ls=":", lw=1, label="Pfa target 0.003")
-            ax.axhline(TARGETS["pd_min"], color="0.5", ls=":", lw=1, label="Pd target 0.99")
+            ax.axvline(TARGETS["pfa_max"], color="k", ls=":", lw=1, label=f"Pfa target {TARGETS['pfa_max']:g}")
+            ax.axhline(TARGETS["pd_min"], color="0.5", ls=":", lw=1, label=f"Pd target {TARGETS['pd_min']:g}")
             ax.set_xscale("log")
             ax.set_xlim(1e-7, 1)
             ax.set_ylim(0, 1.02)
-            ax.set_xlabel("Pfa per channel-epoch (this statistic alone)")
-            ax.set_ylabel("Pd")
+            ax.set_xlabel("false-alarm probability per channel-epoch\n(this statistic alone; log scale)")
+            ax.set_ylabel("probability of detection, 1")
             ax.set_title({"step": "steps (|beta|, onset or next epoch)", "ramp": f"ramps (window statistic, within "
                           f"{scn.ramp_detect_s:g} s)", "outlier": "outliers >= 5 sigma (|beta|, at the epoch)"}[kind],
                          fontsize=10)
             ax.grid(alpha=0.3, which="both")
             ax.legend(fontsize=7, loc="lower right")
-    fig.suptitle(f"Seed 003 integrity monitor: ROC per fault kind\n{sub}")
+    fig.suptitle(f"{sub}\nintegrity monitor: ROC per fault kind (Pd over the faults of all trials)")
     files.append(save_figure(fig, out / FIGURES[0]))
     # position error vs time, trial 0
     fig, ax = plt.subplots(figsize=(11, 5), constrained_layout=True)
@@ -110,11 +111,11 @@ def plot(res: dict, scn, out: Path) -> list[Path]:
                    f"{fo['ramp_rate_m_s']:+.2f} m/s)")
     ax.axvline(scn.warmup_s, color="0.5", ls=":", lw=1, label="end of warm-up (scoring starts)")
     ax.set_yscale("log")
-    ax.set_xlabel("time, s")
-    ax.set_ylabel("3-D position error, m (trial 0)")
+    ax.set_xlabel("time since the run's start, s")
+    ax.set_ylabel("3-D position error of trial 0, m (log scale)")
     ax.grid(alpha=0.3, which="both")
     ax.legend(fontsize=8)
-    ax.set_title(f"Seed 003: position error of the three filters on the same faulty data, trial 0\n{sub}", fontsize=10)
+    ax.set_title(f"{sub}\nposition error of the three filters on the same faulty data, trial 0", fontsize=10)
     files.append(save_figure(fig, out / FIGURES[1]))
     return files
 

@@ -9,6 +9,7 @@ from pathlib import Path
 
 from sitl.app.args import OUTPUT_DIR
 from sitl.app.experiments.common import prepare_out, progress_printer, strict, write_result
+from sitl.app.report import write_report
 from sitl.app.experiments.sonde.report import plot, result_document, summary_table
 from sitl.app.experiments.sonde.scenario import SondeScenario
 from sitl.app.experiments.sonde.scoring import score
@@ -121,8 +122,10 @@ def main(args) -> int:
         doc = strict(seed_study(scn, range(first, first + n_seeds), backend=backend, progress=progress))
         doc["figures"] = [plot_seed_study(doc, out).name]
         doc = write_result(out / "result.json", doc, seed=list(range(first, first + n_seeds)), scenario=scn)
+        write_report(out)  # OUT/report.html from result.json (sitl.app.report)
         print(seed_study_table(doc))
-        print("wrote " + ", ".join(str(p) for p in [out / "result.json", *(out / f for f in doc["figures"])]))
+        print("wrote " + ", ".join(str(p) for p in [out / "result.json", *(out / f for f in doc["figures"]),
+                                                    out / "report.html"]))
         return 0
     if args.seed is None:
         args.seed = SEED
@@ -134,6 +137,7 @@ def main(args) -> int:
     figures = plot(raw, sc, scn, args.seed, out)
     doc = write_result(out / "result.json", result_document(scn, args.seed, raw, sc, figures, wall, one),
                        seed=args.seed, scenario=scn)
+    write_report(out)  # OUT/report.html from result.json (sitl.app.report)
     print(summary_table(doc))
-    print("wrote " + ", ".join(str(p) for p in [out / "result.json", *figures]))
+    print("wrote " + ", ".join(str(p) for p in [out / "result.json", *figures, out / "report.html"]))
     return 0

@@ -9,7 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
-from sitl.app.experiments.common import save_figure, strict
+from sitl.app.experiments.common import run_label, save_figure, strict
 from sitl.app.experiments.sonde.scenario import COLORS, FIGURES, LABELS, MODES, WHITE_MODES, SondeScenario
 from sitl.app.experiments.sonde.scoring import integrity_summary
 
@@ -99,7 +99,8 @@ def plot(raw: dict, sc: dict, scn: SondeScenario, seed: int, out: Path) -> list[
 
     B = len(raw["trials"])
     filt = "EKF (UKF where needed)" if scn.filter == "auto" else scn.filter.upper()
-    sub = f"seed 004, {B} trial(s), seed {seed}, {scn.duration_s:g} s at {1 / scn.dt_s:g} Hz, {filt}"
+    sub = run_label("sonde", paper="004", seed=seed, trials=B,
+                    extra=f"{scn.duration_s:g} s at {1 / scn.dt_s:g} Hz, {filt}")
     files = []
     t = sc["series"]["t_s"]
     # a) error against time
@@ -110,7 +111,7 @@ def plot(raw: dict, sc: dict, scn: SondeScenario, seed: int, out: Path) -> list[
                 ls="-" if m != "fused" else (0, (4, 2)), label=LABELS[m])
     ax.set_yscale("log")
     ax.set_xlabel("time since launch, s")
-    ax.set_ylabel("3-D position error, m (RMS over trials)")
+    ax.set_ylabel("3-D position error, m (RMS over trials, log scale)")
     ax.set_xlim(0, scn.duration_s)
     ax.grid(alpha=0.3, which="both")
     ax2 = ax.twinx()
@@ -120,7 +121,7 @@ def plot(raw: dict, sc: dict, scn: SondeScenario, seed: int, out: Path) -> list[
     h1, l1 = ax.get_legend_handles_labels()
     h2, l2 = ax2.get_legend_handles_labels()
     ax.legend(h1 + h2, l1 + l2, loc="upper left", fontsize=8)
-    ax.set_title(f"Radiosonde position error against time (epochs inside {scn.max_range_km:g} km)\n{sub}")
+    ax.set_title(f"{sub}\nradiosonde position error against time (epochs inside {scn.max_range_km:g} km)")
     files.append(save_figure(fig, out / FIGURES[0]))
 
     # b) RMSE against ground range, and the same-data gain of fused over relay-only
@@ -140,31 +141,40 @@ def plot(raw: dict, sc: dict, scn: SondeScenario, seed: int, out: Path) -> list[
                 ax.annotate(f"{v:.2f}", (c, v), xytext=(5, -12), textcoords="offset points", ha="left",
                             fontsize=7, color=COLORS[m])
     ax.set_yscale("log")
-    ax.set_ylabel("3-D position RMSE, m")
+    ax.set_ylabel("3-D position RMSE, m (log scale)")
     ax.grid(alpha=0.3, which="both")
     ax.legend(fontsize=8, loc="center left")
-    ax.set_title(f"Position RMSE against ground range ({scn.bin_km:g} km bins, all trials pooled)\n{sub}")
+    ax.set_title(f"{sub}\nposition RMSE against ground range ({scn.bin_km:g} km bins, all trials pooled)")
+    import scipy.stats
+
+    t95 = float(scipy.stats.t.ppf(0.975, B - 1)) if B >= 2 else math.nan
     gains, errs = [], []
     for b in bins:
         p = b.get("fused_vs_relay_only")
         r = b["rmse_m"]["relay_only"]
         if not p or not r:
             gains.append(np.nan)
-            errs.append(0.0)
+            errs.append(np.nan)
             continue
         gains.append(p["gain_percent"])
         se = p["mse_difference_stderr_m2"]
-        errs.append(0.0 if se is None else 2.0 * 100.0 * se / (2.0 * r * r))  # 2 s.e., in RMSE %
-    gains = np.array(gains)
+        # the 95 % confidence half-width of the mean per-trial MSE difference (Student t, B - 1 dof),
+        # in RMSE %: d(RMSE)/RMSE = d(MSE) / (2 MSE)
+        errs.append(np.nan if se is None else t95 * 100.0 * se / (2.0 * r * r))
+    gains, errs = np.array(gains), np.array(errs)
+    # an error bar is a spread over independent trials: with one trial there is none to draw
+    with_bars = B >= 2 and np.isfinite(errs).any()
+    label = ("fused vs relay-only, same data: bar = RMSE gain; error bar = 95 % confidence interval of the mean "
+             f"per-trial MSE difference over the {B} trials (Student t, {B - 1} dof)" if with_bars else
+             f"fused vs relay-only, same data: bar = RMSE gain ({B} trial: no error bar, it needs >= 2 trials)")
     axg.bar(centres, gains, width=0.6 * scn.bin_km, color=np.where(gains > 0, "C3", "0.6"), alpha=0.8,
-            yerr=errs, capsize=3, label="fused vs relay-only, same data (error bar: 2 standard errors over trials)")
+            yerr=np.nan_to_num(errs) if with_bars else None, capsize=3 if with_bars else 0)
     axg.axhline(0.0, color="k", lw=0.8)
-    axg.set_yscale("symlog", linthresh=1.0)
     axg.set_ylabel("RMSE gain over\nrelay-only, %")
     axg.set_xlabel("ground range from the launch site, km (bin centres)")
     axg.set_xlim(0, scn.max_range_km)
-    axg.grid(alpha=0.3, which="both")
-    axg.legend(fontsize=8, loc="upper left")
+    axg.grid(alpha=0.3)
+    axg.set_title(label, fontsize=8)
     files.append(save_figure(fig, out / FIGURES[1]))
 
     # c) ANEES against time with the chi-square band
@@ -180,16 +190,16 @@ def plot(raw: dict, sc: dict, scn: SondeScenario, seed: int, out: Path) -> list[
                 label=f"{LABELS[m]} (mean {a['mean']:.2f}, {100 * a['fraction_of_epochs_inside']:.0f} % inside)")
         band = a["bounds_99_one_epoch"]
     if band:
-        ax.axhspan(band[0], band[1], color="k", alpha=0.08, label=f"99 % band of one epoch ({band[0]:.2f}-{band[1]:.2f})")
-        ax.axhline(6.0, color="k", lw=0.8)
+        ax.axhspan(band[0], band[1], color="k", alpha=0.08, label=f"99 % chi-square band of the mean NEES over {B} trials at one epoch ({band[0]:.2f}-{band[1]:.2f})")
+        ax.axhline(6.0, color="k", lw=0.8, label="expected value (6 dof)")
     ax.set_yscale("log")
     ax.set_xlabel("time since launch, s")
-    ax.set_ylabel("ANEES over trials, [pos, vel] (6 dof)")
+    ax.set_ylabel("mean NEES over trials, [pos, vel] (6 dof; 1, log scale)")
     ax.set_xlim(0, scn.duration_s)
     ax.grid(alpha=0.3, which="both")
     ax.legend(fontsize=7, loc="upper right")
-    ax.set_title(f"Consistency: average NEES over trials per epoch (while every trial is inside "
-                 f"{scn.max_range_km:g} km)\n{sub}")
+    ax.set_title(f"{sub}\nconsistency: mean NEES over trials per epoch (while every trial is inside "
+                 f"{scn.max_range_km:g} km)")
     files.append(save_figure(fig, out / FIGURES[2]))
     return files
 
