@@ -53,6 +53,9 @@ def test_same_seed_same_numbers(tiny_run, tmp_path):
 
     a = drop_wall(_strict_json((first / "result.json").read_text()))
     b = drop_wall(_strict_json((out / "result.json").read_text()))
+    # the provenance names the run (its --out, its start time); its seed and scenario are the same
+    pa, pb = a.pop("provenance"), b.pop("provenance")
+    assert (pa["seed"], pa["scenario_sha256"]) == (pb["seed"], pb["scenario_sha256"])
     assert a == b
     out2 = tmp_path / "other"
     assert main(["experiment", "integrity", "--duration", "100", "--trials", "4", "--seed", "6", "--quiet",

@@ -163,24 +163,32 @@ def test_table_matches_the_batch_runs_own_scores(tmp_path, capsys):
 
 @pytest.mark.slow
 def test_a_demo_batch_run_is_exported_from_its_report(tmp_path, capsys):
-    """`skyfuse demo --batch` keeps no bus log; export runs it again from report.json's scenario
-    (deterministic for its seed) with a recorder: the table's RMSE is the report's."""
+    """`skyfuse demo --batch` records its bus log as a live run does: export reads it, and the
+    table's RMSE is the report's. An older OUT without a bus log is run again from report.json's
+    scenario (deterministic for its seed) with a recorder: the same table."""
     pytest.importorskip("numba")
     out = tmp_path / "b"
     assert main(["demo", "--batch", "--duration", "6", "--out", str(out), "--quiet"]) == 0
     report = json.loads((out / "report.json").read_text())
+    assert (out / "bus.log").is_file()
     capsys.readouterr()
+
+    def rmse_match(parquet):
+        t = pq.read_table(parquet).to_pylist()
+        for name, e in report["errors"].items():
+            kind, oid = name.split("/")
+            err_m = [r["err_3d_m"] for r in t if r["kind"] == kind and r["object_id"] == oid and r["err_3d_m"] is not None]
+            assert len(err_m) == e["scored"] > 0
+            assert math.sqrt(sum(x * x for x in err_m) / len(err_m)) == pytest.approx(e["rmse_m"], rel=1e-9)
+    assert main(["export", "table", str(out), "-o", str(tmp_path / "a.parquet")]) == 0
+    assert "running it again" not in capsys.readouterr().err
+    rmse_match(tmp_path / "a.parquet")
+    (out / "bus.log").unlink()
     assert main(["export", "table", str(out), "-o", str(tmp_path / "b.parquet")]) == 0
     err = capsys.readouterr().err
     assert "running it again" in err and "differ" not in err and len(err.strip().splitlines()) == 1
-    t = pq.read_table(tmp_path / "b.parquet").to_pylist()
-    for name, e in report["errors"].items():
-        kind, oid = name.split("/")
-        err_m = [r["err_3d_m"] for r in t if r["kind"] == kind and r["object_id"] == oid and r["err_3d_m"] is not None]
-        assert len(err_m) == e["scored"] > 0
-        assert math.sqrt(sum(x * x for x in err_m) / len(err_m)) == pytest.approx(e["rmse_m"], rel=1e-9)
+    rmse_match(tmp_path / "b.parquet")
     assert (out / "bus.log").is_file() and not (out / "bus.log.part").exists()
-
 
 
 def test_every_export_carries_the_provenance_record(synthetic_run, capsys):
