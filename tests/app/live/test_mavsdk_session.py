@@ -219,6 +219,13 @@ def test_mavsdk_session_discover_params_mission_rtl_and_telemetry_matches_the_si
         # positions: each MAVSDK sample is a GLOBAL_POSITION_INT the vehicle sent (to the degE7 and
         # the mm), and that one is within 30 m (~10 sigma of the onboard filter) of the truth then
         gpi = [m for m in mine if m.get_type() == "GLOBAL_POSITION_INT"]
+        # the simulated time of a message: its time_boot_ms on the vehicle's boot clock, which
+        # SYSTEM_TIME ties to simulated Unix time (the tlog's own stamps are the wall clock's, as
+        # MAVProxy writes them)
+        st = [m for m in mine if m.get_type() == "SYSTEM_TIME"]
+        offsets = np.array([m.time_unix_usec * 1e-6 - m.time_boot_ms * 1e-3 for m in st])
+        assert st and np.ptp(offsets) < 2e-3, "SYSTEM_TIME's boot clock drifts from its Unix time"
+        boot_to_unix_s = float(np.median(offsets))
         lat = np.array([m.lat for m in gpi]) * 1e-7
         lon = np.array([m.lon for m in gpi]) * 1e-7
         checked_air = checked_ground = 0
@@ -228,7 +235,7 @@ def test_mavsdk_session_discover_params_mission_rtl_and_telemetry_matches_the_si
             assert abs(m.lat * 1e-7 - pos.latitude_deg) < 1e-9 and abs(m.lon * 1e-7 - pos.longitude_deg) < 1e-9
             assert pos.absolute_altitude_m == pytest.approx(m.alt * 1e-3, abs=1e-3)
             assert pos.relative_altitude_m == pytest.approx(m.relative_alt * 1e-3, abs=1e-3)
-            t = gps_from_unix_s(m._timestamp)
+            t = gps_from_unix_s(m.time_boot_ms * 1e-3 + boot_to_unix_s)
             tx, ty, tz = _truth_at(truth, s, t)
             tla, tlo, th = pymap3d.ecef2geodetic(tx, ty, tz)
             n, e, d = pymap3d.geodetic2ned(pos.latitude_deg, pos.longitude_deg, pos.absolute_altitude_m, tla, tlo, th)
