@@ -337,8 +337,8 @@ def summary_table(res: dict) -> str:
                     f"{u['spherical_error_std_m'][i]:>8.2f} {u['rmse_position_m'][i]:>9.2f} | "
                     f"{res['pcrb_position_m'][i]:>9.2f}")
     lo, hi = res["ekf"]["anees_bounds_99"]
-    rows.append(f"ANEES (last 100 steps, 99% bounds {lo:.3f}..{hi:.3f}): EKF {res['ekf']['anees']:.3f}  "
-                f"UKF {res['ukf']['anees']:.3f}")
+    rows.append(f"ANEES over the last 100 steps: EKF {res['ekf']['anees']:.3f}  UKF {res['ukf']['anees']:.3f} "
+                f"(99 % chi-square band of one step's mean over {res['trials']} trials: {lo:.3f}..{hi:.3f})")
     rows.append(f"largest |RMSE_EKF - RMSE_UKF| / RMSE_EKF over all steps: {res['ekf_ukf_rmse_max_rel_diff']:.2e}")
     rows.append(f"RMSE / sqrt(PCRB) over the last 100 steps: EKF {res['ekf']['rmse_over_sqrt_pcrb_last100']:.3f}  "
                 f"UKF {res['ukf']['rmse_over_sqrt_pcrb_last100']:.3f}")
