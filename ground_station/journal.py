@@ -27,6 +27,16 @@ no decision that reached the bus (fsync follows from the writer's flusher thread
 ``flush_interval_s``). Keys starting with ``!`` are not valid bus keys, so control records
 cannot be confused with inputs.
 
+A restarted ground station (incarnation N > 0) resumes: before its first tick it runs the
+earlier incarnations' journals (0 .. N-1, each holding what its incarnation consumed after its
+own resume) through its new node with the output muted (`resume`), so its beacon locator, sonde
+tracker, lag windows, time guard and link monitors are where the dead one left them, and the
+inputs that one had taken in but not yet processed are queued. Its header lists them
+(``resumed_from``), and the replay resumes the same way, so it stays exact. Why not start cold:
+the beacon locator's blind start mid-run lands, on the demo geometry, on the mirror of the beacon
+through the three UAVs' plane at some start times (tests/ground_station/test_gs_restart.py).
+What no ground station was subscribed to while the new one started is lost to it.
+
     jr = open_journal(out_dir, incarnation, header)    # live (ground_station.process)
     node = GroundStationNode(JournalingTransport(bus, jr), ...)
     for ev in read_journal(path, stats): ...           # replay (sitl.app.launcher.replay)

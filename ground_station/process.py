@@ -17,6 +17,8 @@ in their order, and every ``advance()`` with its arguments go to ``OUT/gs_journa
 (``gs_journal.r<N>.log`` for incarnation N), each tick's records to the kernel before the tick
 publishes anything, so `skyfuse replay` reproduces this process's decisions exactly. The status
 line's ``journal`` block: its records, bytes and the main loop's time spent writing it.
+A restart (incarnation > 0) first resumes its node from the earlier incarnations' journals
+(ground_station.journal.resume; one stderr line with the counts and the time it took).
 """
 from __future__ import annotations
 
