@@ -140,6 +140,10 @@ def test_a_ground_station_killed_mid_run_replays_exactly_from_one_journal_per_in
     # start put the beacon 6.6 km RMS off: tests/ground_station/test_gs_restart.py)
     from ground_station.journal import RESUME_KEY, read_journal_header
     assert read_journal_header(tmp_path / "gs_journal.r1.log")[RESUME_KEY] == ["gs_journal.log"]
+    said = [ln for p in tmp_path.rglob("gs*.stderr.log") for ln in p.read_text(errors="replace").splitlines()
+            if "resumed from gs_journal.log" in ln]
+    assert len(said) == 1, said
+    print(said[0])
     truth, est = {}, {}
     for r in read_bus_log_records(tmp_path / "bus.log"):
         for kind in ("beacon", "sonde"):
