@@ -118,8 +118,11 @@ class _DeferredBus:
         self.published: list = []  # (key, Estimate) published since the last take_published()
         self._wanted: dict[str, bool] = {}  # per-UAV key -> some subscription takes it (keys recur)
         self.group_epochs = 0  # columnar epochs taken apart
+        self.muted = False  # True while resuming from journals: nothing published (`resume`)
+        self._exprs: list[str] = []  # the key expressions subscribed on the transport, in order
         if transport is not None:
             self._real.append(transport.subscribe(GROUP_EPOCH_EXPR, self._enqueue))
+            self._exprs.append(GROUP_EPOCH_EXPR)
 
     def subscribe(self, key_expr, callback):
         sub = _Sub(self, key_expr, callback)
@@ -127,6 +130,7 @@ class _DeferredBus:
         self._wanted.clear()
         if self.transport is not None:
             self._real.append(self.transport.subscribe(key_expr, self._enqueue))
+            self._exprs.append(key_expr)
         return sub
 
     def _enqueue(self, key, msg):  # any thread
@@ -138,6 +142,12 @@ class _DeferredBus:
     def feed(self, key, msg):
         """Deliver a message directly (no transport: replay and tests)."""
         self._enqueue(key, msg)
+
+    def feed_as_transport(self, key, msg):
+        """Deliver a message as the transport would: once per subscribed expression it matches."""
+        for expr in self._exprs:
+            if key_matches(expr, key):
+                self._enqueue(key, msg)
 
     def _per_uav(self, key, msg) -> list:
         parsed = parse_key(key)
@@ -166,6 +176,8 @@ class _DeferredBus:
         return n
 
     def publish(self, key, msg):
+        if self.muted:
+            return
         if msg.incarnation != self.incarnation:
             msg = dataclasses.replace(msg, incarnation=self.incarnation)
         self.published.append((key, msg))
@@ -331,6 +343,8 @@ class GroundStationNode:
         ids = {id(lk) for lk in changed}
         for lk in (self.links.states() if due else changed):
             key, m = self.links.message(lk, now, source_id="gs")
+            if self.bus.muted:
+                continue
             if self.bus.transport is not None:
                 self.bus.transport.publish(key, m)
             self.link_messages.append((key, m))

@@ -17,9 +17,12 @@ in their order, and every ``advance()`` with its arguments go to ``OUT/gs_journa
 (``gs_journal.r<N>.log`` for incarnation N), each tick's records to the kernel before the tick
 publishes anything, so `skyfuse replay` reproduces this process's decisions exactly. The status
 line's ``journal`` block: its records, bytes and the main loop's time spent writing it.
+A restart (incarnation > 0) first resumes its node from the earlier incarnations' journals
+(ground_station.journal.resume; one stderr line with the counts and the time it took).
 """
 from __future__ import annotations
 
+import os
 import sys
 
 from ground_station.mavlink_link import ADSB_ICAO, GS_SYSID, GcsLink  # noqa: F401  (the GCS link's home before)
@@ -85,20 +88,29 @@ def main(argv=None) -> int:
         # the link first: it heartbeats (standby) while the node is built and the run waits to start
         standby = _standby_heartbeats(gcs) if gcs is not None else None
         try:
-            from ground_station.journal import JournalingTransport, config_to_json, open_journal
+            from ground_station.journal import (RESUME_KEY, JournalingTransport, config_to_json, open_journal, resume,
+                                                resume_sources)
             from ground_station.node import GroundStationNode, GsConfig  # numba kernels: seconds on a cold start
             from sitl.pacing import perf_now
             config = GsConfig.from_scenario(scn, sonde_tracker_from_spec(spec))
             # the journal: what the node consumed and when, for an exact replay (ground_station.journal)
+            # a restart resumes from the earlier incarnations' journals (ground_station.journal.resume)
+            earlier = resume_sources(spec.out_dir, rt.incarnation, spec.run_id) if rt.incarnation > 0 else []
             try:
                 journal = open_journal(spec.out_dir, rt.incarnation,
-                                       {"run_id": spec.run_id, "worker": spec.name, "config": config_to_json(config)},
+                                       {"run_id": spec.run_id, "worker": spec.name, "config": config_to_json(config),
+                                        RESUME_KEY: earlier},
                                        t_s=scn.run.t0_gps_s, clock=perf_now)
                 node_bus = JournalingTransport(bus, journal)
             except (OSError, ValueError) as e:  # the fusion runs anyway; a replay then re-derives its decisions
                 print(f"gs: no journal (replay will not be exact): {type(e).__name__}: {e}", file=sys.stderr)
                 journal, node_bus = _NoJournal(), bus
             node = GroundStationNode(node_bus, spec.run_id, config, incarnation=rt.incarnation)
+            if earlier:
+                w0 = perf_now()
+                done = resume(node, [os.path.join(spec.out_dir, n) for n in earlier])
+                print(f"gs: incarnation {rt.incarnation} resumed from {', '.join(earlier)}: {done} "
+                      f"in {perf_now() - w0:.2f} s", file=sys.stderr)
             if not rt.wait_start():
                 return 0
         finally:

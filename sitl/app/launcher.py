@@ -785,7 +785,8 @@ def _replay_journals(log_path, scn, journals) -> dict:
     from sitl.bus import BusDecodeError, InMemoryTransport, decode, key_matches
     from sitl.bus.buslog import BusLogError, BusLogStats, read_bus_log_records
     from ground_station import node as gn
-    from ground_station.journal import JournalAdvance, JournalError, JournalStats, config_from_json, read_journal
+    from ground_station.journal import (RESUME_KEY, JournalAdvance, JournalError, JournalStats, config_from_json,
+                                        read_journal, resume)
     from sitl.app.scoring import ErrorTracker
 
     run_id = scn.run.id
@@ -837,6 +838,8 @@ def _replay_journals(log_path, scn, journals) -> dict:
         inc = int(jst.header["incarnation"])
         bus = InMemoryTransport(synchronous=True, start_t_gps_s=scn.run.t0_gps_s)
         node = gn.GroundStationNode(bus, jst.header["run_id"], config, incarnation=inc)
+        if jst.header.get(RESUME_KEY):  # a restart resumed from the earlier journals: so does its replay
+            resume(node, [path.parent / name for name in jst.header[RESUME_KEY]])
 
         def on_estimate(k, m, inc=inc):
             replayed[(inc, k, round(m.t_gps_s, 6))] = m

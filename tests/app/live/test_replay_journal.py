@@ -131,3 +131,42 @@ def test_a_ground_station_killed_mid_run_replays_exactly_from_one_journal_per_in
         c = rep["vs_live"][kind]
         print(kind, c)
         assert c["matched"] == c["recorded"] > 20 and c["max_pos_diff_m"] == 0.0, c
+    # the restarted ground station resumed from the first one's journal (ground_station.journal.resume):
+    # its header says so. It first publishes the epochs the first one had taken in but not yet
+    # processed (they were in its journal), then nothing for the seconds it took to start (no
+    # ground station subscribed: those inputs are lost to it; the recorder has them), then its own.
+    # From 10 s (simulated) after its first estimate of its own on, the beacon and sonde errors
+    # against the recorded truth are within 2x those of the 10 s before the kill (a cold, blind
+    # start put the beacon 6.6 km RMS off: tests/ground_station/test_gs_restart.py)
+    from ground_station.journal import RESUME_KEY, read_journal_header
+    assert read_journal_header(tmp_path / "gs_journal.r1.log")[RESUME_KEY] == ["gs_journal.log"]
+    said = [ln for p in tmp_path.rglob("gs*.stderr.log") for ln in p.read_text(errors="replace").splitlines()
+            if "resumed from gs_journal.log" in ln]
+    assert len(said) == 1, said
+    print(said[0])
+    truth, est = {}, {}
+    for r in read_bus_log_records(tmp_path / "bus.log"):
+        for kind in ("beacon", "sonde"):
+            if f"/truth/{kind}/" in r.key:
+                m = decode(r.payload)
+                truth[(kind, round(m.t_gps_s, 6))] = m.pos_ecef_m
+            elif f"/gs/estimate/{kind}/" in r.key:
+                m = decode(r.payload)
+                est[(kind, m.incarnation, round(m.t_gps_s, 6))] = m.pos_ecef_m
+    import numpy as np
+    for kind in ("beacon", "sonde"):
+        err = {(inc, t): float(np.linalg.norm(p - truth[(kind, t)])) for (k, inc, t), p in est.items()
+               if k == kind and (kind, t) in truth}
+        t_kill = max(t for inc, t in err if inc == 0)
+        ts = sorted(t for inc, t in err if inc == 1)
+        gaps = [(b - a, b) for a, b in zip(ts, ts[1:])]
+        t_back = max(gaps)[1] if gaps and max(gaps)[0] > 2.0 else ts[0]  # its first after the start-up's gap
+        pre = [e for (inc, t), e in err.items() if inc == 0 and t > t_kill - 10.0]
+        post = [e for (inc, t), e in err.items() if inc == 1 and t_back + 10.0 <= t]
+        first10 = [e for (inc, t), e in err.items() if inc == 1 and t < t_back + 10.0]
+        rms = lambda v: float(np.sqrt(np.mean(np.square(v))))  # noqa: E731
+        print(f"{kind}: last GS-0 estimate t0+{t_kill - scn.run.t0_gps_s:.1f} s, first GS-1 estimate of its own "
+              f"t0+{t_back - scn.run.t0_gps_s:.1f} s; error RMS 10 s before the kill {rms(pre):.1f} m, "
+              f"first 10 s after {rms(first10):.1f} m, from then on {rms(post):.1f} m (max {max(post):.1f} m)")
+        assert len(pre) >= 5 and len(post) >= 10, (len(pre), len(post))
+        assert max(post) <= 2.0 * max(pre) and rms(post) <= 2.0 * rms(pre), (kind, rms(pre), rms(post), max(post))
