@@ -10,6 +10,8 @@ import numpy as np
 import scipy.stats
 from scipy import stats
 
+from sitl.bus import InMemoryTransport, key_matches
+
 
 def chi2_ok(resid, sigma, alpha=1e-3):
     """Is sum(resid^2)/sigma^2 inside the two-sided 1-alpha interval of chi2(n)? (NaNs dropped)"""
@@ -76,3 +78,29 @@ class LinearTransition:
 
     def Q(self, dt):
         return self._Q
+
+
+class RawTapTransport(InMemoryTransport):
+    """An in-memory transport whose raw subscribers (``subscribe_raw``, as ZenohTransport has)
+    see each payload in the drain before the decoded delivery, as the Zenoh transport's drain
+    does: what a ground_station.journal.JournalingTransport journals."""
+
+    def __init__(self, **kw):
+        super().__init__(**kw)
+        self.raw = []
+
+    def subscribe_raw(self, expr, cb):
+        class Sub:
+            closed = False
+
+            def close(self):
+                self.closed = True
+        s = Sub()
+        self.raw.append((expr, cb, s))
+        return s
+
+    def _deliver(self, key, payload):
+        for expr, cb, s in self.raw:
+            if not s.closed and key_matches(expr, key):
+                cb(key, payload)
+        return super()._deliver(key, payload)

@@ -31,10 +31,11 @@ from ground_station.journal import (
     open_journal,
     read_journal,
 )
-from sitl.bus import InMemoryTransport, encode, key_matches
+from sitl.bus import encode, key_matches
 from sitl.bus.buslog import BusLogWriter, read_bus_log_records
 from sitl.bus.codec import MAX_PAYLOAD_BYTES
 from sitl.scenario import default_scenario
+from tests.helpers import RawTapTransport as _Tap
 
 HEADER = {"run_id": "demo", "worker": "gs", "config": {}}
 
@@ -174,31 +175,6 @@ def test_the_configuration_round_trips_exactly_through_json():
         assert back == c
     with pytest.raises(JournalError, match="unknown fields"):
         config_from_json({"nonsense": 1})
-
-
-class _Tap(InMemoryTransport):
-    """An in-memory transport with raw subscribers called before the decoded delivery, in the
-    drain (what ZenohTransport._on_sample does)."""
-
-    def __init__(self, **kw):
-        super().__init__(**kw)
-        self.raw = []
-
-    def subscribe_raw(self, expr, cb):
-        class S:
-            closed = False
-
-            def close(self):
-                self.closed = True
-        s = S()
-        self.raw.append((expr, cb, s))
-        return s
-
-    def _deliver(self, key, payload):
-        for expr, cb, s in self.raw:
-            if not s.closed and key_matches(expr, key):
-                cb(key, payload)
-        super()._deliver(key, payload)
 
 
 def test_journaling_transport_records_each_payload_once_in_delivery_order(tmp_path):

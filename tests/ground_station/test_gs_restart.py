@@ -25,36 +25,12 @@ from ground_station.journal import (RESUME_KEY, JournalAdvance, JournalStats, Jo
                                     open_journal, read_journal, resume, resume_sources)
 from sitl.app.batch import vehicle_groups
 from sitl.app.components import gs_config
-from sitl.bus import InMemoryTransport, key_matches
+from sitl.bus import InMemoryTransport
 from sitl.scenario import default_scenario
+from tests.helpers import RawTapTransport as _Tap
 
 KILL_S = 35.0
 DURATION_S = 60.0
-
-
-class _Tap(InMemoryTransport):
-    """An in-memory transport whose raw subscribers see each payload before the decoded delivery
-    (as the Zenoh transport's drain does), so that a JournalingTransport journals it."""
-
-    def __init__(self, **kw):
-        super().__init__(**kw)
-        self.raw = []
-
-    def subscribe_raw(self, expr, cb):
-        class S:
-            closed = False
-
-            def close(self):
-                self.closed = True
-        s = S()
-        self.raw.append((expr, cb, s))
-        return s
-
-    def _deliver(self, key, payload):
-        for expr, cb, s in self.raw:
-            if not s.closed and key_matches(expr, key):
-                cb(key, payload)
-        return super()._deliver(key, payload)
 
 
 class _Gs:
