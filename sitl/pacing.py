@@ -31,6 +31,11 @@ def cpu_now() -> float:
     return time.process_time()
 
 
+def thread_cpu_now() -> float:
+    """CPU time of the calling thread, s (a tick's own work, without the time it was preempted)."""
+    return time.thread_time()
+
+
 class Pacer:
     """Maps simulation time to wall time at ``speed`` x real time and waits for it.
 

@@ -1001,7 +1001,8 @@ def main(argv=None) -> int:
         return 2
     rt = WorkerRuntime(argv[0])
     spec, scn = rt.spec, rt.scenario
-    bus = open_bus(spec, scn.bus.lease_ms)
+    from sitl.pacing import perf_now, thread_cpu_now
+    bus = _TimedPublish(open_bus(spec, scn.bus.lease_ms), perf_now)
     endpoints = None
     try:
         # a restarted worker resumes its previous incarnation's checkpoint (the simulator died,
@@ -1016,7 +1017,7 @@ def main(argv=None) -> int:
             group = VehicleGroup(scn, spec.uav_indices, bus, seq, with_beacon_truth=spec.with_beacon_truth,
                                  with_sonde=spec.with_sonde, incarnation=rt.incarnation)
         _warm_up(scn, spec)
-        from sitl.pacing import perf_now, wall_now
+        from sitl.pacing import wall_now
         try:  # the composition root: signing follows the wall clock, the input budget is wall time
             endpoints = build_endpoints(group, scn, spec.out_dir, spec.name, clock=wall_now, timer=perf_now)
         except (ValueError, OSError) as e:  # a port taken, a bad key file: a configuration error
@@ -1049,12 +1050,16 @@ def main(argv=None) -> int:
         mav_budget_s = _MAV_INPUT_SHARE * dt_tick / scn.run.speed
         serve = _InputService(endpoints, mav_budget_s, perf_now) if endpoints is not None else None
         step_s = deque(maxlen=2000)  # wall time of each world epoch's tick (world + bus + MAVLink)
+        # where a world tick's time goes (the status line's tick_parts_ms): MAVLink input served,
+        # the world's step without it, the bus puts inside that step, the MAVLink streams, and the
+        # thread's CPU time over the tick (a wall p99 far above the CPU p99 is waiting, not work)
+        parts = {name: deque(maxlen=2000) for name in TICK_PARTS}
         mav_s = deque(maxlen=2000)  # wall time of each tick between them (MAVLink only)
         k_next = k0  # the next world epoch, t0 + k_next dt
         pace = {"late_epochs": 0, "skipped_epochs": 0, "shed_mavlink_ticks": 0}  # world epochs late; jumped over
         sub = SubEpochTelemetry()
         for t in pacer.epochs(t_first, dt_tick, t_end, max_lag_s=5 * dt):
-            w0 = perf_now()
+            w0, c0 = perf_now(), thread_cpu_now()
             world = t >= t0 + k_next * dt - 1e-6
             if not world and pacer.sim_now() - t > dt_tick:
                 # behind by more than a tick (a loaded machine): a MAVLink-only tick is best
@@ -1072,6 +1077,7 @@ def main(argv=None) -> int:
                 if serve is not None:  # what came in while the loop waited: answered before the world's step
                     serve.start_tick(t)
                     serve()
+                s0, u0, b0 = perf_now(), serve.used_s if serve is not None else 0.0, bus.publish_s
                 try:
                     group.step(tw, between=serve)
                 except Exception as e:  # one bad epoch must not end the run: counted, reported
@@ -1079,12 +1085,16 @@ def main(argv=None) -> int:
                     if errors <= 10 or errors % 100 == 0:  # the log stays readable
                         print(f"{spec.name}: epoch {tw:.3f} failed ({errors} so far): {type(e).__name__}: {e}",
                               file=sys.stderr)
+                in_step = (serve.used_s if serve is not None else 0.0) - u0
+                parts["world"].append(perf_now() - s0 - in_step)
+                parts["bus_put"].append(bus.publish_s - b0)
                 if serve is not None:
                     serve()
                     for text in serve.take_failed():
                         errors += 1
                         if errors <= 10 or errors % 100 == 0:
                             print(f"{spec.name}: MAVLink input failed ({errors} so far): {text}", file=sys.stderr)
+            m0 = perf_now()
             if endpoints is not None:
                 try:
                     if world:
@@ -1098,6 +1108,10 @@ def main(argv=None) -> int:
                         print(f"{spec.name}: MAVLink step failed ({errors} so far): {type(e).__name__}: {e}",
                               file=sys.stderr)
             (step_s if world else mav_s).append(perf_now() - w0)
+            if world:
+                parts["streams"].append(perf_now() - m0)
+                parts["input"].append(serve.used_s if serve is not None else 0.0)
+                parts["cpu"].append(thread_cpu_now() - c0)
             if world and perf_now() >= next_ckpt and group.t_last is not None:
                 next_ckpt = perf_now() + CHECKPOINT_WALL_S
                 try:
@@ -1105,8 +1119,9 @@ def main(argv=None) -> int:
                 except OSError as e:  # the run goes on; a restart would cold-start
                     print(f"{spec.name}: checkpoint not written: {e}", file=sys.stderr)
             if rt.status_due():
-                rt.emit(_status(group, bus, pacer, endpoints, errors, t, step_s, mav_s, pace))
-        rt.emit({**_status(group, bus, pacer, endpoints, errors, group.t_last, step_s, mav_s, pace), "event": "done"})
+                rt.emit(_status(group, bus, pacer, endpoints, errors, t, step_s, mav_s, pace, parts))
+        rt.emit({**_status(group, bus, pacer, endpoints, errors, group.t_last, step_s, mav_s, pace, parts),
+                 "event": "done"})
         return 0
     finally:
         if endpoints is not None:
@@ -1127,9 +1142,40 @@ def _warm_up(scn, spec) -> None:
     bus.close()
 
 
-def _status(group, bus, pacer, endpoints, errors, t, step_s=(), mav_s=(), pace=None) -> dict:
+#: the parts of a world tick the worker times (the status line's ``tick_parts_ms``): ``input``
+#: MAVLink input served (before, inside and after the world's step), ``world`` the world's step
+#: without that input, ``bus_put`` the bus publishes inside it (encode + put), ``streams`` the
+#: MAVLink streams and replies after it, ``cpu`` the worker thread's CPU time over the whole tick
+TICK_PARTS = ("input", "world", "bus_put", "streams", "cpu")
+
+
+class _TimedPublish:
+    """The worker's bus with its publishes timed (``publish_s``, summed): the tick breakdown's
+    ``bus_put``. Everything else is the bus's own."""
+
+    def __init__(self, bus, timer):
+        self._bus, self._timer, self.publish_s = bus, timer, 0.0
+
+    def publish(self, key, msg):
+        a = self._timer()
+        try:
+            return self._bus.publish(key, msg)
+        finally:
+            self.publish_s += self._timer() - a
+
+    def __getattr__(self, name):
+        return getattr(self._bus, name)
+
+
+def _pcts_ms(xs) -> dict:
+    a = np.sort(np.array(xs))
+    return {"p50": 1e3 * float(a[len(a) // 2]), "p99": 1e3 * float(a[min(len(a) - 1, int(0.99 * len(a)))]),
+            "max": 1e3 * float(a[-1])}
+
+
+def _status(group, bus, pacer, endpoints, errors, t, step_s=(), mav_s=(), pace=None, parts=None) -> dict:
     """The worker's status line. pace: the world epochs' late / skipped counts (the pacer's
-    count the loop's ticks: ``late_ticks``, ``skipped_ticks``)."""
+    count the loop's ticks: ``late_ticks``, ``skipped_ticks``); parts: TICK_PARTS' samples."""
     from sitl.pacing import cpu_now
     from sitl.live.worker import bus_counters
     d = {"event": "status", "t_sim_s": t, "cpu_s": cpu_now(), "epochs": group.epoch, "vehicles": group.n + (group.sonde is not None),
@@ -1141,9 +1187,9 @@ def _status(group, bus, pacer, endpoints, errors, t, step_s=(), mav_s=(), pace=N
         d["mavlink"] = _mavlink_status(endpoints)
     for name, xs in (("step_ms", step_s), ("mav_step_ms", mav_s)):  # world epochs; MAVLink-only ticks
         if xs:
-            a = np.sort(np.array(xs))
-            d[name] = {"p50": 1e3 * float(a[len(a) // 2]), "p99": 1e3 * float(a[min(len(a) - 1, int(0.99 * len(a)))]),
-                       "max": 1e3 * float(a[-1])}
+            d[name] = _pcts_ms(xs)
+    if parts and any(parts.values()):
+        d["tick_parts_ms"] = {name: _pcts_ms(xs) for name, xs in parts.items() if xs}
     return d
 
 

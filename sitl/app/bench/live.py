@@ -19,7 +19,10 @@ Per size:
   * ``cpu_ms_per_uav_s``: CPU time of the vehicle workers per UAV per simulated second
     (at speed 1, x 1e-3 = the share of a core one UAV costs), and the same for the ground
     station;
-  * the workers' own figures (step_ms, tick_ms, messages sent).
+  * the workers' own figures (step_ms, tick_ms, messages sent), and where a vehicle worker's
+    world tick goes (``vehicle_tick_parts_ms``, p50 / p99 of each part: MAVLink input, the
+    world's step, its bus puts, the MAVLink streams, and the thread's CPU time over the tick --
+    a step p99 well above the CPU p99 is the worker waiting for a core, not its own work).
 
 The largest N that kept real time is the headline (target: >= 200 on 2 cores, bus latency
 p99 < 20 ms). The machine's load (``os.getloadavg``) is printed beside: this is a shared
@@ -213,6 +216,7 @@ def run_size(n: int, args, router_ep: str) -> dict:
     return {"uavs": n, "mavlink": scn.mavlink.enabled, "kept_real_time": bool(kept), "ok": rep.get("ok", False), "error": rep.get("error"),
             "epochs": epochs, "skipped_epochs": skipped, "late_epochs": late,
             "vehicle_step_ms": [v.get("step_ms") for v in veh], "gs_tick_ms": gs.get("tick_ms"),
+            "vehicle_tick_parts_ms": [v.get("tick_parts_ms") for v in veh],
             "bus_latency_ms": {"p50": None if not lat else 1e3 * _pct(lat, 0.5),
                                "p99": None if not lat else 1e3 * _pct(lat, 0.99),
                                "max": None if not lat else 1e3 * max(lat), "probes": len(lat)},
@@ -246,6 +250,10 @@ def main(args) -> int:
                   f"{_fmt([lat['p50']])}/{_fmt([lat['p99']])} ms; CPU {r['cpu_ms_per_uav_s']:.2f} ms per UAV-s "
                   f"(GS {r['gs_cpu_ms_per_s']:.0f} ms/s, router+launcher {r['router_launcher_cpu_ms_per_s']:.0f} ms/s); "
                   f"load {r['load_avg'][0]:.1f}", flush=True)
+            for w, tp in enumerate(r["vehicle_tick_parts_ms"]):
+                if tp:  # where a world tick's time goes, per vehicle worker (vehicles.process.TICK_PARTS)
+                    print(f"    vehicles{w} world tick p50/p99 ms: " + ", ".join(
+                        f"{name} {v['p50']:.1f}/{v['p99']:.1f}" for name, v in tp.items()), flush=True)
             if r["error"]:
                 print(f"    error: {r['error']}", flush=True)
     kept = [r["uavs"] for r in rows if r["kept_real_time"]]
