@@ -26,6 +26,7 @@ class Peer:
     def __init__(self, signing_key: bytes | None = None, sysid: int = 255, compid: int = 190):
         self.conn = mavutil.mavlink_connection("udpin:127.0.0.1:0", source_system=sysid, source_component=compid)
         self.addr = self.conn.port.getsockname()
+        self.datagrams = 0  # datagrams drained so far (a datagram may hold several frames)
         # MAVLink 2 parsing/encoding (mavutil switches to it on the first 0xFD byte of recv_msg;
         # we read the socket ourselves)
         self.mav = mavlink2.MAVLink(None, srcSystem=sysid, srcComponent=compid)
@@ -57,6 +58,7 @@ class Peer:
                 data, _addr = self.conn.port.recvfrom(65535)
             except BlockingIOError:
                 break
+            self.datagrams += 1
             out += self.mav.parse_buffer(data) or []
             r, _, _ = select.select([self.conn.port], [], [], 0)
         return out

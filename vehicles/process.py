@@ -1136,6 +1136,9 @@ def _warm_up(scn, spec) -> None:
     (kernel loading, ephemeris tables) are paid before the run starts, not in its first epochs."""
     from sitl.bus import InMemoryTransport
     bus = InMemoryTransport()
+    if scn.mavlink.enabled:
+        from vehicles.mavlink.endpoint import batch
+        batch.warm()
     g = VehicleGroup(scn, spec.uav_indices[:3], bus, np.random.SeedSequence(0), with_sonde=spec.with_sonde)
     for k in range(2):
         g.step(scn.run.t0_gps_s + k / scn.run.rate_hz)

@@ -88,6 +88,9 @@ def warm_up(scn, epochs: int = 5) -> None:
                               "starts": tuple(tuple(s) for s in scn.uavs.start_points()[:3]) if d["uavs"]["starts"]
                               else ()})
     run_batch(short)
+    if scn.mavlink.enabled:  # the live workers' MAVLink stream framing (a batch run has no endpoints)
+        from vehicles.mavlink.endpoint import batch as mav_batch
+        mav_batch.warm()
 
 
 def main(argv=None) -> int:

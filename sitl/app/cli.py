@@ -124,6 +124,12 @@ def _live_bench():
     return live
 
 
+def _mavlink_bench():
+    from sitl.app.bench import mavlink
+
+    return mavlink
+
+
 
 EXPERIMENTS = {
     # name -> (its module's loader, one-line description)
@@ -152,6 +158,7 @@ BENCHES = {
     "integrity": (_integrity_bench, "the seed 003 integrity monitor's cost on a 10,000-trial EKF step"),
     "gnss": (_gnss_bench, "the real-file GNSS readers and the day's broadcast-vs-IGS orbit check, against georinex"),
     "live": (_live_bench, "the largest swarm the live SITL keeps at real time (10 Hz), bus latency, CPU per UAV"),
+    "mavlink": (_mavlink_bench, "the vehicles' MAVLink streams: batched framing against pymavlink's frame per datagram"),
 }
 
 

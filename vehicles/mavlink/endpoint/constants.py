@@ -24,7 +24,7 @@ PROTOCOL_REJECT_REASONS = ("param_unknown", "param_rejected", "mission_rejected"
 REJECT_REASONS = FRAME_REJECT_REASONS + PROTOCOL_REJECT_REASONS
 #: a datagram's verdict when it is not accepted: its first failure ("empty": zero bytes)
 DATAGRAM_REJECT_REASONS = ("empty",) + FRAME_REJECT_REASONS
-TRAFFIC_COUNTERS = ("rx_datagrams", "rx_bytes", "received", "not_for_us", "sent", "tx_bytes", "send_errors",
+TRAFFIC_COUNTERS = ("rx_datagrams", "rx_bytes", "received", "not_for_us", "sent", "tx_datagrams", "tx_bytes", "send_errors",
                     "cmd_unsupported", "ftp", "handler_errors", "input_deferred", "signing_saves",
                     "signing_state_errors")
 

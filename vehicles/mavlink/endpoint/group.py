@@ -7,6 +7,7 @@ import time
 from typing import Callable, Iterable, Sequence
 
 from ..telemetry import VehicleTelemetry
+from .batch import StreamBatch
 from .constants import DATAGRAM_REJECT_REASONS
 from .receive import _drain
 from .vehicle import VehicleEndpoint
@@ -18,14 +19,19 @@ class EndpointGroup:
     every step).
 
     ``step(t_gps_s, telemetry_list, budget_s=None)``: telemetry_list[i] (or None) for
-    endpoints[i]; budget_s: the wall seconds the group's input may take this step, shared over
+    endpoints[i]; the streams due go out framed together, each endpoint's frames of the step
+    packed into few datagrams (batch.py; ``batch_streams=False``: pymavlink's frame per datagram); budget_s: the wall seconds the group's input may take this step, shared over
     the sockets that have input (None: every socket read until it is empty).  timer: the
     duration clock the budget is measured with (seconds; default time.perf_counter).
     ``counters``, ``datagrams``: the endpoints' summed.
     """
 
-    def __init__(self, endpoints: Iterable[VehicleEndpoint], *, timer: Callable[[], float] | None = None):
+    def __init__(self, endpoints: Iterable[VehicleEndpoint], *, timer: Callable[[], float] | None = None,
+                 batch_streams: bool = True):
         self.endpoints = list(endpoints)
+        # the streams of a step framed together and each endpoint's packed into few datagrams
+        # (batch.py); False: each frame by pymavlink in its own datagram (the bench's peer)
+        self.batch_streams = bool(batch_streams)
         ids = [ep.sysid for ep in self.endpoints]
         if len(set(ids)) != len(ids):
             raise ValueError(f"endpoints must have distinct system ids, got {ids}")
@@ -47,8 +53,13 @@ class EndpointGroup:
             raise ValueError(f"telemetry_list must have one entry per endpoint ({len(self.endpoints)}), "
                              f"got {len(telemetry_list)}")
         self.serve_input(t_gps_s, budget_s)
-        for ep, tel in zip(self.endpoints, telemetry_list):
-            ep._advance(tel)
+        batch = StreamBatch() if self.batch_streams else None
+        try:
+            for ep, tel in zip(self.endpoints, telemetry_list):
+                ep._advance(tel, batch)
+        finally:
+            if batch is not None:
+                batch.flush()
 
     def serve_input(self, t_gps_s: float, budget_s: float | None = None) -> None:
         """Only the input half of `step`: handle what arrived (replies go out at once) at

@@ -111,7 +111,8 @@ class StreamOutput:
             except OSError:  # full socket buffer, unreachable: a lost datagram, as on a radio
                 self.counters["send_errors"] += 1
                 continue
-            self.counters["sent"] += 1
+            self.counters["sent"] += 1  # frames (a packed stream datagram holds several: batch.py)
+            self.counters["tx_datagrams"] += 1
             self.counters["tx_bytes"] += len(buf)
         if self._tlog is not None:
             self._tlog.write(self._unix_s, buf)
@@ -134,7 +135,9 @@ class StreamOutput:
         return (self.gcs, *[a for a in self._peers if a != self.gcs])
 
     # ------------------------------------------------------------------ streams
-    def _send_streams(self, t: float) -> None:
+    def _send_streams(self, t: float, batch=None) -> None:
+        """The streams due at t, sent now, or recorded in batch (a StreamBatch: framed and sent
+        with the group's at the end of its step) when the output is unsigned."""
         self._ensure_extras()
         tel = self.telemetry
         if self.battery is not None and tel is not None and hasattr(self.battery, "step"):
@@ -144,6 +147,16 @@ class StreamOutput:
             return
         self._dest = self._stream_dest()
         nxt = math.inf
+        real = self.mav
+        if batch is not None and not real.signing.sign_outgoing:
+            self.mav = batch.recorder(self, real)  # every <message>_send below is recorded
+        try:
+            nxt = self._stream_pass(t, nxt)
+        finally:
+            self.mav = real
+        self._next_due = nxt
+
+    def _stream_pass(self, t: float, nxt: float) -> float:
         for msgid in self._streams_all():
             iv = self._interval.get(msgid)
             if iv is None:
@@ -160,7 +173,7 @@ class StreamOutput:
                 else:
                     due = t  # nothing to send yet (no telemetry): try again next step
             nxt = min(nxt, due)
-        self._next_due = nxt
+        return nxt
 
     # ------------------------------------------------------------------ stream requests
     def set_interval(self, msg_id, interval_us) -> int:

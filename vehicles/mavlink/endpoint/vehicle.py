@@ -274,7 +274,9 @@ class VehicleEndpoint(SigningClock, DatagramInput, StreamOutput, RequestHandlers
         self.poll_tcp()
         self._advance(telemetry)
 
-    def _advance(self, telemetry) -> None:
+    def _advance(self, telemetry, batch=None) -> None:
+        """batch: None, or the group's StreamBatch, which frames and sends this step's stream
+        messages with the other endpoints' (batch.py; unsigned output only)."""
         self.telemetry = telemetry  # None: nothing to report now (never a stale position)
         if self.autopilot is not None:  # home: the autopilot's (ArduPilot: set at arming, DO_SET_HOME)
             la, lo, h = (float(v) for v in self.autopilot.ap.home[self.autopilot.index])
@@ -290,7 +292,7 @@ class VehicleEndpoint(SigningClock, DatagramInput, StreamOutput, RequestHandlers
         self.mission.step(t)
         self._send_params()
         self._autopilot_out(t)
-        self._send_streams(t)
+        self._send_streams(t, batch)
 
     def _send_message(self, msgid: int) -> bool:
         """The streams' messages; HEARTBEAT from the autopilot when there is one (ArduPlane's
