@@ -8,6 +8,15 @@ The issue's targets, asserted as such: carrier_phase 3D RMS <= 1.0 m and a zenit
 Klobuchar's. With --static neither is met on this file (1.07 m; 1.41 m against Klobuchar's 1.20 m):
 strict xfails, so meeting them turns the run red until the marks go. Without --static the position
 target holds (0.90 m), asserted.
+
+Why they pull against each other on this file (test_reference_position.py): with the ionosphere
+removed by the second frequency the static position is +2.1 m up from APPROX POSITION (RTKLIB's
+iono-free SPP: +2.17 m), and station 3040, 3.3 km away, shows the same (+1.9 m) while RTKLIB's
+fixed baseline puts the two APPROX POSITIONs within 0.2 m of each other: ~2 m of the error comes
+with the broadcast orbits and clocks of this hour, not from the ionosphere or the reference. An L1
+solution carries that error too; Klobuchar's too-large ionosphere (zenith 2.5-3.6 m against the
+dual-frequency 1.7-2.3 m) offsets part of it, so a better ionosphere moves the fix away from APPROX
+POSITION. The result.json `iono_free_static` block reports it per run.
 """
 from __future__ import annotations
 
@@ -91,7 +100,8 @@ def test_zenith_estimates_are_physical(runs):
             assert all(abs(s["iono_zenith_m"][k] - ir["dual_frequency_zenith_m"][k]) < 2.0 for k in late), v
 
 
-@pytest.mark.xfail(strict=True, reason="issue 24 target not met with --static: carrier_phase 1.07 m 3D RMS on 0759")
+@pytest.mark.xfail(strict=True, reason="issue 24 target not met with --static: carrier_phase 1.07 m 3D RMS on 0759; "
+                                       "the iono-free fix of the same file is 2.1 m off APPROX POSITION (module doc)")
 def test_target_carrier_phase_within_one_metre_static(runs):
     assert runs["carrier_phase"]["position_error_m"]["rms_3d"] <= 1.0
 
@@ -106,10 +116,22 @@ def test_target_carrier_phase_within_one_metre_moving_receiver_model(tmp_path):
     assert json.loads((tmp_path / "result.json").read_text())["position_error_m"]["rms_3d"] <= 1.0
 
 
-@pytest.mark.xfail(strict=True, reason="issue 24 target not met yet: carrier_phase I_g 1.41 m RMS vs Klobuchar 1.20 m")
+@pytest.mark.xfail(strict=True, reason="issue 24 target not met: carrier_phase I_g 1.41 m RMS vs Klobuchar 1.20 m "
+                                       "(code_doppler's 1.07 m is below it); the phase rows fit the slant iono's "
+                                       "change that one zenith value cannot hold (0.40 m RMS misfit, sigma 5 cm)")
 def test_target_zenith_iono_below_klobuchar(runs):
     ir = runs["carrier_phase"]["iono_reference"]
     assert ir["rms_estimate_m"] < ir["rms_klobuchar_m"]
+
+
+def test_iono_free_block_is_reported(runs):
+    """The iono-free static fix is in result.json (its figures are checked against RTKLIB in
+    test_reference_position.py) and, where rnx2rtkp is installed, RTKLIB's iono-free SPP beside it."""
+    fx = runs["carrier_phase"]["iono_free_static"]
+    assert len(fx["enu_error_m"]) == 3 and fx["epochs"] == 120
+    assert fx["by_satellite"] and all(s.startswith("G") for s in fx["by_satellite"])
+    if HAVE_RTKLIB:
+        assert len(runs["carrier_phase"]["rtklib"]["iono_free"]["mean_enu"]) == 3
 
 
 def _one_line_error(capsys, argv):
