@@ -84,7 +84,11 @@ class GnssSolveOptions:
                                doc="the filter's tropo mapping: seed (1/sin of the geocentric elevation, eq 10-11), "
                                    "geodetic (1/sin above the ellipsoid's normal) or mops (RTCA DO-229: "
                                    "1.001/sqrt(0.002001 + sin^2 el), geodetic)")
-    sigma_pr_m: float = param(0.6, check=_POS, doc="code noise at the zenith (sigma / sin(el)), m")
+    sigma_pr_m: float = param(0.6, check=_POS, doc="code sigma at the zenith, m (see --code-weighting)")
+    code_weighting: str = param("sin", check=choice("sin", "rtklib"),
+                                doc="the code sigma's elevation law: sin (sigma / sin el) or rtklib (RTKLIB's "
+                                    "a^2 + b^2 / sin^2 el with a = b, the same sigma at the zenith: a floor for the "
+                                    "elevation-independent broadcast orbit and clock errors)")
     sigma_prr_m_s: float = param(0.02, check=_POS,
                                  doc="sigma of the phase-rate range-rate row (atmosphere and clock changes over "
                                      "the epoch), m/s")

@@ -44,7 +44,8 @@ sitl.app.gnss.solve.GnssSolveOptions:
   position (east -1.0 m, north -1.1 m on 0759 with carrier phase); by default (auto) the filter
   keeps its one zenith state I_g but maps it with Klobuchar's slant / vertical per line of sight
   (IonoTropoGnss.iono_obliquity), which carries the broadcast model's gradient;
-* noise: elevation-weighted code, sigma_pr_m / sin(el), 0.6 m: four times the white code noise
+* noise: elevation-weighted code, sigma_pr_m / sin(el) (code_weighting "sin"; "rtklib" adds
+  RTKLIB's elevation-independent floor, see code_sigma_m), 0.6 m: four times the white code noise
   measured on the file (epoch-differenced code minus carrier: 0.12-0.15 m sin(el)^-1), for the
   broadcast orbit and clock errors and the multipath that is correlated over minutes; a phase row
   sigma_phase_m = 5 cm: the phase noise is 3 mm, the rest is what a one-zenith atmosphere leaves.
@@ -80,7 +81,7 @@ INERT_SIGMA_PRR_M_S = 1e3
 CLOCK_PSD_FLOOR_1_S = 0.8e-20  # the seed's TCXO (filters.iono_tropo.CLOCK_PSD_1_S)
 SEED_SIGMA0_IONO_M = 20.0  # the seed's prior sigma of I_g (IonoTropoScenario.sigma0_iono_m)
 
-__all__ = ["VARIANTS", "run_filter", "clock_psd_from_phase"]
+__all__ = ["VARIANTS", "run_filter", "clock_psd_from_phase", "code_sigma_m"]
 
 
 def clock_psd_from_phase(ep, el_mask_deg: float) -> float:
@@ -241,7 +242,7 @@ def run_filter(ep, opts, progress=None) -> dict:
             continue
         sp_v, sv_v = sp_all[idx][None], sv_all[idx][None]
         sin_el = np.sin(el[idx])
-        sig_pr = opts.sigma_pr_m / sin_el
+        sig_pr = code_sigma_m(opts.sigma_pr_m, sin_el, opts.code_weighting)
 
         # ---- the rate rows (variants 1, 2): the file's Doppler, else the phase rate moved to the
         # epoch and rid of the filter's own atmosphere change; carrier_phase: inert
@@ -292,6 +293,17 @@ def run_filter(ep, opts, progress=None) -> dict:
     return {"series": ser, "counts": counts, "clock_psd_1_s": clock_psd, "iono_shape": shape, "iono_prior_m": iono0,
             "sigma0_iono_m": sd_iono0, "cmc_window_epochs": W,
             "epoch_interval_s": dt_nom, "wall_s": time.perf_counter() - t_wall}
+
+
+def code_sigma_m(sigma_zenith_m, sin_el, law: str = "sin"):
+    """Code sigma per line of sight: sigma / sin el (the seed's), or RTKLIB's variance
+    a^2 + b^2 / sin^2 el with a = b = sigma / sqrt 2 (RTKLIB 2.4.2 rtkpos.c and ppp.c varerr; the
+    same sigma at the zenith; its pntpos.c divides b^2 by sin el only once)."""
+    if law == "sin":
+        return sigma_zenith_m / sin_el
+    if law == "rtklib":
+        return sigma_zenith_m * np.sqrt(0.5 * (1.0 + 1.0 / sin_el**2))
+    raise ValueError(f"code weighting must be 'sin' or 'rtklib', got {law!r}")
 
 
 def _tropo_obliquity(name, sin_el):

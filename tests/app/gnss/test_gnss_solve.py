@@ -21,8 +21,10 @@ POSITION. The result.json `iono_free_static` block reports it per run.
 from __future__ import annotations
 
 import json
+import math
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from sitl.app.cli import main
@@ -124,6 +126,13 @@ def test_target_zenith_iono_below_klobuchar(runs):
     assert ir["rms_estimate_m"] < ir["rms_klobuchar_m"]
 
 
+def test_code_doppler_static_iono_below_klobuchar(runs):
+    """The zenith-iono part of the target is met by code_doppler with --static on this file (1.07 m
+    against Klobuchar's 1.20 m), not by the phase variants (xfail above; phase_increments 1.26 m)."""
+    ir = runs["code_doppler"]["iono_reference"]
+    assert ir["rms_estimate_m"] < ir["rms_klobuchar_m"]
+
+
 def test_iono_free_block_is_reported(runs):
     """The iono-free static fix is in result.json (its figures are checked against RTKLIB in
     test_reference_position.py) and, where rnx2rtkp is installed, RTKLIB's iono-free SPP beside it."""
@@ -159,3 +168,15 @@ def test_bad_input_is_one_line_exit_2(tmp_path, capsys):
     assert "--nav" in err
     err = _one_line_error(capsys, ["gnss", "solve", str(tmp_path / "missing.05o"), "--nav", NAV, "--out", out])
     assert "missing.05o" in err
+
+
+def test_code_sigma_laws():
+    """sigma / sin el, and RTKLIB's a^2 + b^2 / sin^2 el with a = b: equal at the zenith; at 30 deg
+    2 sigma and sqrt(5/2) sigma."""
+    from sitl.app.gnss.solve_filter import code_sigma_m
+
+    s = np.array([1.0, 0.5])
+    np.testing.assert_allclose(code_sigma_m(0.6, s, "sin"), [0.6, 1.2])
+    np.testing.assert_allclose(code_sigma_m(0.6, s, "rtklib"), [0.6, 0.6 * math.sqrt(2.5)])
+    with pytest.raises(ValueError):
+        code_sigma_m(0.6, s, "cos")
