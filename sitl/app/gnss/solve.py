@@ -1,5 +1,5 @@
 """`skyfuse gnss solve OBS --nav NAV --variant code_doppler|phase_increments|carrier_phase
-[--frequency L1] [--static] [--reference-ecef X,Y,Z] [--el-mask DEG] --out DIR`: real GPS L1
+[--frequency L1] [--static] [--reference-ecef X,Y,Z] [--fixed-position] [--el-mask DEG] --out DIR`: real GPS L1
 observations through the seed 000 filter (sitl.app.gnss.solve_filter; the data path is
 sitl.app.gnss.solve_data), scored against a reference position, the file's own dual-frequency
 ionosphere, broadcast Klobuchar and RTKLIB's L1 single-point solution (sitl.app.gnss.solve_reference).
@@ -71,6 +71,11 @@ class GnssSolveOptions:
                          doc="the seed 000 variant: code + rate, + code-minus-carrier increments, + carrier phase")
     frequency: str = param("L1", check=choice("L1"), doc="the single frequency solved")
     static: bool = param(False, check=switch(), doc="the receiver does not move (velocity 0, no process noise)")
+    fixed_position: bool = param(False, check=switch(),
+                                 doc="RTKLIB's fixed mode, a diagnostic: the receiver held at the reference position "
+                                     "(--reference-ecef, else APPROX POSITION); only the clock, atmosphere and "
+                                     "ambiguities are estimated, so the iono estimate shows what the atmosphere "
+                                     "states do when the geometry is known (position_error_m is then 0)")
     reference_ecef: tuple | None = param(None, check=optional(from_text(_ecef)), metavar="X,Y,Z",
                                          doc="reference position, ECEF m (default the file's APPROX POSITION)")
     el_mask_deg: float = param(10.0, check=number(0, hi=60), flag="--el-mask", metavar="DEG",
@@ -204,7 +209,7 @@ def run(opts: GnssSolveOptions, progress=None) -> dict:
         ref, ref_src = ep.approx_position_m, "APPROX POSITION XYZ of the observation file"
     else:
         raise GnssFileError(obs.path, None, "no APPROX POSITION XYZ in the header: give --reference-ecef X,Y,Z")
-    fr = run_filter(ep, opts, progress=progress)
+    fr = run_filter(ep, opts, progress=progress, fixed_position_m=ref if opts.fixed_position else None)
     t_proc = time.perf_counter() - t0
     ser = fr["series"]
     pos = np.stack([ser["pos_x"], ser["pos_y"], ser["pos_z"]], axis=1)
@@ -215,7 +220,7 @@ def run(opts: GnssSolveOptions, progress=None) -> dict:
     result = {
         "command": "gnss solve",
         "obs": str(opts.obs), "nav": str(opts.nav), "variant": opts.variant, "frequency": opts.frequency,
-        "static": opts.static, "el_mask_deg": opts.el_mask_deg,
+        "static": opts.static, "fixed_position": opts.fixed_position, "el_mask_deg": opts.el_mask_deg,
         "reference": {"ecef_m": ref.tolist(), "source": ref_src},
         "position_error_m": _stats(enu),
         "position_error_after_10min_m": _stats(np.where((ep.t_gps_s - ep.t_gps_s[0] >= 600.0)[:, None], enu, np.nan)),

@@ -104,14 +104,16 @@ def clock_psd_from_phase(ep, el_mask_deg: float) -> float:
     return max(float(np.var(dd)) / (C_M_S**2 * (2.0 / 3.0) * T**3), CLOCK_PSD_FLOOR_1_S)
 
 
-def _transition(opts, n_amb, clock_psd):
-    return IonoTropoTransition(n_amb=n_amb, q_accel_m2_s3=0.0 if opts.static else opts.q_accel_m2_s3,
+def _transition(opts, n_amb, clock_psd, still):
+    return IonoTropoTransition(n_amb=n_amb, q_accel_m2_s3=0.0 if still else opts.q_accel_m2_s3,
                                clock_psd_1_s=clock_psd, q_gps_glo_m2_s=0.0, q_iono_m2_s=opts.q_iono_m2_s,
                                q_tropo_m2_s=opts.q_tropo_m2_s)
 
 
-def run_filter(ep, opts, progress=None) -> dict:
-    """One pass of the chosen variant over the file's epochs; per-epoch series and counts."""
+def run_filter(ep, opts, progress=None, fixed_position_m=None) -> dict:
+    """One pass of the chosen variant over the file's epochs; per-epoch series and counts.
+    fixed_position_m (3,): RTKLIB's "fixed" mode -- the receiver held at known coordinates (no
+    position or velocity uncertainty, no motion); clock, atmosphere and ambiguities estimated."""
     variant = opts.variant
     if variant not in VARIANTS:
         raise ValueError(f"variant must be one of {VARIANTS}, got {variant!r}")
@@ -122,11 +124,12 @@ def run_filter(ep, opts, progress=None) -> dict:
     dt_nom = float(np.median(dts)) if T > 1 else 30.0
     mask = math.radians(opts.el_mask_deg)
     clock_psd = opts.clock_psd_1_s if opts.clock_psd_1_s is not None else clock_psd_from_phase(ep, opts.el_mask_deg)
+    still = opts.static or fixed_position_m is not None  # no motion: velocity 0, no process noise
     trans_cache = {}
 
     def trans(n):
         if n not in trans_cache:
-            trans_cache[n] = _transition(opts, n, clock_psd)
+            trans_cache[n] = _transition(opts, n, clock_psd, still)
         return trans_cache[n]
 
     have_klob = ep.ion_alpha is not None and ep.ion_beta is not None
@@ -147,7 +150,7 @@ def run_filter(ep, opts, progress=None) -> dict:
     is_gps = np.ones(S, dtype=bool)
     k0 = int(np.flatnonzero(np.isfinite(ep.ls_clock_m))[0])
     x = np.zeros((1, N_BASE))
-    x[0, 0:3] = ep.ls_pos_m[k0]
+    x[0, 0:3] = ep.ls_pos_m[k0] if fixed_position_m is None else fixed_position_m
     x[0, IDX_CLOCK] = ep.ls_clock_m[k0]
     iono0, sd_iono0 = opts.iono_prior_m, opts.sigma0_iono_m
     if iono0 is None:
@@ -161,9 +164,9 @@ def run_filter(ep, opts, progress=None) -> dict:
     x[0, IDX_IONO] = iono0
     x[0, IDX_TROPO] = opts.tropo_prior_m
     sd = np.zeros(N_BASE)
-    sd[0:3] = opts.sigma0_pos_m
+    sd[0:3] = opts.sigma0_pos_m if fixed_position_m is None else 0.0
     sd[IDX_CLOCK] = opts.sigma0_clock_bias_m
-    sd[4:7] = 0.0 if opts.static else opts.sigma0_vel_m_s
+    sd[4:7] = 0.0 if still else opts.sigma0_vel_m_s
     sd[IDX_DRIFT] = opts.sigma0_clock_drift_m_s
     sd[IDX_GPS_GLO] = 0.0
     sd[IDX_IONO] = sd_iono0

@@ -9,7 +9,9 @@ remove, checked with a second GSI station and RTKLIB (tests/data/gnss: 07590920.
   clocks), both stations come out ~2 m above their APPROX POSITION (ours +2.10 m / +1.88 m, RTKLIB's
   iono-free SPP mean +2.17 m / +1.89 m), nearly the same vector at both: an error that comes with
   the satellites (broadcast orbits and clocks over this hour, satellite code biases), common to
-  stations 3 km apart, and that an L1 solution carries as well. That is why an L1 filter whose
+  stations 3 km apart, and that an L1 solution carries as well. RTKLIB's static PPP on the same
+  broadcast orbits and clocks (iono-free code and phase, zenith tropo estimated) ends the hour
+  +1.40 m / +1.28 m up, again the same at both. That is why an L1 filter whose
   ionosphere is closer to the dual-frequency truth lands further from APPROX POSITION on this file
   (test_gnss_solve's xfails).
 """
@@ -104,3 +106,35 @@ def test_rtklib_baseline_from_3040_lands_on_0759_approx_position(tmp_path):
     assert int(last[5]) == 1, "RTKLIB's static baseline should end fixed (Q = 1)"
     enu = _enu([float(v) for v in last[2:5]], APPROX_0759)
     assert np.linalg.norm(enu) < 0.2, enu
+
+
+PPP_CONF = """pos1-posmode       =ppp-static
+pos1-frequency     =l1+l2
+pos1-elmask        =10
+pos1-ionoopt       =dual-freq
+pos1-tropopt       =est-ztd
+pos1-sateph        =brdc
+pos1-navsys        =1
+pos2-armode        =off
+out-solformat      =xyz
+out-timesys        =gpst
+out-timeform       =tow
+"""
+
+
+@pytest.mark.skipif(not HAVE_RTKLIB, reason="rnx2rtkp not installed (Debian package rtklib)")
+def test_rtklib_static_ppp_on_broadcast_orbits_is_also_metres_up_at_both(tmp_path):
+    """RTKLIB's static PPP with the broadcast orbits and clocks (iono-free code and phase, zenith
+    tropo estimated) after the hour: 0759 (-0.42, -0.30, +1.40) m, 3040 (-0.34, -0.47, +1.28) m
+    from their APPROX POSITIONs (RTKLIB's own sigma ~0.4 m per axis): the same offset at both."""
+    conf = tmp_path / "ppp.conf"
+    conf.write_text(PPP_CONF)
+    last = {}
+    for name, obs, ref in (("0759", OBS_0759, APPROX_0759), ("3040", OBS_3040, APPROX_3040)):
+        out = tmp_path / f"{name}.pos"
+        subprocess.run([rnx2rtkp_path(), "-k", str(conf), "-o", str(out), str(obs), str(NAV)], check=True,
+                       capture_output=True, timeout=120)
+        rows = [ln.split() for ln in out.read_text().splitlines() if ln.strip() and not ln.startswith("%")]
+        last[name] = _enu([float(v) for v in rows[-1][2:5]], ref)
+        assert last[name][2] > 0.8, (name, last[name])
+    assert np.all(np.abs(last["0759"] - last["3040"]) < 0.3)
