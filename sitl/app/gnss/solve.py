@@ -1,5 +1,5 @@
 """`skyfuse gnss solve OBS --nav NAV --variant code_doppler|phase_increments|carrier_phase
-[--frequency L1] [--static] [--reference-ecef X,Y,Z] [--el-mask DEG] --out DIR`: real GPS L1
+[--frequency L1] [--static] [--reference-ecef X,Y,Z] [--fixed-position] [--el-mask DEG] --out DIR`: real GPS L1
 observations through the seed 000 filter (sitl.app.gnss.solve_filter; the data path is
 sitl.app.gnss.solve_data), scored against a reference position, the file's own dual-frequency
 ionosphere, broadcast Klobuchar and RTKLIB's L1 single-point solution (sitl.app.gnss.solve_reference).
@@ -10,7 +10,11 @@ DIR/result.json:
   series {t_gps_s, iono_zenith_m, iono_sd_m, tropo_zenith_m, tropo_sd_m, enu_error_m, n_sats}: per epoch;
   iono_reference {dual_frequency_zenith_m (per epoch), rms_estimate_m (the filter's I_g against it),
     klobuchar_zenith_m, rms_klobuchar_m, receiver_code_bias (how it is treated, its value), arcs};
-  rtklib {l1_spp_rms_3d_m, mean_enu, std_enu, epochs} where rnx2rtkp is installed (else a reason);
+  rtklib {l1_spp_rms_3d_m, mean_enu, std_enu, epochs, iono_free {mean_enu, std_enu, rms_3d_m}} where
+    rnx2rtkp is installed (else a reason);
+  iono_free_static {enu_error_m, by_satellite, ...}: the file's own dual-frequency iono-free code,
+    one static least-squares position with the same broadcast orbits and clocks (solve_reference.
+    iono_free_static_fix): the position error that remains with the ionosphere taken out;
   settings, counts (slips, resets, increments), timing.
 DIR/solve.png: ENU error and the zenith ionosphere against the references over time.
 A bad file or flag: one line naming it, exit 2.
@@ -67,6 +71,11 @@ class GnssSolveOptions:
                          doc="the seed 000 variant: code + rate, + code-minus-carrier increments, + carrier phase")
     frequency: str = param("L1", check=choice("L1"), doc="the single frequency solved")
     static: bool = param(False, check=switch(), doc="the receiver does not move (velocity 0, no process noise)")
+    fixed_position: bool = param(False, check=switch(),
+                                 doc="RTKLIB's fixed mode, a diagnostic: the receiver held at the reference position "
+                                     "(--reference-ecef, else APPROX POSITION); only the clock, atmosphere and "
+                                     "ambiguities are estimated, so the iono estimate shows what the atmosphere "
+                                     "states do when the geometry is known (position_error_m is then 0)")
     reference_ecef: tuple | None = param(None, check=optional(from_text(_ecef)), metavar="X,Y,Z",
                                          doc="reference position, ECEF m (default the file's APPROX POSITION)")
     el_mask_deg: float = param(10.0, check=number(0, hi=60), flag="--el-mask", metavar="DEG",
@@ -80,7 +89,11 @@ class GnssSolveOptions:
                                doc="the filter's tropo mapping: seed (1/sin of the geocentric elevation, eq 10-11), "
                                    "geodetic (1/sin above the ellipsoid's normal) or mops (RTCA DO-229: "
                                    "1.001/sqrt(0.002001 + sin^2 el), geodetic)")
-    sigma_pr_m: float = param(0.6, check=_POS, doc="code noise at the zenith (sigma / sin(el)), m")
+    sigma_pr_m: float = param(0.6, check=_POS, doc="code sigma at the zenith, m (see --code-weighting)")
+    code_weighting: str = param("sin", check=choice("sin", "rtklib"),
+                                doc="the code sigma's elevation law: sin (sigma / sin el) or rtklib (RTKLIB's "
+                                    "a^2 + b^2 / sin^2 el with a = b, the same sigma at the zenith: a floor for the "
+                                    "elevation-independent broadcast orbit and clock errors)")
     sigma_prr_m_s: float = param(0.02, check=_POS,
                                  doc="sigma of the phase-rate range-rate row (atmosphere and clock changes over "
                                      "the epoch), m/s")
@@ -196,7 +209,7 @@ def run(opts: GnssSolveOptions, progress=None) -> dict:
         ref, ref_src = ep.approx_position_m, "APPROX POSITION XYZ of the observation file"
     else:
         raise GnssFileError(obs.path, None, "no APPROX POSITION XYZ in the header: give --reference-ecef X,Y,Z")
-    fr = run_filter(ep, opts, progress=progress)
+    fr = run_filter(ep, opts, progress=progress, fixed_position_m=ref if opts.fixed_position else None)
     t_proc = time.perf_counter() - t0
     ser = fr["series"]
     pos = np.stack([ser["pos_x"], ser["pos_y"], ser["pos_z"]], axis=1)
@@ -207,7 +220,7 @@ def run(opts: GnssSolveOptions, progress=None) -> dict:
     result = {
         "command": "gnss solve",
         "obs": str(opts.obs), "nav": str(opts.nav), "variant": opts.variant, "frequency": opts.frequency,
-        "static": opts.static, "el_mask_deg": opts.el_mask_deg,
+        "static": opts.static, "fixed_position": opts.fixed_position, "el_mask_deg": opts.el_mask_deg,
         "reference": {"ecef_m": ref.tolist(), "source": ref_src},
         "position_error_m": _stats(enu),
         "position_error_after_10min_m": _stats(np.where((ep.t_gps_s - ep.t_gps_s[0] >= 600.0)[:, None], enu, np.nan)),
@@ -237,8 +250,23 @@ def run(opts: GnssSolveOptions, progress=None) -> dict:
         "settings": {k: (str(v) if isinstance(v, Path) else v) for k, v in asdict(opts).items()},
         "timing_s": {"read": t_read, "read_and_process": t_proc, "filter": fr["wall_s"]},
     }
+    result["iono_free_static"] = iono_free_block(ep, ref, opts.el_mask_deg)
     result["rtklib"] = rtklib_block(opts, ref) if not opts.no_rtklib else {"skipped": "--no-rtklib"}
     return result
+
+
+def iono_free_block(ep, ref, el_mask_deg) -> dict:
+    from sitl.app.gnss.solve_reference import iono_free_static_fix
+
+    fx = iono_free_static_fix(ep, ref, el_mask_deg)
+    if fx is None:
+        return {"skipped": "no second-frequency code (P2) in the file"}
+    return {"enu_error_m": fx["enu_error_m"], "error_3d_m": float(np.linalg.norm(fx["enu_error_m"])),
+            "pos_ecef_m": fx["pos_ecef_m"], "rms_residual_m": fx["rms_residual_m"], "by_satellite": fx["by_satellite"],
+            "epochs": fx["epochs"], "samples": fx["samples"],
+            "what": "(gamma C1 - P2)/(gamma - 1) with the broadcast orbits and clocks (no TGD), Saastamoinen, one "
+                    "static position and a clock per epoch, weights 1/(a^2 + b^2/sin^2 el): the error left with "
+                    "the ionosphere removed -- broadcast orbit/clock, satellite P1-C1 biases (x2.55), multipath"}
 
 
 def rtklib_block(opts, ref) -> dict:
@@ -251,10 +279,16 @@ def rtklib_block(opts, ref) -> dict:
         return {"skipped": "RTKLIB gave no solution"}
     t, xyz = out
     s = _stats(_enu(xyz, ref))
-    return {"l1_spp_rms_3d_m": s["rms_3d"], "mean_enu": s["mean_enu"], "std_enu": s["std_enu"], "epochs": s["epochs"],
-            "t_gps_s": t, "enu_error_m": _enu(xyz, ref),
-            "settings": "pos1-posmode single, frequency l1, ionoopt brdc (Klobuchar), tropopt saas, navsys GPS, "
-                        f"elmask {opts.el_mask_deg:g}"}
+    block = {"l1_spp_rms_3d_m": s["rms_3d"], "mean_enu": s["mean_enu"], "std_enu": s["std_enu"], "epochs": s["epochs"],
+             "t_gps_s": t, "enu_error_m": _enu(xyz, ref),
+             "settings": "pos1-posmode single, frequency l1, ionoopt brdc (Klobuchar), tropopt saas, navsys GPS, "
+                         f"elmask {opts.el_mask_deg:g}"}
+    out_if = run_rtklib(opts.obs, opts.nav, el_mask_deg=opts.el_mask_deg, ionoopt="dual-freq")
+    if out_if is not None and out_if[1].size:
+        si = _stats(_enu(out_if[1], ref))
+        block["iono_free"] = {"mean_enu": si["mean_enu"], "std_enu": si["std_enu"], "rms_3d_m": si["rms_3d"],
+                              "epochs": si["epochs"], "settings": "as above with frequency l1+l2, ionoopt dual-freq"}
+    return block
 
 
 def _m(v) -> str:
@@ -336,5 +370,11 @@ def main(args) -> int:
           f"std {', '.join(f'{v:.2f}' for v in pe['std_enu'])}) over {pe['epochs']} epochs; RTKLIB L1 SPP {rtk}")
     print(f"zenith iono RMS against the dual-frequency reference: filter {_m(ir['rms_estimate_m'])}, "
           f"Klobuchar {_m(ir['rms_klobuchar_m'])}; read + process {res['timing_s']['read_and_process']:.2f} s")
+    fx = res["iono_free_static"]
+    if "enu_error_m" in fx:
+        rif = rt.get("iono_free", {}).get("mean_enu")
+        print("with the ionosphere removed by the second frequency (iono-free static fix): ENU error "
+              + ", ".join(f"{v:+.2f}" for v in fx["enu_error_m"]) + " m"
+              + (" (RTKLIB iono-free mean " + ", ".join(f"{v:+.2f}" for v in rif) + " m)" if rif else ""))
     print(f"wrote {out / 'result.json'}, {out / 'solve.png'}")
     return 0

@@ -44,7 +44,8 @@ sitl.app.gnss.solve.GnssSolveOptions:
   position (east -1.0 m, north -1.1 m on 0759 with carrier phase); by default (auto) the filter
   keeps its one zenith state I_g but maps it with Klobuchar's slant / vertical per line of sight
   (IonoTropoGnss.iono_obliquity), which carries the broadcast model's gradient;
-* noise: elevation-weighted code, sigma_pr_m / sin(el), 0.6 m: four times the white code noise
+* noise: elevation-weighted code, sigma_pr_m / sin(el) (code_weighting "sin"; "rtklib" adds
+  RTKLIB's elevation-independent floor, see code_sigma_m), 0.6 m: four times the white code noise
   measured on the file (epoch-differenced code minus carrier: 0.12-0.15 m sin(el)^-1), for the
   broadcast orbit and clock errors and the multipath that is correlated over minutes; a phase row
   sigma_phase_m = 5 cm: the phase noise is 3 mm, the rest is what a one-zenith atmosphere leaves.
@@ -80,7 +81,7 @@ INERT_SIGMA_PRR_M_S = 1e3
 CLOCK_PSD_FLOOR_1_S = 0.8e-20  # the seed's TCXO (filters.iono_tropo.CLOCK_PSD_1_S)
 SEED_SIGMA0_IONO_M = 20.0  # the seed's prior sigma of I_g (IonoTropoScenario.sigma0_iono_m)
 
-__all__ = ["VARIANTS", "run_filter", "clock_psd_from_phase"]
+__all__ = ["VARIANTS", "run_filter", "clock_psd_from_phase", "code_sigma_m"]
 
 
 def clock_psd_from_phase(ep, el_mask_deg: float) -> float:
@@ -103,14 +104,16 @@ def clock_psd_from_phase(ep, el_mask_deg: float) -> float:
     return max(float(np.var(dd)) / (C_M_S**2 * (2.0 / 3.0) * T**3), CLOCK_PSD_FLOOR_1_S)
 
 
-def _transition(opts, n_amb, clock_psd):
-    return IonoTropoTransition(n_amb=n_amb, q_accel_m2_s3=0.0 if opts.static else opts.q_accel_m2_s3,
+def _transition(opts, n_amb, clock_psd, still):
+    return IonoTropoTransition(n_amb=n_amb, q_accel_m2_s3=0.0 if still else opts.q_accel_m2_s3,
                                clock_psd_1_s=clock_psd, q_gps_glo_m2_s=0.0, q_iono_m2_s=opts.q_iono_m2_s,
                                q_tropo_m2_s=opts.q_tropo_m2_s)
 
 
-def run_filter(ep, opts, progress=None) -> dict:
-    """One pass of the chosen variant over the file's epochs; per-epoch series and counts."""
+def run_filter(ep, opts, progress=None, fixed_position_m=None) -> dict:
+    """One pass of the chosen variant over the file's epochs; per-epoch series and counts.
+    fixed_position_m (3,): RTKLIB's "fixed" mode -- the receiver held at known coordinates (no
+    position or velocity uncertainty, no motion); clock, atmosphere and ambiguities estimated."""
     variant = opts.variant
     if variant not in VARIANTS:
         raise ValueError(f"variant must be one of {VARIANTS}, got {variant!r}")
@@ -121,11 +124,12 @@ def run_filter(ep, opts, progress=None) -> dict:
     dt_nom = float(np.median(dts)) if T > 1 else 30.0
     mask = math.radians(opts.el_mask_deg)
     clock_psd = opts.clock_psd_1_s if opts.clock_psd_1_s is not None else clock_psd_from_phase(ep, opts.el_mask_deg)
+    still = opts.static or fixed_position_m is not None  # no motion: velocity 0, no process noise
     trans_cache = {}
 
     def trans(n):
         if n not in trans_cache:
-            trans_cache[n] = _transition(opts, n, clock_psd)
+            trans_cache[n] = _transition(opts, n, clock_psd, still)
         return trans_cache[n]
 
     have_klob = ep.ion_alpha is not None and ep.ion_beta is not None
@@ -146,7 +150,7 @@ def run_filter(ep, opts, progress=None) -> dict:
     is_gps = np.ones(S, dtype=bool)
     k0 = int(np.flatnonzero(np.isfinite(ep.ls_clock_m))[0])
     x = np.zeros((1, N_BASE))
-    x[0, 0:3] = ep.ls_pos_m[k0]
+    x[0, 0:3] = ep.ls_pos_m[k0] if fixed_position_m is None else fixed_position_m
     x[0, IDX_CLOCK] = ep.ls_clock_m[k0]
     iono0, sd_iono0 = opts.iono_prior_m, opts.sigma0_iono_m
     if iono0 is None:
@@ -160,9 +164,9 @@ def run_filter(ep, opts, progress=None) -> dict:
     x[0, IDX_IONO] = iono0
     x[0, IDX_TROPO] = opts.tropo_prior_m
     sd = np.zeros(N_BASE)
-    sd[0:3] = opts.sigma0_pos_m
+    sd[0:3] = opts.sigma0_pos_m if fixed_position_m is None else 0.0
     sd[IDX_CLOCK] = opts.sigma0_clock_bias_m
-    sd[4:7] = 0.0 if opts.static else opts.sigma0_vel_m_s
+    sd[4:7] = 0.0 if still else opts.sigma0_vel_m_s
     sd[IDX_DRIFT] = opts.sigma0_clock_drift_m_s
     sd[IDX_GPS_GLO] = 0.0
     sd[IDX_IONO] = sd_iono0
@@ -241,7 +245,7 @@ def run_filter(ep, opts, progress=None) -> dict:
             continue
         sp_v, sv_v = sp_all[idx][None], sv_all[idx][None]
         sin_el = np.sin(el[idx])
-        sig_pr = opts.sigma_pr_m / sin_el
+        sig_pr = code_sigma_m(opts.sigma_pr_m, sin_el, opts.code_weighting)
 
         # ---- the rate rows (variants 1, 2): the file's Doppler, else the phase rate moved to the
         # epoch and rid of the filter's own atmosphere change; carrier_phase: inert
@@ -292,6 +296,17 @@ def run_filter(ep, opts, progress=None) -> dict:
     return {"series": ser, "counts": counts, "clock_psd_1_s": clock_psd, "iono_shape": shape, "iono_prior_m": iono0,
             "sigma0_iono_m": sd_iono0, "cmc_window_epochs": W,
             "epoch_interval_s": dt_nom, "wall_s": time.perf_counter() - t_wall}
+
+
+def code_sigma_m(sigma_zenith_m, sin_el, law: str = "sin"):
+    """Code sigma per line of sight: sigma / sin el (the seed's), or RTKLIB's variance
+    a^2 + b^2 / sin^2 el with a = b = sigma / sqrt 2 (RTKLIB 2.4.2 rtkpos.c and ppp.c varerr; the
+    same sigma at the zenith; its pntpos.c divides b^2 by sin el only once)."""
+    if law == "sin":
+        return sigma_zenith_m / sin_el
+    if law == "rtklib":
+        return sigma_zenith_m * np.sqrt(0.5 * (1.0 + 1.0 / sin_el**2))
+    raise ValueError(f"code weighting must be 'sin' or 'rtklib', got {law!r}")
 
 
 def _tropo_obliquity(name, sin_el):

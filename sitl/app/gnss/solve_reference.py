@@ -12,6 +12,16 @@ C1 is taken for P1 (the P1-C1 satellite bias, a few decimetres of code, ignored)
 code bias b_rx / (gamma - 1) is estimated as one constant per file with the zenith values by
 least squares, levelled_jk = m_I(el_jk) I_z(k) + b (the seed's thin-shell mapping): I_z per
 epoch, b common, solvable because m_I differs across the satellites of an epoch.
+
+Iono-free static fix (iono_free_static_fix): what the file's two frequencies say the position is
+once the ionosphere is gone (first order), with the same broadcast orbits and clocks the L1 filter
+uses. P_IF = (gamma C1 - P2) / (gamma - 1) + c dt_sv (the broadcast clock refers to the P1/P2
+iono-free combination: no TGD), Saastamoinen with a standard atmosphere, one static position and
+one clock per epoch by weighted least squares (RTKLIB's code variance a^2 + b^2 / sin^2 el, a = b).
+Its error against the reference position is the part of an L1 solution's error that no ionosphere
+estimate can remove: broadcast orbit and clock errors projected on the position (nearly constant
+over an hour), the satellites' P1-C1 code biases (ignored; times gamma / (gamma - 1) = 2.55 in
+this combination), multipath.
 """
 from __future__ import annotations
 
@@ -84,6 +94,50 @@ def zenith_and_bias(slant_m, m_iono):
     return iz, float(sol[-1]), float(np.sqrt(np.mean(res * res)))
 
 
+IF_SIGMA_M = 0.3  # RTKLIB's a = b = err-ratio 100 x 0.003 m; only the relative weights matter here
+IF_ITERATIONS = 4
+
+
+def iono_free_code_m(ep):
+    """(T, S) iono-free code with the broadcast satellite clock (ep.pr_m holds C1 + c (dt_sv - TGD))."""
+    return (GAMMA * ep.c1_m - ep.p2_m) / (GAMMA - 1.0) + (ep.pr_m - ep.c1_m) + C_M_S * np.nan_to_num(ep.tgd_s)
+
+
+def iono_free_static_fix(ep, ref_ecef_m, el_mask_deg: float):
+    """One static position (and a clock per epoch) from the iono-free code of the whole file:
+    {"pos_ecef_m", "enu_error_m" (against ref), "rms_residual_m", "by_satellite" (mean, std of the
+    residual, m), "epochs", "samples"}, or None without second-frequency code."""
+    from sitl.geodesy import ecef_to_aer, ecef_to_enu, ecef_to_geodetic
+    from sitl.gnss.saastamoinen import saastamoinen_delay_m
+
+    ref = np.asarray(ref_ecef_m, float)
+    lat, lon, h = ecef_to_geodetic(ref)
+    p_if = iono_free_code_m(ep)
+    x = ref.copy()
+    for _ in range(IF_ITERATIONS):
+        _, el, _ = ecef_to_aer(x, ep.sat_pos_m)
+        ok = np.isfinite(p_if) & np.isfinite(el) & (el >= np.radians(el_mask_deg))
+        kk, jj = np.nonzero(ok)
+        if kk.size <= 3 + np.unique(kk).size:  # no second-frequency code, or too few samples
+            return None
+        d = ep.sat_pos_m[kk, jj] - x
+        rho = np.linalg.norm(d, axis=-1)
+        e = el[kk, jj]
+        y = p_if[kk, jj] - rho - saastamoinen_delay_m(lat, h, e)
+        epochs, col = np.unique(kk, return_inverse=True)
+        A = np.zeros((kk.size, 3 + epochs.size))
+        A[:, :3] = -d / rho[:, None]
+        A[np.arange(kk.size), 3 + col] = 1.0
+        w = 1.0 / (IF_SIGMA_M * np.sqrt(1.0 + 1.0 / np.sin(e) ** 2))
+        sol, *_ = np.linalg.lstsq(A * w[:, None], y * w, rcond=None)
+        x = x + sol[:3]
+    res = y - A @ sol
+    by_sat = {ep.sats[j]: {"mean_m": float(res[jj == j].mean()), "std_m": float(res[jj == j].std()),
+                           "samples": int((jj == j).sum())} for j in np.unique(jj)}
+    return {"pos_ecef_m": x, "enu_error_m": ecef_to_enu(x, lat, lon, h), "rms_residual_m": float(np.sqrt(np.mean(res**2))),
+            "by_satellite": by_sat, "epochs": int(epochs.size), "samples": int(kk.size)}
+
+
 # ------------------------------------------------------------------ RTKLIB
 
 RTKLIB_CONF = """pos1-posmode       =single
@@ -103,12 +157,15 @@ def rnx2rtkp_path():
 
 
 def run_rtklib(obs_path, nav_path, el_mask_deg: float = 10.0, ionoopt="brdc", tropopt="saas"):
-    """RTKLIB's L1 single-point ECEF solution: (t_sow (N,), xyz (N, 3)), or None if absent."""
+    """RTKLIB's single-point ECEF solution: (t_sow (N,), xyz (N, 3)), or None if absent. L1 unless
+    ionoopt is "dual-freq" (then L1+L2, RTKLIB's iono-free combination)."""
     exe = rnx2rtkp_path()
     if exe is None:
         return None
     conf = (RTKLIB_CONF.replace("=10", f"={el_mask_deg:g}").replace("=brdc", f"={ionoopt}")
             .replace("=saas", f"={tropopt}"))
+    if ionoopt == "dual-freq":
+        conf = conf.replace("pos1-frequency     =l1\n", "pos1-frequency     =l1+l2\n")
     with tempfile.TemporaryDirectory() as d:
         cf = Path(d) / "spp.conf"
         cf.write_text(conf)
