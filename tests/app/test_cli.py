@@ -11,7 +11,7 @@ import pytest
 from sitl.app.cli import build_parser, main
 
 SUBCOMMANDS = [[], ["demo"], ["run"], ["replay"], ["bench", "live"], ["experiment"], ["experiment", "ekf-vs-ukf"], ["experiment", "iono-tropo"], ["bench"],
-               ["bench", "filters"], ["bench", "iono-tropo"]]
+               ["bench", "filters"], ["bench", "iono-tropo"], ["bench", "mavlink"]]
 
 
 @pytest.mark.parametrize("words", SUBCOMMANDS)
@@ -32,6 +32,7 @@ def test_help_on_every_subcommand(words, capsys):
         (["experiment", "ekf-vs-ukf", "--seed", "-1"], "integer >= 0"),
         (["experiment", "ekf-vs-ukf", "--sigma-a", "nan"], "positive finite"),
         (["bench", "filters", "--trials", "0"], "positive integer"),
+        (["bench", "mavlink", "--uavs", "250"], "integer in 1..249"),
         (["bench", "iono-tropo", "--duration", "-1"], "positive finite"),
         (["bench", "iono-tropo", "--el-mask-deg", "80", "--duration", "5"], "satellites in view"),
         (["frobnicate"], "invalid choice"),

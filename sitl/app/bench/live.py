@@ -19,6 +19,9 @@ Per size:
   * ``cpu_ms_per_uav_s``: CPU time of the vehicle workers per UAV per simulated second
     (at speed 1, x 1e-3 = the share of a core one UAV costs), and the same for the ground
     station;
+  * ``command_ack_ms`` (MAVLink on): COMMAND_LONG -> COMMAND_ACK round trips of a GCS socket
+    to 8 vehicles spread over the swarm, 10 commands a second, p50 / p95 / max (a reply is due
+    within one MAVLink epoch);
   * the workers' own figures (step_ms, tick_ms, messages sent), and where a vehicle worker's
     world tick goes (``vehicle_tick_parts_ms``, p50 / p99 of each part: MAVLink input, the
     world's step, its bus puts, the MAVLink streams, and the thread's CPU time over the tick --
@@ -143,6 +146,73 @@ class _Probe:
         self.sub.close()
 
 
+class _AckProbe(threading.Thread):
+    """COMMAND_LONG -> COMMAND_ACK round trips, as a GCS sees them: every ``period_s`` a
+    MAV_CMD_GET_MESSAGE_INTERVAL (a harmless command every vehicle answers at once) to the next
+    of ``targets`` (system ids spread over the swarm) from a socket of its own (the replies come
+    back to it), one outstanding per vehicle; the wall time from send to the ACK, measured while
+    ``measure`` is set. A command unanswered within 2 s counts as lost."""
+
+    def __init__(self, targets, base_port: int, measure: threading.Event, period_s: float = 0.1):
+        super().__init__(daemon=True)
+        from pymavlink.dialects.v20 import ardupilotmega as mavlink
+        self.mavlink = mavlink
+        self.mav = mavlink.MAVLink(None, srcSystem=254, srcComponent=190)
+        self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        self.sock.bind(("127.0.0.1", 0))
+        self.sock.settimeout(0.02)
+        self.targets = list(targets)
+        self.base = int(base_port)
+        self.measure, self.period_s = measure, float(period_s)
+        self.stop = threading.Event()
+        self.lat: list[float] = []
+        self.sent = self.lost = 0
+
+    def run(self):
+        from sitl.pacing import perf_now
+        pending: dict = {}
+        k, next_send = 0, perf_now()
+        while not self.stop.is_set():
+            now = perf_now()
+            if now >= next_send and self.targets:
+                sysid = self.targets[k % len(self.targets)]
+                k += 1
+                next_send = now + self.period_s
+                if sysid in pending and now - pending[sysid] > 2.0:
+                    del pending[sysid]
+                    self.lost += 1
+                if sysid not in pending:
+                    buf = self.mav.command_long_encode(sysid, 1, self.mavlink.MAV_CMD_GET_MESSAGE_INTERVAL, 0,
+                                                       33, 0, 0, 0, 0, 0, 0).pack(self.mav)
+                    self.mav.seq = (self.mav.seq + 1) % 256
+                    try:
+                        self.sock.sendto(buf, ("127.0.0.1", self.base + 10 * (sysid - 1)))
+                    except OSError:
+                        continue
+                    pending[sysid] = perf_now()
+                    if self.measure.is_set():
+                        self.sent += 1
+            try:
+                data = self.sock.recv(65535)
+            except (TimeoutError, OSError):
+                continue
+            t = perf_now()
+            try:
+                msgs = self.mav.parse_buffer(data) or []
+            except self.mavlink.MAVError:
+                continue
+            for m in msgs:
+                if m.get_type() == "COMMAND_ACK" and m.command == self.mavlink.MAV_CMD_GET_MESSAGE_INTERVAL:
+                    t0 = pending.pop(m.get_srcSystem(), None)
+                    if t0 is not None and self.measure.is_set():
+                        self.lat.append(t - t0)
+
+    def close(self):
+        self.stop.set()
+        self.join(1.0)
+        self.sock.close()
+
+
 def _free_udp_base(n: int, first: int = 20000, last: int = 60000) -> int:
     """A base port with 127.0.0.1:base + 10 i free for UDP for every i < n (the vehicles' MAVLink
     ports; a shared machine's tests take some of 20000+): the first such from ``first``."""
@@ -184,9 +254,14 @@ def run_size(n: int, args, router_ep: str) -> dict:
         mavlink={"enabled": not args.no_mavlink and n <= 249, "gcs": f"127.0.0.1:{sink.port if sink else 14550}",
                  "base_port": base, "tlog": False})
     started = threading.Event()
+    # GCS commands to 8 vehicles spread over the swarm, 10 a second (MAVLink on)
+    acks = (_AckProbe(sorted({1 + (i * (n - 1)) // 7 for i in range(8)}), base, probe.measure)
+            if scn.mavlink.enabled else None)
 
     def on_started(sup):
         started.set()
+        if acks is not None:
+            acks.start()
         # measure after the first epochs (the start-up transient is not the steady load)
         threading.Timer(min(3.0, args.duration / 4), probe.measure.set).start()
 
@@ -200,6 +275,8 @@ def run_size(n: int, args, router_ep: str) -> dict:
         cpu1 = cpu_now()
         probe.measure.clear()
         probe.close()
+        if acks is not None:
+            acks.close()
         if sink is not None:
             sink.close()
     epochs = int(args.duration * args.rate) + 1
@@ -220,6 +297,11 @@ def run_size(n: int, args, router_ep: str) -> dict:
             "bus_latency_ms": {"p50": None if not lat else 1e3 * _pct(lat, 0.5),
                                "p99": None if not lat else 1e3 * _pct(lat, 0.99),
                                "max": None if not lat else 1e3 * max(lat), "probes": len(lat)},
+            "command_ack_ms": None if acks is None else {
+                "p50": None if not acks.lat else 1e3 * _pct(acks.lat, 0.5),
+                "p95": None if not acks.lat else 1e3 * _pct(acks.lat, 0.95),
+                "max": None if not acks.lat else 1e3 * max(acks.lat), "answered": len(acks.lat),
+                "sent": acks.sent, "lost": acks.lost},
             "cpu_ms_per_uav_s": 1e3 * cpu_v / (n * args.duration),
             "gs_cpu_ms_per_s": 1e3 * float(gs.get("cpu_s", 0.0)) / args.duration,
             # this process during the run: the router, the launcher's session, the probes, start-up
@@ -250,6 +332,11 @@ def main(args) -> int:
                   f"{_fmt([lat['p50']])}/{_fmt([lat['p99']])} ms; CPU {r['cpu_ms_per_uav_s']:.2f} ms per UAV-s "
                   f"(GS {r['gs_cpu_ms_per_s']:.0f} ms/s, router+launcher {r['router_launcher_cpu_ms_per_s']:.0f} ms/s); "
                   f"load {r['load_avg'][0]:.1f}", flush=True)
+            ack = r["command_ack_ms"]
+            if ack and ack["answered"]:
+                print(f"    COMMAND_LONG -> COMMAND_ACK ({ack['answered']} of {ack['sent']} answered, {ack['lost']} lost): "
+                      f"p50 {ack['p50']:.1f} ms, p95 {ack['p95']:.1f} ms, max {ack['max']:.1f} ms "
+                      f"(one MAVLink epoch: {1e3 / args.rate:.0f} ms)", flush=True)
             for w, tp in enumerate(r["vehicle_tick_parts_ms"]):
                 if tp:  # where a world tick's time goes, per vehicle worker (vehicles.process.TICK_PARTS)
                     print(f"    vehicles{w} world tick p50/p99 ms: " + ", ".join(
