@@ -45,6 +45,19 @@ def _backend(key, value):
     return value
 
 
+def _height_band(key, value) -> tuple:
+    """() or (lowest, highest) finite heights, m, lowest < highest, as a tuple of floats."""
+    if isinstance(value, (tuple, list)) and not len(value):
+        return ()
+    try:
+        b = np.asarray(value, dtype=float)
+    except (TypeError, ValueError):
+        b = None
+    if b is None or b.shape != (2,) or not np.all(np.isfinite(b)) or not b[0] < b[1]:
+        raise ParamError(key, f"expected () or [lowest, highest] finite heights in m, lowest < highest, got {value!r}")
+    return (float(b[0]), float(b[1]))
+
+
 def _prior_mean(key, value) -> tuple:
     """() or 6 finite numbers, as a tuple of floats."""
     if isinstance(value, (tuple, list)) and not len(value):
@@ -97,6 +110,12 @@ class LocatorConfig:
                                                             what="a number > 0 (inf: no prior)"),
                                        doc="prior sigma of the beacon's height about the UAVs' mean height, m "
                                            "(inf: no height prior, no height scan)")
+    search_height_m: tuple = param(
+        (), check=_height_band,
+        doc="(lowest, highest) height above the ellipsoid the beacon can have, m: the search volume the ground "
+            "station declares (what it knows of the emitter, not where it is). The blind start's two sides of the "
+            "UAVs' plane have the same ranges; a side whose height lies outside the band by more than 3 of its "
+            "sigmas is refused (mirror_outside_volume), so the other is the start. (): no band")
     init_vel_sigma_m_s: float = param(300.0, check=_POSITIVE, doc="prior sigma of each beacon velocity component, m/s")
     init_cov_scale: float = param(4.0, check=_POSITIVE,
                                   doc="the initial covariance is the window's inverse information times this")

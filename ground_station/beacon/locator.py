@@ -7,7 +7,8 @@ once and publishes one Estimate per started trial on ``<run>/gs/estimate/beacon/
 limits, a UAV position off the Earth's neighbourhood, a UAV sigma above ``max_uav_pos_sigma_m`` /
 ``max_uav_vel_sigma_m_s``, one older than the lag window (``too_late``); copies ((source,
 incarnation, seq) seen before) count once as ``duplicate``.  Modes: "fused" (>= 3 observers
-used), "degraded" (1-2), "coast" (0), "lost" after ``max_coast_s`` without 3.  Late measurements
+used), "degraded" (1-2), "coast" (0), "lost" after ``max_coast_s`` without 3; published as
+"ambiguous" (unless lost) while the blind start's mirror hypothesis is carried.  Late measurements
 (``lag_window_s``): the epoch they complete is re-run with the later ones (ground_station.beacon).
 """
 from __future__ import annotations
@@ -54,7 +55,8 @@ class BeaconLocator:
     beacon_id: the beacon tracked (key id).
     ``rejected``: messages refused by reason; ``counters``: accepted, duplicate, other_run,
     gated, used, epochs_fused / _degraded / _coast / _lost (summed over trials),
-    initialised, mirror_hypotheses / _chosen / _dropped, published.
+    initialised, mirror_hypotheses / _chosen / _dropped, mirror_outside_volume (the blind start's
+    other side refused by ``search_height_m``), published.
     """
 
     def __init__(self, transport=None, *, run_ids=("run",), beacon_id: str = "b1",
@@ -533,7 +535,9 @@ class BeaconLocator:
         self.alt_C[k] = 0.0
         self.counters["initialised"] += 1
         d = fix.mirror_x[0:3] - fix.x[0:3]
-        if c.init_resolve_s > 0 and d @ np.linalg.solve(fix.P[0:3, 0:3], d) > 9.0:
+        if fix.mirror_outside:  # the other side is outside the declared search volume: refused
+            self.counters["mirror_outside_volume"] += 1
+        elif c.init_resolve_s > 0 and d @ np.linalg.solve(fix.P[0:3, 0:3], d) > 9.0:
             y, P, fr = self.to_state(fix.mirror_x, fix.mirror_P, ob)
             self.alt_active[k] = True
             self.alt_y[k], self.alt_P[k] = y, P
@@ -575,8 +579,14 @@ class BeaconLocator:
             out.append((self.run_ids[k], Estimate(t_gps_s=self.t_gps_s, source_id=self.source_id, seq=seq,
                                                   kind="beacon", pos_ecef_m=x[k, 0:3], vel_ecef_m_s=x[k, 3:6],
                                                   cov=0.5 * (P[k] + P[k].T), nis=float(self.nis[k]),
-                                                  mode=str(self.mode[k]))))
+                                                  mode=self._published_mode(k))))
         return out
+
+    def _published_mode(self, k: int) -> str:
+        """The mode an Estimate carries: "ambiguous" while trial k's mirror hypothesis is alive
+        (the estimate is the two-side mixture, its side not decided yet) unless "lost"."""
+        m = str(self.mode[k])
+        return "ambiguous" if self.alt_active[k] and m != "lost" else m
 
     def publish(self) -> int:
         n = 0

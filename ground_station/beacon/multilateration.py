@@ -25,7 +25,8 @@ class InitFix(NamedTuple):
     """The initial estimate of one trial (ECEF): x (6,) [B, V_B] at the last window epoch,
     P (6, 6), the closed-form start (3,), the number of epochs, the final weighted cost and
     LM iterations; mirror_x, mirror_P, mirror_cost: the best solution on the other side of
-    the UAVs' axis."""
+    the UAVs' plane or axis; mirror_outside: the mirror lies outside the declared search
+    heights (config.search_height_m) and is refused."""
 
     x: np.ndarray
     P: np.ndarray
@@ -36,6 +37,7 @@ class InitFix(NamedTuple):
     mirror_x: np.ndarray
     mirror_P: np.ndarray
     mirror_cost: float
+    mirror_outside: bool = False
 
 
 def local_up(pos):
@@ -58,8 +60,10 @@ def init_fix(epochs, config: LocatorConfig = LocatorConfig(), iterations: int = 
     tK = float(epochs[-1][0])
     fixes, hs, rows = [], [], []
     # the UAVs' errors barely change across a short window: fully correlated, so their
-    # consider term counts once for the window (kappa = number of epochs)
-    kappa = float(len(epochs)) if config.observer_uncertainty == "inflate" else 0.0
+    # consider term counts once for the window (kappa = number of epochs); "consider" too (its
+    # track starts as "inflate", acquire_s): without it a few metres of UAV error against
+    # decimetre range noise make the costs of the two sides of the UAVs' plane meaningless
+    kappa = float(len(epochs)) if config.observer_uncertainty in ("inflate", "consider") else 0.0
     for t, ob in epochs:
         m = ob.mask[0]
         if m.sum() < 3:
@@ -146,14 +150,37 @@ def init_fix(epochs, config: LocatorConfig = LocatorConfig(), iterations: int = 
         P = np.linalg.inv(J.T @ J) * float(config.init_cov_scale)
         return s, 0.5 * (P + P.T), cost, it
 
-    # the mirror: the solution turned by 180 deg about the last epoch's principal axis (same
-    # distance from the axis, so near the other side's ring), refined the same way
+    # the other side: (a) the solution reflected through the last epoch's UAV plane (best fit;
+    # for 3 UAVs every range is the same there), refined where it lands, without the height
+    # scan (the scan would walk back over to the deeper minimum); (b) the solution turned by
+    # 180 deg about the UAVs' principal axis (a line-like formation: the far side of the circle
+    # about their line), refined with the scan.  The mirror is the cheaper of those that did not
+    # come back to the solution (further than 3 sigma of its covariance); the cheaper of the two
+    # sides is the solution.
     one = best_from(start)
     last = rows[-1][1].pos[0]
     c = last.mean(axis=0)
-    a = np.linalg.svd(last - c)[2][0]
+    vt = np.linalg.svd(last - c)[2]
+    a, nrm = vt[0], vt[-1]
     d = one[0][0:3] - c
-    two = best_from(c + 2.0 * (d @ a) * a - d)
+    v = one[0][3:6]
+    s, J, cost, it = solve(np.concatenate([one[0][0:3] - 2.0 * (d @ nrm) * nrm, v - 2.0 * (v @ nrm) * nrm]))
+    P = np.linalg.inv(J.T @ J) * float(config.init_cov_scale)
+    cands = [(s, 0.5 * (P + P.T), cost, it), best_from(c + 2.0 * (d @ a) * a - d)]
+    Pi = np.linalg.inv(one[1][0:3, 0:3])
+    apart = [q for q in cands if (q[0][0:3] - one[0][0:3]) @ Pi @ (q[0][0:3] - one[0][0:3]) > 9.0]
+    two = min(apart or cands, key=lambda q: q[2])
     if two[2] < one[2]:
         one, two = two, one
-    return InitFix(one[0], one[1], start, len(rows), one[2], one[3], two[0], two[1], two[2])
+    outside = False
+    if config.search_height_m:  # the declared search volume decides where the ranges cannot
+        lo, hi = config.search_height_m
+        ins = []
+        for q in (one, two):
+            up, h = local_up(q[0][0:3])
+            sig = 3.0 * math.sqrt(max(float(up @ q[1][0:3, 0:3] @ up), 0.0))
+            ins.append(lo - sig <= h <= hi + sig)
+        if not ins[0] and ins[1]:
+            one, two = two, one
+        outside = ins[0] != ins[1]
+    return InitFix(one[0], one[1], start, len(rows), one[2], one[3], two[0], two[1], two[2], outside)

@@ -29,6 +29,9 @@ BAD = [
     (LocatorConfig, "backend", "cuda"),
     (LocatorConfig, "second_order_r", "yes"),
     (LocatorConfig, "init_height_sigma_m", math.nan),
+    (LocatorConfig, "search_height_m", (5000.0, -500.0)),
+    (LocatorConfig, "search_height_m", (0.0, math.inf)),
+    (LocatorConfig, "search_height_m", (0.0,)),
     (LocatorConfig, "axis_ratio", 1.5),
     (LocatorConfig, "gate_prob", 0.0),
     (LocatorConfig, "init_epochs", 2.5),
@@ -48,3 +51,4 @@ def test_tuples_stay_tuples_of_floats():
     assert p.radar_sigma == (10.0, 0.001, 0.001) and type(p.radar_sigma) is tuple
     assert p.burst_alt_range_m == (20_000.0, 30_000.0) and type(p.burst_alt_range_m) is tuple
     assert LocatorConfig(init_height_sigma_m=math.inf).init_height_sigma_m == math.inf
+    assert LocatorConfig(search_height_m=[-500, 5000]).search_height_m == (-500.0, 5000.0)
