@@ -26,9 +26,11 @@ class EndpointGroup:
 
     def __init__(self, endpoints: Iterable[VehicleEndpoint], *, timer: Callable[[], float] | None = None):
         self.endpoints = list(endpoints)
-        ids = [ep.sysid for ep in self.endpoints]
+        # one system id per MAVLink network: a group may span blocks (sitl.mavlink.blocks), whose
+        # system ids repeat, each block on its own link id
+        ids = [(ep.link_id, ep.sysid) for ep in self.endpoints]
         if len(set(ids)) != len(ids):
-            raise ValueError(f"endpoints must have distinct system ids, got {ids}")
+            raise ValueError(f"endpoints must have distinct system ids per link id, got {ids}")
         self._timer = time.perf_counter if timer is None else timer
         self._round = 0
         self._sel = selectors.DefaultSelector()
