@@ -77,13 +77,17 @@ class PymavlinkGcs(threading.Thread):
     """A UDP socket on a block's GCS port parsed by pymavlink: HEARTBEAT type per sysid and the
     source ports it came from, ADSB callsigns from the ground station."""
 
-    def __init__(self, port: int):
+    def __init__(self, port: int, key: bytes | None = None):
         from pymavlink.dialects.v20 import common as m
         super().__init__(daemon=True)
         self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         self.sock.bind(("127.0.0.1", port))
         self.sock.settimeout(0.2)
         self.mav = m.MAVLink(None)
+        if key is not None:  # verify: only validly signed frames parse, their link id kept
+            self.mav.signing.secret_key = key
+            self.mav.signing.allow_unsigned_callback = lambda mav, msgid: False
+        self.link_ids: dict[int, set] = {}
         self.types: dict[int, int] = {}
         self.ports: dict[int, set] = {}
         self.adsb: dict[str, int] = {}
@@ -97,7 +101,13 @@ class PymavlinkGcs(threading.Thread):
                 continue
             except OSError:
                 return
-            for msg in self.mav.parse_buffer(data) or []:
+            try:
+                msgs = self.mav.parse_buffer(data) or []
+            except Exception:  # a frame refused (bad signature): not counted as heard
+                continue
+            for msg in msgs:
+                if getattr(msg, "_signed", False):
+                    self.link_ids.setdefault(msg.get_srcSystem(), set()).add(msg._link_id)
                 if msg.get_type() == "HEARTBEAT":
                     s = msg.get_srcSystem()
                     self.types[s] = msg.type
@@ -187,3 +197,57 @@ def test_260_uavs_in_two_mavlink_blocks_each_gcs_sees_its_own(tmp_path):
             demo.stop()
     for i in range(N_UAV + 1):
         assert udp_free(plan.listen_port(i)), f"port {plan.listen_port(i)} still bound"
+
+
+def test_small_blocks_signed_and_through_the_fault_proxies(tmp_path):
+    """block_size 2: 4 UAVs and the sonde in 3 blocks, signed, with the launcher's fault proxies
+    (every block's vehicles through the one front, each proxy to its own block's GCS) and the
+    sonde's uplink (vehicle 5 = block 3, system id 1) cut: blocks 1 and 2 hear their two UAVs,
+    each block's frames signed on link id block - 1, the ground station on all three, block 3
+    nothing of the sonde; the signing states are one file per (block, system id)."""
+    from pymavlink.dialects.v20 import common as m
+
+    from sitl.scenario import scenario_from_dict, to_toml_like
+    key = bytes(range(32))
+    (tmp_path / "key").write_bytes(key)
+    plan = None
+    from tests.procs import worker_index
+    for base in range(20000 + 6000 * worker_index() + 3100, 20000 + 6000 * worker_index() + 5900, 97):
+        plan = MavlinkPlan(n_vehicles=5, base_port=base, gcs_port=base + 500, block_size=2)
+        if all(udp_free(plan.listen_port(i)) for i in range(5)) and all(udp_free(p) for _, p in plan.gcs_addrs()):
+            break
+    d = to_toml_like(default_scenario().to_dict())
+    d["run"].update(speed=2.0, duration_s=600.0)
+    d["bus"]["log"] = False
+    d["uavs"]["count"] = 4
+    d["mavlink"].update(gcs=f"127.0.0.1:{plan.gcs_port}", base_port=plan.base_port, block_size=2, tcp=False,
+                        tlog=False, signing_key_file=str(tmp_path / "key"))
+    d["faults"] = {"mav:5:up": "loss=100%"}
+    scn = scenario_from_dict(d, "test")
+    assert MavlinkPlan.of(scn) == plan and plan.n_blocks == 3
+    rx = [PymavlinkGcs(p, key) for _, p in plan.gcs_addrs()]
+    for r in rx:
+        r.start()
+    demo = None
+    try:
+        demo = LiveDemo(scn, tmp_path / "run")
+        end = time.monotonic() + 60.0
+        while time.monotonic() < end and not ({1, 2, 250} <= set(rx[0].types) and {1, 2, 250} <= set(rx[1].types)
+                                              and 250 in rx[2].types):
+            time.sleep(0.5)
+        time.sleep(3.0)  # the sonde has had its chances to be heard on block 3
+    finally:
+        for r in rx:
+            r.close()
+        if demo is not None:
+            demo.stop()
+    assert set(rx[0].types) == {1, 2, 250} and set(rx[1].types) == {1, 2, 250}, (rx[0].types, rx[1].types)
+    assert set(rx[2].types) == {250}, rx[2].types  # the sonde's uplink is cut
+    assert rx[0].types[1] == rx[1].types[2] == m.MAV_TYPE_FIXED_WING
+    for k, r in enumerate(rx):
+        assert all(ids == {k} for ids in r.link_ids.values()), (k, r.link_ids)
+    names = {p.name for p in (tmp_path / "run").glob("mav_signing_*.json")}
+    assert {"mav_signing_1.json", "mav_signing_2.json", "mav_signing_b2_1.json", "mav_signing_b2_2.json",
+            "mav_signing_b3_1.json", "mav_signing_250.json", "mav_signing_b2_250.json",
+            "mav_signing_b3_250.json"} <= names, sorted(names)
+    assert demo.report is not None and demo.report.get("faults")
