@@ -206,10 +206,12 @@ class GcsLink:
         self._clock = wall_now if clock is None else clock
         self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         self.sock.setblocking(False)
-        # one MAVLink stream per block (sequence numbers, signing); block 1's also encodes
+        # one MAVLink stream per block (sequence numbers, signing); block 1's also encodes and
+        # writes through self.write
         self._outs = []
-        for addr, lid, st in zip(self.addrs, link_ids, states):
-            mav = m.MAVLink(_BlockWriter(self.sock, addr), srcSystem=GS_SYSID, srcComponent=GS_COMPID)
+        for k, (addr, lid, st) in enumerate(zip(self.addrs, link_ids, states)):
+            mav = m.MAVLink(self if k == 0 else _BlockWriter(self.sock, addr), srcSystem=GS_SYSID,
+                            srcComponent=GS_COMPID)
             signing = None
             if signing_key is not None:
                 from sitl.mavlink.framing import SigningStateFile
@@ -240,7 +242,7 @@ class GcsLink:
 
     # ------------------------------------------------------------------ plumbing
     def write(self, buf: bytes) -> None:
-        """A packed frame to block 1's GCS."""
+        """pymavlink's MAVLink.send writes block 1's packed frames here: to block 1's GCS."""
         self.sock.sendto(buf, self.addr)
 
     def _send(self, msg) -> bool:
