@@ -141,7 +141,9 @@ class MavlinkPlan:
                                       f"{MAX_MAVLINK_BLOCKS * self.block_size} vehicles (UAVs + sonde) with "
                                       f"mavlink.enabled (at most {MAX_MAVLINK_BLOCKS} MAVLink blocks: block k's "
                                       f"vehicles listen on base_port + (k - 1) + 10 j), got {self.n_vehicles}; "
-                                      "raise mavlink.block_size, or set mavlink.enabled = false"))
+                                      + (f"raise mavlink.block_size (at most {MAX_MAVLINK_VEHICLES}), or "
+                                         if self.block_size < MAX_MAVLINK_VEHICLES else "")
+                                      + "set mavlink.enabled = false"))
             return out
         top = self.base_port + PORT_STRIDE * (min(self.n_vehicles, self.block_size) - 1) + self.n_blocks - 1
         if top > 65535:
@@ -157,7 +159,7 @@ class MavlinkPlan:
                 if i is not None:
                     out.append(("mavlink.gcs", f"expected block {k}'s GCS port {self.gcs_addr(k)[1]} to be no "
                                                f"vehicle's port, but {self.describe(i)} listens there (vehicle ports: "
-                                               f"base_port = {self.base_port} + (block - 1) + 10 (sysid - 1)); move "
+                                               f"base_port {self.base_port} + (block - 1) + 10 (sysid - 1)); move "
                                                "mavlink.base_port or mavlink.gcs"))
                     break
         if not out and tcp and bus_listen_port:
