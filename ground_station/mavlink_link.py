@@ -19,6 +19,14 @@ system_status MAV_STATE_ACTIVE.  Why these (read in the clients' sources):
 * QGroundControl (MultiVehicleManager::_vehicleHeartbeatInfo) creates no vehicle for a
   component other than 1 nor for MAV_TYPE_GCS / ONBOARD_CONTROLLER: either is fine there.
 
+MAVLink blocks (sitl.mavlink.blocks).  A swarm beyond 249 vehicles runs several MAVLink
+networks, one GCS address each; the ground station is system 250 on every one: ``gcs`` lists
+the blocks' addresses (block 1 first) and every frame below goes to each, packed by the block's
+own MAVLink stream (its own sequence numbers; signed on the block's link id -- block k: k - 1 --
+with the block's own persisted signing state).  Counters count messages once, whatever the
+number of blocks; ``block_frames`` counts the frames each block was sent.  The tlog records
+block 1's frames.
+
 Output (every frame signed when a key is given, see sitl.mavlink.signing):
 
 * ADSB_VEHICLE per estimate (beacon, each sonde): position, geometric altitude, velocity,
@@ -139,14 +147,35 @@ class _Bucket:
         return False
 
 
+class _BlockWriter:
+    """pymavlink's MAVLink.send writes a block's packed frames here: to that block's GCS."""
+
+    def __init__(self, sock, addr):
+        self.sock, self.addr = sock, addr
+
+    def write(self, buf: bytes) -> None:
+        self.sock.sendto(buf, self.addr)
+
+
+def _per_block(name: str, value, n: int) -> list:
+    """One value per block: a list of n, or one value for every block."""
+    if isinstance(value, (list, tuple)):
+        if len(value) != n:
+            raise ValueError(f"{name}: expected one per block ({n}), got {len(value)}")
+        return list(value)
+    return [value] * n
+
+
 class GcsLink:
-    """The ground station's MAVLink output to ``gcs`` ("HOST:PORT"); see the module docstring.
+    """The ground station's MAVLink output to ``gcs`` ("HOST:PORT", or a list of them: one per
+    MAVLink block, block 1 first); see the module docstring.
 
     signing_key (32 bytes): every frame signed on ``link_id`` with the timestamps of
     sitl.mavlink.signing (clock: unix seconds, default sitl.pacing.wall_now -- the launcher's
     wall clock, as the vehicles sign; signing_state: a path for the persisted signing state,
-    OUT/mav_signing_250.json in a live run, or None).  The link never reads, so no peer moves
-    its timestamps.
+    OUT/mav_signing_250.json in a live run, or None).  With several blocks, link_id and
+    signing_state are one per block (a list) or, link_id, one for all.  The link never reads,
+    so no peer moves its timestamps.
 
     :meth:`tick` (simulation time, the worker's paced clock) sends the HEARTBEAT when due and
     refills the STATUSTEXT buckets (``text_burst`` messages, ``text_rate_per_s`` per simulated
@@ -159,22 +188,41 @@ class GcsLink:
         from sitl.mavlink.framing import TlogWriter, fresh_tlog_path
         from sitl.pacing import wall_now
 
-        host, port = gcs.rsplit(":", 1)
-        self.addr = (host, int(port))
+        texts = [gcs] if isinstance(gcs, str) else list(gcs)
+        if not texts:
+            raise ValueError("gcs: expected at least one HOST:PORT")
+        self.addrs = []
+        for t in texts:
+            host, _, port = str(t).rpartition(":")
+            if not host or not port.isdigit() or not 0 < int(port) < 65536:
+                raise ValueError(f"gcs: expected HOST:PORT, got {t!r}")
+            self.addrs.append((host, int(port)))
+        self.addr = self.addrs[0]
+        n = len(self.addrs)
+        link_ids = _per_block("link_id", link_id, n)
+        states = _per_block("signing_state", signing_state, n)
         if signing_key is not None and (not isinstance(signing_key, (bytes, bytearray)) or len(signing_key) != 32):
             raise ValueError("signing_key must be 32 bytes")
         self._clock = wall_now if clock is None else clock
-        self.mav = m.MAVLink(self, srcSystem=GS_SYSID, srcComponent=GS_COMPID)
-        self.signing = None
-        if signing_key is not None:
-            from sitl.mavlink.framing import SigningStateFile
-            from sitl.mavlink.signing import OutgoingSigning
-            state = SigningStateFile(signing_state, GS_SYSID) if signing_state is not None else None
-            self.signing = OutgoingSigning(self.mav, bytes(signing_key), clock=self._clock, link_id=link_id,
-                                           state_file=state)
-        self.signed = self.signing is not None
         self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         self.sock.setblocking(False)
+        # one MAVLink stream per block (sequence numbers, signing); block 1's also encodes and
+        # writes through self.write
+        self._outs = []
+        for k, (addr, lid, st) in enumerate(zip(self.addrs, link_ids, states)):
+            mav = m.MAVLink(self if k == 0 else _BlockWriter(self.sock, addr), srcSystem=GS_SYSID,
+                            srcComponent=GS_COMPID)
+            signing = None
+            if signing_key is not None:
+                from sitl.mavlink.framing import SigningStateFile
+                from sitl.mavlink.signing import OutgoingSigning
+                state = SigningStateFile(st, GS_SYSID) if st is not None else None
+                signing = OutgoingSigning(mav, bytes(signing_key), clock=self._clock, link_id=int(lid),
+                                          state_file=state)
+            self._outs.append((mav, signing))
+        self.mav, self.signing = self._outs[0]
+        self.signed = self.signing is not None
+        self.block_frames = [0] * n
         # a new file per start, stamped with the wall clock as MAVProxy's (sitl.mavlink.framing)
         self._tlog = TlogWriter(fresh_tlog_path(tlog), stamp_clock=wall_now) if tlog else None
         self.sent = Counter()
@@ -194,21 +242,27 @@ class GcsLink:
 
     # ------------------------------------------------------------------ plumbing
     def write(self, buf: bytes) -> None:
-        """pymavlink's MAVLink.send writes the packed frame here."""
+        """pymavlink's MAVLink.send writes block 1's packed frames here: to block 1's GCS."""
         self.sock.sendto(buf, self.addr)
 
     def _send(self, msg) -> bool:
-        try:
-            if self.signing is not None:
-                self.signing.before_send()
-            self.mav.send(msg)
-            if self._tlog is not None:
-                self._tlog.write(0.0, msg.get_msgbuf())  # stamped by the wall clock (stamp_clock)
+        """msg to every block (each packs it with its own sequence and signature); True if some
+        block took it (a block's send error is counted in ``errors``)."""
+        ok = False
+        for k, (mav, signing) in enumerate(self._outs):
+            try:
+                if signing is not None:
+                    signing.before_send()
+                mav.send(msg)
+                if k == 0 and self._tlog is not None:
+                    self._tlog.write(0.0, msg.get_msgbuf())  # stamped by the wall clock (stamp_clock)
+                self.block_frames[k] += 1
+                ok = True
+            except OSError:
+                self.errors += 1
+        if ok:
             self.sent[msg.get_type()] += 1
-            return True
-        except OSError:
-            self.errors += 1
-            return False
+        return ok
 
     def _reason(self, counter: Counter, key: str, line: str) -> None:
         counter[key] += 1
@@ -434,15 +488,19 @@ class GcsLink:
         d = {"sent": dict(self.sent), "errors": self.errors, "skipped": dict(self.skipped),
              "clamped": dict(self.clamped), "uncertainty_skipped": dict(self.uncertainty_skipped),
              "uncertainty_clamped": dict(self.uncertainty_clamped), "text_skipped": dict(self.text_skipped)}
+        if len(self._outs) > 1:
+            d["block_frames"] = list(self.block_frames)
         if self.signing is not None:
-            d["signing"] = {"saves": self.signing.saves, "errors": self.signing.errors}
+            d["signing"] = {"saves": sum(sg.saves for _, sg in self._outs),
+                            "errors": sum(sg.errors for _, sg in self._outs)}
         if self.last_reason:
             d["last_reason"] = self.last_reason
         return d
 
     def close(self) -> None:
-        if self.signing is not None:
-            self.signing.close()
+        for _, signing in self._outs:
+            if signing is not None:
+                signing.close()
         try:
             self.sock.close()
         except OSError:

@@ -7,7 +7,8 @@ that are complete (every source publishing has delivered them) or older than
 Estimates on ``<run>/gs/estimate/**``. It is also a MAVLink 2 component toward the
 ground-control endpoint (ground_station.mavlink_link.GcsLink: system 250, HEARTBEAT at 1 Hz of
 the paced simulation time -- MAV_STATE_STANDBY at 1 Hz wall before the run starts --, signed like the vehicles when ``[mavlink] signing_key_file`` is set,
-with its signing state in ``OUT/mav_signing_250.json``): the beacon and sonde estimates as
+with its signing state in ``OUT/mav_signing_250.json``; with several MAVLink blocks, all of
+this to every block's GCS address, sitl.mavlink.blocks): the beacon and sonde estimates as
 ADSB_VEHICLE with their 1-sigma uncertainty in UTM_GLOBAL_POSITION, the integrity events its
 trackers publish (``<run>/gs/integrity/**``) and its input links turning stale or coming back
 (``<run>/gs/link/**``, "link uav2: stale") as rate-limited STATUSTEXT; ``mav_gs.tlog`` records them.
@@ -78,11 +79,16 @@ def main(argv=None) -> int:
     try:
         if scn.mavlink.enabled:
             try:
+                from sitl.mavlink.blocks import MavlinkPlan
                 from sitl.mavlink.framing import load_signing_key
                 key = load_signing_key(scn.mavlink.signing_key_file) if scn.mavlink.signing_key_file else None
-                gcs = GcsLink(scn.mavlink.gcs, out_path(spec, "mav_gs.tlog") if scn.mavlink.tlog else None,
-                              signing_key=key,
-                              signing_state=out_path(spec, f"mav_signing_{GS_SYSID}.json") if key is not None else None)
+                plan = MavlinkPlan.of(scn)  # system 250 on every MAVLink block (sitl.mavlink.blocks)
+                blocks = range(1, plan.n_blocks + 1)
+                gcs = GcsLink([f"{h}:{p}" for h, p in plan.gcs_addrs()],
+                              out_path(spec, "mav_gs.tlog") if scn.mavlink.tlog else None,
+                              signing_key=key, link_id=[plan.link_id(k) for k in blocks],
+                              signing_state=([out_path(spec, plan.signing_state_name(k, GS_SYSID)) for k in blocks]
+                                             if key is not None else None))
             except Exception as e:  # no MAVLink: the bus side still runs
                 print(f"gs: MAVLink to {scn.mavlink.gcs} not available: {e}", file=sys.stderr)
         # the link first: it heartbeats (standby) while the node is built and the run waits to start

@@ -69,5 +69,10 @@ def glonass_l1_hz(k):
     """GLONASS L1 carrier for FDMA channel k (-7..+6), Hz. Works on arrays."""
     return F_GLO_L1_BASE_HZ + k * F_GLO_L1_STEP_HZ
 
-#: MAVLink system ids of vehicles: 1..249 (250 is the ground station's: ADSB / STATUSTEXT; 255 the GCS's)
+#: MAVLink system ids of vehicles in one MAVLink network (a "block", sitl.mavlink.blocks): 1..249
+#: (250 is the ground station's: HEARTBEAT / ADSB / STATUSTEXT; 255 the GCS's)
 MAX_MAVLINK_VEHICLES = 249
+#: MAVLink networks (blocks) a run may have: block k's vehicles listen on base_port + (k - 1) + 10 j
+MAX_MAVLINK_BLOCKS = 10
+#: vehicles a run may have with MAVLink on: MAX_MAVLINK_BLOCKS full blocks
+MAX_MAVLINK_FLEET = MAX_MAVLINK_BLOCKS * MAX_MAVLINK_VEHICLES

@@ -14,7 +14,7 @@ its doc (sitl.params.param); `skyfuse scenario` prints them all as the documente
 (DEFAULT_SCENARIO_TOML, generated from the declarations). And:
 
     [faults]       network faults, a table LINK = "SPEC" (sitl.netfault's netem-like text), e.g.
-                   "mav:1" = "loss=10% delay=100ms~20ms"    (MAVLink of system id 1, both ways;
+                   "mav:1" = "loss=10% delay=100ms~20ms"    (MAVLink of vehicle 1, both ways;
                                                               "mav:1:up" vehicle->GCS, "mav:1:down")
                    "zenoh:gs" = "partition=100-130"         (a worker's Zenoh session: vehicles<k>, gs)
                    "bus:*/uav/2/**" = "loss=20%"            (bus keys, at their publishers)
@@ -35,7 +35,7 @@ from sitl.params import checks, param, toml_table
 
 # GPS time of the built-in almanac's epoch + 1 h (the seed 002 start; vehicles.uav_nav
 # .EXAMPLE_T0_GPS_S, which sitl may not import)
-from sitl.constants import MAX_MAVLINK_VEHICLES  # noqa: F401  (system ids 1..249; checked here)
+from sitl.constants import MAX_MAVLINK_VEHICLES  # system ids 1..249 of a MAVLink block
 from sitl.gnss.orbits import DEFAULT_TOA_GPS_S
 
 DEFAULT_T0_GPS_S = DEFAULT_TOA_GPS_S + 3600.0
@@ -194,17 +194,27 @@ class MavlinkSection:
     """The vehicles as MAVLink 2 endpoints over UDP (and TCP, as ArduPilot SITL's SERIAL0)."""
 
     enabled: bool = param(True, check=_bool, doc="vehicles speak MAVLink 2 over UDP")
-    gcs: str = param("127.0.0.1:14550", check=_hostport, doc='the ground-control station\'s address "HOST:PORT"')
+    gcs: str = param("127.0.0.1:14550", check=_hostport,
+                     doc='the ground-control station\'s address "HOST:PORT" (of block 1; MAVLink blocks: '
+                         'sitl/mavlink/blocks.py)')
+    gcs_port_step: int = param(10, check=_i(lo=0, hi=1000),
+                               doc="block k's GCS port: gcs's port + gcs_port_step (k - 1) (14550, 14560, ...); "
+                                   "0: every block to the one gcs address")
+    block_size: int = param(MAX_MAVLINK_VEHICLES, check=_i(lo=1, hi=MAX_MAVLINK_VEHICLES),
+                            doc="vehicles per MAVLink network (block: system ids 1..block_size; 250 is the ground "
+                                "station on every block): vehicle v is in block (v - 1) // block_size + 1")
     base_port: int = param(5760, check=_i(lo=1024, hi=65000),
-                           doc="vehicle i listens on base_port + 10 i (UDP, and TCP when tcp = true)")
+                           doc="the vehicle with system id s in block k listens on base_port + (k - 1) + 10 (s - 1) "
+                               "(UDP, and TCP when tcp = true): block 1 is ArduPilot SITL's base_port + 10 i")
     rate_hz: float = param(10.0, check=_n(lo=0, lo_open=True, hi=100),
                            doc="the endpoints' epochs per second of simulated time: sockets read, replies and "
                                "streams sent (streams up to this rate; telemetry between the world's epochs is "
                                "the vehicles' state propagated by their motion); at least run.rate_hz is used")
     tcp: bool = param(True, check=_bool,
-                      doc="each vehicle also serves MAVLink on TCP base_port + 10 i (ArduPilot SITL's SERIAL0: "
+                      doc="each vehicle also serves MAVLink on TCP, on its UDP port (ArduPilot SITL's SERIAL0: "
                           "mavproxy.py --master tcp:127.0.0.1:5760)")
-    signing_key_file: str = param("", check=_str, doc="a MAVLink 2 signing key file (32 raw bytes, 64 hex digits or a passphrase); empty: unsigned")
+    signing_key_file: str = param("", check=_str, doc="a MAVLink 2 signing key file (32 raw bytes, 64 hex digits or a passphrase), "
+                                                      "every block's; block k signs on link id k - 1; empty: unsigned")
     tlog: bool = param(True, check=_bool, doc="write .tlog files of the MAVLink traffic (MAVProxy's format)")
 
 
@@ -535,24 +545,21 @@ def _cross_checks(scn: Scenario) -> None:
     if u.count and u.count < 3:
         raise ScenarioError(f"scenario: uavs.count: expected 0 or >= 3 (the beacon locator needs 3 UAVs), "
                             f"got {u.count}")
-    n_vehicles = u.count + (1 if scn.sonde.enabled else 0)
-    if scn.mavlink.enabled and n_vehicles > MAX_MAVLINK_VEHICLES:
-        raise ScenarioError(f"scenario: uavs.count: expected at most {MAX_MAVLINK_VEHICLES} vehicles (UAVs + sonde) "
-                            f"with mavlink.enabled (MAVLink system ids 1..{MAX_MAVLINK_VEHICLES}; 250 is the ground "
-                            f"station, 255 the GCS), got {n_vehicles}; set mavlink.enabled = false for larger swarms")
-    if scn.mavlink.enabled:
-        top = scn.mavlink.base_port + 10 * max(u.count + (1 if scn.sonde.enabled else 0), 1)
-        if top > 65535:
-            raise ScenarioError(f"scenario: mavlink.base_port: expected base_port + 10 x vehicles <= 65535, "
-                                f"got {top}")
+    if scn.mavlink.enabled:  # the MAVLink blocks' ids and ports (sitl.mavlink.blocks)
+        from sitl.mavlink.blocks import MavlinkPlan
+        proto, _, rest = scn.bus.listen.partition("/")
+        lport = rest.rpartition(":")[2]
+        fixed = int(lport) if proto == "tcp" and not scn.bus.zenoh and lport.isdigit() else None
+        for key, expected in MavlinkPlan.of(scn).problems(bus_listen_port=fixed, tcp=scn.mavlink.tcp)[:1]:
+            raise ScenarioError(f"scenario: {key}: {expected}")
     for link, _ in scn.faults.links:
         kind, _, rest = link.partition(":")
         if kind == "zenoh" and rest not in scn.worker_names():
             raise ScenarioError(f'scenario: faults."{link}": expected a worker of this scenario '
                                 f"({', '.join('zenoh:' + w for w in scn.worker_names())})")
         if kind == "mav" and int(rest.split(":")[0]) > max(scn.n_vehicles, 1):
-            raise ScenarioError(f'scenario: faults."{link}": expected a MAVLink system id in 1..{scn.n_vehicles} '
-                                f"(UAVs then the sonde)")
+            raise ScenarioError(f'scenario: faults."{link}": expected a vehicle number in 1..{scn.n_vehicles} '
+                                f"(UAVs then the sonde; in block 1 it is the system id)")
         if kind == "bus":
             keys = run_keys(scn)
             from sitl.bus.transport import (
@@ -657,15 +664,17 @@ def worker_specs(scn: Scenario, zenoh_connect, out_dir, overrides: dict | None =
     beacon's truth and the sonde) and one for the ground station.
 
     overrides: {worker name: {"zenoh_connect": [...], "mavlink_gcs": "HOST:PORT"}} -- where
-    the launcher's fault proxies sit between that worker and the router / the GCS."""
+    the launcher's fault proxies sit between that worker and the router / the GCS (the GCS of
+    every MAVLink block: the override sets gcs_port_step = 0)."""
     specs = _worker_specs(scn, zenoh_connect, out_dir)
     for spec in specs:
         o = (overrides or {}).get(spec.name) or {}
         if "zenoh_connect" in o:
             spec.zenoh_connect = list(o["zenoh_connect"])
-        if "mavlink_gcs" in o:
+        if "mavlink_gcs" in o:  # every MAVLink block to that one address (sitl.mavlink.blocks)
             spec.scenario = copy.deepcopy(spec.scenario)
             spec.scenario["mavlink"]["gcs"] = o["mavlink_gcs"]
+            spec.scenario["mavlink"]["gcs_port_step"] = 0
     return specs
 
 

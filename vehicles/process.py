@@ -85,7 +85,7 @@ class Telemetry:
     """One vehicle's state for its MAVLink endpoint (SI; the endpoint converts)."""
 
     kind: str  # "uav" | "sonde"
-    index: int  # global vehicle index (sysid - 1)
+    index: int  # global vehicle index (vehicle number - 1; = sysid - 1 in MAVLink block 1)
     t_gps_s: float
     lat_rad: float
     lon_rad: float
@@ -520,7 +520,7 @@ class VehicleGroup:
 
         def apply(name, value):
             if name == "SYSID_THISMAV":
-                raise ValueError("SYSID_THISMAV is read-only: the system id is the UAV's index + 1")
+                raise ValueError("SYSID_THISMAV is read-only: the system id is the UAV's place in its MAVLink block")
             if name in ap_names:
                 try:
                     self.fleet.ap.set_config(j, with_param(self.fleet.ap.cfgs[j], name, value))
@@ -736,14 +736,16 @@ def load_checkpoint(path, spec, scn) -> VehicleGroup | None:
 
 def build_endpoints(group: VehicleGroup, scn, out_dir, name: str = "vehicles", *, clock=None, timer=None,
                     epoch_s: float | None = None):
-    """vehicles.mavlink endpoints for this group's vehicles: UAV i (global index) has sysid
-    i + 1 and listens on udp base_port + 10 i (and tcp base_port + 10 i with [mavlink] tcp,
-    ArduPilot SITL's SERIAL0); the sonde comes after the UAVs. Parameters:
+    """vehicles.mavlink endpoints for this group's vehicles: UAV i (global index; the sonde comes
+    after the UAVs) gets its MAVLink block's system id, listen port (udp, and tcp with [mavlink]
+    tcp, ArduPilot SITL's SERIAL0), GCS address and signing link id from the run's plan
+    (sitl.mavlink.blocks: in block 1, sysid i + 1 on base_port + 10 i, to [mavlink] gcs). Parameters:
     the UAV's onboard navigation settings and the sonde's flight model (their real values).
     All the group's traffic goes to one .tlog, OUT/mav_<name>.tlog, stamped by ``clock`` (the
     live worker's wall clock, as MAVProxy's) or else simulated time (a restarted worker starts a
     new file, mav_<name>.r<k>.tlog: nothing recorded is overwritten). With signing, each
-    vehicle's signing state is kept in OUT/mav_signing_<sysid>.json (loaded by a restarted
+    vehicle's signing state is kept in OUT/mav_signing_<sysid>.json (block k >= 2:
+    mav_signing_b<k>_<sysid>.json; loaded by a restarted
     worker: a replay of frames captured before the restart stays rejected); clock: the signing
     clock (unix s; the live worker passes the wall clock; None: simulated time); timer: the
     duration clock of the input budget; epoch_s: how often the endpoints are stepped, the fastest a
@@ -757,10 +759,12 @@ def build_endpoints(group: VehicleGroup, scn, out_dir, name: str = "vehicles", *
     from vehicles.mavlink.endpoint.handlers import AutopilotPort
     from vehicles.mavlink.params import autopilot_param_specs, sonde_param_specs, uav_param_specs
 
+    from sitl.mavlink.blocks import MavlinkPlan
+
     m = scn.mavlink
     if not m.enabled:
         return None
-    host, port_ = m.gcs.rsplit(":", 1)
+    plan = MavlinkPlan.of(scn)
     key = load_signing_key(m.signing_key_file) if m.signing_key_file else None
     vehicles = [("uav", i) for i in group.idx]
     if group.sonde is not None:
@@ -776,7 +780,7 @@ def build_endpoints(group: VehicleGroup, scn, out_dir, name: str = "vehicles", *
     uav_stores = {}
     for j, i in enumerate(group.idx):
         uav_stores[i] = ParamStore(uav_param_specs(None, group.nav_cfg, 0) + autopilot_param_specs(
-            group.autopilot.cfgs[j], sysid=i + 1))
+            group.autopilot.cfgs[j], sysid=plan.sysid_of(i)))
     for j, i in enumerate(group.idx):
         uav_stores[i].on_change(group.on_uav_param(j, uav_stores[i], uav_stores))
     sonde_store = None
@@ -788,11 +792,13 @@ def build_endpoints(group: VehicleGroup, scn, out_dir, name: str = "vehicles", *
         for kind, i in vehicles:
             params = uav_stores[i] if kind == "uav" else sonde_store
             port = AutopilotPort(group, group.idx.index(i)) if kind == "uav" else None
-            eps.append(VehicleEndpoint(sysid=i + 1, kind=kind, gcs=(host, int(port_)),
-                                       listen=("127.0.0.1", m.base_port + 10 * i), params=params,
-                                       tcp_listen=("127.0.0.1", m.base_port + 10 * i) if m.tcp else None,
+            block, sysid, lport = plan.block_of(i), plan.sysid_of(i), plan.listen_port(i)
+            eps.append(VehicleEndpoint(sysid=sysid, kind=kind, gcs=plan.gcs_addr(block), instance=i,
+                                       listen=("127.0.0.1", lport), params=params,
+                                       tcp_listen=("127.0.0.1", lport) if m.tcp else None,
                                        signing_key=key, tlog=tlog, clock=clock, autopilot=port,
-                                       signing_state=(Path(out_dir) / f"mav_signing_{i + 1}.json"
+                                       link_id=plan.link_id(block),
+                                       signing_state=(Path(out_dir) / plan.signing_state_name(block, sysid)
                                                       if key is not None else None)))
     except Exception:
         for ep in eps:
@@ -806,11 +812,11 @@ def build_endpoints(group: VehicleGroup, scn, out_dir, name: str = "vehicles", *
     for ep in eps:
         ep.epoch_s = ep_s  # the fastest stream (streams.py)
         if ep.kind == "uav":
-            j = group.idx.index(ep.sysid - 1)
+            j = group.idx.index(ep.instance)
             ep.landed_state_fn = _landed_state_of(group, j)
             ep.battery = group.batteries.cell(j)
     group.param_stores = uav_stores
-    group.endpoints = {ep.sysid - 1: ep for ep in eps}
+    group.endpoints = {ep.instance: ep for ep in eps}  # by global vehicle index
     eg = EndpointGroup(eps, timer=timer)
     eg.tlog_writer = tlog  # shared by the endpoints: closed by the worker after them
     return eg

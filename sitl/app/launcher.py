@@ -112,11 +112,13 @@ class DemoOptions:
                             doc="ground-control endpoint (taken as given: --instance does not shift it)")
     instance: int | None = param(None, check=optional(integer(lo=0, hi=5000)), metavar="N", default_help="default: 0",
                                  doc="ArduPilot SITL's -I N: every port of the run shifted by 10 N (the vehicles' "
-                                     "UDP/TCP base port, the scenario's GCS port, the router's listen port unless 0), "
+                                     "UDP/TCP base port, the scenario's GCS port -- so every MAVLink block's --, the "
+                                     "router's listen port unless 0), "
                                      "so that N runs side by side do not collide")
     base_port: int | None = param(None, check=optional(integer(lo=1024, hi=65000)), metavar="P",
                                   shown=lambda: _scenario_mavlink("base_port"),
-                                  doc="vehicle i listens on P + 10 i (UDP, and TCP with [mavlink] tcp), before --instance")
+                                  doc="vehicle i listens on P + 10 i (UDP, and TCP with [mavlink] tcp), before --instance; "
+                                      "beyond 249 vehicles, MAVLink block k's system id s on P + (k - 1) + 10 (s - 1)")
     no_mavlink: bool = param(False, check=switch(), doc="no MAVLink endpoints")
     batch: bool = param(False, check=switch(),
                         doc="batch mode: the same components in one process, simulated time, in-memory bus")
@@ -238,23 +240,47 @@ def _main(scn, args: DemoOptions) -> int:
     return 0 if report["ok"] else 1
 
 
+#: start_text lists every vehicle's own address up to this many vehicles; above, a line per block
+START_TEXT_MAX_VEHICLES = 12
+
+
 def start_text(scn, out: Path) -> str:
     """What a live run says first: where its output goes and how to connect MAVProxy or
-    QGroundControl to it (the scenario's real addresses: [mavlink] gcs, base_port, tcp)."""
+    QGroundControl to it (the scenario's real addresses: [mavlink] gcs, base_port, tcp, and
+    the MAVLink blocks of sitl.mavlink.blocks: one line per block beyond a few vehicles)."""
+    from sitl.mavlink.blocks import MavlinkPlan
     lines = [f"[launcher] output in {out}/: report.json at the end, bus.log, mav_*.tlog, logs/"]
     m = scn.mavlink
     if not m.enabled:
         return "\n".join(lines + ["[launcher] MAVLink is off ([mavlink] enabled = false): no vehicle to connect to"])
-    host, gport = m.gcs.rsplit(":", 1)
-    vehicles = [f"UAV {i + 1}" for i in range(scn.uavs.count)] + (["sonde"] if scn.sonde.enabled else [])
-    lines.append(f"[launcher] the vehicles send MAVLink to {m.gcs}: QGroundControl's default UDP link hears them "
-                 f"all, or `mavproxy.py --master udpin:{host}:{gport}`" if gport == "14550" else
-                 f"[launcher] the vehicles send MAVLink to {m.gcs}: `mavproxy.py --master udpin:{host}:{gport}` "
-                 f"(QGroundControl: a UDP link on port {gport})")
-    for i, name in enumerate(vehicles):
-        port = m.base_port + 10 * i
-        lines.append(f"[launcher]   {name} (system id {i + 1}): `mavproxy.py --master udpout:127.0.0.1:{port}`"
-                     + (f" or `--master tcp:127.0.0.1:{port}`" if m.tcp else ""))
+    plan = MavlinkPlan.of(scn)
+    names = [f"UAV {i + 1}" for i in range(scn.uavs.count)] + (["sonde"] if scn.sonde.enabled else [])
+    if plan.n_blocks == 1 and len(names) <= START_TEXT_MAX_VEHICLES:
+        host, gport = m.gcs.rsplit(":", 1)
+        lines.append(f"[launcher] the vehicles send MAVLink to {m.gcs}: QGroundControl's default UDP link hears them "
+                     f"all, or `mavproxy.py --master udpin:{host}:{gport}`" if gport == "14550" else
+                     f"[launcher] the vehicles send MAVLink to {m.gcs}: `mavproxy.py --master udpin:{host}:{gport}` "
+                     f"(QGroundControl: a UDP link on port {gport})")
+        for i, name in enumerate(names):
+            port = plan.listen_port(i)
+            lines.append(f"[launcher]   {name} (system id {plan.sysid_of(i)}): `mavproxy.py --master "
+                         f"udpout:127.0.0.1:{port}`" + (f" or `--master tcp:127.0.0.1:{port}`" if m.tcp else ""))
+        return "\n".join(lines)
+    lines.append(f"[launcher] MAVLink: {len(names)} vehicles in {plan.n_blocks} block(s), each its own MAVLink network "
+                 f"(system ids 1-{plan.block_size}; the ground station is system 250 on every block); a GCS "
+                 "connects to one block's GCS port:")
+    proto = "udpout/tcp" if m.tcp else "udpout"
+    for k in range(1, plan.n_blocks + 1):
+        idx = plan.indices(k)
+        first, last = idx[0], idx[-1]
+        who = f"vehicles {first + 1}-{last + 1}" if last > first else f"vehicle {first + 1}"
+        if scn.sonde.enabled and last == len(names) - 1:
+            who += " (the last is the sonde)"
+        host, gport = plan.gcs_addr(k)
+        p0, p1 = plan.listen_port(first), plan.listen_port(last)
+        lines.append(f"[launcher]   block {k}: {who} as system ids 1-{len(idx)} -> {host}:{gport}: `mavproxy.py "
+                     f"--master udpin:{host}:{gport}`; system id s alone: {proto} 127.0.0.1:{p0} + 10 (s - 1) "
+                     f"(..{p1})")
     return "\n".join(lines)
 
 

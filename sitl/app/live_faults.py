@@ -6,9 +6,11 @@ launcher, on one shared proxy thread (`sitl.netfault.proxyloop.ProxyLoop`):
 * per worker a `TcpProxy` between that worker's Zenoh session and the router: the worker's
   spec connects to the proxy (link ``zenoh:<worker>``: partitions, delay, rate);
 * with MAVLink on, per vehicle a `UdpProxy` between its endpoint and the GCS (link
-  ``mav:<sysid>``, directions ``:up`` vehicle->GCS and ``:down``). The vehicle workers' specs
-  name one front socket as their GCS (`MavFront`); the front tells the vehicles apart by
-  their source address (vehicle i sends from base_port + 10 i) and hands each one's traffic
+  ``mav:<n>``, n the vehicle's number: its system id in MAVLink block 1; directions ``:up``
+  vehicle->GCS and ``:down``; each proxy sends to its vehicle's block's GCS address,
+  sitl.mavlink.blocks). The vehicle workers' specs name one front socket as the GCS of every
+  block (`MavFront`); the front tells the vehicles apart by their source address (the
+  plan's port of each: vehicle i sends from base_port + 10 i in block 1) and hands each one's traffic
   to its proxy from a socket of its own, so replies come back to the right vehicle and the
   vehicles see them come from their GCS address;
 * bus-key faults (``bus:<expr>``) are the workers' own publisher filters (`sitl.live.worker`).
@@ -263,25 +265,26 @@ class LiveFaults:
                                 lambda p=p: _tcp_truth(p))
         m = scn.mavlink
         if m.enabled and scn.n_vehicles:
-            ghost, gport = m.gcs.rsplit(":", 1)
+            from sitl.mavlink.blocks import MavlinkPlan
+            plan = MavlinkPlan.of(scn)  # each vehicle's proxy goes to its MAVLink block's GCS
             vehicles = {}
             for i, ss in zip(range(scn.n_vehicles), seeds.spawn(scn.n_vehicles)):
-                sysid = i + 1
+                sysid = i + 1  # the link's number: the vehicle's in the run (its system id in block 1)
                 link = f"mav:{sysid}"
                 both = faults.get(link)
                 up, down = faults.get(f"{link}:up", both), faults.get(f"{link}:down", both)
-                p = UdpProxy((ghost, int(gport)), up=up, down=down, rng=np.random.default_rng(ss),
+                p = UdpProxy(plan.gcs_addr(plan.block_of(i)), up=up, down=down, rng=np.random.default_rng(ss),
                              loop=self.loop, name=link, tap=scn.n_vehicles <= MAV_TAP_MAX_VEHICLES,
                              record=scn.n_vehicles * scn.run.duration_s <= MAV_RECORD_MAX_VEHICLE_S)
                 self.udp[sysid] = p
-                vehicles[("127.0.0.1", m.base_port + 10 * i)] = p.addr
+                vehicles[("127.0.0.1", plan.listen_port(i))] = p.addr
                 self.board.add_link(f"{link}:up", lambda spec, t, p=p: p.set(up=spec),
                                     lambda p=p: _udp_truth(p, "up"))
                 self.board.add_link(f"{link}:down", lambda spec, t, p=p: p.set(down=spec),
                                     lambda p=p: _udp_truth(p, "down"))
             self.front = MavFront(self.loop, vehicles)
             for w in workers:
-                if w != "gs":
+                if w != "gs":  # every block to the one front (gcs_port_step 0: sitl.mavlink.blocks)
                     self.overrides.setdefault(w, {})["mavlink_gcs"] = f"{self.front.addr[0]}:{self.front.addr[1]}"
         # what the scenario sets, as the first entry of each link's history (t = 0: the start)
         for name, rec in self.board.links.items():

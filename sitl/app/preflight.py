@@ -94,18 +94,22 @@ def check_ports(scn) -> None:
     """Every port the run binds is free (module docstring); PreflightError naming the first taken."""
     m = scn.mavlink
     if m.enabled:
+        from sitl.mavlink.blocks import MavlinkPlan
+        plan = MavlinkPlan.of(scn)
         for i in range(scn.n_vehicles):
-            port = m.base_port + 10 * i
+            port = plan.listen_port(i)
             for kind, proto in ((socket.SOCK_DGRAM, "UDP"), (socket.SOCK_STREAM, "TCP")):
                 if kind == socket.SOCK_STREAM and not m.tcp:
                     continue
                 why = _bind_error(kind, "127.0.0.1", port)
                 if why is not None:
-                    what = f"vehicle {i} (system id {i + 1})" if i < scn.uavs.count else f"the sonde (system id {i + 1})"
+                    sid = f"system id {plan.sysid_of(i)}" + (f" of MAVLink block {plan.block_of(i)}"
+                                                               if plan.n_blocks > 1 else "")
+                    what = f"vehicle {i} ({sid})" if i < scn.uavs.count else f"the sonde ({sid})"
                     raise PreflightError(
                         f"{proto} port {port} ({what}'s MAVLink) cannot be bound: {why}; vehicle i listens on "
-                        f"[mavlink] base_port + 10 i (base_port = {m.base_port}): --instance N or --base-port P "
-                        f"moves them, or --no-mavlink")
+                        f"[mavlink] base_port + 10 i (base_port = {m.base_port}; block k's system id s on base_port "
+                        f"+ (k - 1) + 10 (s - 1)): --instance N or --base-port P moves them, or --no-mavlink")
     if not scn.bus.zenoh:
         proto, _, rest = scn.bus.listen.partition("/")
         host, _, port = rest.rpartition(":")

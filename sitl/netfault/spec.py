@@ -445,21 +445,22 @@ class LinkNameError(ValueError):
 
 
 def canonical_link(link) -> str:
-    """A network-fault link name, checked and normalised: ``mav:<sysid>[:up|:down]`` (sysid in
-    1..MAX_MAVLINK_VEHICLES), ``zenoh:<worker>`` (``gs`` or ``vehicles<k>``) or ``bus:<key
+    """A network-fault link name, checked and normalised: ``mav:<n>[:up|:down]`` (n: the vehicle's
+    number in the run, 1..MAX_MAVLINK_FLEET; in MAVLink block 1 it is its system id,
+    sitl.mavlink.blocks), ``zenoh:<worker>`` (``gs`` or ``vehicles<k>``) or ``bus:<key
     expression>``. LinkNameError otherwise."""
-    from sitl.constants import MAX_MAVLINK_VEHICLES
+    from sitl.constants import MAX_MAVLINK_FLEET
 
     if not isinstance(link, str) or not link:
         raise LinkNameError("a link name", True)
     kind, sep, rest = link.partition(":")
     if kind == "mav" and sep:
         parts = rest.split(":")
-        if (1 <= len(parts) <= 2 and parts[0].isdigit() and 1 <= int(parts[0]) <= MAX_MAVLINK_VEHICLES
+        if (1 <= len(parts) <= 2 and parts[0].isdigit() and 1 <= int(parts[0]) <= MAX_MAVLINK_FLEET
                 and (len(parts) == 1 or parts[1] in ("up", "down"))):
             return f"mav:{int(parts[0])}" + (f":{parts[1]}" if len(parts) == 2 else "")
-        raise LinkNameError(f'expected "mav:SYSID" or "mav:SYSID:up|down" with SYSID in 1..{MAX_MAVLINK_VEHICLES}',
-                            False)
+        raise LinkNameError(f'expected "mav:SYSID" or "mav:SYSID:up|down" with SYSID the vehicle\'s number in '
+                            f"1..{MAX_MAVLINK_FLEET} (its system id in MAVLink block 1)", False)
     if kind == "zenoh" and sep:
         if rest == "gs" or (rest.startswith("vehicles") and rest[8:].isdigit()):
             return link

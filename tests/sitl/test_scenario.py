@@ -45,7 +45,7 @@ BAD = [
     ("[uavs]\ncount = -3", "uavs.count", "integer"),
     ("[uavs]\ncount = 2", "uavs.count", ">= 3"),
     ("[uavs]\nper_process = 0", "uavs.per_process", "integer"),
-    ("[uavs]\ncount = 249", "uavs.count", "at most 249 vehicles"),
+    ("[uavs]\ncount = 2490", "uavs.count", "at most 10 x mavlink.block_size = 2490 vehicles"),  # + the sonde
     ("[uavs]\ncenter = [45.0]", "uavs.center", "[lat deg, lon deg]"),
     ("[uavs]\ncenter = [95.0, 30.0]", "uavs.center[0]", "<= 90"),
     ("[uavs]\nradius_m = -1.0", "uavs.radius_m", ">= 0"),
@@ -165,7 +165,7 @@ FAULTS_TOML = """
 BAD_FAULTS = [
     ('"mav:x" = "loss=1%"', 'faults."mav:x"', "mav:SYSID"),
     ('"mav:1:sideways" = "loss=1%"', 'faults."mav:1:sideways"', "up|down"),
-    ('"mav:9" = "loss=1%"', 'faults."mav:9"', "system id in 1..4"),
+    ('"mav:9" = "loss=1%"', 'faults."mav:9"', "vehicle number in 1..4"),
     ('"zenoh:vehicles3" = "delay=1s"', 'faults."zenoh:vehicles3"', "zenoh:vehicles0, zenoh:gs"),
     ('"zenoh:foo" = "delay=1s"', 'faults."zenoh:foo"', "zenoh:gs"),
     ('"zenoh:gs" = "loss=1%"', 'faults."zenoh:gs"', "TCP stream"),

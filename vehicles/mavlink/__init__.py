@@ -43,7 +43,10 @@ expect ArduPilot's modes, parameters and MAVLink-FTP parameter download.
 
 Ports: ArduPilot SITL's ``-I N`` adds 10 x N to every port (Tools/completion/zsh/_ap_bin:
 "set instance of SITL (adds 10*instance to all port numbers)"; SERIAL0 is tcp 5760); the
-GCS listens on udp 14550.  Here instance N listens on udp 5760 + 10 N with sysid N + 1.
+GCS listens on udp 14550.  Here instance N listens on udp 5760 + 10 N with sysid N + 1 -- in
+MAVLink block 1; a run of more than 249 vehicles has several blocks (networks), each with its
+own GCS port (14550, 14560, ...), system ids 1..249 and ports base + (k - 1) + 10 (s - 1), the
+ground station (250) on every one: sitl/mavlink/blocks.py.
 """
 from .endpoint import (
     BASE_PORT,

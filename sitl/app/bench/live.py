@@ -3,8 +3,8 @@
 For each swarm size N (``--uavs``), a live run of the default scenario's UAVs and beacon
 (no sonde) at ``--rate`` Hz and speed 1 for ``--duration`` simulated seconds: a Zenoh router
 (started here), the vehicle worker(s) (N UAVs stepped as arrays, each a MAVLink endpoint on
-real UDP unless --no-mavlink or N > 249 -- MAVLink system ids end there --, streams to a UDP
-sink here) and the ground-station worker.
+real UDP unless --no-mavlink; beyond 249 UAVs in several MAVLink blocks, sitl.mavlink.blocks,
+each block streaming to a UDP sink of its own here) and the ground-station worker.
 
 Per size:
   * ``kept_real_time``: every vehicle worker ran every epoch on time -- no epoch skipped,
@@ -78,31 +78,54 @@ def add_args(p) -> None:
 
 
 class _Sink(threading.Thread):
-    """A UDP socket that reads and counts what the vehicles send to the GCS address."""
+    """UDP sockets that read and count what the vehicles send to the GCS addresses: one per
+    MAVLink block, on ports ``port + 10 k`` (the blocks' default gcs_port_step)."""
 
-    def __init__(self):
+    def __init__(self, n_blocks: int = 1):
+        import selectors
         super().__init__(daemon=True)
-        self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-        self.sock.bind(("127.0.0.1", 0))
-        self.sock.settimeout(0.2)
-        self.port = self.sock.getsockname()[1]
+        self.socks = self._bind(n_blocks)
+        self.port = self.socks[0].getsockname()[1]
+        self.sel = selectors.DefaultSelector()
+        for s in self.socks:
+            s.setblocking(False)
+            self.sel.register(s, selectors.EVENT_READ)
         self.datagrams = 0
         self.stop = threading.Event()
 
+    @staticmethod
+    def _bind(n: int, first: int = 40000, last: int = 60000) -> list:
+        for base in range(first, last - 10 * n, 89):
+            socks = []
+            try:
+                for k in range(n):
+                    s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+                    socks.append(s)
+                    s.bind(("127.0.0.1", base + 10 * k if n > 1 else 0))
+                return socks
+            except OSError:
+                for s in socks:
+                    s.close()
+        raise RuntimeError(f"bench live: no {n} free UDP ports 10 apart in {first}..{last} for the GCS sinks")
+
     def run(self):
         while not self.stop.is_set():
-            try:
-                self.sock.recv(65535)
-                self.datagrams += 1
-            except TimeoutError:
-                pass
-            except OSError:
-                return
+            for key, _ in self.sel.select(0.2):
+                for _ in range(256):
+                    try:
+                        key.fileobj.recv(65535)
+                    except (BlockingIOError, InterruptedError):
+                        break
+                    except OSError:
+                        return
+                    self.datagrams += 1
 
     def close(self):
         self.stop.set()
         self.join(1.0)
-        self.sock.close()
+        self.sel.close()
+        for s in self.socks:
+            s.close()
 
 
 class _Probe:
@@ -214,8 +237,11 @@ class _AckProbe(threading.Thread):
 
 
 def _free_udp_base(n: int, first: int = 20000, last: int = 60000) -> int:
-    """A base port with 127.0.0.1:base + 10 i free for UDP for every i < n (the vehicles' MAVLink
-    ports; a shared machine's tests take some of 20000+): the first such from ``first``."""
+    """A base port with every vehicle port of n vehicles free for UDP (the MAVLink blocks' plan,
+    sitl.mavlink.blocks: base + 10 i up to 249 vehicles; a shared machine's tests take some of
+    20000+): the first such from ``first``."""
+    from sitl.mavlink.blocks import MavlinkPlan
+
     def free(port):
         with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
             try:
@@ -223,10 +249,11 @@ def _free_udp_base(n: int, first: int = 20000, last: int = 60000) -> int:
                 return True
             except OSError:
                 return False
-    for base in range(first, last - 10 * n, 97):
-        if all(free(base + 10 * i) for i in range(n)):
+    for base in range(first, last - 10 * min(n, 249) - 10, 97):
+        plan = MavlinkPlan(n_vehicles=n, base_port=base)
+        if all(free(plan.listen_port(i)) for i in range(n)):
             return base
-    raise RuntimeError(f"bench live: no {n} free UDP ports 10 apart in {first}..{last}")
+    raise RuntimeError(f"bench live: no free UDP ports for {n} vehicles' MAVLink in {first}..{last}")
 
 
 def _pct(values, q):
@@ -240,18 +267,20 @@ def run_size(n: int, args, router_ep: str) -> dict:
     from sitl.app.launcher import launch
     from sitl.scenario import default_scenario
 
-    sink = _Sink() if not args.no_mavlink else None
+    from sitl.constants import MAX_MAVLINK_FLEET, MAX_MAVLINK_VEHICLES
+    mav = not args.no_mavlink and n <= MAX_MAVLINK_FLEET
+    sink = _Sink(-(-n // MAX_MAVLINK_VEHICLES)) if mav else None
     if sink is not None:
         sink.start()
     probe = _Probe(router_ep)
-    base = _free_udp_base(n if n <= 249 and not args.no_mavlink else 0)
+    base = _free_udp_base(n if mav else 0)
     # a ring whose radius grows with the swarm (the same spacing), heights in three layers
     scn = default_scenario().replace(
         run={"id": f"bench{n}", "rate_hz": args.rate, "duration_s": args.duration, "speed": 1.0},
         bus={"zenoh": (router_ep,), "log": False},
         uavs={"count": n, "per_process": args.per_process, "radius_m": max(15000.0, 150.0 * n)},
         sonde={"enabled": False},
-        mavlink={"enabled": not args.no_mavlink and n <= 249, "gcs": f"127.0.0.1:{sink.port if sink else 14550}",
+        mavlink={"enabled": mav, "gcs": f"127.0.0.1:{sink.port if sink else 14550}",
                  "base_port": base, "tlog": False})
     started = threading.Event()
     # GCS commands to 8 vehicles spread over the swarm, 10 a second (MAVLink on)

@@ -32,9 +32,11 @@ class EndpointGroup:
         # the streams of a step framed together and each endpoint's packed into few datagrams
         # (batch.py); False: each frame by pymavlink in its own datagram (the bench's peer)
         self.batch_streams = bool(batch_streams)
-        ids = [ep.sysid for ep in self.endpoints]
+        # one system id per MAVLink network: a group may span blocks (sitl.mavlink.blocks), whose
+        # system ids repeat, each block on its own link id
+        ids = [(ep.link_id, ep.sysid) for ep in self.endpoints]
         if len(set(ids)) != len(ids):
-            raise ValueError(f"endpoints must have distinct system ids, got {ids}")
+            raise ValueError(f"endpoints must have distinct system ids per link id, got {ids}")
         self._timer = time.perf_counter if timer is None else timer
         self._round = 0
         self._sel = selectors.DefaultSelector()

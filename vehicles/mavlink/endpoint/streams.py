@@ -304,7 +304,7 @@ class StreamOutput:
                                 min(errors, tm.UINT16_MAX), 0, 0, 0, 0)
         elif msgid == AUTOPILOT_VERSION:
             mav.autopilot_version_send(CAPABILITIES, FLIGHT_SW_VERSION, 0, 0, 0, flight_custom_version(), [0] * 8,
-                                       [0] * 8, 0, 0, 0x534B_5946_0000_0000 | self.sysid)
+                                       [0] * 8, 0, 0, 0x534B_5946_0000_0000 | (self.instance + 1))  # unique in the fleet
         elif msgid == HOME_POSITION:
             if self.home is None:
                 return False

@@ -68,6 +68,7 @@ class VehicleEndpoint(SigningClock, DatagramInput, StreamOutput, RequestHandlers
         if autopilot is not None and not isinstance(autopilot, AutopilotPort):
             raise ValueError(f"autopilot must be an AutopilotPort or None, got {type(autopilot).__name__}")
         self.sysid, self.compid, self.kind = int(sysid), int(compid), kind
+        self.link_id = int(link_id) & 0xFF  # its MAVLink network's (sitl.mavlink.blocks: block - 1)
         self.autopilot = autopilot
         self._heartbeat_now = False
         self._mission_current_due = -math.inf
