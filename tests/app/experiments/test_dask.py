@@ -1,7 +1,8 @@
-"""Monte Carlo chunks on Dask (sitl.app.cluster): the `--dask` values, the sonde experiment on a
-LocalCluster against the same run in this process (result.json equal but for timings and
-provenance; the raw arrays equal bit for bit, over several chunks and for another chunking), a
-failed chunk and a dead worker named in one line, and no process or port left behind."""
+"""Monte Carlo chunks on Dask (sitl.app.cluster): the `--dask` values; the sonde and long-run
+experiments on a LocalCluster against the same runs in this process (result.json equal but for
+timings and provenance, which records the same scenario hash; the sonde's raw arrays equal bit
+for bit over several chunks, and to rounding for another chunking); a failed chunk and a dead
+worker named in one line; no process or port left behind."""
 from __future__ import annotations
 
 import json
@@ -21,7 +22,7 @@ needs_dask = pytest.mark.skipif(not cluster.available(), reason="dask and distri
 
 #: result.json keys that are measured times, or where and when the run was (not results)
 NOT_RESULTS = {"provenance", "wall_s", "wall_s_per_trial", "one_trial_wall_s", "timing_s", "bus_cost_implied_s",
-               "bus_cost_per_message_us"}
+               "bus_cost_per_message_us", "wall_s_pcrb"}
 
 
 def _results(path) -> dict:
@@ -194,3 +195,20 @@ def test_sonde_command_on_dask_writes_the_same_result(tmp_path, capsys):
     assert _children() <= before, "the command left a worker process behind"
     a, b = _results(tmp_path / "here" / "result.json"), _results(tmp_path / "dask" / "result.json")
     assert a["trials"] == 2 and a == b
+
+
+@needs_dask
+@pytest.mark.live
+@pytest.mark.slow
+def test_long_run_command_on_dask_writes_the_same_result(tmp_path):
+    common = ["experiment", "long-run", "--duration", "120", "--window", "120", "--settle", "60", "--trials", "2",
+              "--no-sonde", "--no-pcrb", "--seed", "3", "--quiet"]
+    before = _children()
+    assert main([*common, "--out", str(tmp_path / "here")]) == 0
+    assert main([*common, "--out", str(tmp_path / "dask"), "--dask", "local:2"]) == 0  # a trial per task
+    assert _children() <= before, "the command left a worker process behind"
+    a, b = _results(tmp_path / "here" / "result.json"), _results(tmp_path / "dask" / "result.json")
+    assert a["trials"] == 2 and a["windows"][0]["epochs"] > 0 and a == b
+    pa, pb = (json.loads((tmp_path / d / "result.json").read_text())["provenance"] for d in ("here", "dask"))
+    assert pa["scenario_sha256"] == pb["scenario_sha256"]  # how the trials ran is not the scenario
+    assert "--dask" in pb["command_line"]
