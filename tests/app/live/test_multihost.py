@@ -1,10 +1,10 @@
-"""A live run across two hosts made of network namespaces joined by a veth pair (the test's own
-hosts: 10.x.y.1 and 10.x.y.2 exist only inside them): host A runs the Zenoh router, host B the
-launcher and every worker, connected to A over TCP (`skyfuse demo --zenoh tcp/A:PORT`). The run
-completes and scores, and afterwards neither namespace holds a process or a listening socket.
-
-This is the bus crossing hosts, not yet workers spread over hosts (issue 22's `skyfuse worker`):
-the launcher supervises its workers through their stdin and stdout, so they run beside it.
+"""Live runs across hosts made of network namespaces joined by veth pairs (the test's own hosts:
+their 10.x.y.z addresses exist only inside them). Two hosts: the Zenoh router on A, the launcher
+and every worker on B (`skyfuse demo --zenoh tcp/A:PORT`). Three hosts: the router on A, the
+launcher and the ground station on B, the vehicle workers on C (`--host 'vehicles*=ip netns exec
+C'`, sitl/app/hosts.py). Each run completes and scores, the router sees sessions from exactly the
+hosts expected, and afterwards no host holds a process or a bound socket. Not here yet: a
+partition between hosts and its recovery, and the one-host vs three-host estimate comparison.
 Skips with the reason where namespaces cannot be made (not root, no `ip`, no permission)."""
 from __future__ import annotations
 
