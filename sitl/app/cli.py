@@ -25,6 +25,7 @@ from sitl.app.args import (  # noqa: F401  (the vocabulary of every subcommand's
     positive_float,
     positive_int,
 )
+from sitl.app.cluster import ClusterError
 from sitl.params import add_flags, optional, param, validate
 
 
@@ -279,6 +280,9 @@ def main(argv: list[str] | None = None) -> int:
     except UsageError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return EXIT_USAGE
+    except ClusterError as exc:  # a chunk failed on Dask, a worker died, no scheduler (sitl.app.cluster)
+        print(f"error: {exc}", file=sys.stderr)
+        return 1
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)
         return 130

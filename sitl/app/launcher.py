@@ -47,6 +47,7 @@ import dataclasses
 import json
 import math
 import os
+import shlex
 import signal
 import sys
 import threading
@@ -54,6 +55,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from sitl.app.args import UsageError, add_positional, options_of, repeatable
+from sitl.app.hosts import Placements, placement_check
 from sitl.params import add_flags, default_of, from_text, integer, number, optional, param, string, switch, validate
 from sitl.pacing import Pacer, perf_now, wall_now
 
@@ -120,6 +122,10 @@ class DemoOptions:
                                   doc="vehicle i listens on P + 10 i (UDP, and TCP with [mavlink] tcp), before --instance; "
                                       "beyond 249 vehicles, MAVLink block k's system id s on P + (k - 1) + 10 (s - 1)")
     no_mavlink: bool = param(False, check=switch(), doc="no MAVLink endpoints")
+    host: list | None = param(None, check=repeatable(placement_check()), metavar="WORKERS=COMMAND",
+                              doc="start the workers whose names match WORKERS (vehicles*, gs) on another host through "
+                                  "COMMAND, e.g. 'vehicles*=ssh -T hostB' (repeatable; sitl/app/hosts.py says what "
+                                  "that host needs: give --zenoh an address it reaches)")
     batch: bool = param(False, check=switch(),
                         doc="batch mode: the same components in one process, simulated time, in-memory bus")
     quiet: bool = param(False, check=switch(), doc="no status line")
@@ -226,10 +232,12 @@ def _main(scn, args: DemoOptions) -> int:
         raise UsageError(str(e)) from None
     try:
         if args.batch:
+            if getattr(args, "host", None):
+                raise UsageError("--host: a batch run (--batch) is one process on this host; drop one of them")
             return _batch(scn, out, args)
         if not args.quiet:
             print(start_text(scn, out), file=sys.stderr, flush=True)
-        report = launch(scn, out, quiet=args.quiet)
+        report = launch(scn, out, quiet=args.quiet, hosts=Placements(getattr(args, "host", None)))
         _write_html_report(out)
     finally:
         lock.release()
@@ -325,11 +333,12 @@ def _write_html_report(out: Path) -> None:
 
 def launch(scn, out: Path, *, quiet: bool = False, stop: threading.Event | None = None,
            status_stream=None, ready_timeout_s: float = READY_TIMEOUT_S, on_started=None,
-           warm_up: bool = True) -> dict:
+           warm_up: bool = True, hosts=None) -> dict:
     """Run the scenario live (module docstring); returns the report (also OUT/report.json).
 
     stop: set it to stop early (the CLI sets it on SIGINT / SIGTERM). on_started(supervisor):
-    called once the workers have started their run (tests use it to inject faults)."""
+    called once the workers have started their run (tests use it to inject faults). hosts: a
+    sitl.app.hosts.Placements -- the workers started on other hosts through a command."""
     from sitl.bus.buslog import BusRecorder
     from sitl.bus.zenoh_transport import ZenohTransport
     from sitl.app.provenance import write_json
@@ -407,12 +416,23 @@ def launch(scn, out: Path, *, quiet: bool = False, stop: threading.Event | None 
         spec_dir.mkdir(exist_ok=True)
         sup = Supervisor(out / "logs", grace_s=3.0)  # closing a Zenoh session + interpreter exit: ~1 s
         spec_paths = []
-        for spec in worker_specs(scn, endpoints, out, live_faults.overrides if live_faults is not None else None):
+        specs = worker_specs(scn, endpoints, out, live_faults.overrides if live_faults is not None else None)
+        if hosts and hosts.unmatched(s.name for s in specs):
+            report["error"] = (f"--host: no worker matches {', '.join(hosts.unmatched(s.name for s in specs))} "
+                               f"(the workers: {', '.join(s.name for s in specs)})")
+            return report
+        report["hosts"] = {}
+        for spec in specs:
             if spec.role == "ground_station":
                 spec = dataclasses.replace(spec, params=gs_spec_params(scn))
             path = spec.write(spec_dir / f"{spec.name}.json")
             spec_paths.append(path)
-            sup.add_module(spec.name, spec.module, str(path), restart=True)
+            through = hosts.command_for(spec.name) if hosts else ()
+            if through:  # on another host (sitl.app.hosts): the same line protocol over the command's stdio
+                report["hosts"][spec.name] = shlex.join(through)
+                sup.add(spec.name, [*through, sys.executable, "-m", spec.module, str(path)], restart=True)
+            else:
+                sup.add_module(spec.name, spec.module, str(path), restart=True)
         if live_faults is not None:  # a restarted worker starts with the bus rules of the moment
             fault_board.on_change = lambda: (run_json.write(), live_faults.respec(spec_paths))
         sup.start_all()

@@ -103,7 +103,7 @@ def scenario_record(scenario) -> dict:
 
 # option fields that say where and how a run reports, not what it simulates: left out of the
 # scenario a command records (its hash is the same wherever it writes)
-NOT_SCENARIO = frozenset({"out", "quiet", "json", "backend"})
+NOT_SCENARIO = frozenset({"out", "quiet", "json", "backend", "dask"})
 
 
 def options_scenario(options, cls=None) -> dict:

@@ -88,6 +88,7 @@ from pathlib import Path
 import numpy as np
 
 from sitl.app.args import OUTPUT_DIR
+from sitl.app.cluster import dask_option, trial_pool
 from sitl.params import add_flags, choice, integer, number, param, quiet_option, switch, validate
 from sitl.app.experiments.common import options_scenario, prepare_out, progress_printer, run_label, save_figure, write_result
 from sitl.app.report import write_report
@@ -363,20 +364,28 @@ def _overall(t, sc, sqrt_pcrb, settle_s, trials, win) -> dict:
 
 
 # ------------------------------------------------------------------ the experiment
+def _trial(geometry: str, duration_s: float, seed: int, sonde: bool, locator: str, progress=None) -> dict:
+    """Trial ``seed`` of the campaign (run_trial of its scenario), with its wall time."""
+    scn = scenario_for(geometry, duration_s, seed, sonde=sonde)
+    t0 = time.perf_counter()
+    out = run_trial(scn, locator, progress)
+    out["wall_s"] = time.perf_counter() - t0
+    return out
+
+
 def long_run(duration_s: float = 21600.0, seed: int = 1, trials: int = 4, geometry: str = "default",
              locator: str = "live", window_s: float = WINDOW_S, settle_s: float = SETTLE_S, with_pcrb: bool = True,
-             with_sonde: bool = True, progress=None) -> dict:
+             with_sonde: bool = True, progress=None, pool=None) -> dict:
     """Run the trials and score them; returns the result document (without figures) plus the
-    raw series under ``"_series"`` (not written to result.json)."""
+    raw series under ``"_series"`` (not written to result.json). ``pool``: a
+    sitl.app.cluster.TrialPool -- each trial (its own seed) a Dask task, the same runs in order."""
     wall0 = time.perf_counter()
-    runs = []
-    scn0 = None
-    for j in range(int(trials)):
-        scn = scenario_for(geometry, duration_s, seed + j, sonde=with_sonde and j == 0)
-        scn0 = scn0 or scn
-        t0 = time.perf_counter()
-        runs.append(run_trial(scn, locator, progress))
-        runs[-1]["wall_s"] = time.perf_counter() - t0
+    args = [(geometry, duration_s, seed + j, with_sonde and j == 0, locator) for j in range(int(trials))]
+    if pool is not None:
+        runs = pool.map(_trial, args, labels=[f"trial {j} (seed {seed + j})" for j in range(int(trials))])
+    else:
+        runs = [_trial(*a, progress=progress) for a in args]
+    scn0 = scenario_for(geometry, duration_s, seed, sonde=with_sonde)
     t0 = time.perf_counter()
     sq = pcrb_sqrt_trace(runs[0], scn0) if with_pcrb else None
     wall_pcrb = time.perf_counter() - t0
@@ -509,6 +518,7 @@ class LongRunOptions:
                          doc="live: the ground station's locator; inflate: its old one (for comparison)")
     no_pcrb: bool = param(False, check=switch(), doc="skip the bound: judge each window against 2x the first window's RMSE")
     no_sonde: bool = param(False, check=switch(), doc="no sonde in trial 0 (faster)")
+    dask: str | None = dask_option()
     quiet: bool = quiet_option()
 
     __post_init__ = validate
@@ -529,8 +539,9 @@ def run(args) -> dict:
         raise UsageError(f"--settle: less than --window ({args.window:g} s), got {args.settle:g}")
     out = prepare_out(Path(args.out))
     prog = progress_printer(getattr(args, "quiet", False), "long-run")
-    doc = long_run(args.duration, args.seed, args.trials, args.geometry, args.locator, args.window, args.settle,
-                   not args.no_pcrb, not args.no_sonde, prog)
+    with trial_pool(getattr(args, "dask", None), progress=prog) as pool:
+        doc = long_run(args.duration, args.seed, args.trials, args.geometry, args.locator, args.window, args.settle,
+                       not args.no_pcrb, not args.no_sonde, prog, pool=pool)
     fig = plot(out, doc)
     doc.pop("_series")
     doc["figures"] = [fig.name]

@@ -358,11 +358,17 @@ def _merge(parts: list[dict]) -> dict:
     return out
 
 
-def run(scn: SondeScenario, trials: int, seed: int, *, backend=None, progress=None, batch: int = 10) -> dict:
-    """All trials, in batches of ``batch`` trials (the bus and the trackers carry a batch)."""
+def run(scn: SondeScenario, trials: int, seed: int, *, backend=None, progress=None, batch: int = 10,
+        pool=None) -> dict:
+    """All trials, in batches of ``batch`` trials (the bus and the trackers carry a batch).
+    ``pool``: a sitl.app.cluster.TrialPool -- the same batches as Dask tasks, merged in order
+    (each batch computed as here: the same result)."""
+    batches = [list(range(s, min(trials, s + batch))) for s in range(0, trials, batch)]
+    if pool is not None:
+        return _merge(pool.map(run_trials, [(scn, seed, idx) for idx in batches], kwargs={"backend": backend},
+                               labels=[f"trials {i[0]}-{i[-1]}" for i in batches]))
     parts = []
-    for s in range(0, trials, batch):
-        idx = list(range(s, min(trials, s + batch)))
+    for idx in batches:
         prog = (lambda m, _i=idx, **kw: progress(f"trials {_i[0]}-{_i[-1]}: {m}", **kw)) if progress else None
         parts.append(run_trials(scn, seed, idx, backend=backend, progress=prog))
     return _merge(parts)

@@ -8,6 +8,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from sitl.app.args import OUTPUT_DIR
+from sitl.app.cluster import dask_option, trial_pool
 from sitl.app.experiments.common import prepare_out, progress_printer, strict, write_result
 from sitl.app.report import write_report
 from sitl.app.experiments.sonde.report import plot, result_document, summary_table
@@ -76,6 +77,7 @@ class SondeOptions:
     az_step_deg: float | None = param(None, check=optional(number()), metavar="D", doc="radar azimuth step, degrees")
     az_step_at: list | None = param(None, check=optional(several(number(0), 2)), metavar=("A", "B"),
                                     doc="the step's start and end, s since launch", shown=_scn("az_step_s"))
+    dask: str | None = dask_option()
     quiet: bool = quiet_option()
 
     __post_init__ = validate
@@ -117,6 +119,9 @@ def main(args) -> int:
     progress = progress_printer(args.quiet, "sonde")
     backend = None if args.backend == "auto" else args.backend
     n_seeds = getattr(args, "seeds", None)
+    dask = getattr(args, "dask", None)
+    if n_seeds is not None and dask is not None:
+        raise UsageError("--dask: the seed study (--seeds) runs as one batch in this process; drop one of them")
     if n_seeds is not None:  # the seed study: trial 0 of seeds --seed (default 1) .. + n - 1
         first = FIRST_SEED if args.seed is None else args.seed
         doc = strict(seed_study(scn, range(first, first + n_seeds), backend=backend, progress=progress))
@@ -130,7 +135,8 @@ def main(args) -> int:
     if args.seed is None:
         args.seed = SEED
     wall0 = time.perf_counter()
-    raw = run(scn, args.trials, args.seed, backend=backend, progress=progress)
+    with trial_pool(dask, progress=progress) as pool:
+        raw = run(scn, args.trials, args.seed, backend=backend, progress=progress, pool=pool)
     sc = score(raw, scn)
     wall = time.perf_counter() - wall0
     one = raw["wall_s"] if args.trials == 1 else None
