@@ -1,12 +1,14 @@
 """`skyfuse export geojson` / `kml`: the GeoJSON meets the rules of RFC 7946 checked here (no
 JSON Schema validator is installed: the checks are written out), positions in lon, lat, h
 order with the synthetic log's closed-form values; the KML parses with xml.etree and holds the
-expected placemarks, every geometry at absolute altitude."""
+expected placemarks, every geometry at absolute altitude, and validates against the OGC KML 2.2
+XML Schema (tests/data/kml, a copy of schemas.opengis.net's) with lxml (libxml2's validator)."""
 from __future__ import annotations
 
 import json
 import math
 import xml.etree.ElementTree as ET
+from pathlib import Path
 
 import numpy as np
 import pymap3d
@@ -164,3 +166,26 @@ def test_kml_parses_and_holds_the_expected_placemarks(synthetic_run, capsys):
     ring = next(pm for pm in doc.iter(f"{KML}Placemark") if pm.findtext(f"{KML}name") == "beacon b1 95 % ellipse")
     pts = ring.find(f".//{KML}outerBoundaryIs/{KML}LinearRing/{KML}coordinates").text.split()
     assert pts[0] == pts[-1] and len(pts) >= 4
+
+
+KML_XSD = Path(__file__).resolve().parents[2] / "data" / "kml" / "ogckml22.xsd"
+
+
+def test_kml_validates_against_the_ogc_kml_2_2_schema(synthetic_run, capsys):
+    etree = pytest.importorskip("lxml.etree", reason="lxml (the XML Schema validator) is not installed")
+    schema = etree.XMLSchema(etree.parse(str(KML_XSD)))  # imports atom-author-link.xsd and xAL.xsd beside it
+    out = synthetic_run.path.parent / "t.kml"
+    assert main(["export", "kml", str(synthetic_run.path), "-o", str(out)]) == 0
+    doc = etree.parse(str(out))
+    assert schema.validate(doc), "\n".join(str(e) for e in schema.error_log)
+    # the validator does reject what KML 2.2 forbids: an altitudeMode outside its enumeration, and
+    # a Placemark's name after its geometry (kml:FeatureType's sequence puts name first)
+    bad = etree.parse(str(out))
+    bad.find(f".//{KML}altitudeMode").text = "aboveEllipsoid"
+    assert not schema.validate(bad)
+    bad = etree.parse(str(out))
+    pm = bad.find(f".//{KML}Placemark")
+    name = pm.find(f"{KML}name")
+    pm.remove(name)
+    pm.append(name)
+    assert not schema.validate(bad)
