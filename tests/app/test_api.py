@@ -116,3 +116,37 @@ def test_the_readme_example_runs(tmp_path, monkeypatch, capsys):
     assert printed[0] == "BeaconResult 1 2 3"
     assert float(printed[1]) == json.loads((r.out / "result.json").read_text())["cases"]["constellation"]["rmse_m"]
     assert Path(r.out).parent == tmp_path and env["fig"].axes
+
+
+STUDIES = {  # small studies: (experiment, options, the study's result type, the file the command line writes)
+    "sonde-seeds": ("sonde", {"seeds": 2, "seed": 5, "duration": 30}, "SondeSeedStudyResult", "result.json"),
+    "iono-tropo-ordering": ("iono-tropo", {"study": "ordering", "seeds": 2, "trials": 1, "duration": 3, "seed": 3},
+                            "IonoTropoOrderingStudyResult", "ordering_study.json"),
+    "iono-tropo-adaptive-q": ("iono-tropo", {"study": "adaptive-q", "trials": 1, "duration": 3, "seed": 3},
+                              "IonoTropoAdaptiveQStudyResult", "adaptive_q_study.json"),
+}
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("study", list(STUDIES))
+def test_the_studies_through_the_api_are_the_command_lines_result(tmp_path, study):
+    """`--seeds` / `--study` runs through run(): the typed study result holds the same figures as
+    the file the command line writes for the same flags, its typed fields are that file's entries,
+    and it plots its figure."""
+    name, options, type_name, doc_file = STUDIES[study]
+    r = experiments.run(name, out=tmp_path / "api", **options)
+    assert type(r) is getattr(experiments, type_name) and type(r) in experiments.STUDY_TYPES.values()
+    assert r.experiment == name and (r.out / doc_file).is_file()
+    argv = experiments.command_line(name, tmp_path / "cli", **options)
+    assert main(argv) == 0
+    doc = json.loads((tmp_path / "cli" / doc_file).read_text())
+    assert doc["study"] == r.document["study"] and _stable(r.document) == _stable(doc)
+    assert type(r).HEADLINE and all(_stable(getattr(r, k)) == _stable(doc[k]) for k in type(r).HEADLINE)
+    assert r.schema == doc["schema"] and r.provenance.scenario_sha256 == doc["provenance"]["scenario_sha256"]
+    assert r.provenance.command_line[:3] == ["skyfuse", "experiment", name]
+    assert [f.name for f in r.figures] == doc["figures"] and all(f.is_file() and f.suffix == ".png" for f in r.figures)
+    import matplotlib.pyplot as plt
+    fig = r.plot()
+    assert len([a for a in fig.axes if a.images]) == len(r.figures) >= 1
+    plt.close(fig)
+    assert type(experiments.ExperimentResult.load(tmp_path / "cli" / doc_file)) is type(r)

@@ -4,6 +4,8 @@
     r = experiments.run("beacon", uavs=3, trials=20, seed=1)
     r.reproduces_paper, r.cases["constellation"]["rmse_m"], r.out / "result.json"
     r.plot()
+    s = experiments.run("sonde", seeds=12, duration=3800)        # a study: SondeSeedStudyResult
+    s.checks, s.per_seed[0]["fused_to_relay_only"]
 
 ``run(name, **options)`` runs experiment ``name`` (one of ``NAMES``: the `skyfuse experiment`
 subcommands) exactly as the command line does -- the keyword arguments are its flags
@@ -14,6 +16,12 @@ of result.json under ``document`` and its provenance (the equivalent command lin
 The files (result.json, PNG figures) are written to ``out`` (default: a new temporary
 directory, kept). ``progress=True`` shows the run's progress on stderr and its summary table on
 stdout (default: quiet; the table is kept as ``summary``).
+
+The studies are runs too: ``run("sonde", seeds=N)`` (`--seeds N`: trial 0 of N seeds) returns a
+``SondeSeedStudyResult``, ``run("iono-tropo", study="ordering", seeds=N)`` and
+``run("iono-tropo", study="adaptive-q")`` an ``IonoTropoOrderingStudyResult`` /
+``IonoTropoAdaptiveQStudyResult``, each read from the file the command line writes for it
+(result.json, ordering_study.json, adaptive_q_study.json; ``STUDY_FILES``).
 
 This package's modules are the experiments themselves (beacon/, sonde/, integrity/,
 ekf_vs_ukf, iono_tropo, network_faults, long_run; common: what they share); importing the
@@ -77,7 +85,8 @@ class ExperimentResult:
         """The result of a run from its result.json (written by the command line or by run())."""
         path = Path(result_json)
         doc = json.loads(path.read_text(encoding="utf-8"))
-        return RESULT_TYPES.get(doc.get("experiment"), ExperimentResult).from_document(doc, path.parent, summary)
+        cls = STUDY_TYPES.get((doc.get("experiment"), doc.get("study"))) or RESULT_TYPES.get(doc.get("experiment"))
+        return (cls or ExperimentResult).from_document(doc, path.parent, summary)
 
     def to_dict(self) -> dict:
         """The result document (result.json's content)."""
@@ -133,6 +142,26 @@ FaultsResult = _headline(
 LongRunResult = _headline(
     "LongRunResult", "`long-run`: the default scenario's beacon RMSE per window against its PCRB, ANEES.",
     duration_s=float, windows=list, overall=dict, all_windows_pass=bool)
+
+SondeSeedStudyResult = _headline(
+    "SondeSeedStudyResult", "`sonde --seeds N`: trial 0 of N seeds, fused vs relay-only vs radar-only per seed "
+    "and in each outage, and the study's checks.",
+    seeds=list, per_seed=list, overall=dict, during_gnss_outage=dict, during_radar_loss=dict, checks=dict,
+    fraction_fused_below_relay_only=float, worst_ratio_to_relay_only=dict)
+IonoTropoOrderingStudyResult = _headline(
+    "IonoTropoOrderingStudyResult", "`iono-tropo --study ordering`: time to 1 m of the three variants per seed.",
+    seeds=list, trials_per_seed=int, per_seed=list, holds_for=int, of=int, pooled_median_time_to_1m_s=dict,
+    pooled_ordering_holds=bool, paired_fraction=dict)
+IonoTropoAdaptiveQStudyResult = _headline(
+    "IonoTropoAdaptiveQStudyResult", "`iono-tropo --study adaptive-q`: eq 7's adaptive process noise on and off, "
+    "with the clock modelled right and mismodelled.",
+    clock_scale=float, rows=list)
+
+#: (experiment, its document's ``study``) -> the study's result type
+STUDY_TYPES = {("sonde", "seeds"): SondeSeedStudyResult, ("iono-tropo", "ordering"): IonoTropoOrderingStudyResult,
+               ("iono-tropo", "adaptive-q"): IonoTropoAdaptiveQStudyResult}
+#: (experiment, study) -> the file the command line writes its document to (otherwise result.json)
+STUDY_FILES = {("iono-tropo", "ordering"): "ordering_study.json", ("iono-tropo", "adaptive-q"): "adaptive_q_study.json"}
 
 RESULT_TYPES = {"ekf-vs-ukf": EkfVsUkfResult, "iono-tropo": IonoTropoResult, "sonde": SondeResult,
                 "beacon": BeaconResult, "integrity": IntegrityResult, "faults": FaultsResult,
@@ -202,8 +231,9 @@ def run(name: str, *, out: str | Path | None = None, progress: bool = False, **o
         rc = cli._dispatch(args)
     if rc not in (0, None):
         raise RuntimeError(f"experiment {name} ended with status {rc} (see {out})")
-    return ExperimentResult.load(Path(out) / "result.json", summary=printed.getvalue())
+    doc_file = STUDY_FILES.get((name, getattr(args, "study", None)), "result.json")
+    return ExperimentResult.load(Path(out) / doc_file, summary=printed.getvalue())
 
 
-__all__ = ["NAMES", "ExperimentResult", "Provenance", "RESULT_TYPES", "command_line", "run", *(
-    c.__name__ for c in RESULT_TYPES.values())]
+__all__ = ["NAMES", "ExperimentResult", "Provenance", "RESULT_TYPES", "STUDY_FILES", "STUDY_TYPES", "command_line",
+           "run", *(c.__name__ for c in (*RESULT_TYPES.values(), *STUDY_TYPES.values()))]

@@ -419,6 +419,7 @@ def _study(args, scn, out: Path, backend) -> int:
               f"first in {pf['variant2_before_variant1']:.0%}, variant 3 before 2 in "
               f"{pf['variant3_before_variant2']:.0%} of trials")
     doc = {"experiment": "iono-tropo", "study": args.study, "schema": None, "scenario": dataclasses.asdict(scn), **res}
+    doc["figures"] = [fig.name]
     write_result(out / name, doc, seed=seeds if args.study == "ordering" else args.seed, scenario=scn)
     print(f"wrote {out / name}, {fig}")
     return 0
